@@ -1,0 +1,23 @@
+"""jaximu: a differentiable, batched IMU propagation engine in JAX.
+
+Conventions (see README): Hamilton ``[w, x, y, z]`` quaternion of ``R_WB``; world z up,
+``g_W = [0, 0, -g]``; specific-force accelerometer; error state ``[dθ, dp, dv, db_g, db_a]``
+with the rotation error on the right; Kalibr noise densities.
+"""
+
+from jaximu import so3 as so3
+from jaximu.errorstate import discrete_process_noise as discrete_process_noise
+from jaximu.errorstate import propagate_covariance as propagate_covariance
+from jaximu.errorstate import propagate_covariance_final as propagate_covariance_final
+from jaximu.errorstate import step_jacobians as step_jacobians
+from jaximu.integrators import ATTITUDES as ATTITUDES
+from jaximu.integrators import SCHEMES as SCHEMES
+from jaximu.noise import ImuNoise as ImuNoise
+from jaximu.propagate import propagate as propagate
+from jaximu.propagate import propagate_final as propagate_final
+from jaximu.state import ImuBias as ImuBias
+from jaximu.state import NavState as NavState
+from jaximu.state import boxminus as boxminus
+from jaximu.state import boxplus as boxplus
+
+__version__ = "0.1.0"

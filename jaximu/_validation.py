@@ -1,0 +1,143 @@
+"""Checks at the API boundary: clear ``ValueError``s that name the problem.
+
+Shape checks are static and always run. Value checks (NaN, dt ≤ 0, non-unit quaternion)
+need concrete numbers, so they run when the public function is called eagerly and are
+skipped when its inputs are tracers (inside a user's ``jit``, ``vmap`` or ``grad``); the
+user's data is never altered, only read.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu.state import NavState
+
+
+def is_concrete(*trees) -> bool:
+    """True when no leaf of ``trees`` is a tracer."""
+    leaves = jax.tree_util.tree_leaves(trees)
+    return not any(isinstance(x, jax.core.Tracer) for x in leaves)
+
+
+def _first_bad(mask: np.ndarray) -> str:
+    idx = np.argwhere(mask)[0]
+    return "[" + ", ".join(str(int(i)) for i in idx) + "]"
+
+
+def float_dtype(*xs):
+    """The floating dtype of the computation: the promotion of the inputs' dtypes."""
+    dt = jnp.result_type(*xs)
+    if not jnp.issubdtype(dt, jnp.floating):
+        dt = jnp.result_type(dt, jnp.float32)
+    return dt
+
+
+def unit_tolerance(dtype) -> float:
+    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-5
+
+
+def check_vector(name: str, x, dim: int = 3, time_axis: bool = True):
+    """Shape check for ``(..., T, dim)`` (or ``(..., dim)``)."""
+    nd = 2 if time_axis else 1
+    want = f"(..., T, {dim})" if time_axis else f"(..., {dim})"
+    if x.ndim < nd or x.shape[-1] != dim:
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def check_finite(name: str, x):
+    if is_concrete(x):
+        arr = np.asarray(x)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise ValueError(
+                f"{name} contains non-finite values (NaN or inf), first at index {_first_bad(bad)}"
+            )
+
+
+def check_imu(gyro, accel, dt, dtype):
+    """Validate measurements and steps; returns ``(gyro, accel, dt, T)`` as ``dtype`` arrays.
+
+    ``gyro``, ``accel``: ``(..., T, 3)``; ``dt``: scalar or ``(..., T)``, all ``> 0``.
+    """
+    gyro = jnp.asarray(gyro, dtype)
+    accel = jnp.asarray(accel, dtype)
+    check_vector("gyro", gyro)
+    check_vector("accel", accel)
+    T = gyro.shape[-2]
+    if accel.shape[-2] != T:
+        raise ValueError(
+            f"gyro and accel have different numbers of samples: {gyro.shape[-2]} and {accel.shape[-2]}"
+        )
+    if T < 1:
+        raise ValueError("gyro and accel hold no samples (T = 0)")
+    dt_in = dt
+    dt = jnp.asarray(dt, dtype)
+    if dt.ndim > 0 and dt.shape[-1] != T:
+        raise ValueError(
+            f"dt must be a scalar or have shape (..., T) with T = {T} samples, got {tuple(dt.shape)}"
+        )
+    check_finite("gyro", gyro)
+    check_finite("accel", accel)
+    if is_concrete(dt_in):
+        arr = np.asarray(dt_in)
+        bad = ~(np.isfinite(arr) & (arr > 0))
+        if bad.any():
+            i = tuple(np.argwhere(bad)[0]) if arr.ndim else ()
+            where = _first_bad(bad) if arr.ndim else ""
+            raise ValueError(f"dt must be positive and finite; dt{where} = {arr[i]}")
+    return gyro, accel, dt, T
+
+
+def check_state(state: NavState, dtype) -> NavState:
+    """Shapes, finiteness and unit norm of ``state.q`` (never normalised for the caller)."""
+    if not isinstance(state, NavState):
+        raise ValueError(f"state must be a jaximu.NavState, got {type(state).__name__}")
+    fields = {"q": 4, "p": 3, "v": 3, "b_g": 3, "b_a": 3}
+    out = {}
+    for name, dim in fields.items():
+        x = jnp.asarray(getattr(state, name), dtype)
+        if x.ndim < 1 or x.shape[-1] != dim:
+            raise ValueError(f"state.{name} must have shape (..., {dim}), got {tuple(x.shape)}")
+        check_finite(f"state.{name}", x)
+        out[name] = x
+    try:
+        jnp.broadcast_shapes(*(x.shape[:-1] for x in out.values()))
+    except ValueError:
+        raise ValueError(
+            "state fields have incompatible batch shapes: "
+            + ", ".join(f"{k}{tuple(v.shape)}" for k, v in out.items())
+        ) from None
+    if is_concrete(out["q"]):
+        norm_err = np.abs(np.linalg.norm(np.asarray(out["q"]), axis=-1) - 1.0)
+        tol = unit_tolerance(dtype)
+        if np.any(norm_err > tol):
+            raise ValueError(
+                f"state.q is not a unit quaternion (| |q| - 1 | = {norm_err.max():.3g} > {tol:g}"
+                f" at batch index {_first_bad(norm_err > tol)}); normalise it first, "
+                "e.g. with jaximu.so3.quat_normalize"
+            )
+    return NavState(**out)
+
+
+def gravity_vector(gravity, dtype):
+    """``g_W`` from a magnitude ``g`` (→ ``[0, 0, -g]``) or a ``(..., 3)`` vector."""
+    g = jnp.asarray(gravity, dtype)
+    if g.ndim == 0:
+        g = jnp.stack([jnp.zeros_like(g), jnp.zeros_like(g), -g])
+    elif g.shape[-1] != 3:
+        raise ValueError(
+            f"gravity must be a magnitude (scalar, g_W = [0, 0, -g]) or a vector (..., 3), got shape {tuple(g.shape)}"
+        )
+    check_finite("gravity", g)
+    return g
+
+
+def batch_shape(*shapes):
+    try:
+        return jnp.broadcast_shapes(*shapes)
+    except ValueError:
+        raise ValueError(
+            "batch shapes of the inputs do not broadcast: " + ", ".join(str(tuple(s)) for s in shapes)
+        ) from None

@@ -1,0 +1,279 @@
+"""One propagation step for each scheme and attitude form.
+
+Continuous model (DESIGN.md): ``Ṙ = R [ω]x``, ``v̇ = R f + g_W``, ``ṗ = v``, with the
+bias-corrected rate ``ω = w_m - b_g`` and specific force ``f = a_m - b_a``; the biases are
+constant in the mean (their random walk has zero mean).
+
+Sample ``k`` is held over ``[t_k, t_k + dt_k)``. Each scheme is written as a few *stages*:
+rotation vectors ``φ_s`` at which the attitude is evaluated, the specific force ``f_s``
+there, and weights so that
+
+    R⁺ = R ⊞ φ_end,   v⁺ = v + Σ_s wv_s a_s,   p⁺ = p + v dt + Σ_s wp_s a_s,
+    a_s = (R ⊞ φ_s) f_s + g_W.
+
+=========  ===============================================  ==========================
+scheme     stages                                           order (inputs linear in t)
+=========  ===============================================  ==========================
+euler      zero-order hold on sample k (OpenVINS discrete,  1
+           GTSAM's Forster recursion): φ = ω_k dt
+midpoint   VINS-Mono: φ = ½(ω_k + ω_k+1) dt, accelerations  2
+           at both ends averaged
+rk4        ω, f linear between samples k and k+1; φ(τ) is   4
+           the two-term Magnus expansion (exact Ω₁, Ω₂ for
+           a linear rate, "coning" term τ³/(12dt) ω_k×ω_k+1);
+           Simpson/RK4 weights on the accelerations
+=========  ===============================================  ==========================
+
+The attitude form decides what ``R ⊞ φ`` means:
+
+* ``"quaternion"``: exact exponential ``q ⊗ Exp(φ)`` (the Θ(Δt) of DESIGN.md);
+* ``"quaternion_first_order"``: ``normalize(q ⊗ [1, φ/2])``; an angle error θ³/12 per
+  step, so attitude is at most second order whatever the scheme;
+* ``"matrix"``: ``R Exp(φ)`` on a rotation matrix carried through the scan (no
+  re-orthonormalisation, so its drift from SO(3) can be studied);
+* ``"euler_angles"``: ZYX angles, ``χ ← χ + E(χ) φ`` (with ``"rk4"``, classical RK4 on
+  ``χ̇ = E(χ) ω(t)``). Singular at pitch ±90°.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaximu import so3
+from jaximu.state import NavState
+
+__all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "get_attitude", "step", "nav_step"]
+
+SCHEMES = ("euler", "midpoint", "rk4")
+ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
+ORDER = {"euler": 1, "midpoint": 2, "rk4": 4}
+"""Convergence order of each scheme when the inputs are linear between samples."""
+
+# cos(pitch) below which the Euler-angle form is declared singular (0.08° from ±90°).
+GIMBAL_LOCK_COS = 1e-3
+
+
+def _matvec(M, v):
+    return jnp.einsum("...ij,...j->...i", M, v)
+
+
+@dataclasses.dataclass(frozen=True)
+class Attitude:
+    """How the orientation is carried through a scan, and how it is advanced."""
+
+    name: str
+    from_quat: Callable
+    to_quat: Callable
+    to_matrix: Callable
+    rotate: Callable
+    advance: Callable
+    exact_exponential: bool
+
+
+_ATTITUDE_FORMS = {
+    "quaternion": Attitude(
+        "quaternion",
+        from_quat=lambda q: q,
+        to_quat=lambda q: q,
+        to_matrix=so3.quat_to_matrix,
+        rotate=so3.quat_rotate,
+        advance=lambda q, phi: so3.quat_mul(q, so3.exp(phi)),
+        exact_exponential=True,
+    ),
+    "quaternion_first_order": Attitude(
+        "quaternion_first_order",
+        from_quat=lambda q: q,
+        to_quat=lambda q: q,
+        to_matrix=so3.quat_to_matrix,
+        rotate=so3.quat_rotate,
+        advance=so3.quat_first_order_update,
+        exact_exponential=False,
+    ),
+    "matrix": Attitude(
+        "matrix",
+        from_quat=so3.quat_to_matrix,
+        to_quat=so3.matrix_to_quat,
+        to_matrix=lambda R: R,
+        rotate=_matvec,
+        advance=lambda R, phi: R @ so3.exp_matrix(phi),
+        exact_exponential=True,
+    ),
+    "euler_angles": Attitude(
+        "euler_angles",
+        from_quat=so3.quat_to_euler_zyx,
+        to_quat=so3.euler_zyx_to_quat,
+        to_matrix=so3.euler_zyx_to_matrix,
+        rotate=lambda chi, v: _matvec(so3.euler_zyx_to_matrix(chi), v),
+        advance=lambda chi, phi: chi + _matvec(so3.euler_rate_matrix(chi), phi),
+        exact_exponential=False,
+    ),
+}
+
+
+def get_attitude(name: str) -> Attitude:
+    """The attitude form called ``name`` (one of :data:`ATTITUDES`)."""
+    try:
+        return _ATTITUDE_FORMS[name]
+    except KeyError:
+        raise ValueError(f"unknown attitude form {name!r}; choose one of {ATTITUDES}") from None
+
+
+def check_scheme(scheme: str) -> str:
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown scheme {scheme!r}; choose one of {SCHEMES}")
+    return scheme
+
+
+class Stage(NamedTuple):
+    """One evaluation point of a scheme inside the step (see the module docstring).
+
+    ``phi`` is ``None`` at the start of the step (no rotation); ``dphi_dbg`` is the
+    derivative of ``phi`` with respect to the gyro bias (``None`` when zero).
+    """
+
+    phi: jax.Array | None
+    dphi_dbg: jax.Array | None
+    f: jax.Array
+    wv: jax.Array
+    wp: jax.Array
+
+
+def magnus(omega0, omega1, tau, h):
+    """Two-term Magnus rotation vector after ``tau`` for ``ω`` linear from ω0 to ω1 over ``h``.
+
+    ``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` and its derivative with respect
+    to a common bias ``b`` (``ω_i = w_i - b``): ``-τ I + τ³/(12h) [ω1 - ω0]x``.
+    """
+    tau_ = tau[..., None]
+    h_ = h[..., None]
+    phi = tau_ * omega0 + tau_ * tau_ / (2 * h_) * (omega1 - omega0)
+    phi = phi + tau_**3 / (12 * h_) * jnp.cross(omega0, omega1)
+    eye = jnp.eye(3, dtype=omega0.dtype)
+    dphi = -tau[..., None, None] * eye + (tau**3 / (12 * h))[..., None, None] * so3.skew(
+        omega1 - omega0
+    )
+    return phi, dphi
+
+
+def stages(scheme, omega0, f0, omega1, f1, h):
+    """The stages of ``scheme`` and the final rotation vector (and its bias derivative).
+
+    Args:
+        omega0, f0: ``(..., 3)`` bias-corrected rate and specific force of sample k.
+        omega1, f1: the same for sample k+1 (unused by ``"euler"``).
+        h: ``(...,)`` step [s].
+
+    Returns:
+        ``(list[Stage], phi_end, dphi_end_dbg)``.
+    """
+    eye = jnp.eye(3, dtype=omega0.dtype)
+    if scheme == "euler":
+        phi = h[..., None] * omega0
+        return [Stage(None, None, f0, h, 0.5 * h * h)], phi, -h[..., None, None] * eye
+    if scheme == "midpoint":
+        phi = h[..., None] * 0.5 * (omega0 + omega1)
+        dphi = -h[..., None, None] * eye
+        return (
+            [Stage(None, None, f0, 0.5 * h, 0.25 * h * h), Stage(phi, dphi, f1, 0.5 * h, 0.25 * h * h)],
+            phi,
+            dphi,
+        )
+    if scheme == "rk4":
+        phi_half, dphi_half = magnus(omega0, omega1, 0.5 * h, h)
+        phi_end, dphi_end = magnus(omega0, omega1, h, h)
+        zero = jnp.zeros_like(h)
+        return (
+            [
+                Stage(None, None, f0, h / 6, h * h / 6),
+                Stage(phi_half, dphi_half, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
+                Stage(phi_end, dphi_end, f1, h / 6, zero),
+            ],
+            phi_end,
+            dphi_end,
+        )
+    raise ValueError(f"unknown scheme {scheme!r}; choose one of {SCHEMES}")
+
+
+def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):
+    """Classical RK4 on (χ, p, v) with ω, f linear inside the step."""
+    h_ = h[..., None]
+
+    def deriv(chi_s, omega, f):
+        R = so3.euler_zyx_to_matrix(chi_s)
+        return _matvec(so3.euler_rate_matrix(chi_s), omega), _matvec(R, f) + g
+
+    omega_m, f_m = 0.5 * (omega0 + omega1), 0.5 * (f0 + f1)
+    k1, a1 = deriv(chi, omega0, f0)
+    k2, a2 = deriv(chi + 0.5 * h_ * k1, omega_m, f_m)
+    k3, a3 = deriv(chi + 0.5 * h_ * k2, omega_m, f_m)
+    k4, a4 = deriv(chi + h_ * k3, omega1, f1)
+    chi1 = chi + h_ / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    v1 = v + h_ / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+    p1 = p + h_ * v + h_ * h_ / 6 * (a1 + a2 + a3)
+    return chi1, p1, v1
+
+
+def step(scheme, attitude: Attitude, x, p, v, omega0, f0, omega1, f1, h, g):
+    """Advance ``(x, p, v)`` over one sample.
+
+    Args:
+        scheme: one of :data:`SCHEMES` (static).
+        attitude: the attitude form (static); ``x`` is in its representation.
+        x: attitude in the form's representation (``(..., 4)``, ``(..., 3, 3)`` or ``(..., 3)``).
+        p, v: ``(..., 3)`` position and velocity in W.
+        omega0, f0: ``(..., 3)`` bias-corrected body rate [rad/s] and specific force [m/s²]
+            of sample k.
+        omega1, f1: the same for sample k+1 (ignored by ``"euler"``).
+        h: ``(...,)`` step length [s].
+        g: ``(..., 3)`` gravity in W [m/s²].
+
+    Returns:
+        ``(x⁺, p⁺, v⁺)``.
+    """
+    if scheme == "rk4" and attitude.name == "euler_angles":
+        return _rk4_euler_angles(x, p, v, omega0, f0, omega1, f1, h, g)
+    stage_list, phi_end, _ = stages(scheme, omega0, f0, omega1, f1, h)
+    x_end = attitude.advance(x, phi_end)
+    h_ = h[..., None]
+    v1, p1 = v, p + h_ * v
+    for s in stage_list:
+        if s.phi is None:
+            xs = x
+        elif s.phi is phi_end:
+            xs = x_end
+        else:
+            xs = attitude.advance(x, s.phi)
+        a = attitude.rotate(xs, s.f) + g
+        v1 = v1 + s.wv[..., None] * a
+        p1 = p1 + s.wp[..., None] * a
+    return x_end, p1, v1
+
+
+def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, noise=None):
+    """One step on a :class:`NavState` (quaternion in, quaternion out), with optional noise.
+
+    Args:
+        w0, a0, w1, a1: ``(..., 3)`` raw gyro/accel samples k and k+1.
+        h: ``(...,)`` step [s]; g: ``(..., 3)`` gravity in W.
+        noise: optional ``(..., 12)`` step noise ``[n_g, n_a, n_wg, n_wa]`` held over the step
+            (see :mod:`jaximu.noise`): ``ω = w - b_g - n_g``, ``f = a - b_a - n_a``,
+            ``b⁺ = b + n_w h``.
+
+    This is the function whose Jacobians (through ``boxplus``/``boxminus``) are ``Φ`` and ``G``.
+    """
+    b_g, b_a = state.b_g, state.b_a
+    n_g = n_a = 0.0
+    if noise is not None:
+        n_g, n_a = noise[..., 0:3], noise[..., 3:6]
+    omega0, omega1 = w0 - b_g - n_g, w1 - b_g - n_g
+    f0, f1 = a0 - b_a - n_a, a1 - b_a - n_a
+    x, p, v = step(scheme, attitude, attitude.from_quat(state.q), state.p, state.v,
+                   omega0, f0, omega1, f1, h, g)
+    if noise is not None:
+        b_g = b_g + h[..., None] * noise[..., 6:9]
+        b_a = b_a + h[..., None] * noise[..., 9:12]
+    return NavState(attitude.to_quat(x), p, v, b_g, b_a)

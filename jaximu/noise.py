@@ -1,0 +1,100 @@
+"""IMU noise model: the four continuous-time densities of Kalibr, and their discretisation.
+
+Units, the most asked question about every IMU library:
+
+=============================  ===================  =====================================
+field                          unit                 discrete equivalent over a sample dt
+=============================  ===================  =====================================
+gyroscope_noise_density        rad/s/√Hz            white-noise std  σ_g / √dt   [rad/s]
+accelerometer_noise_density    m/s²/√Hz             white-noise std  σ_a / √dt   [m/s²]
+gyroscope_random_walk          rad/s²/√Hz           bias step std    σ_bg · √dt  [rad/s]
+accelerometer_random_walk      m/s³/√Hz             bias step std    σ_ba · √dt  [m/s²]
+=============================  ===================  =====================================
+
+The noise vector of one step is ``n = [n_g, n_a, n_wg, n_wa]`` (12), held constant over
+the step ``[t_k, t_k + dt)``: ``w = w_m - b_g - n_g``, ``f = a_m - b_a - n_a``,
+``b_g ← b_g + n_wg dt``, ``b_a ← b_a + n_wa dt``, with covariance
+``Q_c = diag(σ_g², σ_a², σ_bg², σ_ba²) / dt`` (OpenVINS, Trawny eqs. 129-130). With the
+noise Jacobian ``G`` of one step the discrete process noise is ``Q_d = G Q_c Gᵀ``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["ImuNoise"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise densities (Kalibr names and units).
+
+    Each field is a scalar (isotropic), a ``(3,)`` per-axis value, or carries leading
+    batch axes ``(..., 3)``. Fields are differentiable parameters.
+
+    Attributes:
+        gyroscope_noise_density: σ_g [rad/s/√Hz] (angle random walk).
+        accelerometer_noise_density: σ_a [m/s²/√Hz] (velocity random walk).
+        gyroscope_random_walk: σ_bg [rad/s²/√Hz] (gyro bias random walk).
+        accelerometer_random_walk: σ_ba [m/s³/√Hz] (accel bias random walk).
+    """
+
+    gyroscope_noise_density: jax.Array | float
+    accelerometer_noise_density: jax.Array | float
+    gyroscope_random_walk: jax.Array | float = 0.0
+    accelerometer_random_walk: jax.Array | float = 0.0
+
+    @classmethod
+    def euroc(cls) -> ImuNoise:
+        """ADIS16448 of the EuRoC MAV dataset (its ``imu0/sensor.yaml``)."""
+        return cls(1.6968e-04, 2.0000e-3, 1.9393e-05, 3.0000e-3)
+
+    @classmethod
+    def tum_vi(cls) -> ImuNoise:
+        """BMI160 of the TUM-VI dataset (OpenVINS ``tum_vi`` config)."""
+        return cls(0.00016, 0.0028, 2.2e-05, 0.00086)
+
+    def _per_axis(self, dtype):
+        fields = (
+            self.gyroscope_noise_density,
+            self.accelerometer_noise_density,
+            self.gyroscope_random_walk,
+            self.accelerometer_random_walk,
+        )
+        out = []
+        for f in fields:
+            f = jnp.asarray(f, dtype)
+            out.append(jnp.broadcast_to(f[..., None], f.shape + (3,)) if f.ndim == 0 else f)
+        return out
+
+    def sample_std(self, dt, dtype=None):
+        """Per-sample standard deviations for a sample held over ``dt`` [s].
+
+        Returns:
+            ``(gyro_white, accel_white, gyro_bias_step, accel_bias_step)``, each ``(..., 3)``:
+            ``σ/√dt`` for the white noises and ``σ_rw·√dt`` for the bias steps.
+        """
+        dt = jnp.asarray(dt, dtype)
+        sg, sa, sbg, sba = self._per_axis(dt.dtype)
+        root = jnp.sqrt(dt)[..., None]
+        return sg / root, sa / root, sbg * root, sba * root
+
+    def discrete_covariance(self, dt, dtype=None):
+        """``Q_c``: the ``(..., 12, 12)`` covariance of the step noise ``[n_g, n_a, n_wg, n_wa]``.
+
+        Diagonal ``[σ_g², σ_a², σ_bg², σ_ba²] / dt`` (each over 3 axes).
+        """
+        var = self.discrete_variances(dt, dtype)
+        return var[..., None] * jnp.eye(12, dtype=var.dtype)
+
+    def discrete_variances(self, dt, dtype=None):
+        """Diagonal of :meth:`discrete_covariance`, ``(..., 12)``."""
+        dt = jnp.asarray(dt, dtype)
+        parts = [s * s for s in self._per_axis(dt.dtype)]
+        shape = jnp.broadcast_shapes(*(x.shape for x in parts), dt.shape + (3,))
+        parts = [jnp.broadcast_to(x, shape) for x in parts]
+        return jnp.concatenate(parts, axis=-1) / dt[..., None]

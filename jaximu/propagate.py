@@ -1,0 +1,160 @@
+"""Mean propagation over time: the ``lax.scan`` drivers.
+
+Batch axes stay inside the scan step (every kernel broadcasts over leading axes), which
+DESIGN.md measured as the fastest layout; ``jax.vmap`` over these functions works too.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu import _validation as val
+from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, step
+from jaximu.state import NavState
+
+__all__ = ["propagate", "propagate_final"]
+
+
+def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
+    """Validate the public inputs; returns arrays in one float dtype and the batch shape."""
+    check_scheme(scheme)
+    get_attitude(attitude)
+    dtype = val.float_dtype(state.q, gyro, accel)
+    state = val.check_state(state, dtype)
+    gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype)
+    g = val.gravity_vector(gravity, dtype)
+    batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
+                            dt.shape[:-1], g.shape[:-1])
+    return state, gyro, accel, dt, g, batch
+
+
+def time_major(gyro, accel, dt, scheme):
+    """Inputs as scan ``xs``: samples k and k+1 with time first, dt of shape ``(T, ...)``.
+
+    For midpoint and RK4 the last step has no sample k+1: the last sample is held (the
+    step is then a zero-order hold, as Euler's).
+    """
+    T = gyro.shape[-2]
+    w = jnp.moveaxis(gyro, -2, 0)
+    a = jnp.moveaxis(accel, -2, 0)
+    h = jnp.moveaxis(dt, -1, 0) if dt.ndim else jnp.broadcast_to(dt, (T,))
+    if scheme == "euler":
+        w1, a1 = w, a  # unused by the Euler stages
+    else:
+        w1 = jnp.concatenate([w[1:], w[-1:]], axis=0)
+        a1 = jnp.concatenate([a[1:], a[-1:]], axis=0)
+    return w, a, w1, a1, h
+
+
+def broadcast_state(state: NavState, batch) -> NavState:
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]), state)
+
+
+def mean_body(scheme, att, b_g, b_a, g):
+    """The scan body of the mean: carry ``(x, p, v, locked)``, input one time slice."""
+
+    def body(carry, xs):
+        x, p, v, locked = carry
+        w0, a0, w1, a1, h = xs
+        x, p, v = step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g)
+        if att.name == "euler_angles":
+            # Report the pitch ±90° singularity: from the first step that reaches it the
+            # state is NaN, never a silently wrong attitude.
+            locked = locked | (jnp.cos(x[..., 1]) < GIMBAL_LOCK_COS)
+            nan = jnp.asarray(jnp.nan, x.dtype)
+            x, p, v = (jnp.where(locked[..., None], nan, y) for y in (x, p, v))
+        return (x, p, v, locked), None
+
+    return body
+
+
+@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "unroll"))
+def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, unroll=1):
+    att = get_attitude(attitude)
+    batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
+                                 dt.shape[:-1], g.shape[:-1])
+    state = broadcast_state(state, batch)
+    xs = time_major(gyro, accel, dt, scheme)
+    body = mean_body(scheme, att, state.b_g, state.b_a, g)
+
+    def scan_body(carry, xs):
+        carry, _ = body(carry, xs)
+        x, p, v, _ = carry
+        return carry, ((att.to_quat(x), p, v) if save_all else None)
+
+    locked0 = jnp.zeros(batch, bool)
+    carry0 = (att.from_quat(state.q), state.p, state.v, locked0)
+    (x, p, v, locked), out = jax.lax.scan(scan_body, carry0, xs, unroll=unroll)
+    T = gyro.shape[-2]
+    if save_all:
+        q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in out)
+        bshape = tuple(batch) + (T, 3)
+        states = NavState(q_t, p_t, v_t, jnp.broadcast_to(state.b_g[..., None, :], bshape),
+                          jnp.broadcast_to(state.b_a[..., None, :], bshape))
+    else:
+        states = NavState(att.to_quat(x), p, v, state.b_g, state.b_a)
+    return states, locked
+
+
+def _report_gimbal_lock(locked, attitude):
+    if attitude == "euler_angles" and val.is_concrete(locked) and bool(np.any(np.asarray(locked))):
+        raise ValueError(
+            "the Euler-angle attitude form reached the pitch ±90° singularity (gimbal lock) "
+            f"in batch element {val._first_bad(np.asarray(locked)) if np.ndim(locked) else '[]'}; "
+            "the states from that step on are NaN. Use attitude='quaternion' or 'matrix'."
+        )
+
+
+def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
+              attitude: str = "quaternion", gravity=9.81) -> NavState:
+    """Propagate the navigation state through IMU samples, returning every state.
+
+    Args:
+        state: initial :class:`NavState` at ``t_0`` (fields ``(..., 4)`` / ``(..., 3)``);
+            ``q`` must be a unit quaternion (it is checked, never silently normalised).
+        gyro: ``(..., T, 3)`` raw body rate ``w_m`` [rad/s]; sample k is held over ``dt[k]``.
+        accel: ``(..., T, 3)`` raw specific force ``a_m`` [m/s²] (level and still: ``[0, 0, +g]``).
+        dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample.
+        scheme: ``"euler"`` (zero-order hold on sample k), ``"midpoint"`` (VINS-Mono: samples
+            k and k+1 averaged) or ``"rk4"`` (samples interpolated linearly); see
+            :mod:`jaximu.integrators`. At the last step midpoint and RK4 have no sample
+            k+1 and hold sample T-1 (a zero-order hold, like Euler's).
+        attitude: orientation update form: ``"quaternion"`` (exact exponential),
+            ``"quaternion_first_order"``, ``"matrix"`` or ``"euler_angles"`` (its pitch
+            ±90° singularity is reported: states become NaN from that step, and an eager
+            call raises ``ValueError``).
+        gravity: magnitude ``g`` (``g_W = [0, 0, -g]``, default 9.81) or a ``(..., 3)`` vector.
+
+    Returns:
+        :class:`NavState` whose fields have shape ``batch + (T, ·)``: entry k is the state at
+        ``t_k + dt_k``, after applying sample k (time first for an unbatched call). Biases
+        are held constant (the mean of their random walk).
+
+    Raises:
+        ValueError: on mismatched shapes, a wrong last-axis size, ``dt ≤ 0`` or non-finite,
+            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q``.
+            Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
+    """
+    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
+    states, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
+                                save_all=True)
+    _report_gimbal_lock(locked, attitude)
+    return states
+
+
+def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
+                    attitude: str = "quaternion", gravity=9.81) -> NavState:
+    """Like :func:`propagate` but returns only the final state, without storing the trajectory.
+
+    Returns:
+        :class:`NavState` with fields of shape ``batch + (·)`` at ``t_0 + Σ dt``.
+    """
+    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
+    final, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
+                               save_all=False)
+    _report_gimbal_lock(locked, attitude)
+    return final

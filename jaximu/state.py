@@ -1,0 +1,145 @@
+"""Navigation state, IMU bias, and the 15-dim error state.
+
+Conventions (DESIGN.md): ``q`` is the Hamilton quaternion ``[w, x, y, z]`` of ``R_WB``
+(body to world); ``p``, ``v`` are in the world frame W (z up); ``b_g``, ``b_a`` are in the
+body frame B. The error state is ordered ``[dθ, dp, dv, db_g, db_a]``; the rotation error
+is on the right (body frame), ``R = R̂ Exp(dθ)``, and the rest is additive. This equals
+OpenVINS's left JPL error and GTSAM's ``retract`` on the rotation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaximu import so3
+
+__all__ = [
+    "NavState",
+    "ImuBias",
+    "boxplus",
+    "boxminus",
+    "ERROR_STATE_DIM",
+    "THETA",
+    "POS",
+    "VEL",
+    "BG",
+    "BA",
+]
+
+ERROR_STATE_DIM = 15
+THETA = slice(0, 3)
+"""Rotation error (rad, body frame) in the 15-dim error state."""
+POS = slice(3, 6)
+"""Position error (m, world frame)."""
+VEL = slice(6, 9)
+"""Velocity error (m/s, world frame)."""
+BG = slice(9, 12)
+"""Gyroscope bias error (rad/s, body frame)."""
+BA = slice(12, 15)
+"""Accelerometer bias error (m/s², body frame)."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NavState:
+    """Inertial navigation state; every field may carry leading batch (and time) axes.
+
+    Attributes:
+        q: ``(..., 4)`` unit quaternion ``[w, x, y, z]`` of ``R_WB``.
+        p: ``(..., 3)`` position of the IMU in W [m].
+        v: ``(..., 3)`` velocity of the IMU in W [m/s].
+        b_g: ``(..., 3)`` gyroscope bias in B [rad/s] (``w_m = w_B + b_g + n_g``).
+        b_a: ``(..., 3)`` accelerometer bias in B [m/s²] (``a_m = R_WBᵀ(a_W - g_W) + b_a + n_a``).
+    """
+
+    q: jax.Array
+    p: jax.Array
+    v: jax.Array
+    b_g: jax.Array
+    b_a: jax.Array
+
+    @classmethod
+    def identity(cls, batch_shape=(), dtype=jnp.float32) -> NavState:
+        """Identity attitude, zero position, velocity and biases."""
+        z = jnp.zeros(tuple(batch_shape) + (3,), dtype)
+        return cls(so3.quat_identity(batch_shape, dtype), z, z, z, z)
+
+    @property
+    def R(self) -> jax.Array:
+        """``(..., 3, 3)`` rotation matrix ``R_WB``."""
+        return so3.quat_to_matrix(self.q)
+
+    @property
+    def bias(self) -> ImuBias:
+        """The biases as an :class:`ImuBias`."""
+        return ImuBias(self.b_g, self.b_a)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Broadcast shape of the leading axes of all fields."""
+        return jnp.broadcast_shapes(
+            self.q.shape[:-1], self.p.shape[:-1], self.v.shape[:-1],
+            self.b_g.shape[:-1], self.b_a.shape[:-1],
+        )
+
+    def replace(self, **changes) -> NavState:
+        """A copy with some fields replaced."""
+        return dataclasses.replace(self, **changes)
+
+    def __getitem__(self, index) -> NavState:
+        """Index the leading axes of every field (e.g. ``states[-1]``, ``states[:, 10]``)."""
+        return jax.tree_util.tree_map(lambda x: x[index], self)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ImuBias:
+    """IMU biases in the body frame; fields may carry leading batch axes.
+
+    Attributes:
+        b_g: ``(..., 3)`` gyroscope bias [rad/s].
+        b_a: ``(..., 3)`` accelerometer bias [m/s²].
+    """
+
+    b_g: jax.Array
+    b_a: jax.Array
+
+    @classmethod
+    def zeros(cls, batch_shape=(), dtype=jnp.float32) -> ImuBias:
+        z = jnp.zeros(tuple(batch_shape) + (3,), dtype)
+        return cls(z, z)
+
+
+def boxplus(state: NavState, delta: jax.Array) -> NavState:
+    """``state ⊞ δ``: ``(q ⊗ Exp(dθ), p + dp, v + dv, b_g + db_g, b_a + db_a)``.
+
+    Args:
+        state: the linearisation point.
+        delta: ``(..., 15)`` error state ``[dθ, dp, dv, db_g, db_a]``.
+    """
+    return NavState(
+        q=so3.quat_mul(state.q, so3.exp(delta[..., THETA])),
+        p=state.p + delta[..., POS],
+        v=state.v + delta[..., VEL],
+        b_g=state.b_g + delta[..., BG],
+        b_a=state.b_a + delta[..., BA],
+    )
+
+
+def boxminus(state: NavState, reference: NavState) -> jax.Array:
+    """``state ⊟ reference``: the ``(..., 15)`` error ``δ`` with ``reference ⊞ δ = state``.
+
+    The rotation part is ``Log(R_refᵀ R)`` (body frame of the reference), angle in ``[0, π]``.
+    """
+    parts = [
+        so3.log(so3.quat_mul(so3.quat_conj(reference.q), state.q)),
+        state.p - reference.p,
+        state.v - reference.v,
+        state.b_g - reference.b_g,
+        state.b_a - reference.b_a,
+    ]
+    shape = jnp.broadcast_shapes(*(x.shape for x in parts))
+    return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
