@@ -28,7 +28,7 @@ def _first_bad(mask: np.ndarray) -> str:
 
 def float_dtype(*xs):
     """The floating dtype of the computation: the promotion of the inputs' dtypes."""
-    dt = jnp.result_type(*xs)
+    dt = jnp.result_type(*(x if hasattr(x, "dtype") else np.asarray(x) for x in xs))
     if not jnp.issubdtype(dt, jnp.floating):
         dt = jnp.result_type(dt, jnp.float32)
     return dt
@@ -90,10 +90,14 @@ def check_imu(gyro, accel, dt, dtype):
     return gyro, accel, dt, T
 
 
-def check_state(state: NavState, dtype) -> NavState:
-    """Shapes, finiteness and unit norm of ``state.q`` (never normalised for the caller)."""
+def require_navstate(state):
     if not isinstance(state, NavState):
         raise ValueError(f"state must be a jaximu.NavState, got {type(state).__name__}")
+
+
+def check_state(state: NavState, dtype) -> NavState:
+    """Shapes, finiteness and unit norm of ``state.q`` (never normalised for the caller)."""
+    require_navstate(state)
     fields = {"q": 4, "p": 3, "v": 3, "b_g": 3, "b_a": 3}
     out = {}
     for name, dim in fields.items():

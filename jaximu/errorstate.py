@@ -184,6 +184,7 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     """
     check_scheme(scheme)
     att = get_attitude(attitude)
+    val.require_navstate(state)
     dtype = val.float_dtype(state.q, gyro, accel)
     state = val.check_state(state, dtype)
     w0, a0 = jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)

@@ -23,6 +23,7 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
     """Validate the public inputs; returns arrays in one float dtype and the batch shape."""
     check_scheme(scheme)
     get_attitude(attitude)
+    val.require_navstate(state)
     dtype = val.float_dtype(state.q, gyro, accel)
     state = val.check_state(state, dtype)
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype)
