@@ -1,0 +1,5 @@
+import sys
+
+from jaximu.cli import main
+
+sys.exit(main())
