@@ -222,9 +222,10 @@ def _jacobian_coeffs(phi):
     small, theta = _split(theta_sq)
     t2, t4, t6 = theta_sq, theta_sq * theta_sq, theta_sq * theta_sq * theta_sq
     s_half = jnp.sin(0.5 * theta)
+    safe_sq = theta * theta  # not theta_sq: the unused branch must not divide by zero
     a_closed = 2.0 * (s_half / theta) ** 2  # (1 - cos θ)/θ² without cancellation
-    b_closed = (theta - jnp.sin(theta)) / (theta_sq * theta)
-    c_closed = 1.0 / theta_sq - jnp.cos(0.5 * theta) / (2.0 * theta * s_half)
+    b_closed = (theta - jnp.sin(theta)) / (safe_sq * theta)
+    c_closed = 1.0 / safe_sq - jnp.cos(0.5 * theta) / (2.0 * theta * s_half)
     a = jnp.where(small, 0.5 - t2 / 24 + t4 / 720 - t6 / 40320, a_closed)
     b = jnp.where(small, 1.0 / 6 - t2 / 120 + t4 / 5040 - t6 / 362880, b_closed)
     c = jnp.where(small, 1.0 / 12 + t2 / 720 + t4 / 30240 + t6 / 1209600, c_closed)
