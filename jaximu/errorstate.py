@@ -32,15 +32,15 @@ a handful of 3×3 products on the upper blocks of the symmetric ``P``) instead o
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import _blocks as blk
 from jaximu import _validation as val
 from jaximu import so3
 from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages, step
+from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu.propagate import broadcast_state, mean_body, prepare, time_major
 from jaximu.state import NavState, boxminus, boxplus
@@ -79,32 +79,6 @@ def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h
     return Phi, G
 
 
-class Blocks(NamedTuple):
-    """Non-trivial 3×3 blocks of ``Φ`` (``(..., 3, 3)``; ``None`` where zero)."""
-
-    A: jax.Array  # θθ
-    B: jax.Array  # θ b_g
-    Cp: jax.Array  # p θ
-    Cv: jax.Array  # v θ
-    Dp: jax.Array | None  # p b_g
-    Dv: jax.Array | None  # v b_g
-    Ep: jax.Array  # p b_a
-    Ev: jax.Array  # v b_a
-
-
-def mm(X, Y):
-    """(Batched) 3×3 product."""
-    return jnp.matmul(X, Y)
-
-
-def _wsum(terms):
-    terms = [t for t in terms if t is not None]
-    out = terms[0]
-    for t in terms[1:]:
-        out = out + t
-    return out
-
-
 def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h) -> Blocks:
     """Closed-form blocks of ``Φ`` for the exact-exponential forms (module docstring).
 
@@ -129,41 +103,24 @@ def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h) -> Blocks:
             D = -mm(mm(R_s, so3.skew(s.f)), mm(so3.right_jacobian(s.phi), s.dphi_dbg))
             Dv.append(wv * D)
             Dp.append(wp * D)
-    Cv = -mm(so3.skew(_wsum(uv)), R0)
-    Cp = -mm(so3.skew(_wsum(up)), R0)
-    return Blocks(A, B, Cp, Cv, _wsum(Dp) if Dp else None, _wsum(Dv) if Dv else None,
-                  _wsum(Ep), _wsum(Ev))
+    Cv = -mm(so3.skew(add(*uv)), R0)
+    Cp = -mm(so3.skew(add(*up)), R0)
+    return Blocks(A, B, Cp, Cv, add(*Dp), add(*Dv), add(*Ep), add(*Ev), h)
 
 
-def dense_from_blocks(b: Blocks, h):
+def dense_from_blocks(b: Blocks):
     """Assemble ``Φ`` ``(..., 15, 15)`` and ``G`` ``(..., 15, 12)`` from the blocks."""
-    batch = jnp.broadcast_shapes(b.A.shape[:-2], b.Cv.shape[:-2], b.Ev.shape[:-2], h.shape)
-    dtype = b.A.dtype
-    Z = jnp.zeros(batch + (3, 3), dtype)
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), batch + (3, 3))
-    hI = h[..., None, None] * eye
-    Dp = Z if b.Dp is None else b.Dp
-    Dv = Z if b.Dv is None else b.Dv
+    Phi = blk.phi_to_dense(b)
+    batch = Phi.shape[:-2]
+    Z = jnp.zeros(batch + (3, 3), Phi.dtype)
+    hI = jnp.broadcast_to(b.dt[..., None, None] * jnp.eye(3, dtype=Phi.dtype), batch + (3, 3))
 
-    def bc(x):
-        return jnp.broadcast_to(x, batch + (3, 3))
+    def f(x):
+        return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
 
-    rows = [
-        [b.A, Z, Z, b.B, Z],
-        [b.Cp, eye, hI, Dp, b.Ep],
-        [b.Cv, Z, eye, Dv, b.Ev],
-        [Z, Z, Z, eye, Z],
-        [Z, Z, Z, Z, eye],
-    ]
-    Phi = jnp.concatenate([jnp.concatenate([bc(x) for x in r], -1) for r in rows], -2)
-    grows = [
-        [b.B, Z, Z, Z],
-        [Dp, b.Ep, Z, Z],
-        [Dv, b.Ev, Z, Z],
-        [Z, Z, hI, Z],
-        [Z, Z, Z, hI],
-    ]
-    G = jnp.concatenate([jnp.concatenate([bc(x) for x in r], -1) for r in grows], -2)
+    rows = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
+            [Z, Z, Z, hI]]
+    G = jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
     return Phi, G
 
 
@@ -203,7 +160,7 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
         _require_analytic(att)
         b = blocks_analytic(scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g,
                             a1 - state.b_a, h)
-        return dense_from_blocks(b, h)
+        return dense_from_blocks(b)
     raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
 
 
@@ -224,91 +181,23 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
 # --------------------------------------------------------------------------- covariance
 
 
-def _t(x):
-    return jnp.swapaxes(x, -1, -2)
-
-
-def _sym(x):
-    return 0.5 * (x + _t(x))
-
-
-_UPPER = [(i, j) for i in range(5) for j in range(i, 5)]
-
-
-def dense_to_blocks(P):
-    """The 15 upper 3×3 blocks ``{(i, j): P_ij}`` (i ≤ j, order θ, p, v, b_g, b_a)."""
-    return {(i, j): P[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in _UPPER}
-
-
-def blocks_to_dense(Pb):
-    def get(i, j):
-        return Pb[(i, j)] if i <= j else _t(Pb[(j, i)])
-
-    return jnp.concatenate(
-        [jnp.concatenate([get(i, j) for j in range(5)], -1) for i in range(5)], -2
-    )
-
-
-def structured_update(Pb, b: Blocks, h, qc):
+def structured_update(Pb, b: Blocks, qc):
     """``Φ P Φᵀ + G Q_c Gᵀ`` on the upper blocks of ``P``, using the structure of ``Φ``.
 
     Args:
-        Pb: upper blocks of ``P`` (see :func:`dense_to_blocks`).
-        b: blocks of ``Φ``; h: ``(...,)`` step; qc: ``(..., 12)`` diagonal of ``Q_c``.
+        Pb: upper blocks of ``P`` (see :func:`jaximu._blocks.dense_to_blocks`).
+        b: blocks of ``Φ``; qc: ``(..., 12)`` diagonal of ``Q_c``.
     """
-
-    def P(i, j):
-        return Pb[(i, j)] if i <= j else _t(Pb[(j, i)])
-
-    def add(*terms):
-        return _wsum(terms)
-
-    def mmo(X, Y):
-        return None if (X is None or Y is None) else mm(X, Y)
-
-    hh = h[..., None, None]
-    # M = Φ P, rows θ (0), p (1), v (2); rows b_g, b_a of M are those of P.
-    M0 = {j: add(mm(b.A, P(0, j)), mm(b.B, P(3, j))) for j in range(5)}
-    M1 = {j: add(P(1, j), hh * P(2, j), mm(b.Cp, P(0, j)), mmo(b.Dp, P(3, j)), mm(b.Ep, P(4, j)))
-          for j in range(5)}
-    M2 = {j: add(P(2, j), mm(b.Cv, P(0, j)), mmo(b.Dv, P(3, j)), mm(b.Ev, P(4, j))) for j in (0, 2, 3, 4)}
-    Dpt = None if b.Dp is None else _t(b.Dp)
-    Dvt = None if b.Dv is None else _t(b.Dv)
-    At, Bt, Cpt, Cvt, Ept, Evt = _t(b.A), _t(b.B), _t(b.Cp), _t(b.Cv), _t(b.Ep), _t(b.Ev)
-
-    def col_p(M):  # (M Φᵀ)_{·p}
-        return add(M[1], hh * M[2], mm(M[0], Cpt), mmo(M[3], Dpt),
-                   mm(M[4], Ept))
-
-    def col_v(M):  # (M Φᵀ)_{·v}
-        return add(M[2], mm(M[0], Cvt), mmo(M[3], Dvt), mm(M[4], Evt))
-
-    sg, sa = qc[..., 0:3], qc[..., 3:6]
-    sbg, sba = qc[..., 6:9], qc[..., 9:12]
-
-    def xsy(X, s, Y):  # X diag(s) Yᵀ
-        return None if (X is None or Y is None) else mm(X * s[..., None, :], _t(Y))
-
-    new = {
-        (0, 0): add(mm(M0[0], At), mm(M0[3], Bt), xsy(b.B, sg, b.B)),
-        (0, 1): add(col_p(M0), xsy(b.B, sg, b.Dp)),
-        (0, 2): add(col_v(M0), xsy(b.B, sg, b.Dv)),
-        (0, 3): M0[3],
-        (0, 4): M0[4],
-        (1, 1): add(col_p(M1), xsy(b.Dp, sg, b.Dp), xsy(b.Ep, sa, b.Ep)),
-        (1, 2): add(col_v(M1), xsy(b.Dp, sg, b.Dv), xsy(b.Ep, sa, b.Ev)),
-        (1, 3): M1[3],
-        (1, 4): M1[4],
-        (2, 2): add(col_v(M2), xsy(b.Dv, sg, b.Dv), xsy(b.Ev, sa, b.Ev)),
-        (2, 3): M2[3],
-        (2, 4): M2[4],
-        (3, 3): Pb[(3, 3)] + (hh * hh) * (sbg[..., :, None] * jnp.eye(3, dtype=sbg.dtype)),
-        (3, 4): Pb[(3, 4)],
-        (4, 4): Pb[(4, 4)] + (hh * hh) * (sba[..., :, None] * jnp.eye(3, dtype=sba.dtype)),
-    }
-    for i in range(5):
-        new[(i, i)] = _sym(new[(i, i)])
-    return new
+    h = b.dt
+    Q = blk.noise_blocks(
+        [{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}],
+        [qc[..., 0:3], qc[..., 3:6]],
+    )
+    eye = jnp.eye(3, dtype=qc.dtype)
+    hh = (h * h)[..., None, None]
+    Q[(3, 3)] = hh * (qc[..., 6:9, None] * eye)
+    Q[(4, 4)] = hh * (qc[..., 9:12, None] * eye)
+    return blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(Pb, b), Q))
 
 
 def _check_cov(P0, dtype):
@@ -374,18 +263,18 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         qc = noise.discrete_variances(h, x.dtype)
         if jacobians == "analytic":
             b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h)
-            Pn = structured_update(Pc, b, h, qc)
+            Pn = structured_update(Pc, b, qc)
         else:
             lin = NavState(att.to_quat(x), p, v, b_g, b_a)
             Phi, G = jacobians_autodiff(scheme, att, lin, w0, a0, w1, a1, h, g)
-            Pn = _sym(Phi @ Pc @ _t(Phi) + (G * qc[..., None, :]) @ _t(G))
+            Pn = blk.sym(Phi @ Pc @ blk.t(Phi) + (G * qc[..., None, :]) @ blk.t(G))
         (x, p, v, locked), _ = mean((x, p, v, locked), xs)
         out = None
         if save_all:
-            out = (att.to_quat(x), p, v, blocks_to_dense(Pn) if jacobians == "analytic" else Pn)
+            out = (att.to_quat(x), p, v, blk.blocks_to_dense(Pn) if jacobians == "analytic" else Pn)
         return (x, p, v, locked, Pn), out
 
-    P_init = dense_to_blocks(P0) if jacobians == "analytic" else P0
+    P_init = blk.dense_to_blocks(P0) if jacobians == "analytic" else P0
     carry0 = (att.from_quat(state.q), state.p, state.v, jnp.zeros(batch, bool), P_init)
     (x, p, v, locked, Pc), out = jax.lax.scan(body, carry0, xs, unroll=unroll)
     if save_all:
@@ -397,7 +286,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         states = NavState(q_t, p_t, v_t, jnp.broadcast_to(b_g[..., None, :], bshape),
                           jnp.broadcast_to(b_a[..., None, :], bshape))
         return states, P_t, locked
-    P_final = blocks_to_dense(Pc) if jacobians == "analytic" else Pc
+    P_final = blk.blocks_to_dense(Pc) if jacobians == "analytic" else Pc
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 

@@ -1,0 +1,196 @@
+"""Block algebra for the 15-dim error state ``[θ, p, v, b_g, b_a]`` (five 3-blocks).
+
+Every one-step transition ``Φ`` of this library (propagation, preintegration, both schemes,
+closed form or VINS-Mono's) has the same sparsity, and products of such matrices keep it:
+
+    Φ = [[A,  0, 0,    B,  0 ],
+         [Cp, I, dt I, Dp, Ep],
+         [Cv, 0, I,    Dv, Ev],
+         [0,  0, 0,    I,  0 ],
+         [0,  0, 0,    0,  I ]]
+
+so a ``Φ`` is stored as eight 3×3 blocks and the scalar ``dt``, and a symmetric ``P`` as its
+15 upper 3×3 blocks ``{(i, j): P_ij, i ≤ j}``. A block may be ``None`` (zero) and is then
+skipped: this is what makes ``Φ P Φᵀ`` cost a few dozen 3×3 products instead of dense
+15×15 ones.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class Blocks(NamedTuple):
+    """Non-trivial 3×3 blocks of ``Φ`` (``(..., 3, 3)``; ``None`` where zero) and ``dt``."""
+
+    A: jax.Array  # θθ
+    B: jax.Array | None  # θ b_g
+    Cp: jax.Array  # p θ
+    Cv: jax.Array  # v θ
+    Dp: jax.Array | None  # p b_g
+    Dv: jax.Array | None  # v b_g
+    Ep: jax.Array | None  # p b_a
+    Ev: jax.Array | None  # v b_a
+    dt: jax.Array  # (...,) the p-v block is dt·I
+
+
+UPPER = [(i, j) for i in range(5) for j in range(i, 5)]
+
+
+def t(x):
+    return None if x is None else jnp.swapaxes(x, -1, -2)
+
+
+def mm(X, Y):
+    """3×3 (batched) product; ``None`` (a zero block) if either factor is ``None``."""
+    if X is None or Y is None:
+        return None
+    return jnp.matmul(X, Y)
+
+
+def add(*terms):
+    """Sum of the blocks that are not ``None`` (``None`` if all are)."""
+    terms = [x for x in terms if x is not None]
+    if not terms:
+        return None
+    out = terms[0]
+    for x in terms[1:]:
+        out = out + x
+    return out
+
+
+def scale(s, X):
+    return None if X is None else s[..., None, None] * X
+
+
+def sym(x):
+    return 0.5 * (x + t(x))
+
+
+def dense_to_blocks(P):
+    """The 15 upper 3×3 blocks ``{(i, j): P_ij}`` of a ``(..., 15, 15)`` matrix."""
+    return {(i, j): P[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in UPPER}
+
+
+def blocks_to_dense(Pb, batch=None, dtype=None):
+    """Symmetric ``(..., 15, 15)`` from upper blocks (``None`` or missing blocks are zero)."""
+    present = [x for x in Pb.values() if x is not None]
+    batch = present[0].shape[:-2] if batch is None else batch
+    dtype = present[0].dtype if dtype is None else dtype
+    zero = jnp.zeros(tuple(batch) + (3, 3), dtype)
+
+    def get(i, j):
+        x = Pb.get((i, j)) if i <= j else t(Pb.get((j, i)))
+        return zero if x is None else jnp.broadcast_to(x, tuple(batch) + (3, 3))
+
+    return jnp.concatenate(
+        [jnp.concatenate([get(i, j) for j in range(5)], -1) for i in range(5)], -2)
+
+
+def phi_to_dense(b: Blocks):
+    """Dense ``(..., 15, 15)`` ``Φ`` from its blocks."""
+    batch = jnp.broadcast_shapes(*(x.shape[:-2] for x in b[:-1] if x is not None), b.dt.shape)
+    dtype = b.A.dtype
+    Z = jnp.zeros(batch + (3, 3), dtype)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), batch + (3, 3))
+
+    def f(x):
+        return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
+
+    rows = [
+        [b.A, Z, Z, b.B, Z],
+        [b.Cp, eye, scale(b.dt, eye), b.Dp, b.Ep],
+        [b.Cv, Z, eye, b.Dv, b.Ev],
+        [Z, Z, Z, eye, Z],
+        [Z, Z, Z, Z, eye],
+    ]
+    return jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
+
+
+def phi_from_dense(Phi):
+    """Blocks of a dense ``Φ`` that has the structure of the module docstring."""
+    def blk(i, j):
+        return Phi[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3]
+
+    return Blocks(blk(0, 0), blk(0, 3), blk(1, 0), blk(2, 0), blk(1, 3), blk(2, 3), blk(1, 4),
+                  blk(2, 4), Phi[..., 3, 6])
+
+
+def phi_compose(F: Blocks, P: Blocks) -> Blocks:
+    """``F Φ`` for two structured transitions (``F`` applied after ``P``): 6 products."""
+    return Blocks(
+        A=mm(F.A, P.A),
+        B=add(mm(F.A, P.B), F.B),
+        Cp=add(mm(F.Cp, P.A), P.Cp, scale(F.dt, P.Cv)),
+        Cv=add(mm(F.Cv, P.A), P.Cv),
+        Dp=add(mm(F.Cp, P.B), P.Dp, scale(F.dt, P.Dv), F.Dp),
+        Dv=add(mm(F.Cv, P.B), P.Dv, F.Dv),
+        Ep=add(P.Ep, scale(F.dt, P.Ev), F.Ep),
+        Ev=add(P.Ev, F.Ev),
+        dt=F.dt + P.dt,
+    )
+
+
+def phi_p_phit(Pb, b: Blocks):
+    """``Φ P Φᵀ`` on upper blocks (``None``/missing blocks of ``P`` are zero)."""
+
+    def P(i, j):
+        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)))
+
+    hh = b.dt
+    # M = Φ P, rows θ (0), p (1), v (2); rows b_g (3), b_a (4) are those of P.
+    M = {3: {j: P(3, j) for j in range(5)}, 4: {j: P(4, j) for j in range(5)}}
+    M[0] = {j: add(mm(b.A, P(0, j)), mm(b.B, P(3, j))) for j in range(5)}
+    M[1] = {j: add(P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)),
+                   mm(b.Ep, P(4, j))) for j in range(5)}
+    M[2] = {j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
+            for j in range(5)}
+    At, Bt, Cpt, Cvt = t(b.A), t(b.B), t(b.Cp), t(b.Cv)
+    Dpt, Dvt, Ept, Evt = t(b.Dp), t(b.Dv), t(b.Ep), t(b.Ev)
+    out = {}
+    for i in range(3):
+        Mi = M[i]
+        out[(i, 3)] = Mi[3]
+        out[(i, 4)] = Mi[4]
+        cols = {
+            0: lambda: add(mm(Mi[0], At), mm(Mi[3], Bt)),
+            1: lambda: add(Mi[1], scale(hh, Mi[2]), mm(Mi[0], Cpt), mm(Mi[3], Dpt),
+                           mm(Mi[4], Ept)),
+            2: lambda: add(Mi[2], mm(Mi[0], Cvt), mm(Mi[3], Dvt), mm(Mi[4], Evt)),
+        }
+        for j in range(i, 3):
+            out[(i, j)] = cols[j]()
+    out[(3, 3)], out[(3, 4)], out[(4, 4)] = P(3, 3), P(3, 4), P(4, 4)
+    return out
+
+
+def add_blocks(Pb, Qb):
+    """Blockwise ``P + Q`` (``None``/missing blocks are zero)."""
+    keys = set(Pb) | set(Qb)
+    return {k: add(Pb.get(k), Qb.get(k)) for k in keys}
+
+
+def symmetrize_diagonal(Pb):
+    return {k: (sym(v) if (v is not None and k[0] == k[1]) else v) for k, v in Pb.items()}
+
+
+def noise_blocks(columns, variances):
+    """Upper blocks of ``Σ_n V_n diag(s_n) V_nᵀ`` for noise inputs ``n``.
+
+    Args:
+        columns: list over noise inputs of ``{row_block: V_rn}`` (``(..., 3, 3)``; a missing
+            row block is zero).
+        variances: list over noise inputs of ``(..., 3)`` per-axis variances ``s_n``.
+    """
+    out = {}
+    for V, s in zip(columns, variances):
+        V = {k: v for k, v in V.items() if v is not None}
+        rows = sorted(V)
+        for a_i, i in enumerate(rows):
+            Vs = V[i] * s[..., None, :]
+            for j in rows[a_i:]:
+                out[(i, j)] = add(out.get((i, j)), mm(Vs, t(V[j])))
+    return out
