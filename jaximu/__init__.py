@@ -13,6 +13,15 @@ from jaximu.errorstate import step_jacobians as step_jacobians
 from jaximu.integrators import ATTITUDES as ATTITUDES
 from jaximu.integrators import SCHEMES as SCHEMES
 from jaximu.noise import ImuNoise as ImuNoise
+from jaximu.preintegration import Preintegrated as Preintegrated
+from jaximu.preintegration import bias_jacobians_autodiff as bias_jacobians_autodiff
+from jaximu.preintegration import compose as compose
+from jaximu.preintegration import correct as correct
+from jaximu.preintegration import needs_reintegration as needs_reintegration
+from jaximu.preintegration import predict as predict
+from jaximu.preintegration import preintegrate as preintegrate
+from jaximu.preintegration import residual as residual
+from jaximu.preintegration import whitened_residual as whitened_residual
 from jaximu.propagate import propagate as propagate
 from jaximu.propagate import propagate_final as propagate_final
 from jaximu.state import ImuBias as ImuBias

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.noise import ImuNoise
 from jaximu.state import NavState
 
 
@@ -56,10 +57,11 @@ def check_finite(name: str, x):
             )
 
 
-def check_imu(gyro, accel, dt, dtype):
+def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
     """Validate measurements and steps; returns ``(gyro, accel, dt, T)`` as ``dtype`` arrays.
 
-    ``gyro``, ``accel``: ``(..., T, 3)``; ``dt``: scalar or ``(..., T)``, all ``> 0``.
+    ``gyro``, ``accel``: ``(..., T, 3)``; ``dt``: scalar or ``(..., T)`` (or ``(..., T-1)``
+    with ``allow_intervals``), all ``> 0``.
     """
     gyro = jnp.asarray(gyro, dtype)
     accel = jnp.asarray(accel, dtype)
@@ -74,9 +76,11 @@ def check_imu(gyro, accel, dt, dtype):
         raise ValueError("gyro and accel hold no samples (T = 0)")
     dt_in = dt
     dt = jnp.asarray(dt, dtype)
-    if dt.ndim > 0 and dt.shape[-1] != T:
+    ok = (T, T - 1) if (allow_intervals and T > 1) else (T,)
+    if dt.ndim > 0 and dt.shape[-1] not in ok:
+        want = "(..., T) or (..., T-1)" if allow_intervals else "(..., T)"
         raise ValueError(
-            f"dt must be a scalar or have shape (..., T) with T = {T} samples, got {tuple(dt.shape)}"
+            f"dt must be a scalar or have shape {want} with T = {T} samples, got {tuple(dt.shape)}"
         )
     check_finite("gyro", gyro)
     check_finite("accel", accel)
@@ -145,3 +149,20 @@ def batch_shape(*shapes):
         raise ValueError(
             "batch shapes of the inputs do not broadcast: " + ", ".join(str(tuple(s)) for s in shapes)
         ) from None
+
+
+def check_noise(noise, dtype):
+    """Types, shapes, finiteness and signs of the four densities."""
+    if not isinstance(noise, ImuNoise):
+        raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
+    fields = {}
+    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
+                 "gyroscope_random_walk", "accelerometer_random_walk"):
+        x = jnp.asarray(getattr(noise, name), dtype)
+        if x.ndim > 0 and x.shape[-1] != 3:
+            raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
+        check_finite(f"noise.{name}", x)
+        if is_concrete(x) and np.any(np.asarray(x) < 0):
+            raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
+        fields[name] = x
+    return ImuNoise(**fields)

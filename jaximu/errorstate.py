@@ -217,22 +217,6 @@ def _check_cov(P0, dtype):
     return P0
 
 
-def _check_noise(noise, dtype):
-    if not isinstance(noise, ImuNoise):
-        raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
-    fields = {}
-    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
-                 "gyroscope_random_walk", "accelerometer_random_walk"):
-        x = jnp.asarray(getattr(noise, name), dtype)
-        if x.ndim > 0 and x.shape[-1] != 3:
-            raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
-        val.check_finite(f"noise.{name}", x)
-        if val.is_concrete(x) and np.any(np.asarray(x) < 0):
-            raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
-        fields[name] = x
-    return ImuNoise(**fields)
-
-
 def _resolve_jacobians(jacobians, att):
     if jacobians not in JACOBIANS:
         raise ValueError(f"unknown jacobians {jacobians!r}; choose one of {JACOBIANS}")
@@ -297,7 +281,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
-    noise = _check_noise(noise, dtype)
+    noise = val.check_noise(noise, dtype)
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     states, P, locked = _propagate_covariance(
         state, P0, gyro, accel, dt, g, noise, scheme=scheme, attitude=attitude, jacobians=jac,

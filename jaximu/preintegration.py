@@ -1,0 +1,619 @@
+"""Preintegration of IMU samples between two keyframes (Forster et al.; GTSAM; VINS-Mono).
+
+Between keyframes i and j the samples are integrated once, in the body frame ``B_i`` of the
+first keyframe and without gravity, at a linearisation bias ``b̂``:
+
+    ΔR_ij = Π Exp(ω_k dt_k),   Δv_ij = Σ ΔR_ik f_k dt_k,   Δp_ij = Σ (Δv_ik dt_k + ½ ΔR_ik f_k dt_k²)
+
+(``"euler"``, Forster's on-manifold scheme = GTSAM's ``ManifoldPreintegration``), or with
+VINS-Mono's midpoint rule (``"midpoint"``, its ``IntegrationBase::midPointIntegration``
+reproduced exactly: first-order quaternion update, its linearisation ``F`` and its 18-dim
+noise model ``V``). When an optimiser moves the bias, the deltas are corrected to first
+order with the bias Jacobians instead of re-integrating (:func:`correct`).
+
+The error of a :class:`Preintegrated` is ``[δθ, δp, δv, δb_g, δb_a]`` (our error-state
+order): ``ΔR = ΔR̂ Exp(δθ)`` and additive ``δp``, ``δv`` in frame ``B_i`` (VINS-Mono's
+convention). ``transition`` is the accumulated ``Φ_ij`` of that error (VINS-Mono's
+``jacobian``); its bias columns are the bias Jacobians. ``cov15`` includes the bias random
+walk (GTSAM's combined factor, VINS-Mono's covariance); ``cov`` is the 9×9 covariance of
+``[δθ, δp, δv]`` from the white noise alone (GTSAM's ``preintMeasCov``).
+
+GTSAM expresses ``δp``, ``δv`` in the frame at j (its NavState chart ``p ⊞ ξ = p + R ξ``):
+``Preintegrated.covariance(chart="gtsam")`` returns ``T cov Tᵀ`` with
+``T = blockdiag(I, ΔRᵀ, ΔRᵀ)``.
+
+Time is parallel too: a one-step transition ``(Φ_k, Q_k)`` composes associatively,
+``(Φ, Q)_ac = (Φ_bc Φ_ab, Φ_bc Q_ab Φ_bcᵀ + Q_bc)``, and once the rotations ``ΔR_ik`` are
+known (an associative scan of quaternion products) every increment is expressed in frame
+``B_i`` and sums are prefix sums. ``method="parallel"`` therefore uses
+``lax.associative_scan`` (O(log T) depth) and equals ``method="sequential"`` to rounding,
+for both schemes, and can return every prefix ``i→k``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaximu import _blocks as blk
+from jaximu import _validation as val
+from jaximu import so3
+from jaximu._blocks import Blocks, mm
+from jaximu.errorstate import blocks_analytic
+from jaximu.noise import ImuNoise
+from jaximu.state import ImuBias, NavState
+
+__all__ = [
+    "Preintegrated",
+    "preintegrate",
+    "correct",
+    "compose",
+    "predict",
+    "residual",
+    "whitened_residual",
+    "needs_reintegration",
+    "bias_jacobians_autodiff",
+    "REINTEGRATION_THRESHOLD",
+    "SCHEMES",
+]
+
+SCHEMES = ("euler", "midpoint")
+METHODS = ("sequential", "parallel")
+REINTEGRATION_THRESHOLD = {"gyro": 0.01, "accel": 0.10}
+"""Bias changes [rad/s, m/s²] past which VINS-Mono re-integrates instead of correcting."""
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Preintegrated:
+    """Preintegrated IMU measurement between keyframes i and j (frame ``B_i``, no gravity).
+
+    Fields may carry leading batch axes (and, for prefixes, a time axis before the last
+    one(s)).
+
+    Attributes:
+        delta_t: ``(...,)`` Δt_ij [s].
+        delta_q: ``(..., 4)`` ΔR_ij as a unit quaternion ``[w, x, y, z]``.
+        delta_v: ``(..., 3)`` Δv_ij [m/s].
+        delta_p: ``(..., 3)`` Δp_ij [m].
+        transition: ``(..., 15, 15)`` Φ_ij of the error ``[δθ, δp, δv, δb_g, δb_a]``.
+        cov15: ``(..., 15, 15)`` covariance with the bias random walk.
+        cov: ``(..., 9, 9)`` covariance of ``[δθ, δp, δv]`` from the white noise.
+        bias_hat: the linearisation bias.
+    """
+
+    delta_t: jax.Array
+    delta_q: jax.Array
+    delta_v: jax.Array
+    delta_p: jax.Array
+    transition: jax.Array
+    cov15: jax.Array
+    cov: jax.Array
+    bias_hat: ImuBias
+
+    @property
+    def delta_R(self):
+        """``(..., 3, 3)`` ΔR_ij."""
+        return so3.quat_to_matrix(self.delta_q)
+
+    @property
+    def dR_dbg(self):
+        """``∂ΔR/∂b_g`` (``ΔR(b) ≈ ΔR Exp(dR_dbg δb_g)``), ``(..., 3, 3)``."""
+        return self.transition[..., 0:3, 9:12]
+
+    @property
+    def dp_dbg(self):
+        return self.transition[..., 3:6, 9:12]
+
+    @property
+    def dp_dba(self):
+        return self.transition[..., 3:6, 12:15]
+
+    @property
+    def dv_dbg(self):
+        return self.transition[..., 6:9, 9:12]
+
+    @property
+    def dv_dba(self):
+        return self.transition[..., 6:9, 12:15]
+
+    def covariance(self, chart: str = "additive", combined: bool = False):
+        """The covariance in a chart: ``"additive"`` (ours, VINS-Mono) or ``"gtsam"``.
+
+        GTSAM's ``preintMeasCov`` has δp, δv in the frame at j: ``T P Tᵀ`` with
+        ``T = blockdiag(I, ΔRᵀ, ΔRᵀ)``. For ``combined`` (15×15) GTSAM orders the biases
+        ``[b_a, b_g]`` and differentiates with respect to the measurements (``-∂/∂b``), so
+        its bias blocks are reordered and their cross terms change sign:
+        ``T = blockdiag(I, ΔRᵀ, ΔRᵀ, [[0, -I], [-I, 0]])``.
+        """
+        P = self.cov15 if combined else self.cov
+        if chart == "additive":
+            return P
+        if chart != "gtsam":
+            raise ValueError(f"unknown chart {chart!r}; choose 'additive' or 'gtsam'")
+        Rt = jnp.swapaxes(self.delta_R, -1, -2)
+        n = P.shape[-1]
+        eye = jnp.eye(3, dtype=P.dtype)
+        T = jnp.zeros(Rt.shape[:-2] + (n, n), P.dtype)
+        T = T.at[..., 0:3, 0:3].set(eye).at[..., 3:6, 3:6].set(Rt).at[..., 6:9, 6:9].set(Rt)
+        if n == 15:
+            T = T.at[..., 9:12, 12:15].set(-eye).at[..., 12:15, 9:12].set(-eye)
+        return T @ P @ jnp.swapaxes(T, -1, -2)
+
+
+# --------------------------------------------------------------------------- one step
+
+
+class _Step(NamedTuple):
+    dq: jax.Array  # (..., 4) rotation increment (unnormalised for VINS's midpoint)
+    acc: jax.Array  # (..., 3) acceleration in frame B_i used for this step
+    F: Blocks
+    Q15: dict
+    Q9: dict
+
+
+_UPPER9 = [(i, j) for i in range(3) for j in range(i, 3)]
+
+
+def _fill(Q, keys, like):
+    """All ``keys`` present (zero blocks where missing), so scans see one structure."""
+    z = jnp.zeros(like.shape[:-1] + (3, 3), like.dtype)
+    return {k: z if Q.get(k) is None else jnp.broadcast_to(Q[k], z.shape) for k in keys}
+
+
+def _zeros_like_blocks(b: Blocks):
+    z = jnp.zeros_like(b.A)
+    return Blocks(*(z if x is None else x for x in b[:-1]), b.dt)
+
+
+def _euler_step(dR, w0, a0, h, b_g, b_a, var):
+    """Forster / GTSAM Manifold: zero-order hold on sample k."""
+    omega, f = w0 - b_g, a0 - b_a
+    R0 = so3.quat_to_matrix(dR)
+    F = blocks_analytic("euler", R0, omega, f, omega, f, h)
+    sg, sa, sbg, sba = var
+    Q9 = blk.noise_blocks([{0: F.B}, {1: F.Ep, 2: F.Ev}], [sg, sa])
+    return so3.exp(h[..., None] * omega), so3.quat_rotate(dR, f), F, Q9, (sbg, sba)
+
+
+def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var):
+    """VINS-Mono's ``midPointIntegration``, rearranged to our error order [θ, p, v, b_g, b_a].
+
+    Like VINS-Mono, the second acceleration and ``F`` use the *unnormalised* product
+    ``ΔR_k ⊗ [1, ω̄dt/2]`` (through Eigen's rotation formula, identical to
+    :func:`so3.quat_rotate`), and ``F`` is VINS-Mono's first-order linearisation.
+    Its noise is 18-dim ``[n_a0, n_g0, n_a1, n_g1, n_ba, n_bg]`` with variances
+    ``acc_n² = 2σ_a²/dt``, ``gyr_n² = 2σ_g²/dt``, ``acc_w² = σ_ba²/dt``, ``gyr_w² = σ_bg²/dt``:
+    the mapping that gives the continuous densities their meaning (``σ_g² dt`` on δθ per
+    step, etc.).
+    """
+    omega = 0.5 * (w0 + w1) - b_g
+    f0, f1 = a0 - b_a, a1 - b_a
+    hv = h[..., None]
+    dq = jnp.concatenate([jnp.ones_like(h)[..., None], 0.5 * hv * omega], axis=-1)
+    q1 = so3.quat_mul(dR, dq)
+    R0, R1 = so3.quat_to_matrix(dR), so3.quat_to_matrix(q1)
+    acc = 0.5 * (so3.quat_rotate(dR, f0) + so3.quat_rotate(q1, f1))
+    eye = jnp.eye(3, dtype=omega.dtype)
+    h1, h2, h3 = h[..., None, None], (h * h)[..., None, None], (h * h * h)[..., None, None]
+    A = eye - so3.skew(omega) * h1
+    R0a0, R1a1 = mm(R0, so3.skew(f0)), mm(R1, so3.skew(f1))
+    R1a1A = mm(R1a1, A)
+    F = Blocks(
+        A=A,
+        B=-eye * h1,
+        Cp=-0.25 * R0a0 * h2 - 0.25 * R1a1A * h2,
+        Cv=-0.5 * R0a0 * h1 - 0.5 * R1a1A * h1,
+        Dp=0.25 * R1a1 * h3,
+        Dv=0.5 * R1a1 * h2,
+        Ep=-0.25 * (R0 + R1) * h2,
+        Ev=-0.5 * (R0 + R1) * h1,
+        dt=h,
+    )
+    sg, sa, sbg, sba = var
+    Vg = {0: 0.5 * eye * h1, 1: -0.125 * R1a1 * h3, 2: -0.25 * R1a1 * h2}
+    Q9 = blk.noise_blocks(
+        [{1: 0.25 * R0 * h2, 2: 0.5 * R0 * h1}, Vg, {1: 0.25 * R1 * h2, 2: 0.5 * R1 * h1}, Vg],
+        [2 * sa, 2 * sg, 2 * sa, 2 * sg],
+    )
+    return dq, acc, F, Q9, (sbg, sba)
+
+
+def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
+    """One step of ``scheme`` at the preintegrated rotation ``dR`` (``(..., 4)``, unit)."""
+    dtype = w0.dtype
+    if noise is None:
+        var = [jnp.zeros(h.shape + (3,), dtype)] * 4
+    else:
+        var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
+    if scheme == "euler":
+        dq, acc, F, Q9, (sbg, sba) = _euler_step(dR, w0, a0, h, b_g, b_a, var)
+    else:
+        dq, acc, F, Q9, (sbg, sba) = _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var)
+    eye = jnp.eye(3, dtype=dtype)
+    h2 = (h * h)[..., None, None]
+    Q15 = dict(Q9)
+    Q15[(3, 3)] = h2 * (sbg[..., :, None] * eye)
+    Q15[(4, 4)] = h2 * (sba[..., :, None] * eye)
+    return _Step(dq, acc, _zeros_like_blocks(F), _fill(Q15, blk.UPPER, dq), _fill(Q9, _UPPER9, dq))
+
+
+def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
+    """``F`` and the noise Jacobians by ``jax.jacfwd`` of the step's mean (exact derivatives)."""
+    dtype = w0.dtype
+    nominal = _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, None)
+
+    def mean(delta, n):
+        """Next (ΔR, Δp, Δv, b) from the perturbed current ones, relative to Δp = Δv = 0."""
+        dRp = so3.quat_mul(dR, so3.exp(delta[..., 0:3]))
+        bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
+        if scheme == "euler":
+            s = _step(scheme, dRp, w0 + n[..., 0:3], a0 + n[..., 3:6], w1, a1, h, bg, ba, None)
+            nbg, nba = n[..., 6:9], n[..., 9:12]
+        else:
+            s = _step(scheme, dRp, w0 + n[..., 3:6], a0 + n[..., 0:3], w1 + n[..., 9:12],
+                      a1 + n[..., 6:9], h, bg, ba, None)
+            nbg, nba = n[..., 15:18], n[..., 12:15]
+        dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
+        hv = h[..., None]
+        dtheta = so3.log(so3.quat_mul(so3.quat_conj(
+            so3.quat_normalize(so3.quat_mul(dR, nominal.dq))), dq_next))
+        p = delta[..., 3:6] + delta[..., 6:9] * hv + 0.5 * s.acc * hv * hv
+        v = delta[..., 6:9] + s.acc * hv
+        return jnp.concatenate([dtheta, p - 0.5 * nominal.acc * hv * hv, v - nominal.acc * hv,
+                                delta[..., 9:15] + jnp.concatenate([nbg, nba], -1) * hv], -1)
+
+    n_noise = 12 if scheme == "euler" else 18
+    zero15, zero_n = jnp.zeros(15, dtype), jnp.zeros(n_noise, dtype)
+    Phi = jax.jacfwd(lambda d: mean(d, zero_n))(zero15)
+    G = jax.jacfwd(lambda n: mean(zero15, n))(zero_n)
+    if noise is None:
+        s = jnp.zeros(h.shape + (n_noise,), dtype)
+    else:
+        v = noise.discrete_variances(h, dtype)  # [σ_g², σ_a², σ_bg², σ_ba²] / dt
+        if scheme == "euler":
+            s = v
+        else:
+            sg, sa, sbg, sba = jnp.split(v, 4, axis=-1)
+            s = jnp.concatenate([2 * sa, 2 * sg, 2 * sa, 2 * sg, sba, sbg], -1)
+    walk = n_noise - 6
+    Q15 = blk.dense_to_blocks((G * s[..., None, :]) @ jnp.swapaxes(G, -1, -2))
+    G9 = G[..., :9, :walk]
+    Q9d = (G9 * s[..., None, :walk]) @ jnp.swapaxes(G9, -1, -2)
+    Q9 = {(i, j): Q9d[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in _UPPER9}
+    return _Step(nominal.dq, nominal.acc, blk.phi_from_dense(Phi), Q15=Q15, Q9=Q9)
+
+
+# --------------------------------------------------------------------------- accumulation
+
+
+class _Acc(NamedTuple):
+    """What composes associatively: the transition and the two noise covariances."""
+
+    Phi: Blocks
+    Q15: dict
+    Q9: dict
+
+
+def _combine(earlier: _Acc, later: _Acc) -> _Acc:
+    Q15 = blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(earlier.Q15, later.Phi),
+                                                 later.Q15))
+    Q9 = blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(earlier.Q9, later.Phi), later.Q9))
+    Q9 = {k: Q9[k] for k in earlier.Q9}  # the bias blocks of Q9 stay zero
+    return _Acc(blk.phi_compose(later.Phi, earlier.Phi), Q15, Q9)
+
+
+def _identity_acc(batch, dtype) -> _Acc:
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), tuple(batch) + (3, 3))
+    z = jnp.zeros(tuple(batch) + (3, 3), dtype)
+    Phi = Blocks(eye, z, z, z, z, z, z, z, jnp.zeros(tuple(batch), dtype))
+    return _Acc(Phi, {k: z for k in blk.UPPER}, {k: z for k in _UPPER9})
+
+
+def _finish(delta_t, dq, dv, dp, acc: _Acc, bias: ImuBias) -> Preintegrated:
+    Q9 = {k: acc.Q9.get(k) for k in blk.UPPER}
+    cov9 = blk.blocks_to_dense(Q9)[..., :9, :9]
+    batch = dq.shape[:-1]
+    return Preintegrated(
+        delta_t=delta_t, delta_q=so3.quat_normalize(dq), delta_v=dv, delta_p=dp,
+        transition=blk.phi_to_dense(acc.Phi), cov15=blk.blocks_to_dense(acc.Q15), cov=cov9,
+        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, batch + (3,)),
+                         jnp.broadcast_to(bias.b_a, batch + (3,))))
+
+
+def _pairs(gyro, accel, dt, scheme):
+    """Time-major samples k and k+1 and steps; ``dt`` of length T (hold the last sample) or
+    T-1 (samples are the ends of the intervals)."""
+    T = gyro.shape[-2]
+    n = dt.shape[-1] if dt.ndim else T
+    w = jnp.moveaxis(gyro, -2, 0)
+    a = jnp.moveaxis(accel, -2, 0)
+    h = jnp.moveaxis(dt, -1, 0) if dt.ndim else jnp.broadcast_to(dt, (n,))
+    if n == T:
+        w1 = jnp.concatenate([w[1:], w[-1:]], 0)
+        a1 = jnp.concatenate([a[1:], a[-1:]], 0)
+    else:
+        w1, a1 = w[1:], a[1:]
+    return w[:n], a[:n], w1, a1, h
+
+
+@functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes"))
+def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, prefixes):
+    step_fn = _step if jacobians == "analytic" else _step_autodiff
+    w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
+    dtype = w0.dtype
+    batch = jnp.broadcast_shapes(w0.shape[1:-1], bias.b_g.shape[:-1], bias.b_a.shape[:-1],
+                                 h.shape[1:])
+    b_g, b_a = bias.b_g, bias.b_a
+    h = jnp.broadcast_to(h, h.shape[:1] + tuple(batch))
+    q_id = so3.quat_identity(batch, dtype)
+    if method == "sequential":
+        def body(carry, xs):
+            dq, dv, dp, t, acc = carry
+            s = step_fn(scheme, dq, *xs, b_g, b_a, noise)
+            hk = xs[-1][..., None]
+            dp = dp + dv * hk + 0.5 * s.acc * hk * hk
+            dv = dv + s.acc * hk
+            dq = so3.quat_normalize(so3.quat_mul(dq, s.dq))
+            acc = _combine(acc, _Acc(s.F, s.Q15, s.Q9))
+            t = t + xs[-1]
+            carry = (dq, dv, dp, t, acc)
+            return carry, (carry if prefixes else None)
+
+        z = jnp.zeros(tuple(batch) + (3,), dtype)
+        carry0 = (q_id, z, z, jnp.zeros(tuple(batch), dtype), _identity_acc(batch, dtype))
+        final, out = jax.lax.scan(body, carry0, (w0, a0, w1, a1, h))
+        dq, dv, dp, t, acc = out if prefixes else final
+    else:
+        # 1. rotations: exclusive prefix products of the (normalised) increments
+        dummy = jnp.broadcast_to(q_id, h.shape + (4,))
+        incr = step_fn(scheme, dummy, w0, a0, w1, a1, h, b_g, b_a, None).dq
+        incr = so3.quat_normalize(incr)
+        incl = so3.quat_normalize(jax.lax.associative_scan(so3.quat_mul, incr, axis=0))
+        dR = jnp.concatenate([q_id[None], incl[:-1]], axis=0)
+        # 2. every step in frame B_i, side by side
+        s = step_fn(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise)
+        hv = h[..., None]
+        dv_incl = jnp.cumsum(s.acc * hv, axis=0)
+        dv_excl = dv_incl - s.acc * hv
+        dp = jnp.cumsum(dv_excl * hv + 0.5 * s.acc * hv * hv, axis=0)
+        t = jnp.cumsum(h, axis=0)
+        # 3. transitions and covariances by an associative scan
+        acc = jax.lax.associative_scan(_combine, _Acc(s.F, s.Q15, s.Q9), axis=0)
+        dq, dv = incl, dv_incl
+        if not prefixes:
+            dq, dv, dp, t = dq[-1], dv[-1], dp[-1], t[-1]
+            acc = jax.tree_util.tree_map(lambda x: x[-1], acc)
+    pim = _finish(t, dq, dv, dp, acc, ImuBias(b_g, b_a))
+    if prefixes:  # time first inside the scan -> time before the last axes
+        pim = Preintegrated(
+            delta_t=jnp.moveaxis(pim.delta_t, 0, -1),
+            delta_q=jnp.moveaxis(pim.delta_q, 0, -2), delta_v=jnp.moveaxis(pim.delta_v, 0, -2),
+            delta_p=jnp.moveaxis(pim.delta_p, 0, -2),
+            transition=jnp.moveaxis(pim.transition, 0, -3), cov15=jnp.moveaxis(pim.cov15, 0, -3),
+            cov=jnp.moveaxis(pim.cov, 0, -3),
+            bias_hat=jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -2), pim.bias_hat))
+    return pim
+
+
+def _check_bias(bias, dtype):
+    if bias is None:
+        return ImuBias(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
+    if not isinstance(bias, ImuBias):
+        raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
+    out = []
+    for name in ("b_g", "b_a"):
+        x = jnp.asarray(getattr(bias, name), dtype)
+        if x.ndim < 1 or x.shape[-1] != 3:
+            raise ValueError(f"bias.{name} must have shape (..., 3), got {tuple(x.shape)}")
+        val.check_finite(f"bias.{name}", x)
+        out.append(x)
+    return ImuBias(*out)
+
+
+def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise | None = None,
+                 scheme: str = "euler", method: str = "sequential", *, prefixes: bool = False,
+                 jacobians: str = "analytic") -> Preintegrated:
+    """Preintegrate IMU samples between two keyframes.
+
+    Args:
+        gyro, accel: ``(..., T, 3)`` raw samples [rad/s], [m/s²] from keyframe i on.
+        dt: ``(..., T)`` steps (sample k held over ``dt[k]``; for ``"midpoint"`` the last
+            step then holds sample T-1), or ``(..., T-1)`` when the samples are the ends of
+            the intervals (VINS-Mono's ``push_back``: step k uses samples k and k+1; Euler
+            then leaves the last sample unused); or a scalar (``(T,)`` steps).
+        bias: linearisation bias :class:`ImuBias` (default zero).
+        noise: :class:`ImuNoise` densities (default none: zero covariances).
+        scheme: ``"euler"`` (Forster / GTSAM Manifold) or ``"midpoint"`` (VINS-Mono).
+        method: ``"sequential"`` (``lax.scan``) or ``"parallel"``
+            (``lax.associative_scan``, O(log T) depth; same numbers to rounding).
+        prefixes: return every prefix ``i→k`` (fields gain a time axis before their last
+            axes) instead of only ``i→j``.
+        jacobians: ``"analytic"`` (closed forms; VINS-Mono's own linearisation for the
+            midpoint) or ``"autodiff"`` (``jax.jacfwd`` of each step's mean: exact
+            derivatives, also for the midpoint).
+
+    Returns:
+        :class:`Preintegrated`.
+    """
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown preintegration scheme {scheme!r}; choose one of {SCHEMES}")
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
+    if jacobians not in ("analytic", "autodiff"):
+        raise ValueError(f"unknown jacobians {jacobians!r}; choose 'analytic' or 'autodiff'")
+    dtype = val.float_dtype(gyro, accel)
+    gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
+    bias = _check_bias(bias, dtype)
+    if noise is not None:
+        noise = val.check_noise(noise, dtype)
+    val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
+                    bias.b_a.shape[:-1])
+    return _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method=method,
+                         jacobians=jacobians, prefixes=prefixes)
+
+
+# --------------------------------------------------------------------------- use
+
+
+def correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
+    """First-order bias update of the deltas (no re-integration).
+
+    ``ΔR ← ΔR Exp(J_R δb_g)``, ``Δv ← Δv + J_vg δb_g + J_va δb_a``, ``Δp`` likewise, with
+    ``δb = bias - pim.bias_hat``. The result has ``bias_hat = bias`` and keeps the Jacobians
+    and covariances (a first-order re-linearisation). Past
+    :data:`REINTEGRATION_THRESHOLD` re-integrating is advised (:func:`needs_reintegration`).
+    """
+    dbg = bias.b_g - pim.bias_hat.b_g
+    dba = bias.b_a - pim.bias_hat.b_a
+
+    def mv(M, x):
+        return jnp.einsum("...ij,...j->...i", M, x)
+
+    return dataclasses.replace(
+        pim,
+        delta_q=so3.quat_mul(pim.delta_q, so3.exp(mv(pim.dR_dbg, dbg))),
+        delta_v=pim.delta_v + mv(pim.dv_dbg, dbg) + mv(pim.dv_dba, dba),
+        delta_p=pim.delta_p + mv(pim.dp_dbg, dbg) + mv(pim.dp_dba, dba),
+        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, pim.bias_hat.b_g.shape),
+                         jnp.broadcast_to(bias.b_a, pim.bias_hat.b_a.shape)),
+    )
+
+
+def needs_reintegration(pim: Preintegrated, bias: ImuBias, gyro_threshold: float = 0.01,
+                        accel_threshold: float = 0.10):
+    """Whether ``bias`` is far enough from ``pim.bias_hat`` that re-integration is advised
+    (VINS-Mono: ``|δb_a| > 0.10`` m/s² or ``|δb_g| > 0.01`` rad/s). ``(...,)`` bool."""
+    dbg = jnp.linalg.norm(bias.b_g - pim.bias_hat.b_g, axis=-1)
+    dba = jnp.linalg.norm(bias.b_a - pim.bias_hat.b_a, axis=-1)
+    return (dbg > gyro_threshold) | (dba > accel_threshold)
+
+
+def compose(pim_ab: Preintegrated, pim_bc: Preintegrated) -> Preintegrated:
+    """``pim_ac`` from two consecutive intervals, each preintegrated in its own start frame.
+
+    ``pim_bc`` is first corrected to ``pim_ab``'s linearisation bias (:func:`correct`). Its
+    transition and noise are moved to frame ``B_a`` by ``T = blockdiag(I, ΔR_ab, ΔR_ab, I, I)``
+    and composed: ``Φ_ac = (T Φ_bc T⁻¹) Φ_ab``, ``Q_ac = (T Φ_bc T⁻¹) Q_ab (·)ᵀ + T Q_bc Tᵀ``.
+    Exact (to rounding) for ``"euler"``; for VINS-Mono's midpoint the conjugation is exact
+    only to O((ω dt)²), because VINS-Mono rotates with an unnormalised quaternion.
+    """
+    bc = correct(pim_bc, pim_ab.bias_hat)
+    R = pim_ab.delta_R
+
+    def mv(M, x):
+        return jnp.einsum("...ij,...j->...i", M, x)
+
+    F = blk.phi_from_dense(bc.transition)
+    F = F._replace(Cp=mm(R, F.Cp), Cv=mm(R, F.Cv), Dp=mm(R, F.Dp), Dv=mm(R, F.Dv),
+                   Ep=mm(R, F.Ep), Ev=mm(R, F.Ev))
+    Phi_ab = blk.phi_from_dense(pim_ab.transition)
+    Rb = {0: None, 1: R, 2: R, 3: None, 4: None}
+
+    def ab_blocks(Qd, n):
+        if n == 15:
+            return blk.dense_to_blocks(Qd)
+        return {(i, j): Qd[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in _UPPER9}
+
+    def conj(Qd, n):
+        Qb = ab_blocks(Qd, n)
+        out = {}
+        for (i, j), X in Qb.items():
+            X = X if Rb[i] is None else mm(Rb[i], X)
+            out[(i, j)] = X if Rb[j] is None else mm(X, blk.t(Rb[j]))
+        return out
+
+    acc = _combine(_Acc(Phi_ab, ab_blocks(pim_ab.cov15, 15), ab_blocks(pim_ab.cov, 9)),
+                   _Acc(F, conj(bc.cov15, 15), conj(bc.cov, 9)))
+    return _finish(
+        pim_ab.delta_t + bc.delta_t,
+        so3.quat_mul(pim_ab.delta_q, bc.delta_q),
+        pim_ab.delta_v + mv(R, bc.delta_v),
+        pim_ab.delta_p + pim_ab.delta_v * bc.delta_t[..., None] + mv(R, bc.delta_p),
+        acc, pim_ab.bias_hat)
+
+
+def _gravity(gravity, dtype):
+    return val.gravity_vector(gravity, dtype)
+
+
+def predict(state_i: NavState, pim: Preintegrated, gravity=9.81) -> NavState:
+    """The state at keyframe j from the state at i and the preintegrated measurement.
+
+    The deltas are first corrected to ``state_i``'s biases; then ``R_j = R_i ΔR``,
+    ``v_j = v_i + g_W Δt + R_i Δv``, ``p_j = p_i + v_i Δt + ½ g_W Δt² + R_i Δp``; the
+    biases are carried over.
+    """
+    g = _gravity(gravity, pim.delta_v.dtype)
+    c = correct(pim, state_i.bias)
+    dt = c.delta_t[..., None]
+    return NavState(
+        q=so3.quat_mul(state_i.q, c.delta_q),
+        p=state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, c.delta_p),
+        v=state_i.v + g * dt + so3.quat_rotate(state_i.q, c.delta_v),
+        b_g=state_i.b_g, b_a=state_i.b_a)
+
+
+def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
+    """The 15-dim residual ``[r_θ, r_p, r_v, r_bg, r_ba]`` (VINS-Mono's ``evaluate``, our order).
+
+    ``r_θ = Log(ΔR̃ᵀ R_iᵀ R_j)``, ``r_p = R_iᵀ(p_j - p_i - v_i Δt - ½ g_W Δt²) - Δp̃``,
+    ``r_v = R_iᵀ(v_j - v_i - g_W Δt) - Δṽ``, ``r_b = b_j - b_i``, with ``~`` the deltas
+    corrected to ``state_i``'s biases. Zero for states that agree with the measurement.
+    """
+    g = _gravity(gravity, pim.delta_v.dtype)
+    c = correct(pim, state_i.bias)
+    dt = c.delta_t[..., None]
+    qi_inv = so3.quat_conj(state_i.q)
+    r_theta = so3.log(so3.quat_mul(so3.quat_conj(c.delta_q), so3.quat_mul(qi_inv, state_j.q)))
+    r_p = so3.quat_rotate(qi_inv, state_j.p - state_i.p - state_i.v * dt - 0.5 * g * dt * dt)
+    r_v = so3.quat_rotate(qi_inv, state_j.v - state_i.v - g * dt)
+    parts = [r_theta, r_p - c.delta_p, r_v - c.delta_v, state_j.b_g - state_i.b_g,
+             state_j.b_a - state_i.b_a]
+    shape = jnp.broadcast_shapes(*(x.shape for x in parts))
+    return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+
+
+def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
+    """``L⁻¹ r`` with ``cov15 = L Lᵀ`` (Cholesky): ``|L⁻¹ r|² = rᵀ cov15⁻¹ r``.
+
+    ``cov15`` must be positive definite (give the bias random walk a non-zero density).
+    """
+    r = residual(state_i, state_j, pim, gravity)
+    L = jnp.linalg.cholesky(pim.cov15)
+    return jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
+
+
+def bias_jacobians_autodiff(gyro, accel, dt, bias: ImuBias | None = None,
+                            scheme: str = "euler"):
+    """The bias Jacobians by ``jax.jacfwd`` of the mean deltas over the whole window.
+
+    Returns ``(dR_dbg, dp_dbg, dp_dba, dv_dbg, dv_dba)``, each ``(..., 3, 3)``, with the
+    rotation one defined as in :class:`Preintegrated` (``Log(ΔR̂ᵀ ΔR(b̂ + δ))``).
+    """
+    dtype = val.float_dtype(gyro, accel)
+    gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
+    bias = _check_bias(bias, dtype)
+    return _bias_jacobians_autodiff(gyro, accel, dt, bias, scheme=scheme)
+
+
+@functools.partial(jax.jit, static_argnames=("scheme",))
+def _bias_jacobians_autodiff(gyro, accel, dt, bias, *, scheme):
+    def deltas(delta_b):
+        b = ImuBias(bias.b_g + delta_b[..., 0:3], bias.b_a + delta_b[..., 3:6])
+        pim = _preintegrate(gyro, accel, dt, b, None, scheme=scheme, method="sequential",
+                            jacobians="analytic", prefixes=False)
+        return pim.delta_q, pim.delta_p, pim.delta_v
+
+    q0, _, _ = deltas(jnp.zeros(6, gyro.dtype))
+
+    def errors(delta_b):
+        q, p, v = deltas(delta_b)
+        return so3.log(so3.quat_mul(so3.quat_conj(q0), q)), p, v
+
+    Jq, Jp, Jv = jax.jacfwd(errors)(jnp.zeros(6, gyro.dtype))
+    return Jq[..., 0:3], Jp[..., 0:3], Jp[..., 3:6], Jv[..., 0:3], Jv[..., 3:6]
+
