@@ -340,54 +340,143 @@ def _pairs(gyro, accel, dt, scheme):
     return w[:n], a[:n], w1, a1, h
 
 
+def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes):
+    """``lax.scan`` of the preintegration recursion over the leading (time) axis of ``xs``.
+
+    ``xs = (dR, w0, a0, w1, a1, h, mask)``: with ``dR`` None the rotation is carried (the
+    sequential recursion); otherwise it is given per step (already known in frame ``B_i``).
+    Steps whose ``mask`` is False (padding) are identities.
+    """
+    dR_given, w0, a0, w1, a1, h, mask = xs
+    q_id = so3.quat_identity(batch, dtype)
+    ident = _identity_acc(batch, dtype)
+
+    def body(carry, x):
+        dq, dv, dp, t, acc = carry
+        dR, w0k, a0k, w1k, a1k, hk, mk = x
+        if mk is not None:
+            hk_safe = jnp.where(mk, hk, jnp.ones_like(hk))
+        else:
+            hk_safe = hk
+        s = step_fn(scheme, dq if dR is None else dR, w0k, a0k, w1k, a1k, hk_safe, b_g, b_a,
+                    noise)
+        step = _Acc(s.F, s.Q15, s.Q9)
+        a_k = s.acc
+        if mk is not None:
+            step = jax.tree_util.tree_map(
+                lambda x_, i_: jnp.where(mk.reshape(mk.shape + (1,) * (x_.ndim - mk.ndim)), x_, i_),
+                step, ident)
+            a_k = jnp.where(mk[..., None], a_k, 0.0)
+            hk = jnp.where(mk, hk, 0.0)
+        hv = hk[..., None]
+        dp = dp + dv * hv + 0.5 * a_k * hv * hv
+        dv = dv + a_k * hv
+        if dR is None:
+            dq = so3.quat_normalize(so3.quat_mul(dq, s.dq))
+        acc = _combine(acc, step)
+        carry = (dq, dv, dp, t + hk, acc)
+        return carry, (carry if prefixes else None)
+
+    z = jnp.zeros(tuple(batch) + (3,), dtype)
+    carry0 = (q_id, z, z, jnp.zeros(tuple(batch), dtype), ident)
+    return jax.lax.scan(body, carry0, (dR_given, w0, a0, w1, a1, h, mask))
+
+
+class _Dense(NamedTuple):
+    """A chunk summary in frame ``B_i``, dense, for the associative scan across chunks."""
+
+    t: jax.Array
+    dv: jax.Array
+    dp: jax.Array
+    Phi: jax.Array
+    Q15: jax.Array
+    Q9: jax.Array
+
+
+def _to_dense(t, dv, dp, acc: _Acc) -> _Dense:
+    Q9 = {k: acc.Q9.get(k) for k in blk.UPPER}
+    return _Dense(t, dv, dp, blk.phi_to_dense(acc.Phi), blk.blocks_to_dense(acc.Q15),
+                  blk.blocks_to_dense(Q9)[..., :9, :9])
+
+
+def _combine_dense(e1: _Dense, e2: _Dense) -> _Dense:
+    """``e2`` after ``e1``; all quantities in the same frame ``B_i``, so no rotation."""
+    def sandwich(F, Q):
+        return F @ Q @ jnp.swapaxes(F, -1, -2)
+
+    return _Dense(e1.t + e2.t, e1.dv + e2.dv, e1.dp + e2.dp + e1.dv * e2.t[..., None],
+                  e2.Phi @ e1.Phi, blk.sym(sandwich(e2.Phi, e1.Q15) + e2.Q15),
+                  blk.sym(sandwich(e2.Phi[..., :9, :9], e1.Q9) + e2.Q9))
+
+
+def _chunk_length(T: int) -> int:
+    """Samples per chunk for the parallel method: at most ~512 chunks side by side."""
+    return max(16, -(-T // 512)) if T > 16 else T
+
+
+def _pim_from_dense(dq, d: _Dense, bias):
+    batch = dq.shape[:-1]
+    return Preintegrated(
+        delta_t=d.t, delta_q=so3.quat_normalize(dq), delta_v=d.dv, delta_p=d.dp,
+        transition=d.Phi, cov15=d.Q15, cov=d.Q9,
+        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, batch + (3,)),
+                         jnp.broadcast_to(bias.b_a, batch + (3,))))
+
+
 @functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes"))
 def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, prefixes):
     step_fn = _step if jacobians == "analytic" else _step_autodiff
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
-    batch = jnp.broadcast_shapes(w0.shape[1:-1], bias.b_g.shape[:-1], bias.b_a.shape[:-1],
-                                 h.shape[1:])
+    batch = tuple(jnp.broadcast_shapes(w0.shape[1:-1], bias.b_g.shape[:-1], bias.b_a.shape[:-1],
+                                       h.shape[1:]))
     b_g, b_a = bias.b_g, bias.b_a
-    h = jnp.broadcast_to(h, h.shape[:1] + tuple(batch))
-    q_id = so3.quat_identity(batch, dtype)
+    T = h.shape[0]
+    h = jnp.broadcast_to(h, (T,) + batch)
+    w0, a0, w1, a1 = (jnp.broadcast_to(x, (T,) + batch + (3,)) for x in (w0, a0, w1, a1))
     if method == "sequential":
-        def body(carry, xs):
-            dq, dv, dp, t, acc = carry
-            s = step_fn(scheme, dq, *xs, b_g, b_a, noise)
-            hk = xs[-1][..., None]
-            dp = dp + dv * hk + 0.5 * s.acc * hk * hk
-            dv = dv + s.acc * hk
-            dq = so3.quat_normalize(so3.quat_mul(dq, s.dq))
-            acc = _combine(acc, _Acc(s.F, s.Q15, s.Q9))
-            t = t + xs[-1]
-            carry = (dq, dv, dp, t, acc)
-            return carry, (carry if prefixes else None)
-
-        z = jnp.zeros(tuple(batch) + (3,), dtype)
-        carry0 = (q_id, z, z, jnp.zeros(tuple(batch), dtype), _identity_acc(batch, dtype))
-        final, out = jax.lax.scan(body, carry0, (w0, a0, w1, a1, h))
+        final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, (None, w0, a0, w1, a1, h, None),
+                                 batch, dtype, prefixes)
         dq, dv, dp, t, acc = out if prefixes else final
+        pim = _finish(t, dq, dv, dp, acc, ImuBias(b_g, b_a))
     else:
-        # 1. rotations: exclusive prefix products of the (normalised) increments
-        dummy = jnp.broadcast_to(q_id, h.shape + (4,))
-        incr = step_fn(scheme, dummy, w0, a0, w1, a1, h, b_g, b_a, None).dq
-        incr = so3.quat_normalize(incr)
-        incl = so3.quat_normalize(jax.lax.associative_scan(so3.quat_mul, incr, axis=0))
+        # 1. rotations ΔR_ik: an associative scan of the (normalised) increments
+        q_id = so3.quat_identity(batch, dtype)
+        incr = step_fn(scheme, jnp.broadcast_to(q_id, (T,) + batch + (4,)), w0, a0, w1, a1, h,
+                       b_g, b_a, None).dq
+        incl = so3.quat_normalize(jax.lax.associative_scan(so3.quat_mul,
+                                                           so3.quat_normalize(incr), axis=0))
         dR = jnp.concatenate([q_id[None], incl[:-1]], axis=0)
-        # 2. every step in frame B_i, side by side
-        s = step_fn(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise)
-        hv = h[..., None]
-        dv_incl = jnp.cumsum(s.acc * hv, axis=0)
-        dv_excl = dv_incl - s.acc * hv
-        dp = jnp.cumsum(dv_excl * hv + 0.5 * s.acc * hv * hv, axis=0)
-        t = jnp.cumsum(h, axis=0)
-        # 3. transitions and covariances by an associative scan
-        acc = jax.lax.associative_scan(_combine, _Acc(s.F, s.Q15, s.Q9), axis=0)
-        dq, dv = incl, dv_incl
-        if not prefixes:
-            dq, dv, dp, t = dq[-1], dv[-1], dp[-1], t[-1]
-            acc = jax.tree_util.tree_map(lambda x: x[-1], acc)
-    pim = _finish(t, dq, dv, dp, acc, ImuBias(b_g, b_a))
+        # 2. chunks of L steps side by side, each step already in frame B_i
+        L = _chunk_length(T)
+        C = -(-T // L)
+        pad = C * L - T
+
+        def chunked(x):  # (T, ...) -> (L, C, ...), time k = c L + l
+            x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)], 0) if pad else x
+            return jnp.swapaxes(x.reshape((C, L) + x.shape[1:]), 0, 1)
+
+        mask = chunked(jnp.ones((T,) + batch, bool)) if pad else None
+        xs = tuple(chunked(x) for x in (dR, w0, a0, w1, a1, h)) + (mask,)
+        final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, (C,) + batch, dtype,
+                                 prefixes)
+        # 3. an associative scan across the chunk summaries (dense: few, cheap to compile)
+        _, dv, dp, t, acc = final
+        chunk_prefix = jax.lax.associative_scan(_combine_dense, _to_dense(t, dv, dp, acc), axis=0)
+        if prefixes:
+            first = _to_dense(jnp.zeros_like(t[:1]), jnp.zeros_like(dv[:1]),
+                              jnp.zeros_like(dp[:1]), _identity_acc((1,) + batch, dtype))
+            excl = jax.tree_util.tree_map(lambda a_, b_: jnp.concatenate([a_, b_[:-1]], 0),
+                                          first, chunk_prefix)
+            _, dv_l, dp_l, t_l, acc_l = out  # (L, C, ...)
+            inner = _to_dense(t_l, dv_l, dp_l, acc_l)
+            whole = _combine_dense(jax.tree_util.tree_map(lambda x: x[None], excl), inner)
+            whole = jax.tree_util.tree_map(
+                lambda x: jnp.swapaxes(x, 0, 1).reshape((C * L,) + x.shape[2:])[:T], whole)
+            pim = _pim_from_dense(incl, whole, ImuBias(b_g, b_a))
+        else:
+            last = jax.tree_util.tree_map(lambda x: x[-1], chunk_prefix)
+            pim = _pim_from_dense(incl[-1], last, ImuBias(b_g, b_a))
     if prefixes:  # time first inside the scan -> time before the last axes
         pim = Preintegrated(
             delta_t=jnp.moveaxis(pim.delta_t, 0, -1),
