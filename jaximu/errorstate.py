@@ -37,12 +37,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks as blk
+from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
 from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages, step
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
-from jaximu.propagate import broadcast_state, mean_body, prepare, time_major
+from jaximu.propagate import (broadcast_state, flatten_batch, mean_body, prepare, time_major,
+                               uses_fast_path)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -227,14 +229,16 @@ def _resolve_jacobians(jacobians, att):
     return jacobians
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "unroll"))
+@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast"))
 def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attitude, jacobians,
-                          save_all, unroll=1):
+                          save_all, fast=True):
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)))
+    if jacobians == "analytic" and not save_all and uses_fast_path(scheme, attitude, fast):
+        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -260,7 +264,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
 
     P_init = blk.dense_to_blocks(P0) if jacobians == "analytic" else P0
     carry0 = (att.from_quat(state.q), state.p, state.v, jnp.zeros(batch, bool), P_init)
-    (x, p, v, locked, Pc), out = jax.lax.scan(body, carry0, xs, unroll=unroll)
+    (x, p, v, locked, Pc), out = jax.lax.scan(body, carry0, xs)
     if save_all:
         T = gyro.shape[-2]
         q_t, p_t, v_t, P_t = out
@@ -272,6 +276,31 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         return states, P_t, locked
     P_final = blk.blocks_to_dense(Pc) if jacobians == "analytic" else Pc
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
+
+
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch):
+    """Euler / exact quaternion exponential / analytic Jacobians, final covariance only: the
+    block-structured update of :func:`structured_update` on the :mod:`jaximu._fast` layout."""
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
+    B = gyro_f.shape[0]
+    P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
+    parts = [s * s for s in noise._per_axis(q.dtype)]  # σ² per axis, as discrete_variances
+    shape = jnp.broadcast_shapes(*(x.shape for x in parts))
+    var = jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)  # (..., 12)
+    shared = var.ndim == 1
+    var_f = None if shared else jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
+
+    def qc_fn(h, lane_var):  # noise.discrete_variances(h) = σ² / dt
+        v_ = var if shared else lane_var
+        return v_ / (h[..., None] if jnp.ndim(h) else h)
+
+    q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
+                                           qc_fn, var_f)
+    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
+    st = NavState(unflat(q), unflat(p), unflat(v),
+                  jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+                  jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+    return st, unflat(P), jnp.zeros(batch, bool)
 
 
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
