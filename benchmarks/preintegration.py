@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 
 import jax
@@ -35,19 +34,9 @@ import numpy as np  # noqa: E402
 
 import jaximu  # noqa: E402
 from jaximu.datasets import euroc_v1_02_segment  # noqa: E402
+from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
 
 TARGETS = {"long": 5.0, "windows": 10.0}  # × GTSAM Manifold, float64
-
-
-def cpu_model():
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def make_inputs(n_long, n_windows, window_len, seed=0):
@@ -129,7 +118,8 @@ def main(argv=None):
     n_long, n_win, w_len = (20_000, 512, 200) if args.quick else (100_000, 4096, 200)
     long, windows, bias = make_inputs(n_long, n_win, w_len)
     rows = []
-    print(f"# preintegration benchmark on {cpu_model()} ({os.cpu_count()} CPUs), "
+    info = machine_info()
+    print(f"# preintegration benchmark on {info['cpu_model']} ({info['cpu_count']} CPUs), "
           f"jax {jax.__version__}, {jax.default_backend()}", flush=True)
 
     gtsam_rate = {}
@@ -198,11 +188,10 @@ def main(argv=None):
                   f"{verdict}")
     out_path = args.out or os.path.join(
         os.path.dirname(__file__), "results",
-        f"preintegration-{os.cpu_count()}cpu{'-quick' if args.quick else ''}.json")
+        f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
     os.makedirs(os.path.dirname(out_path), exist_ok=True)
     with open(out_path, "w") as f:
-        json.dump(dict(machine=dict(cpu=cpu_model(), cpus=os.cpu_count(), jax=jax.__version__,
-                                    backend=jax.default_backend()), rows=rows), f, indent=1)
+        json.dump(dict(machine=info, rows=rows), f, indent=1)
     print(f"\nwrote {out_path}")
 
 
