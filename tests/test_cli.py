@@ -53,3 +53,18 @@ def test_user_mistakes_exit_non_zero_without_traceback():
     assert "--seconds must be positive" in res.stderr
     res = run("frobnicate")
     assert res.returncode != 0 and "Traceback" not in res.stderr
+
+
+def test_quickstart_example_runs():
+    import pathlib
+
+    example = pathlib.Path(__file__).resolve().parents[1] / "examples" / "quickstart.py"
+    if not example.exists():  # an installed package without the source tree
+        pytest.skip("examples/ not present")
+    res = subprocess.run([sys.executable, str(example)], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert [ln[:2] for ln in lines] == ["1.", "2.", "3.", "4.", "5."]
+    # 1 s of dead reckoning from the ground truth: a few centimetres (SOURCE.md: 2.5 cm median)
+    assert float(lines[0].split("error ")[1].split(" m")[0]) < 0.1
