@@ -43,8 +43,8 @@ from jaximu import so3
 from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages, step
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
-from jaximu.propagate import (broadcast_state, flatten_batch, mean_body, prepare, time_major,
-                               uses_fast_path)
+from jaximu.propagate import (broadcast_state, flatten_batch, mean_body, n_steps, prepare,
+                               time_major, used_samples, uses_fast_path)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -238,6 +238,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)))
     if jacobians == "analytic" and not save_all and uses_fast_path(scheme, attitude, fast):
+        gyro, accel = used_samples(gyro, accel, dt)
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
@@ -266,7 +267,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     carry0 = (att.from_quat(state.q), state.p, state.v, jnp.zeros(batch, bool), P_init)
     (x, p, v, locked, Pc), out = jax.lax.scan(body, carry0, xs)
     if save_all:
-        T = gyro.shape[-2]
+        T = n_steps(gyro, dt)
         q_t, p_t, v_t, P_t = out
         q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in (q_t, p_t, v_t))
         P_t = jnp.moveaxis(P_t, 0, -3)

@@ -27,7 +27,7 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
     val.require_navstate(state)
     dtype = val.float_dtype(state.q, gyro, accel)
     state = val.check_state(state, dtype)
-    gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype)
+    gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                             dt.shape[:-1], g.shape[:-1])
@@ -35,21 +35,35 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
 
 
 def time_major(gyro, accel, dt, scheme):
-    """Inputs as scan ``xs``: samples k and k+1 with time first, dt of shape ``(T, ...)``.
+    """Inputs as scan ``xs``: samples k and k+1 with time first, dt of shape ``(n, ...)``.
 
-    For midpoint and RK4 the last step has no sample k+1: the last sample is held (the
-    step is then a zero-order hold, as Euler's).
+    With ``n = T`` steps, midpoint and RK4 have no sample k+1 at the last step: the last
+    sample is held (the step is then a zero-order hold, as Euler's). With ``n = T - 1``
+    (the samples are the ends of the intervals) every step has both.
     """
-    T = gyro.shape[-2]
+    n = n_steps(gyro, dt)
     w = jnp.moveaxis(gyro, -2, 0)
     a = jnp.moveaxis(accel, -2, 0)
-    h = jnp.moveaxis(dt, -1, 0) if dt.ndim else jnp.broadcast_to(dt, (T,))
+    h = jnp.moveaxis(dt, -1, 0) if dt.ndim else jnp.broadcast_to(dt, (n,))
     if scheme == "euler":
-        w1, a1 = w, a  # unused by the Euler stages
-    else:
+        w1, a1 = w[:n], a[:n]  # unused by the Euler stages
+    elif n == w.shape[0]:
         w1 = jnp.concatenate([w[1:], w[-1:]], axis=0)
         a1 = jnp.concatenate([a[1:], a[-1:]], axis=0)
-    return w, a, w1, a1, h
+    else:
+        w1, a1 = w[1:], a[1:]
+    return w[:n], a[:n], w1, a1, h
+
+
+def n_steps(gyro, dt) -> int:
+    """Number of steps: ``dt``'s length (T or T-1), or T for a scalar ``dt``."""
+    return dt.shape[-1] if dt.ndim else gyro.shape[-2]
+
+
+def used_samples(gyro, accel, dt):
+    """The samples the Euler scheme uses: the first ``n_steps`` of them."""
+    n = n_steps(gyro, dt)
+    return gyro[..., :n, :], accel[..., :n, :]
 
 
 def broadcast_state(state: NavState, batch) -> NavState:
@@ -117,6 +131,7 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1])
     if uses_fast_path(scheme, attitude, fast) and np.prod(batch) >= _fast.MEAN_MIN_BATCH:
+        gyro, accel = used_samples(gyro, accel, dt)
         return _propagate_fast(state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
@@ -130,7 +145,7 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
     locked0 = jnp.zeros(batch, bool)
     carry0 = (att.from_quat(state.q), state.p, state.v, locked0)
     (x, p, v, locked), out = jax.lax.scan(scan_body, carry0, xs)
-    T = gyro.shape[-2]
+    T = n_steps(gyro, dt)
     if save_all:
         q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in out)
         bshape = tuple(batch) + (T, 3)
@@ -159,7 +174,9 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
             ``q`` must be a unit quaternion (it is checked, never silently normalised).
         gyro: ``(..., T, 3)`` raw body rate ``w_m`` [rad/s]; sample k is held over ``dt[k]``.
         accel: ``(..., T, 3)`` raw specific force ``a_m`` [m/s²] (level and still: ``[0, 0, +g]``).
-        dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample.
+        dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample. Or
+            ``(..., T-1)``: the samples are then the ends of the intervals, and step k uses
+            samples k and k+1 (Euler: sample k) over ``dt[k]``.
         scheme: ``"euler"`` (zero-order hold on sample k), ``"midpoint"`` (VINS-Mono: samples
             k and k+1 averaged) or ``"rk4"`` (samples interpolated linearly); see
             :mod:`jaximu.integrators`. At the last step midpoint and RK4 have no sample
@@ -171,8 +188,9 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
         gravity: magnitude ``g`` (``g_W = [0, 0, -g]``, default 9.81) or a ``(..., 3)`` vector.
 
     Returns:
-        :class:`NavState` whose fields have shape ``batch + (T, ·)``: entry k is the state at
-        ``t_k + dt_k``, after applying sample k (time first for an unbatched call). Biases
+        :class:`NavState` whose fields have shape ``batch + (n, ·)`` with ``n`` the number of
+        steps (``dt``'s length): entry k is the state at ``t_k + dt_k``, after step k (time
+        first for an unbatched call). Biases
         are held constant (the mean of their random walk).
 
     Raises:

@@ -268,6 +268,20 @@ def test_varying_dt_matches_uniform_when_equal():
     np.testing.assert_array_equal(s1.p, s2.p)
 
 
+@pytest.mark.parametrize("scheme", jaximu.SCHEMES)
+def test_interval_convention_uses_both_ends(scheme):
+    """dt of length T-1: step k uses samples k and k+1, so the first T-1 states equal those of
+    the T-step call (which only differs at its last, held step)."""
+    rng = np.random.default_rng(7)
+    w, a = rng.normal(size=(12, 3)), rng.normal(size=(12, 3)) + [0, 0, G]
+    dt = rng.uniform(0.005, 0.02, size=12)
+    full = jaximu.propagate(nav(), w, a, dt, scheme)
+    ends = jaximu.propagate(nav(), w, a, dt[:11], scheme)
+    assert ends.p.shape == (11, 3)
+    np.testing.assert_allclose(ends.p, full.p[:11], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(ends.q, full.q[:11], rtol=0, atol=1e-15)
+
+
 def test_final_equals_last_of_all_states():
     rng = np.random.default_rng(6)
     w, a = rng.normal(size=(50, 3)), rng.normal(size=(50, 3)) + [0, 0, G]
@@ -467,7 +481,7 @@ def good():
         (dict(gyro=np.zeros((10, 4))), r"gyro must have shape \(\.\.\., T, 3\)"),
         (dict(accel=np.zeros(3)), r"accel must have shape"),
         (dict(gyro=np.zeros((0, 3)), accel=np.zeros((0, 3)), dt=np.zeros(0)), "no samples"),
-        (dict(dt=np.full(9, 0.01)), r"dt must be a scalar or have shape \(\.\.\., T\)"),
+        (dict(dt=np.full(8, 0.01)), r"dt must be a scalar or have shape \(\.\.\., T\) or"),
         (dict(dt=np.r_[np.full(9, 0.01), 0.0]), r"dt must be positive and finite; dt\[9\] = 0.0"),
         (dict(dt=np.r_[0.01, -0.01, np.full(8, 0.01)]), r"dt\[1\] = -0.01"),
         (dict(dt=np.r_[np.nan, np.full(9, 0.01)]), r"dt\[0\] = nan"),
