@@ -357,7 +357,7 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save):
     def comps(x, t0, L):
         c = jax.lax.dynamic_slice_in_dim(x, t0, L, axis=1)  # (Bc, L, 3)
         ct = jnp.transpose(c, (2, 1, 0))  # (3, L, Bc)
-        return tuple(ct[i] for i in range(3))
+        return tuple(ct[i] for i in range(ct.shape[0]))
 
     def hs(t0, L):
         if dt.ndim == 1:

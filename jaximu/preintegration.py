@@ -38,8 +38,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaximu import _blocks as blk
+from jaximu import _fast_preint
 from jaximu import _validation as val
 from jaximu import so3
 from jaximu._blocks import Blocks, mm
@@ -423,17 +425,84 @@ def _pim_from_dense(dq, d: _Dense, bias):
                          jnp.broadcast_to(bias.b_a, batch + (3,))))
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes"))
-def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, prefixes):
+def uses_fast_path(scheme, jacobians, prefixes, method="sequential", batch_size=1024,
+                   dtype=jnp.float64, fast=True):
+    """Whether :mod:`jaximu._fast_preint` runs this case (the same numbers up to float
+    rounding, several times faster on XLA CPU); ``fast=False`` forces the generic recursion
+    (the reference it is tested against).
+
+    Analytic Jacobians and only the final ``i→j``, both schemes and methods (the sequential
+    one from :data:`_fast_preint.MIN_LANES` windows on: below that the generic scan is as
+    fast). Prefixes and autodiff Jacobians use the generic code."""
+    if not fast or jacobians != "analytic" or prefixes:
+        return False
+    if method == "sequential" and batch_size < _fast_preint.MIN_LANES:
+        return False
+    return scheme in ("euler", "midpoint")
+
+
+def _time_major_batch(x, batch, tail):
+    """``(T,) + own_batch + tail`` -> ``(T,) + batch + tail`` (batch axes right-aligned)."""
+    own = x.ndim - 1 - len(tail)
+    x = x.reshape(x.shape[:1] + (1,) * (len(batch) - own) + x.shape[1:])
+    return jnp.broadcast_to(x, x.shape[:1] + tuple(batch) + tuple(tail))
+
+
+def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
+    T = gyro.shape[-2]
+    n = dt.shape[-1] if dt.ndim else T  # dt of length T-1: Euler leaves the last sample unused
+    dtype = gyro.dtype
+    B = int(np.prod(batch, dtype=np.int64))
+    flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
+    if scheme == "midpoint":  # samples k and k+1 side by side (as _pairs)
+        def pair(x):
+            x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
+            return jnp.concatenate([x[..., :n, :], x1], -1)
+
+        gyro, accel = pair(gyro), pair(accel)
+    k = gyro.shape[-1]
+    gyro_f = flat(gyro[..., :n, :], (n, k))
+    accel_f = flat(accel[..., :n, :], (n, k))
+    dt_f = jnp.broadcast_to(dt, (n,)) if dt.ndim <= 1 else flat(dt, (n,))
+    b_g = bias.b_g if bias.b_g.ndim == 1 else flat(bias.b_g, (3,))
+    b_a = bias.b_a if bias.b_a.ndim == 1 else flat(bias.b_a, (3,))
+    if noise is None:
+        var = jnp.zeros(12, dtype)
+    else:
+        parts = [s * s for s in noise._per_axis(dtype)]  # σ² per axis, as discrete_variances
+        shape = jnp.broadcast_shapes(*(x.shape for x in parts))
+        var = jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+        var = var if var.ndim == 1 else flat(var, (12,))
+    C = _fast_preint.num_chunks(B, n, method, dtype)
+    fn = _fast_preint.preintegrate_midpoint if scheme == "midpoint" else \
+        _fast_preint.preintegrate_euler
+    t, q, dv, dp, Phi, Q15, Q9 = fn(gyro_f, accel_f, dt_f, b_g, b_a, var, C)
+    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
+    return Preintegrated(
+        delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),
+        transition=unflat(Phi), cov15=unflat(Q15), cov=unflat(Q9),
+        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, tuple(batch) + (3,)),
+                         jnp.broadcast_to(bias.b_a, tuple(batch) + (3,))))
+
+
+@functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes", "fast"))
+def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, prefixes,
+                  fast=True):
     step_fn = _step if jacobians == "analytic" else _step_autodiff
+    nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
+    batch = tuple(jnp.broadcast_shapes(
+        gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
+        bias.b_a.shape[:-1],
+        *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise))))
+    if uses_fast_path(scheme, jacobians, prefixes, method, int(np.prod(batch, dtype=np.int64)),
+                      gyro.dtype, fast):
+        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme)
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
-    batch = tuple(jnp.broadcast_shapes(w0.shape[1:-1], bias.b_g.shape[:-1], bias.b_a.shape[:-1],
-                                       h.shape[1:]))
     b_g, b_a = bias.b_g, bias.b_a
     T = h.shape[0]
-    h = jnp.broadcast_to(h, (T,) + batch)
-    w0, a0, w1, a1 = (jnp.broadcast_to(x, (T,) + batch + (3,)) for x in (w0, a0, w1, a1))
+    h = _time_major_batch(h, batch, ())
+    w0, a0, w1, a1 = (_time_major_batch(x, batch, (3,)) for x in (w0, a0, w1, a1))
     if method == "sequential":
         final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, (None, w0, a0, w1, a1, h, None),
                                  batch, dtype, prefixes)

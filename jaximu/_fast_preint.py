@@ -1,0 +1,717 @@
+"""Fast XLA-CPU preintegration (analytic Jacobians, final i→j): Euler (Forster / GTSAM
+Manifold) and VINS-Mono's midpoint.
+
+Same numbers as the generic recursion of :mod:`jaximu.preintegration` (to float rounding),
+with the layout rules of :mod:`jaximu._fast` (structure of arrays, ``(3, 3, B)`` batch-minor
+blocks, polynomial half angle, materialised stages, batch blocks, time chunks) and three
+algebraic simplifications:
+
+* **Rotated error.** The recursion runs on ``θ' = ΔR_ik δθ`` (the rotation error in frame
+  ``B_i`` instead of ``B_k``): ``T_k = blockdiag(ΔR_ik, I, I, I, I)``,
+  ``Φ'_k = T_k Φ_k``, ``Q'_k = T_k Q_k T_kᵀ``. The one-step transition becomes
+
+      F' = T_{k+1} F T_kᵀ = [[I, 0, 0, B', 0], [-h²/2 [u]x, I, h I, 0, -h²/2 R],
+                             [-h [u]x, 0, I, 0, -h R], [0, 0, 0, I, 0], [0, 0, 0, 0, I]]
+
+  with ``R = ΔR_ik``, ``u = R f``, ``B' = -h R Jl(ω h)`` (``= ΔR_ik+1 · (-h Jr)``): the θ
+  block is the identity, so ``Φ P Φᵀ`` needs far fewer 3×3 products. At the end the θ rows
+  (and columns) are rotated back with ``ΔR_ijᵀ``.
+* **Closed forms.** In these coordinates the accumulated ``Φ'_θθ = I``, ``Φ_vθ = -[Δv]x``
+  and ``Φ_pθ = -[Δp]x`` (the same sums as Δv, Δp); only ``B', D_p, D_v, E_p, E_v`` are carried.
+* **Known zeros.** The 15×15 covariance starts at zero; its ``(b_g, b_a)`` block stays zero
+  and its bias diagonal blocks stay diagonal (``Σ h σ_b²``), so they are carried as vectors.
+
+Long sequences (``method="parallel"`` with a small batch) are cut into ``C`` chunks that run
+side by side as extra lanes (Euler: each in its own start frame), and the chunk summaries
+are composed by two short sequential folds over a ``C1 × C2`` grid (dense 15×15 algebra: few
+summaries; the frame change of :func:`jaximu.preintegration.compose`).
+
+The midpoint scheme (VINS-Mono's first-order ``F``, non-unit quaternion) runs in the original
+coordinates with the same layout; only its p rows = h/2 × v rows structure is used.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu import _fast
+from jaximu._fast import (_E3, _THR, _bmm, _bsym, _bt, _half_any, _half_small, _jr_b_small,
+                          _lane, _outer, _quat_mul, _quat_normalize, _quat_rotate, _skew3, _stage,
+                          _vec3)
+
+BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
+MIN_LANES = 8  # below this (sequential, tiny batch) the generic scan is faster
+MIN_CHUNK = 16
+  # shortest time chunk per lane
+
+
+# ----------------------------------------------------------------------------- one step
+
+
+def _lane_scalars(big):
+    """Stage 1 (per lane): the mean update and the scalars of the step."""
+
+    def f(q, dv, dp, t, omega, fsp, h):
+        u = _quat_rotate(q, fsp)
+        phi = tuple(h * w for w in omega)
+        t2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+        if big:
+            c, k = _half_any(t2)
+            sm = t2 < _THR
+            b = jnp.where(sm, _jr_b_small(jnp.where(sm, t2, 0.0)),
+                          (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
+        else:
+            c, k = _half_small(t2)
+            b = _jr_b_small(t2)
+        q1 = _quat_normalize(_quat_mul(q, (c, k * phi[0], k * phi[1], k * phi[2])))
+        dp1 = tuple((dp[i] + dv[i] * h) + 0.5 * u[i] * h * h for i in range(3))
+        dv1 = tuple(dv[i] + u[i] * h for i in range(3))
+        return (q1, dv1, dp1, t + h), (u, phi, t2, k, b)
+
+    return f
+
+
+def _rot(q, dtype):
+    """``R(q)`` as ``(3, 3, B)`` (unit ``q``)."""
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    w0, qv = q[0], q[1:]
+    qv3 = _vec3(qv, dtype)
+    return (_lane(w0 * w0 - (qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2])) * I3
+            + 2.0 * _outer(qv3, qv3) + _lane(2.0 * w0) * _skew3(qv, dtype))
+
+
+def _rot_jl(q, phi, t2, k, b):
+    """Stage 2a: ``R = R(q)`` and ``Jl(φ)`` as ``(3, 3, B)``."""
+    dtype = q[0].dtype
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    phi3 = _vec3(phi, dtype)
+    Jl = (I3 + _lane(2.0 * (k * k)) * _skew3(phi, dtype)
+          + _lane(b) * (_outer(phi3, phi3) - _lane(t2) * I3))
+    return _rot(q, dtype), Jl
+
+
+def _step_blocks(R, Jl, h, u):
+    """Stage 2b: ``Ev = -h R``, ``B' = -h R Jl(φ)``, ``Cv = -h [u]x``."""
+    mh = _lane(-h)
+    Ev = mh * R
+    return Ev, _bmm(Ev, Jl), mh * _skew3(u, R.dtype)
+
+
+def _noise_blocks(Bk, Ev, sg, sa):
+    """Stage 2c: ``Qθ = B' diag(σ_g²/h) B'ᵀ``, ``Qv = Ev diag(σ_a²/h) Evᵀ``."""
+    dtype = Bk.dtype
+    return (_bmm(Bk * _diag_row(sg, dtype), _bt(Bk)), _bmm(Ev * _diag_row(sa, dtype), _bt(Ev)))
+
+
+def _diag_row(s3, dtype):
+    """3-tuple of per-axis values (``(B,)`` or scalars) as a ``(1, 3, B)``/``(1, 3, 1)`` row."""
+    if jnp.ndim(s3[0]):
+        return _vec3(s3, dtype)[None]
+    return jnp.stack([jnp.asarray(x, dtype) for x in s3])[None, :, None]
+
+
+# blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4) 0)
+P15_KEYS = ((0, 0), (0, 1), (0, 2), (0, 3), (0, 4), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2),
+            (2, 3), (2, 4))
+P9_KEYS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _cov15_a(P, d3, d4, Bk, Cv, Ev):
+    """``M = F' P`` rows θ and the v-row increments ``N_j = Cv P_0j + Ev P_4j``."""
+    P = dict(zip(P15_KEYS, P))
+    M00 = P[0, 0] + _bmm(Bk, _bt(P[0, 3]))
+    M01 = P[0, 1] + _bmm(Bk, _bt(P[1, 3]))
+    M02 = P[0, 2] + _bmm(Bk, _bt(P[2, 3]))
+    M03 = P[0, 3] + Bk * d3[None]
+    N0 = _bmm(Cv, P[0, 0]) + _bmm(Ev, _bt(P[0, 4]))
+    N1 = _bmm(Cv, P[0, 1]) + _bmm(Ev, _bt(P[1, 4]))
+    N2 = _bmm(Cv, P[0, 2]) + _bmm(Ev, _bt(P[2, 4]))
+    N3 = _bmm(Cv, P[0, 3])
+    N4 = _bmm(Cv, P[0, 4]) + Ev * d4[None]
+    return (M00, M01, M02, M03), (N0, N1, N2, N3, N4)
+
+
+def _cov15_b(M10, M14, M20, M24, M00, M04, Cv, Ev):
+    """``K_i = M_i0 Cvᵀ + M_i4 Evᵀ`` for the rows θ, p, v."""
+    Cvt, Evt = _bt(Cv), _bt(Ev)
+    return (_bmm(M00, Cvt) + _bmm(M04, Evt), _bmm(M10, Cvt) + _bmm(M14, Evt),
+            _bmm(M20, Cvt) + _bmm(M24, Evt))
+
+
+def _cov9_a(S, Cv):
+    S = dict(zip(P9_KEYS, S))
+    return tuple(_bmm(Cv, S[0, j]) for j in range(3))
+
+
+def _cov9_b(M10, M20, S00, Cv):
+    Cvt = _bt(Cv)
+    return _bmm(S00, Cvt), _bmm(M10, Cvt), _bmm(M20, Cvt)
+
+
+def step(carry, omega, fsp, h, s, guard):
+    """One Euler step in the rotated coordinates. ``s``: 12-tuple of ``σ²`` per axis
+    (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities."""
+    q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
+    t2 = sum((h * w) * (h * w) for w in omega)
+    (q1, dv1, dp1, t1), lane = jax.lax.cond(
+        _fast._any_big(t2), _lane_scalars(True), _lane_scalars(False),
+        q, dv, dp, t, omega, fsp, h)
+    u, phi, t2, k, b = lane
+    ok = jnp.all(jnp.isfinite(h))  # a runtime predicate for the stage conds
+    hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
+    var = tuple(x / hd for x in s)  # noise.discrete_variances: σ² / dt
+    h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
+    R, Jl = _stage(ok, _rot_jl, q, phi, t2, k, b)
+    Ev, Bk, Cv = _stage(ok, _step_blocks, R, Jl, h, u)
+    Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
+    hb = _lane(h)
+    half = 0.5 * hb
+
+    # transition (Φ' = F' Φ'): Cv Φ'_θbg is the only product
+    X = _bmm(Cv, Bacc)
+    Phi1 = (Bacc + Bk, (Dp + hb * Dv) + half * X, Dv + X, (Ep + hb * Ev_acc) + half * Ev,
+            Ev_acc + Ev)
+
+    # 15×15 covariance
+    Pd = dict(zip(P15_KEYS, P))
+    (M00, M01, M02, M03), (N0, N1, N2, N3, N4) = _stage(ok, _cov15_a, P, d3, d4, Bk, Cv, Ev)
+    M04 = Pd[0, 4]
+    M10 = (_bt(Pd[0, 1]) + hb * _bt(Pd[0, 2])) + half * N0
+    M11 = (Pd[1, 1] + hb * _bt(Pd[1, 2])) + half * N1
+    M12 = (Pd[1, 2] + hb * Pd[2, 2]) + half * N2
+    M13 = (Pd[1, 3] + hb * Pd[2, 3]) + half * N3
+    M14 = (Pd[1, 4] + hb * Pd[2, 4]) + half * N4
+    M20 = _bt(Pd[0, 2]) + N0
+    M22 = Pd[2, 2] + N2
+    M23 = Pd[2, 3] + N3
+    M24 = Pd[2, 4] + N4
+    M10, M11, M12, M13, M14 = _stage(ok, lambda *a: tuple(x * 1 for x in a),
+                                     M10, M11, M12, M13, M14)
+    K0, K1, K2 = _stage(ok, _cov15_b, M10, M14, M20, M24, M00, M04, Cv, Ev)
+    new = {
+        (0, 0): _bsym((M00 + _bmm(M03, _bt(Bk))) + Qth),
+        (0, 1): (M01 + hb * M02) + half * K0,
+        (0, 2): M02 + K0,
+        (0, 3): M03,
+        (0, 4): M04,
+        (1, 1): _bsym(((M11 + hb * M12) + half * K1) + (half * half) * Qv),
+        (1, 2): (M12 + K1) + half * Qv,
+        (1, 3): M13,
+        (1, 4): M14,
+        (2, 2): _bsym((M22 + K2) + Qv),
+        (2, 3): M23,
+        (2, 4): M24,
+    }
+    h2 = h * h
+    d3n = d3 + _diag_row(tuple(h2 * x for x in var[6:9]), q[0].dtype)[0]
+    d4n = d4 + _diag_row(tuple(h2 * x for x in var[9:12]), q[0].dtype)[0]
+
+    # 9×9 white-noise covariance (no bias columns: F'_9 = [[I,0,0],[Cp,I,hI],[Cv,0,I]])
+    Sd = dict(zip(P9_KEYS, S))
+    N90, N91, N92 = _stage(ok, _cov9_a, S, Cv)
+    L10 = (_bt(Sd[0, 1]) + hb * _bt(Sd[0, 2])) + half * N90
+    L11 = (Sd[1, 1] + hb * _bt(Sd[1, 2])) + half * N91
+    L12 = (Sd[1, 2] + hb * Sd[2, 2]) + half * N92
+    L20 = _bt(Sd[0, 2]) + N90
+    L22 = Sd[2, 2] + N92
+    L11, L12, L22 = _stage(ok, lambda *a: tuple(x * 1 for x in a), L11, L12, L22)
+    K90, K91, K92 = _stage(ok, _cov9_b, L10, L20, Sd[0, 0], Cv)
+    S1 = (
+        _bsym(Sd[0, 0] + Qth),
+        (Sd[0, 1] + hb * Sd[0, 2]) + half * K90,
+        Sd[0, 2] + K90,
+        _bsym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
+        (L12 + K91) + half * Qv,
+        _bsym((L22 + K92) + Qv),
+    )
+    return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
+
+
+def _zero_carry(Bc, dtype):
+    z = jnp.zeros((Bc,), dtype)
+    Z = jnp.zeros((3, 3, Bc), dtype)
+    z3 = jnp.zeros((3, Bc), dtype)
+    q = (jnp.ones((Bc,), dtype), z, z, z)
+    return (q, (z, z, z), (z, z, z), z, (Z,) * 5, (Z,) * len(P15_KEYS), z3, z3,
+            (Z,) * len(P9_KEYS))
+
+
+# ----------------------------------------------------------------------------- VINS midpoint
+#
+# VINS-Mono's midPointIntegration in the original error coordinates (its first-order F is not
+# a rotation, so the rotated coordinates do not simplify it). Its p rows are h/2 × its v rows
+# (Cp = h/2 Cv, Dp = h/2 Dv, Ep = h/2 Ev, and the same for the noise), which halves the work.
+# The carried transition has all eight blocks.
+
+
+def _q2m(q, dtype):
+    """:func:`jaximu.so3.quat_to_matrix` (also for a non-unit ``q``) as ``(3, 3, B)``:
+    ``I + 2(u uᵀ - |u|² I) + 2 w [u]x``."""
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    w, u = q[0], q[1:]
+    u3 = _vec3(u, dtype)
+    return (I3 + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
+            + _lane(2.0 * w) * _skew3(u, dtype))
+
+
+def _mid_lane(q, dv, dp, t, omega, f0, f1, h):
+    """Stage 1 (per lane): the mean update, VINS-Mono's unnormalised ``q ⊗ [1, ω̄h/2]``."""
+    dq = (jnp.ones_like(h) if jnp.ndim(h) else jnp.ones_like(q[0]),) + tuple(0.5 * h * w
+                                                                           for w in omega)
+    q1u = _quat_mul(q, dq)
+    u0, u1 = _quat_rotate(q, f0), _quat_rotate(q1u, f1)
+    acc = tuple(0.5 * (u0[i] + u1[i]) for i in range(3))
+    dp1 = tuple((dp[i] + dv[i] * h) + 0.5 * acc[i] * h * h for i in range(3))
+    dv1 = tuple(dv[i] + acc[i] * h for i in range(3))
+    return (_quat_normalize(q1u), dv1, dp1, t + h), q1u
+
+
+def _mid_blocks(q, q1u, omega, f0, f1, h):
+    """Stage 2: A, Cv, Dv, Ev of F and the noise factor W = -h²/4 R1[f1]x."""
+    dtype = q[0].dtype
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    hb = _lane(h)
+    R0, R1 = _q2m(q, dtype), _q2m(q1u, dtype)
+    A = I3 - _skew3(omega, dtype) * hb
+    R0a0 = _bmm(R0, _skew3(f0, dtype))
+    R1a1 = _bmm(R1, _skew3(f1, dtype))
+    return A, R0, R1, R0a0, R1a1
+
+
+def _mid_blocks2(A, R0, R1, R0a0, R1a1, h, sg, sa):
+    dtype = A.dtype
+    hb = _lane(h)
+    Cv = -0.5 * (R0a0 + _bmm(R1a1, A)) * hb
+    Dv = 0.5 * R1a1 * (hb * hb)
+    Ev = -0.5 * (R0 + R1) * hb
+    W = -0.25 * R1a1 * (hb * hb)
+    sa2 = _diag_row(tuple(2.0 * x for x in sa), dtype)
+    sg2 = _diag_row(tuple(2.0 * x for x in sg), dtype)
+    G = 0.25 * (hb * hb)
+    Qv = (G * (_bmm(R0 * sa2, _bt(R0)) + _bmm(R1 * sa2, _bt(R1)))
+          + 2.0 * _bmm(W * sg2, _bt(W)))
+    Qtv = _bt(hb * W * sg2)  # 2 × (h/2 I) diag(2σ_g²/h) Wᵀ (Vg appears twice)
+    return Cv, Dv, Ev, Qv, Qtv
+
+
+def _mid_cov_a(P, d3, d4, A, Cv, Dv, Ev, h):
+    """``M = F P`` rows θ and the v-row increments ``N_j = Cv P_0j + Dv P_3j + Ev P_4j``."""
+    P = dict(zip(P15_KEYS, P))
+    I3 = jnp.asarray(_E3, A.dtype)[:, :, None]
+    hb = _lane(h)
+    M0 = (_bmm(A, P[0, 0]) - hb * _bt(P[0, 3]), _bmm(A, P[0, 1]) - hb * _bt(P[1, 3]),
+          _bmm(A, P[0, 2]) - hb * _bt(P[2, 3]), _bmm(A, P[0, 3]) - hb * (I3 * d3[None]),
+          _bmm(A, P[0, 4]))
+    N = (_bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])) + _bmm(Ev, _bt(P[0, 4])),
+         _bmm(Cv, P[0, 1]) + _bmm(Dv, _bt(P[1, 3])) + _bmm(Ev, _bt(P[1, 4])),
+         _bmm(Cv, P[0, 2]) + _bmm(Dv, _bt(P[2, 3])) + _bmm(Ev, _bt(P[2, 4])),
+         _bmm(Cv, P[0, 3]) + Dv * d3[None],
+         _bmm(Cv, P[0, 4]) + Ev * d4[None])
+    return M0, N
+
+
+def _mid_cov_b(M0, M1, M2, A, Cv, Dv, Ev, h):
+    Cvt, Dvt, Evt = _bt(Cv), _bt(Dv), _bt(Ev)
+    K = tuple(_bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M0, M1, M2))
+    return K, _bmm(M0[0], _bt(A)) - _lane(h) * M0[3]
+
+
+def _mid_cov9(S, A, Cv, h):
+    S = dict(zip(P9_KEYS, S))
+    hb = _lane(h)
+    M0 = tuple(_bmm(A, S[0, j]) for j in range(3))
+    N = tuple(_bmm(Cv, S[0, j]) for j in range(3))
+    M10 = (_bt(S[0, 1]) + hb * _bt(S[0, 2])) + 0.5 * hb * N[0]
+    M20 = _bt(S[0, 2]) + N[0]
+    Cvt = _bt(Cv)
+    K = (_bmm(M0[0], Cvt), _bmm(M10, Cvt), _bmm(M20, Cvt))
+    return M0, N, K, _bmm(M0[0], _bt(A))
+
+
+def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False):
+    """One VINS-Mono midpoint step; with ``q_given`` the rotation at the step is an input (the
+    parallel method's chunks, frame ``B_i``) instead of the carried one."""
+    q, dv, dp, t, (Ac, Bc, Cpc, Cvc, Dpc, Dvc, Epc, Evc), P, d3, d4, S = carry
+    omega = tuple(0.5 * (w0[i] + w1[i]) for i in range(3))  # bias removed by the caller
+    ok = jnp.all(jnp.isfinite(h))
+    if q_given is not None:
+        q = q_given
+    (q1, dv1, dp1, t1), q1u = _stage(ok, _mid_lane, q, dv, dp, t, omega, a0, a1, h)
+    hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
+    var = tuple(x / hd for x in s)
+    h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
+    A, R0, R1, R0a0, R1a1 = _stage(ok, _mid_blocks, q, q1u, omega, a0, a1, h)
+    Cv, Dv, Ev, Qv, Qtv = _stage(ok, _mid_blocks2, A, R0, R1, R0a0, R1a1, h, var[0:3],
+                                 var[3:6])
+    dtype = q[0].dtype
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    hb = _lane(h)
+    half = 0.5 * hb
+    Qtt = I3 * _diag_row(tuple(2.0 * ((0.5 * h) * (0.5 * h) * (2.0 * x)) for x in var[0:3]),
+                         dtype)
+
+    # transition Φ ← F Φ (F.Cp = h/2 F.Cv, F.Dp = h/2 F.Dv, F.Ep = h/2 F.Ev, F.B = -h I)
+    XA, XB, AA, AB = _stage(ok, lambda A, Cv, Ac, Bc: (_bmm(Cv, Ac), _bmm(Cv, Bc), _bmm(A, Ac),
+                                                        _bmm(A, Bc)), A, Cv, Ac, Bc)
+    Phi1 = (AA, AB - hb * I3, (half * XA + Cpc) + hb * Cvc, XA + Cvc,
+            ((half * XB + Dpc) + hb * Dvc) + half * Dv, (XB + Dvc) + Dv,
+            (Epc + hb * Evc) + half * Ev, Evc + Ev)
+
+    # 15×15 covariance
+    Pd = dict(zip(P15_KEYS, P))
+    M0, N = _stage(ok, _mid_cov_a, P, d3, d4, A, Cv, Dv, Ev, h)
+    M1 = tuple((Pd[1, j] if j >= 1 else _bt(Pd[0, 1])) + hb * (
+        Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + half * N[j] for j in range(5))
+    M2 = tuple((Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + N[j] for j in range(5))
+    M1, M2 = _stage(ok, lambda a, b: (tuple(x * 1 for x in a), tuple(x * 1 for x in b)),
+                    M1, M2)
+    (K0, K1, K2), C00 = _stage(ok, _mid_cov_b, M0, M1, M2, A, Cv, Dv, Ev, h)
+    new = {
+        (0, 0): _bsym(C00 + Qtt),
+        (0, 1): ((M0[1] + hb * M0[2]) + half * K0) + half * Qtv,
+        (0, 2): (M0[2] + K0) + Qtv,
+        (0, 3): M0[3], (0, 4): M0[4],
+        (1, 1): _bsym(((M1[1] + hb * M1[2]) + half * K1) + (half * half) * Qv),
+        (1, 2): (M1[2] + K1) + half * Qv,
+        (1, 3): M1[3], (1, 4): M1[4],
+        (2, 2): _bsym((M2[2] + K2) + Qv),
+        (2, 3): M2[3], (2, 4): M2[4],
+    }
+    h2 = h * h
+    d3n = d3 + _diag_row(tuple(h2 * x for x in var[6:9]), dtype)[0]
+    d4n = d4 + _diag_row(tuple(h2 * x for x in var[9:12]), dtype)[0]
+
+    # 9×9 white-noise covariance
+    Sd = dict(zip(P9_KEYS, S))
+    L0, L, (K90, K91, K92), C900 = _stage(ok, _mid_cov9, S, A, Cv, h)
+    L11 = (Sd[1, 1] + hb * _bt(Sd[1, 2])) + half * L[1]
+    L12 = (Sd[1, 2] + hb * Sd[2, 2]) + half * L[2]
+    L22 = Sd[2, 2] + L[2]
+    S1 = (
+        _bsym(C900 + Qtt),
+        ((L0[1] + hb * L0[2]) + half * K90) + half * Qtv,
+        (L0[2] + K90) + Qtv,
+        _bsym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
+        (L12 + K91) + half * Qv,
+        _bsym((L22 + K92) + Qv),
+    )
+    return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
+
+
+def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
+    """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
+    samples k and k+1 side by side. Returns the generic code's outputs.
+
+    With ``C > 1`` chunks (the parallel method): as the generic code, the rotations ``ΔR_ik``
+    come first from an associative scan of the normalised increments; each chunk then runs in
+    frame ``B_i`` with its rotations given, and the chunk summaries compose without a frame
+    change (VINS-Mono's unnormalised rotation makes a change of frame inexact)."""
+    from jaximu import so3
+
+    B, T, _ = gyro.shape
+    dtype = gyro.dtype
+    guard = False
+    if C > 1:
+        omega = 0.5 * (gyro[..., 0:3] + gyro[..., 3:6]) - (b_g if b_g.ndim == 1 else b_g[:, None])
+        hT = jnp.broadcast_to(dt, (B, T))
+        incr = jnp.concatenate([jnp.ones_like(hT)[..., None], 0.5 * hT[..., None] * omega], -1)
+        incl = so3.quat_normalize(jax.lax.associative_scan(
+            so3.quat_mul, so3.quat_normalize(incr), axis=1))
+        q_last = incl[:, -1]
+        dR = jnp.concatenate([jnp.broadcast_to(so3.quat_identity((), dtype), (B, 1, 4)),
+                              incl[:, :-1]], 1)
+        accel = jnp.concatenate([accel, dR], -1)  # (B, T, 10): the rotation rides along
+        L = -(-T // C)
+        pad = C * L - T
+        if pad:
+            padw = lambda x: jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
+            gyro, accel, hT = padw(gyro), padw(accel), padw(hT)
+            guard = True
+        lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
+        gyro, accel, dt = lanes(gyro), lanes(accel), lanes(hT)
+        rep = lambda x: jnp.repeat(x, C, axis=0)  # noqa: E731
+        b_g = b_g if b_g.ndim == 1 else rep(b_g)
+        b_a = b_a if b_a.ndim == 1 else rep(b_a)
+        var = var if var.ndim == 1 else rep(var)
+    n = gyro.shape[0]
+    shared_dt = dt.ndim == 1
+    per_lane = [x.ndim == 2 for x in (b_g, b_a, var)]
+
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
+        Bc = gyro.shape[0]
+        bg = _comps(bg_b if per_lane[0] else b_g)
+        ba = _comps(ba_b if per_lane[1] else b_a)
+        s = _comps(var_b if per_lane[2] else var)
+
+        def st(c, w, a, h, consts):
+            w0 = tuple(w[i] - bg[i] for i in range(3))
+            w1 = tuple(w[3 + i] - bg[i] for i in range(3))
+            a0 = tuple(a[i] - ba[i] for i in range(3))
+            a1 = tuple(a[3 + i] - ba[i] for i in range(3))
+            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard)
+
+        q, dv, dp, t, Phi, P, d3, d4, S = _fast._time_chunks(
+            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt if shared_dt else dt_b, None,
+            None)[0]
+        last = lambda x: jnp.stack(x, -1)  # noqa: E731
+        bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
+        A, Bg, Cp, Cv, Dp, Dv, Ep, Ev = (bm(X) for X in Phi)
+        eye = jnp.eye(3, dtype=dtype)
+        I = jnp.broadcast_to(eye, t.shape + (3, 3))
+        Z = jnp.zeros_like(I)
+        rows = [[A, Z, Z, Bg, Z], [Cp, I, t[:, None, None] * eye, Dp, Ep], [Cv, Z, I, Dv, Ev],
+                [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
+        Phi = jnp.concatenate([jnp.concatenate(r, -1) for r in rows], -2)
+        P15 = {k: bm(X) for k, X in zip(P15_KEYS, P)}
+        P15[3, 3] = bm(d3)[:, None, :] * eye
+        P15[4, 4] = bm(d4)[:, None, :] * eye
+        P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
+        return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=Phi, Q15=_dense(P15, 5),
+                    Q9=_dense(P9, 3))
+
+    z = jnp.zeros((n, 1), dtype)
+    args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
+            b_a if per_lane[1] else z, var if per_lane[2] else z)
+    Bc = _block_size(n, block_lanes(dtype))
+    if Bc == n:
+        out = block(*args)
+    else:
+        nb = n // Bc
+        split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
+        out = jax.lax.map(lambda a: block(*a), jax.tree_util.tree_map(split, args))
+        out = jax.tree_util.tree_map(lambda x: x.reshape((n,) + x.shape[2:]), out)
+    if C > 1:
+        out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
+        out = _reduce_chunks(out, C, rotate=False)
+        out["q"] = q_last
+    return (out["t"], so3.quat_normalize(out["q"]), out["dv"], out["dp"], out["Phi"], out["Q15"],
+            out["Q9"])
+
+
+def _zero_carry_mid(Bc, dtype):
+    q, dv, dp, t, _, P, d3, d4, S = _zero_carry(Bc, dtype)
+    Z = jnp.zeros((3, 3, Bc), dtype)
+    I = jnp.broadcast_to(jnp.asarray(_E3, dtype)[:, :, None], (3, 3, Bc))
+    return (q, dv, dp, t, (I,) + (Z,) * 7, P, d3, d4, S)
+
+
+# ----------------------------------------------------------------------------- summaries
+#
+# A summary (batch-major, in its start frame, θ' coordinates) is a dict: q (n, 4), dv, dp
+# (n, 3), t (n,), Phi (n, 15, 15), Q15 (n, 15, 15), Q9 (n, 9, 9). Few of them are composed
+# (chunks of one sequence), so dense 15×15 algebra is cheap there and quick to compile.
+
+
+def _t(X):
+    return jnp.swapaxes(X, -1, -2)
+
+
+def _sym(X):
+    return 0.5 * (X + _t(X))
+
+
+def _skew(v):
+    z = jnp.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([jnp.stack([z, -w, y], -1), jnp.stack([w, z, -x], -1),
+                      jnp.stack([-y, x, z], -1)], -2)
+
+
+def _dense(blocks, n):
+    """Symmetric ``(…, 3n, 3n)`` from upper blocks ``{(i, j): (…, 3, 3)}`` (others zero)."""
+    some = next(iter(blocks.values()))
+    Z = jnp.zeros_like(some)
+
+    def get(i, j):
+        if i <= j:
+            return blocks.get((i, j), Z)
+        return _t(blocks[(j, i)]) if (j, i) in blocks else Z
+
+    return jnp.concatenate([jnp.concatenate([get(i, j) for j in range(n)], -1)
+                            for i in range(n)], -2)
+
+
+def _to_summary(c):
+    q, dv, dp, t, (Bg, Dp, Dv, Ep, Ev), P, d3, d4, S = c
+    last = lambda x: jnp.stack(x, -1)  # noqa: E731
+    bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
+    dv, dp = last(dv), last(dp)
+    eye = jnp.eye(3, dtype=t.dtype)
+    I = jnp.broadcast_to(eye, t.shape + (3, 3))
+    Z = jnp.zeros_like(I)
+    rows = [[I, Z, Z, bm(Bg), Z], [-_skew(dp), I, t[:, None, None] * eye, bm(Dp), bm(Ep)],
+            [-_skew(dv), Z, I, bm(Dv), bm(Ev)], [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
+    Phi = jnp.concatenate([jnp.concatenate(r, -1) for r in rows], -2)
+    P15 = {k: bm(X) for k, X in zip(P15_KEYS, P)}
+    P15[3, 3] = bm(d3)[:, None, :] * eye
+    P15[4, 4] = bm(d4)[:, None, :] * eye
+    P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
+    return dict(q=last(q), dv=dv, dp=dp, t=t, Phi=Phi, Q15=_dense(P15, 5), Q9=_dense(P9, 3))
+
+
+def _frame(R, n, k):
+    """``blockdiag(R × k, I)`` of size n (``R`` on the first k 3-blocks)."""
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=R.dtype), R.shape[:-2] + (n, n))
+    for i in range(k):
+        eye = eye.at[..., 3 * i:3 * i + 3, 3 * i:3 * i + 3].set(R)
+    return eye
+
+
+def _combine(a, b, rotate=True):
+    """Summary ``a`` then ``b`` (``b`` in the end frame of ``a``), as
+    :func:`jaximu.preintegration.compose`: ``b`` is moved to ``a``'s frame by
+    ``T = blockdiag(R, R, R, I, I)`` (``θ'``, p, v all rotate) and composed. With
+    ``rotate=False`` both are already in the same frame (plain composition)."""
+    from jaximu.so3 import quat_mul, quat_normalize, quat_to_matrix
+
+    mv = lambda M, x: jnp.einsum("...ij,...j->...i", M, x)  # noqa: E731
+    if rotate:
+        R = quat_to_matrix(a["q"])
+        T = _frame(R, 15, 3)
+        T9 = T[..., :9, :9]
+        Fb = T @ b["Phi"] @ _t(T)
+        Qb15, Qb9 = T @ b["Q15"] @ _t(T), T9 @ b["Q9"] @ _t(T9)
+        dvb, dpb = mv(R, b["dv"]), mv(R, b["dp"])
+        q = quat_normalize(quat_mul(a["q"], b["q"]))
+    else:
+        Fb, Qb15, Qb9, dvb, dpb, q = b["Phi"], b["Q15"], b["Q9"], b["dv"], b["dp"], a["q"]
+    F9 = Fb[..., :9, :9]
+    return dict(
+        q=q, dv=a["dv"] + dvb, dp=(a["dp"] + a["dv"] * b["t"][..., None]) + dpb,
+        t=a["t"] + b["t"], Phi=Fb @ a["Phi"], Q15=_sym(Fb @ a["Q15"] @ _t(Fb) + Qb15),
+        Q9=_sym(F9 @ a["Q9"] @ _t(F9) + Qb9))
+
+
+def _identity_summary(like):
+    out = jax.tree_util.tree_map(jnp.zeros_like, like)
+    out["q"] = out["q"].at[..., 0].set(1)
+    out["Phi"] = jnp.broadcast_to(jnp.eye(15, dtype=out["Phi"].dtype), out["Phi"].shape)
+    return out
+
+
+def _fold(s, axis, rotate=True):
+    """Sequential composition along ``axis`` (a ``lax.scan``; the other axes are lanes)."""
+    first = jax.tree_util.tree_map(lambda x: jnp.take(x, 0, axis=axis), s)
+    rest = jax.tree_util.tree_map(
+        lambda x: jnp.moveaxis(jax.lax.slice_in_dim(x, 1, x.shape[axis], axis=axis), axis, 0), s)
+    return jax.lax.scan(lambda c, x: (_combine(c, x, rotate), None), first, rest)[0]
+
+
+def _reduce_chunks(s, C, rotate=True):
+    """Compose the ``C`` chunk summaries along axis 1 (``(B, C, ...)``): two sequential folds
+    over a ``C1 × C2`` grid (``C2 ≈ √C``), i.e. ~2√C dependent steps, each over many lanes."""
+    C2 = int(np.ceil(np.sqrt(C)))
+    C1 = -(-C // C2)
+    if C1 * C2 > C:
+        ident = _identity_summary(jax.tree_util.tree_map(lambda x: x[:, :C1 * C2 - C], s))
+        s = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], 1), s, ident)
+    s = jax.tree_util.tree_map(lambda x: x.reshape(x.shape[:1] + (C1, C2) + x.shape[2:]), s)
+    s = _fold(s, 2, rotate) if C2 > 1 else jax.tree_util.tree_map(lambda x: x[:, :, 0], s)
+    return _fold(s, 1, rotate) if C1 > 1 else jax.tree_util.tree_map(lambda x: x[:, 0], s)
+
+
+def _finish(s):
+    """Summary in θ' coordinates -> ``(t, q, dv, dp, Φ, Q15, Q9)`` of the generic code: the
+    θ rows (and columns) are rotated back with ``ΔR_ijᵀ``."""
+    from jaximu.so3 import quat_normalize, quat_to_matrix
+
+    Rt = _t(quat_to_matrix(s["q"]))
+    T = _frame(Rt, 15, 1)
+    T9 = T[..., :9, :9]
+    return (s["t"], quat_normalize(s["q"]), s["dv"], s["dp"], T @ s["Phi"],
+            _sym(T @ s["Q15"] @ _t(T)), _sym(T9 @ s["Q9"] @ _t(T9)))
+
+
+# ----------------------------------------------------------------------------- driver
+
+
+def block_lanes(dtype):
+    """Lanes per batch block (the state of a block stays in L2: ~2 KB per lane in float64)."""
+    return BLOCK_BYTES // jnp.dtype(dtype).itemsize
+
+
+def num_chunks(B, T, method, dtype):
+    """Time chunks per sequence: 1 for ``"sequential"``; for ``"parallel"`` enough to fill
+    about one batch block of lanes, each chunk at least :data:`MIN_CHUNK` samples long (a
+    divisor of T when one is close, so that no padding is needed)."""
+    lanes = block_lanes(dtype)
+    if method != "parallel" or B >= lanes or T < 2 * MIN_CHUNK:
+        return 1
+    C = int(max(1, min(-(-lanes // B), T // MIN_CHUNK)))
+    for c in range(C, (3 * C) // 4, -1):
+        if T % c == 0:
+            return c
+    return C
+
+
+def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C):
+    """Flat batch: gyro, accel ``(B, T, 3)``; dt ``(T,)`` or ``(B, T)``; b_g, b_a ``(3,)`` or
+    ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence.
+
+    Returns ``(t, q, dv, dp, Φ, Q15, Q9)`` with leading axis B, as the generic code."""
+    B, T, _ = gyro.shape
+    dtype = gyro.dtype
+    guard = False
+    if C > 1:
+        L = -(-T // C)
+        pad = C * L - T
+        dtf = jnp.broadcast_to(dt, (B, T))
+        if pad:
+            padw = lambda x: jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
+            gyro, accel, dtf = padw(gyro), padw(accel), padw(dtf)
+            guard = True
+        lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
+        gyro, accel, dt = lanes(gyro), lanes(accel), lanes(dtf)
+        rep = lambda x: None if x is None else jnp.repeat(x, C, axis=0)  # noqa: E731
+        b_g = b_g if b_g.ndim == 1 else rep(b_g)
+        b_a = b_a if b_a.ndim == 1 else rep(b_a)
+        var = var if var.ndim == 1 else rep(var)
+    n = gyro.shape[0]
+    shared_dt = dt.ndim == 1
+    per_lane = [x.ndim == 2 for x in (b_g, b_a, var)]
+
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
+        Bc = gyro.shape[0]
+        bg = _comps(bg_b if per_lane[0] else b_g)
+        ba = _comps(ba_b if per_lane[1] else b_a)
+        s = _comps(var_b if per_lane[2] else var)
+
+        def st(c, w, a, h, consts):
+            omega = tuple(w[i] - bg[i] for i in range(3))
+            f = tuple(a[i] - ba[i] for i in range(3))
+            return step(c, omega, f, h, s, guard)
+
+        carry, _ = _fast._time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
+                                      dt if shared_dt else dt_b, None, None)
+        return _to_summary(carry)
+
+    z = jnp.zeros((n, 1), dtype)
+    args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
+            b_a if per_lane[1] else z, var if per_lane[2] else z)
+    Bc = _block_size(n, block_lanes(dtype))
+    if Bc == n:
+        summ = block(*args)
+    else:
+        nb = n // Bc
+        split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
+        summ = jax.lax.map(lambda a: block(*a), jax.tree_util.tree_map(split, args))
+        summ = jax.tree_util.tree_map(lambda x: x.reshape((n,) + x.shape[2:]), summ)
+    if C > 1:
+        summ = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), summ)
+        summ = _reduce_chunks(summ, C)
+    return _finish(summ)
+
+
+def _comps(x):
+    return tuple(x[..., i] for i in range(x.shape[-1]))
+
+
+def _block_size(n, lanes):
+    if n <= lanes:
+        return n
+    for nb in range(-(-n // lanes), n // (lanes // 4) + 1):
+        if n % nb == 0:
+            return n // nb
+    return n

@@ -1,0 +1,164 @@
+"""The structure-of-arrays preintegration fast path (jaximu/_fast_preint.py: Euler and
+VINS-Mono's midpoint, analytic Jacobians, final i→j only) against the generic recursion it
+replaces."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaximu
+from jaximu import _fast_preint
+from jaximu.preintegration import _preintegrate, uses_fast_path
+
+FIELDS = ("delta_t", "delta_q", "delta_v", "delta_p", "transition", "cov15", "cov")
+
+
+def inputs(batch, T, seed=0, per_lane_dt=False, big=False, batched_bias=False,
+           batched_noise=False, intervals=False, dtype=np.float64):
+    rng = np.random.default_rng(seed)
+    g = rng.normal(size=batch + (T, 3)) * 0.8
+    if big:  # some steps turn by more than π/2: the range-reduced half angle
+        g[..., ::7, :] *= 300.0
+    a = rng.normal(size=batch + (T, 3)) * 2 + [0, 0, 9.81]
+    n = T - 1 if intervals else T
+    dt = rng.uniform(0.002, 0.02, size=batch + (n,) if per_lane_dt else (n,))
+    bias = jaximu.ImuBias(
+        jnp.asarray(rng.normal(size=batch + (3,) if batched_bias else (3,)) * 0.01, dtype),
+        jnp.asarray(rng.normal(size=(3,)) * 0.1, dtype))
+    sg = jnp.asarray(rng.uniform(1e-4, 3e-4, size=batch + (3,) if batched_noise else (3,)), dtype)
+    noise = jaximu.ImuNoise(sg, 2e-3, 2e-5, jnp.asarray([3e-3, 2e-3, 1e-3], dtype))
+    return (jnp.asarray(g, dtype), jnp.asarray(a, dtype), jnp.asarray(dt, dtype), bias, noise)
+
+
+@functools.partial(jax.jit, static_argnames=("method", "fast", "scheme"))
+def pre(gyro, accel, dt, bias, noise, *, method, fast, scheme="euler"):
+    return _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method=method,
+                         jacobians="analytic", prefixes=False, fast=fast)
+
+
+def assert_same(fast, ref, rel):
+    for name in FIELDS:
+        a, b = np.asarray(getattr(fast, name)), np.asarray(getattr(ref, name))
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        assert np.all(np.isfinite(a)), name
+        np.testing.assert_allclose(a, b, rtol=0, atol=rel * max(np.abs(b).max(), 1e-300),
+                                   err_msg=name)
+
+
+def test_dispatch():
+    f64 = jnp.float64
+    assert uses_fast_path("euler", "analytic", False, "sequential", 8)
+    assert uses_fast_path("euler", "analytic", False, "parallel", 1)
+    assert not uses_fast_path("euler", "analytic", False, "sequential", 4)
+    assert not uses_fast_path("euler", "analytic", True)
+    assert not uses_fast_path("euler", "autodiff", False)
+    assert not uses_fast_path("euler", "analytic", False, fast=False)
+    assert uses_fast_path("midpoint", "analytic", False, "sequential", 8)
+    assert uses_fast_path("midpoint", "analytic", False, "parallel", 1, f64)
+    assert not uses_fast_path("midpoint", "autodiff", False, "parallel", 4096, f64)
+    f64 = jnp.float64
+    assert _fast_preint.num_chunks(4096, 200, "parallel", f64) == 1
+    assert _fast_preint.num_chunks(1, 100000, "sequential", f64) == 1
+    C = _fast_preint.num_chunks(1, 100000, "parallel", f64)
+    assert C > 100 and 100000 % C == 0
+
+
+@pytest.mark.parametrize("batch,T,method,kw", [
+    ((5,), 60, "sequential", {}),
+    ((5,), 60, "parallel", {}),
+    ((), 300, "parallel", {}),
+    ((), 301, "parallel", {"big": True}),  # padded last chunk, big angles
+    ((3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
+                                 "batched_noise": True}),
+    ((2,), 400, "parallel", {"per_lane_dt": True, "batched_bias": True,
+                             "batched_noise": True, "intervals": True}),
+    ((), 2000, "parallel", {"per_lane_dt": True}),
+    ((1100,), 40, "sequential", {"big": True}),  # several batch blocks
+    ((4,), 80, "sequential", {}),  # below MIN_LANES: the generic path itself
+])
+def test_fast_path_equals_generic(batch, T, method, kw):
+    """The reference is the generic sequential scan (quick to compile; the generic parallel
+    method equals it to rounding, tests/test_preintegration.py), once the generic parallel."""
+    args = inputs(batch, T, **kw)
+    ref_method = "parallel" if (batch, T) == ((), 300) else "sequential"
+    assert_same(pre(*args, method=method, fast=True), pre(*args, method=ref_method, fast=False),
+                1e-12)
+
+
+@pytest.mark.parametrize("method", ["sequential", "parallel"])
+def test_fast_path_float32(method):
+    args = inputs((), 1000, seed=2, dtype=np.float32)
+    assert_same(pre(*args, method=method, fast=True),
+                pre(*args, method="sequential", fast=False), 3e-5)
+
+
+def test_fast_path_without_noise_and_scalar_dt():
+    g, a, _, bias, _ = inputs((4,), 50, seed=3)
+    dt = jnp.asarray(0.005)
+    for method in ("sequential", "parallel"):
+        assert_same(pre(g, a, dt, bias, None, method=method, fast=True),
+                    pre(g, a, dt, bias, None, method="sequential", fast=False), 1e-12)
+
+
+@pytest.mark.parametrize("scheme", ["euler", "midpoint"])
+def test_fast_path_gradients_equal_generic(scheme):
+    g, a, dt, bias, _ = inputs((8,), 64, seed=4)
+
+    def loss(g, a, bg, sigma, fast, method):
+        pim = pre(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
+                  jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), method=method, fast=fast,
+                  scheme=scheme)
+        return (jnp.sum(pim.delta_p * jnp.array([1.0, -2, 0.5])) + jnp.sum(pim.delta_q)
+                + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
+                + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
+                + jnp.sum(pim.transition[..., 0:9, 9:15]))
+
+    args = (g, a, bias.b_g, jnp.asarray(1.7e-4))
+    gr = jax.grad(loss, argnums=(0, 1, 2, 3))(*args, False, "sequential")
+    # (compile time: the parallel path's gradient is checked for Euler only)
+    for method in ("sequential", "parallel") if scheme == "euler" else ("sequential",):
+        gf = jax.grad(loss, argnums=(0, 1, 2, 3))(*args, True, method)
+        for x, y in zip(gf, gr):
+            assert np.all(np.isfinite(np.asarray(x)))
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-10 * max(np.abs(y).max(), 1e-300))
+
+
+def test_shared_dt_with_batched_windows():
+    """``dt`` ``(T,)`` shared by a batch of windows (both paths)."""
+    g, a, dt, bias, noise = inputs((3,), 40, seed=5)
+    fast = jaximu.preintegrate(g, a, dt, bias, noise)
+    ref = pre(g, a, dt, bias, noise, method="sequential", fast=False)
+    assert_same(fast, ref, 1e-12)
+    for i in range(3):
+        one = jaximu.preintegrate(g[i], a[i], dt, bias, noise)
+        np.testing.assert_allclose(fast.cov15[i], one.cov15, rtol=0,
+                                   atol=1e-13 * np.abs(one.cov15).max())
+
+
+@pytest.mark.parametrize("batch,T,method,kw", [
+    ((9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}),
+    ((3, 3), 61, "sequential", {"per_lane_dt": True, "intervals": True}),
+    ((300,), 30, "parallel", {"big": True}),  # parallel from a full block of windows
+])
+def test_midpoint_fast_path_equals_generic(batch, T, method, kw):
+    args = inputs(batch, T, seed=7, **kw)
+    assert uses_fast_path("midpoint", "analytic", False, method, int(np.prod(batch)))
+    assert_same(pre(*args, method=method, fast=True, scheme="midpoint"),
+                pre(*args, method="sequential", fast=False, scheme="midpoint"), 1e-12)
+
+
+def test_midpoint_parallel_long_sequence():
+    """One sequence in chunks (rotations first, then chunks in frame B_i)."""
+    args = inputs((), 301, seed=9, per_lane_dt=True, big=True)
+    assert _fast_preint.num_chunks(1, 301, "parallel", jnp.float64) > 1
+    assert_same(pre(*args, method="parallel", fast=True, scheme="midpoint"),
+                pre(*args, method="sequential", fast=False, scheme="midpoint"), 1e-12)
+
+
+def test_midpoint_fast_path_float32():
+    args = inputs((9,), 300, seed=8, dtype=np.float32)
+    assert_same(pre(*args, method="sequential", fast=True, scheme="midpoint"),
+                pre(*args, method="sequential", fast=False, scheme="midpoint"), 3e-5)
