@@ -285,9 +285,7 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch):
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
-    parts = [s * s for s in noise._per_axis(q.dtype)]  # σ² per axis, as discrete_variances
-    shape = jnp.broadcast_shapes(*(x.shape for x in parts))
-    var = jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)  # (..., 12)
+    var = noise.variances(q.dtype)  # (..., 12)
     shared = var.ndim == 1
     var_f = None if shared else jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
 

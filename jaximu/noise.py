@@ -91,10 +91,13 @@ class ImuNoise:
         var = self.discrete_variances(dt, dtype)
         return var[..., None] * jnp.eye(12, dtype=var.dtype)
 
+    def variances(self, dtype=None):
+        """``[σ_g², σ_a², σ_bg², σ_ba²]`` per axis, ``(..., 12)`` (densities squared)."""
+        parts = [s * s for s in self._per_axis(jnp.result_type(dtype or float))]
+        shape = jnp.broadcast_shapes(*(x.shape for x in parts))
+        return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+
     def discrete_variances(self, dt, dtype=None):
-        """Diagonal of :meth:`discrete_covariance`, ``(..., 12)``."""
+        """Diagonal of :meth:`discrete_covariance`: :meth:`variances` ``/ dt``, ``(..., 12)``."""
         dt = jnp.asarray(dt, dtype)
-        parts = [s * s for s in self._per_axis(dt.dtype)]
-        shape = jnp.broadcast_shapes(*(x.shape for x in parts), dt.shape + (3,))
-        parts = [jnp.broadcast_to(x, shape) for x in parts]
-        return jnp.concatenate(parts, axis=-1) / dt[..., None]
+        return self.variances(dt.dtype) / dt[..., None]

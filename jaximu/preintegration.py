@@ -469,9 +469,7 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
     if noise is None:
         var = jnp.zeros(12, dtype)
     else:
-        parts = [s * s for s in noise._per_axis(dtype)]  # σ² per axis, as discrete_variances
-        shape = jnp.broadcast_shapes(*(x.shape for x in parts))
-        var = jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+        var = noise.variances(dtype)
         var = var if var.ndim == 1 else flat(var, (12,))
     C = _fast_preint.num_chunks(B, n, method, dtype)
     fn = _fast_preint.preintegrate_midpoint if scheme == "midpoint" else \
