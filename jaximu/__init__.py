@@ -5,6 +5,9 @@ Conventions (see README): Hamilton ``[w, x, y, z]`` quaternion of ``R_WB``; worl
 with the rotation error on the right; Kalibr noise densities.
 """
 
+from jaximu import allan as allan
+from jaximu import montecarlo as montecarlo
+from jaximu import simulate as simulate
 from jaximu import so3 as so3
 from jaximu.errorstate import discrete_process_noise as discrete_process_noise
 from jaximu.errorstate import propagate_covariance as propagate_covariance

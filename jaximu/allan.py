@@ -1,0 +1,108 @@
+"""Allan deviation of a static IMU recording, and the fit of its noise densities.
+
+For a rate signal ``y`` sampled every ``dt`` (gyro [rad/s] or accelerometer [m/s²]) and the
+cluster time ``τ = m·dt``, the overlapping Allan variance is (IEEE Std 952, with
+``θ = cumsum(y)·dt`` the integrated signal):
+
+    σ²(τ) = Σ_k (θ_{k+2m} - 2 θ_{k+m} + θ_k)² / (2 τ² (N - 2m)).
+
+White noise of density ``σ_w`` gives ``σ(τ) = σ_w / √τ`` (slope -1/2: ``σ_w = σ(1 s)``); a bias
+random walk of density ``σ_rw`` gives ``σ(τ) = σ_rw √(τ/3)`` (slope +1/2: ``σ_rw = σ(3 s)``).
+:func:`fit_noise` fits ``σ²(τ) = σ_w²/τ + σ_rw² τ/3`` by weighted least squares, which returns
+exactly the Kalibr parameters of :class:`jaximu.ImuNoise` (``*_noise_density``,
+``*_random_walk``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["allan_deviation", "fit_noise", "NoiseFit"]
+
+
+def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
+    """Overlapping Allan deviation of rate samples.
+
+    Args:
+        y: ``(N,)`` or ``(N, d)`` samples (e.g. the three gyro axes), constant rate ``1/dt``.
+        dt: sample period [s].
+        taus: cluster times [s] (rounded to whole samples); default log-spaced from ``dt`` to
+            ``N·dt/10`` (at least ~10 independent clusters at the longest τ).
+        points_per_decade: density of the default τ grid.
+
+    Returns:
+        ``(taus, adev)``: ``(M,)`` and ``(M,)`` or ``(M, d)``.
+    """
+    y = np.asarray(y, np.float64)
+    squeeze = y.ndim == 1
+    y = y[:, None] if squeeze else y
+    n = y.shape[0]
+    if n < 10:
+        raise ValueError(f"need at least 10 samples, got {n}")
+    if not dt > 0:
+        raise ValueError(f"dt must be positive, got {dt}")
+    if taus is None:
+        m_max = max(1, n // 10)
+        ms = np.unique(np.round(np.logspace(0, np.log10(m_max),
+                                            int(np.log10(m_max) * points_per_decade) + 1)).astype(int))
+    else:
+        ms = np.unique(np.maximum(1, np.round(np.asarray(taus, float) / dt)).astype(int))
+        if np.any(2 * ms >= n):
+            raise ValueError("every τ must be shorter than half the recording")
+    theta = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0) * dt])
+    adev = np.empty((len(ms), y.shape[1]))
+    for i, m in enumerate(ms):
+        d = theta[2 * m:] - 2 * theta[m:-m] + theta[:-2 * m]
+        tau = m * dt
+        adev[i] = np.sqrt(np.sum(d * d, axis=0) / (2 * tau * tau * (n + 1 - 2 * m)))
+    taus = ms * dt
+    return taus, (adev[:, 0] if squeeze else adev)
+
+
+class NoiseFit(NamedTuple):
+    """White-noise density and random-walk density fitted to an Allan deviation.
+
+    Attributes:
+        white: ``σ_w`` [unit/√Hz] (``gyroscope_noise_density`` or ``accelerometer_noise_density``).
+        random_walk: ``σ_rw`` [unit·√Hz] (``gyroscope_random_walk``, ``accelerometer_random_walk``).
+    """
+
+    white: np.ndarray
+    random_walk: np.ndarray
+
+    def model(self, taus):
+        """The fitted ``σ(τ)``."""
+        taus = np.asarray(taus, float)[:, None] if np.ndim(self.white) else np.asarray(taus, float)
+        return np.sqrt(self.white**2 / taus + self.random_walk**2 * taus / 3)
+
+
+def fit_noise(taus, adev) -> NoiseFit:
+    """Fit ``σ²(τ) = σ_w²/τ + σ_rw² τ/3`` to an Allan deviation (per column).
+
+    Weighted least squares on the relative error of ``σ²``, weighted by ``τ^(-1/2)``: the
+    relative uncertainty of an overlapping Allan variance grows like ``√(τ/T)`` (fewer
+    independent clusters), so long τ count less. Both coefficients are kept non-negative.
+    """
+    taus = np.asarray(taus, float)
+    adev = np.asarray(adev, float)
+    squeeze = adev.ndim == 1
+    adev = adev[:, None] if squeeze else adev
+    white, walk = [], []
+    A = np.stack([1 / taus, taus / 3], axis=1)
+    for col in adev.T:
+        w = 1 / (col**2 * np.sqrt(taus))
+        coef, *_ = np.linalg.lstsq(A * w[:, None], col**2 * w, rcond=None)
+        if coef[0] < 0 or coef[1] < 0:  # one term absent: fit the other alone
+            cands = []
+            for j in (0, 1):
+                c = np.sum(A[:, j] * col**2 * w * w) / np.sum((A[:, j] * w) ** 2)
+                cc = np.zeros(2)
+                cc[j] = max(c, 0.0)
+                cands.append((np.sum(((A @ cc) * w - col**2 * w) ** 2), cc))
+            coef = min(cands, key=lambda x: x[0])[1]
+        white.append(np.sqrt(max(coef[0], 0.0)))
+        walk.append(np.sqrt(max(coef[1], 0.0)))
+    white, walk = np.array(white), np.array(walk)
+    return NoiseFit(white[0], walk[0]) if squeeze else NoiseFit(white, walk)

@@ -1,0 +1,281 @@
+"""Smooth trajectories, exact IMU signals by autodiff, and IMU noise and bias processes.
+
+A :class:`Trajectory` is a pure function ``pose(t) -> (q, p)`` of a scalar time ``t`` [s]:
+``q`` the Hamilton quaternion ``[w, x, y, z]`` of ``R_WB``, ``p`` the position in W. The ideal
+IMU signals come from **autodiff of** ``pose(t)``, not finite differences, so they are exact to
+float precision:
+
+    ω_B = 2 vec(q* ⊗ q̇)          (jax.jacfwd of q),
+    f_B = R_WBᵀ (p̈ - g_W)        (jax.jacfwd twice of p).
+
+Noise (:func:`add_noise`) follows :mod:`jaximu.noise`: per-sample white noise with std
+``σ/√dt``; a bias random walk whose steps have std ``σ_rw·√dt``; a constant turn-on bias;
+optionally a scale factor and misalignment ``M = I + S`` applied to the true signal. Every
+draw is a function of a PRNG key, so batches are ``jax.vmap`` over keys (or leading key axes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu import _validation as val
+from jaximu import so3
+from jaximu.noise import ImuNoise
+from jaximu.state import NavState
+
+__all__ = [
+    "Trajectory",
+    "circle",
+    "figure_eight",
+    "lissajous",
+    "helix",
+    "waypoints",
+    "ideal_imu",
+    "true_states",
+    "ImuErrors",
+    "add_noise",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """A smooth motion: ``pose(t) -> (q (4,), p (3,))`` for a scalar ``t`` [s].
+
+    Attributes:
+        pose: the pose function (jax-traceable, twice differentiable in ``t``).
+        name: a label for plots and reports.
+    """
+
+    pose: Callable
+    name: str = "trajectory"
+
+    def __call__(self, t):
+        return self.pose(t)
+
+
+def _yaw_pitch_roll_quat(yaw, pitch, roll):
+    return so3.euler_zyx_to_quat(jnp.stack([roll, pitch, yaw]))
+
+
+def circle(radius: float = 5.0, speed: float = 2.0, height: float = 1.0) -> Trajectory:
+    """Level circle, counter-clockwise, body x along the velocity (GTSAM's "Circle").
+
+    Yaw rate ``ω = speed / radius``; the IMU reads ``gyro = (0, 0, ω)`` and
+    ``accel = (0, speed·ω, g)`` (centripetal force plus gravity reaction), constant.
+    """
+    w = speed / radius
+
+    def pose(t):
+        wt = w * t
+        p = jnp.stack([radius * jnp.sin(wt), radius * (1 - jnp.cos(wt)), height + 0 * wt])
+        return _yaw_pitch_roll_quat(wt, 0 * wt, 0 * wt), p
+
+    return Trajectory(pose, f"circle(r={radius}, v={speed})")
+
+
+def figure_eight(a: float = 6.0, b: float = 3.0, period: float = 20.0, height: float = 1.5,
+                 bank: float = 0.25) -> Trajectory:
+    """Horizontal figure eight ``(a sin wt, b sin 2wt)`` with heading along the velocity and a
+    banking roll ``bank·sin(2wt)`` [rad]."""
+    w = 2 * np.pi / period
+
+    def pose(t):
+        wt = w * t
+        p = jnp.stack([a * jnp.sin(wt), b * jnp.sin(2 * wt), height + 0.3 * jnp.sin(wt)])
+        yaw = jnp.arctan2(2 * b * jnp.cos(2 * wt), a * jnp.cos(wt))
+        return _yaw_pitch_roll_quat(yaw, 0.1 * jnp.sin(wt), bank * jnp.sin(2 * wt)), p
+
+    return Trajectory(pose, f"figure_eight(a={a}, b={b}, T={period})")
+
+
+def lissajous(amplitude=(3.0, 2.0, 0.5), frequency=(0.1, 0.15, 0.23),
+              attitude_amplitude=(0.3, 0.2, 0.8), attitude_frequency=(0.21, 0.17, 0.07)) -> Trajectory:
+    """3-D Lissajous curve with independently oscillating roll, pitch and yaw [rad, Hz]."""
+    A, f = np.asarray(amplitude, float), np.asarray(frequency, float)
+    B, g = np.asarray(attitude_amplitude, float), np.asarray(attitude_frequency, float)
+
+    def pose(t):
+        p = jnp.asarray(A) * jnp.sin(2 * np.pi * jnp.asarray(f) * t + jnp.array([0.0, 0.5, 1.0]))
+        chi = jnp.asarray(B) * jnp.sin(2 * np.pi * jnp.asarray(g) * t + jnp.array([0.3, 0.0, 0.7]))
+        return so3.euler_zyx_to_quat(chi), p
+
+    return Trajectory(pose, "lissajous")
+
+
+def helix(radius: float = 3.0, turn_rate: float = 0.4, climb_rate: float = 0.2,
+          wobble: float = 0.2) -> Trajectory:
+    """Climbing helix, heading along the track, with roll and pitch wobbling by ``wobble`` rad."""
+
+    def pose(t):
+        wt = turn_rate * t
+        p = jnp.stack([radius * jnp.sin(wt), radius * (1 - jnp.cos(wt)), climb_rate * t])
+        return _yaw_pitch_roll_quat(wt, wobble * jnp.sin(1.3 * wt), wobble * jnp.cos(0.9 * wt)), p
+
+    return Trajectory(pose, f"helix(r={radius})")
+
+
+def _natural_cubic_spline(times, values):
+    """Coefficients of the C2 natural cubic spline through ``values`` ``(K, d)`` at ``times``."""
+    t = np.asarray(times, float)
+    y = np.asarray(values, float)
+    K = len(t)
+    h = np.diff(t)
+    A = np.zeros((K, K))
+    rhs = np.zeros_like(y)
+    A[0, 0] = A[-1, -1] = 1.0
+    for i in range(1, K - 1):
+        A[i, i - 1], A[i, i], A[i, i + 1] = h[i - 1], 2 * (h[i - 1] + h[i]), h[i]
+        rhs[i] = 3 * ((y[i + 1] - y[i]) / h[i] - (y[i] - y[i - 1]) / h[i - 1])
+    c = np.linalg.solve(A, rhs)  # second-derivative / 2 at the knots
+    b = (y[1:] - y[:-1]) / h[:, None] - h[:, None] * (2 * c[:-1] + c[1:]) / 3
+    d = (c[1:] - c[:-1]) / (3 * h[:, None])
+    return t, y[:-1], b, c[:-1], d
+
+
+def _eval_spline(coeffs, t):
+    knots, a, b, c, d = (jnp.asarray(x) for x in coeffs)
+    i = jnp.clip(jnp.searchsorted(knots, t, side="right") - 1, 0, a.shape[0] - 1)
+    s = t - knots[i]
+    return a[i] + s * (b[i] + s * (c[i] + s * d[i]))
+
+
+def waypoints(times, positions, quaternions=None) -> Trajectory:
+    """A C2 trajectory through waypoints: natural cubic splines through the positions and
+    through the rotation vectors of the orientations (unwrapped so that consecutive ones
+    differ by less than π); ``R(t) = Exp(r(t))``.
+
+    Args:
+        times: ``(K,)`` increasing waypoint times [s], K ≥ 2.
+        positions: ``(K, 3)`` positions in W [m].
+        quaternions: ``(K, 4)`` orientations ``[w, x, y, z]`` (default: identity).
+
+    The curve passes exactly through every waypoint; outside ``[t_0, t_K-1]`` the end
+    polynomials extend it.
+    """
+    times = np.asarray(times, float)
+    positions = np.asarray(positions, float)
+    if times.ndim != 1 or len(times) < 2 or np.any(np.diff(times) <= 0):
+        raise ValueError("times must be a strictly increasing 1-D array of at least 2 waypoints")
+    if positions.shape != (len(times), 3):
+        raise ValueError(f"positions must have shape ({len(times)}, 3), got {positions.shape}")
+    if quaternions is None:
+        rotvecs = np.zeros_like(positions)
+    else:
+        quaternions = np.asarray(quaternions, float)
+        if quaternions.shape != (len(times), 4):
+            raise ValueError(f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}")
+        norms = np.linalg.norm(quaternions, axis=1)
+        if np.any(np.abs(norms - 1) > 1e-6):
+            raise ValueError("quaternions must be unit quaternions (normalise them first)")
+        rotvecs = np.array(so3.log(jnp.asarray(quaternions)), float)  # a writable copy
+        for k in range(1, len(rotvecs)):  # unwrap: pick r or r - 2π r̂ closest to the previous
+            r = rotvecs[k]
+            n = np.linalg.norm(r)
+            if n > 1e-12:
+                alt = r - 2 * np.pi * r / n
+                if np.linalg.norm(alt - rotvecs[k - 1]) < np.linalg.norm(r - rotvecs[k - 1]):
+                    rotvecs[k] = alt
+    pos = _natural_cubic_spline(times, positions)
+    rot = _natural_cubic_spline(times, rotvecs)
+
+    def pose(t):
+        return so3.exp(_eval_spline(rot, t)), _eval_spline(pos, t)
+
+    return Trajectory(pose, f"waypoints({len(times)})")
+
+
+def _kinematics(traj: Trajectory, t):
+    """q, p, v, body rate ω_B and world acceleration at one scalar time, by forward AD."""
+    q, p = traj.pose(t)
+    q_dot, v = jax.jacfwd(traj.pose)(t)
+    a = jax.jacfwd(lambda s: jax.jacfwd(traj.pose)(s)[1])(t)
+    omega = 2.0 * so3.quat_mul(so3.quat_conj(q), q_dot)[1:]
+    return q, p, v, omega, a
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _kinematics_at(traj: Trajectory, t):
+    return jax.vmap(lambda s: _kinematics(traj, s))(t)
+
+
+def true_states(traj: Trajectory, t) -> NavState:
+    """The exact states at times ``t`` ``(T,)`` (zero biases): fields ``(T, ·)``."""
+    q, p, v, _, _ = _kinematics_at(traj, jnp.asarray(t))
+    z = jnp.zeros_like(p)
+    return NavState(q, p, v, z, z)
+
+
+def ideal_imu(traj: Trajectory, t, gravity=9.81):
+    """Exact body rate and specific force at times ``t`` ``(T,)``.
+
+    Returns:
+        ``(gyro, accel)``, each ``(T, 3)``: ``ω_B`` [rad/s] and ``f_B = R_WBᵀ(a_W - g_W)`` [m/s²].
+    """
+    t = jnp.asarray(t)
+    g = val.gravity_vector(gravity, t.dtype)
+    q, _, _, omega, a = _kinematics_at(traj, t)
+    accel = so3.quat_rotate(so3.quat_conj(q), a - g)
+    return omega, accel
+
+
+class ImuErrors(NamedTuple):
+    """What :func:`add_noise` drew, for checking a filter against the truth.
+
+    Attributes:
+        b_g, b_a: ``(..., T, 3)`` the true biases during each sample (turn-on + random walk).
+        b_g_end, b_a_end: ``(..., 3)`` the true biases after the last sample.
+    """
+
+    b_g: jax.Array
+    b_a: jax.Array
+    b_g_end: jax.Array
+    b_a_end: jax.Array
+
+
+def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
+              gyro_misalignment=None, accel_misalignment=None, batch_shape=()):
+    """Measured samples from true ones: ``w_m = M_g ω + b_g + n_g``, ``a_m = M_a f + b_a + n_a``.
+
+    Args:
+        key: a ``jax.random`` key.
+        gyro, accel: ``(T, 3)`` true body rate and specific force (e.g. :func:`ideal_imu`).
+        dt: ``(T,)`` or scalar sample periods [s] (sample k held over ``dt[k]``).
+        noise: the densities; white-noise std ``σ/√dt``, bias steps std ``σ_rw·√dt``.
+        b_g0, b_a0: turn-on biases ``(..., 3)`` (or scalars).
+        gyro_misalignment, accel_misalignment: optional ``(3, 3)`` ``S`` with ``M = I + S``
+            (scale factors on the diagonal, misalignment off it).
+        batch_shape: draw this many independent streams at once (outputs ``batch + (T, 3)``);
+            one draw of ``batch + (T, 12)`` normals, the fastest way on CPU.
+
+    Returns:
+        ``(gyro_m, accel_m, errors)`` with :class:`ImuErrors`. The bias during sample k is
+        the turn-on bias plus the sum of the random-walk steps before k.
+    """
+    gyro, accel = jnp.asarray(gyro), jnp.asarray(accel)
+    dtype = gyro.dtype
+    T = gyro.shape[-2]
+    dt = jnp.broadcast_to(jnp.asarray(dt, dtype), (T,))
+    sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each
+    z = jax.random.normal(key, tuple(batch_shape) + (T, 12), dtype)
+    walk_g = jnp.cumsum(z[..., 6:9] * sbg, axis=-2)
+    walk_a = jnp.cumsum(z[..., 9:12] * sba, axis=-2)
+
+    def before(walk):  # sum of the steps before each sample
+        return jnp.concatenate([jnp.zeros_like(walk[..., :1, :]), walk[..., :-1, :]], axis=-2)
+
+    b_g0 = jnp.asarray(b_g0, dtype)[..., None, :] if jnp.ndim(b_g0) else jnp.asarray(b_g0, dtype)
+    b_a0 = jnp.asarray(b_a0, dtype)[..., None, :] if jnp.ndim(b_a0) else jnp.asarray(b_a0, dtype)
+    b_g, b_a = b_g0 + before(walk_g), b_a0 + before(walk_a)
+    w = gyro if gyro_misalignment is None else gyro + gyro @ jnp.asarray(gyro_misalignment, dtype).T
+    f = accel if accel_misalignment is None else accel + accel @ jnp.asarray(accel_misalignment, dtype).T
+    gyro_m = w + b_g + z[..., 0:3] * sg
+    accel_m = f + b_a + z[..., 3:6] * sa
+    errors = ImuErrors(b_g, b_a, (b_g0 + walk_g[..., -1:, :])[..., 0, :],
+                       (b_a0 + walk_a[..., -1:, :])[..., 0, :])
+    return gyro_m, accel_m, errors
