@@ -68,3 +68,18 @@ def test_quickstart_example_runs():
     assert [ln[:2] for ln in lines] == ["1.", "2.", "3.", "4.", "5."]
     # 1 s of dead reckoning from the ground truth: a few centimetres (SOURCE.md: 2.5 cm median)
     assert float(lines[0].split("error ")[1].split(" m")[0]) < 0.1
+
+
+def test_monte_carlo_example_writes_its_plots(tmp_path):
+    import pathlib
+
+    pytest.importorskip("matplotlib")
+    example = pathlib.Path(__file__).resolve().parents[1] / "examples" / "monte_carlo.py"
+    if not example.exists():
+        pytest.skip("examples/ not present")
+    res = subprocess.run([sys.executable, str(example), "--runs", "200", "--seconds", "1",
+                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    for name in ("mc_envelopes.png", "mc_nees.png", "allan.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    assert "average NEES" in res.stdout and "(detected)" in res.stdout
