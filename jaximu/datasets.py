@@ -1,7 +1,9 @@
 """Real IMU data bundled with the package (for the demo, examples and tests).
 
 ``euroc_v1_02_segment()`` reads the 20 s excerpt of EuRoC MAV V1_02_medium shipped in
-``jaximu/data/euroc_v1_02_medium`` (see its ``SOURCE.md`` for origin and licence).
+``jaximu/data/euroc_v1_02_medium``, ``euroc_v2_01_segment()`` a 20 s excerpt of V2_01_easy
+(another room, another day) in ``jaximu/data/euroc_v2_01_easy`` (see their ``SOURCE.md``
+for origin and licence).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from importlib import resources
 
 import numpy as np
 
-__all__ = ["EurocSegment", "euroc_v1_02_segment"]
+__all__ = ["EurocSegment", "euroc_v1_02_segment", "euroc_v2_01_segment"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +54,16 @@ def _read_csv(path):
 
 def euroc_v1_02_segment() -> EurocSegment:
     """The bundled 20 s excerpt of EuRoC MAV V1_02_medium (200 Hz ADIS16448 + ground truth)."""
-    base = resources.files("jaximu") / "data" / "euroc_v1_02_medium"
+    return _euroc_segment("euroc_v1_02_medium")
+
+
+def euroc_v2_01_segment() -> EurocSegment:
+    """The bundled 20 s excerpt of EuRoC MAV V2_01_easy (flight from 10 s to 30 s)."""
+    return _euroc_segment("euroc_v2_01_easy")
+
+
+def _euroc_segment(folder) -> EurocSegment:
+    base = resources.files("jaximu") / "data" / folder
     with resources.as_file(base / "imu.csv") as p:
         ts_imu, imu = _read_csv(p)
     with resources.as_file(base / "groundtruth.csv") as p:

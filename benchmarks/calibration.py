@@ -1,0 +1,109 @@
+"""Calibration loss: time per gradient step, compile time and memory, at 10^5 and 10^6 samples.
+
+    python benchmarks/calibration.py            # 1e5 and 1e6 samples, float32 and float64
+    python benchmarks/calibration.py --quick    # 1e5 only
+
+Workload: a simulated Lissajous flight at 200 Hz with biases, scale and misalignment, the
+reference at 20 Hz; keyframes every 0.5 s (100 samples); the loss of
+:func:`jaximu.calibration.calibration_loss` (``model="propagation"``, midpoint) and its
+gradient with respect to every field of :class:`ImuCalibration` (``jax.value_and_grad``).
+
+Memory: ``temp`` is XLA's compiled temporary-buffer size for the value-and-gradient (the
+reverse-mode tape), from ``compiled.memory_analysis()``; the inputs (samples and whitening)
+are listed apart. Windows are evaluated in checkpointed groups (``windows_per_group``, 64 by
+default): the tape holds one group; ``--per-group`` changes it, and the 10^5 case is also run
+with one group holding every window (no checkpointing benefit) for comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaximu  # noqa: E402
+from jaximu import calibration as cal  # noqa: E402
+from jaximu import simulate as sim  # noqa: E402
+from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
+
+RATE = 200.0
+
+
+def make_problem(n_samples, dtype, per_group):
+    t = np.arange(n_samples + 1) / RATE
+    traj = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5), attitude_frequency=(0.31, 0.23, 0.13))
+    gyro, accel = sim.ideal_imu(traj, jnp.asarray(t))
+    noise = jaximu.ImuNoise.euroc()
+    white = jaximu.ImuNoise(noise.gyroscope_noise_density, noise.accelerometer_noise_density, 0, 0)
+    gm, am, _ = sim.add_noise(jax.random.key(0), gyro, accel, 1 / RATE, white,
+                              b_g0=jnp.array([0.003, -0.002, 0.004]),
+                              b_a0=jnp.array([0.05, -0.08, 0.1]))
+    t_ref = t[::10]
+    truth = sim.true_states(traj, jnp.asarray(t_ref))
+    ref = cal.Reference(t_ref, np.asarray(truth.q), np.asarray(truth.p), np.asarray(truth.v))
+    return cal.calibration_problem(t, np.asarray(gm, dtype), np.asarray(am, dtype), ref, noise,
+                                   scheme="midpoint", model="propagation",
+                                   reference_sigma=(0, 0, 0), windows_per_group=per_group)
+
+
+def bench(n_samples, dtype, per_group, reps=3):
+    prob = make_problem(n_samples, dtype, per_group)
+    calib = cal.ImuCalibration.default(dtype=dtype)
+    f = jax.jit(jax.value_and_grad(cal.calibration_loss, argnums=1))
+    t0 = time.perf_counter()
+    compiled = f.lower(prob, calib).compile()
+    t_compile = time.perf_counter() - t0
+    mem = compiled.memory_analysis()
+    jax.block_until_ready(compiled(prob, calib))
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(prob, calib))
+        times.append(time.perf_counter() - t0)
+    inputs = sum(x.nbytes for x in jax.tree_util.tree_leaves(prob))
+    return dict(
+        samples=prob.n_samples, windows=prob.n_windows, dtype=jnp.dtype(dtype).name,
+        windows_per_group=per_group, step_s=min(times), compile_s=t_compile,
+        samples_per_s=prob.n_samples / min(times), temp_mb=mem.temp_size_in_bytes / 2**20,
+        inputs_mb=inputs / 2**20,
+        max_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--per-group", type=int, default=64)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    info = machine_info()
+    sizes = [100_000] if args.quick else [100_000, 1_000_000]
+    rows = []
+    print(f"machine: {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax {info['jax']}")
+    print(f"{'samples':>9} {'dtype':>7} {'group':>6} {'step':>9} {'Msamples/s':>10} "
+          f"{'compile':>8} {'temp MB':>8} {'inputs MB':>9} {'max RSS MB':>10}")
+    cases = [(n, d, args.per_group) for n in sizes for d in (jnp.float32, jnp.float64)]
+    cases.append((100_000, jnp.float64, 100_000))  # every window in one group
+    for n, d, g in cases:
+        r = bench(n, d, g)
+        rows.append(r)
+        print(f"{r['samples']:>9} {r['dtype']:>7} {min(g, r['windows']):>6} {r['step_s']:>8.3f}s "
+              f"{r['samples_per_s'] / 1e6:>10.2f} {r['compile_s']:>7.1f}s {r['temp_mb']:>8.1f} "
+              f"{r['inputs_mb']:>9.1f} {r['max_rss_mb']:>10.0f}")
+    out = args.out or os.path.join(os.path.dirname(__file__), "results",
+                                   f"calibration-{machine_slug(info)}.json")
+    with open(out, "w") as fh:
+        json.dump(dict(machine=info, results=rows), fh, indent=1)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

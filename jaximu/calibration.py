@@ -1,0 +1,680 @@
+"""Gradient-based IMU calibration against a reference trajectory.
+
+The sensor model (the one :func:`jaximu.simulate.add_noise` draws from)::
+
+    w_m = (I + S_g) ω + b_g + n_g,      a_m = (I + S_a) f + b_a + n_a,
+
+with ``S = diag(scale) + L(misalignment)``: scale-factor errors on the diagonal and the
+three misalignment terms ``[S_10, S_20, S_21]`` strictly below it (the lower-triangular
+form of Kalibr's ``scale-misalignment`` model). The reference (motion capture or a
+dataset's ground truth) is time-stamped on its own clock: IMU time ``t`` is reference time
+``t + time_offset``.
+
+The loss compares the corrected IMU with the reference between keyframes a fixed number of
+samples apart: the 9-dim preintegration residual ``[r_θ, r_p, r_v]`` of
+:func:`jaximu.residual` (``model="preintegration"``), or the same quantities from
+:func:`jaximu.propagate_final` started at the reference state (``model="propagation"``;
+equal for ``"euler"``), whitened by the residual covariance (preintegration noise plus the
+reference's own noise), ``loss = ½ Σ_k |L_k⁻¹ r_k|²``. The whitening is computed once at the
+start (it depends on the samples, not on the parameters). Where the reference has no
+velocities, the keyframe velocities are estimated with the parameters (nuisance).
+
+Windows are evaluated in groups under :func:`jax.checkpoint`, so reverse-mode memory is
+that of one group plus one scalar per group: gradients through 10⁶ samples fit in a laptop's
+memory (``benchmarks/calibration.py`` measures it).
+
+Parameters are optimised in normalised coordinates ``z = (θ - θ₀) / scale`` (the
+:data:`SCALES`: 0.01 rad/s for ``b_g``, 0.1 m/s² for ``b_a``, ...), so one learning rate
+suits every field. The uncertainty is the Gauss-Newton / Laplace approximation
+``cov = (JᵀJ)⁻¹`` of the whitened residuals at the optimum; it is right when the noise
+model is (check ``reduced_chi2`` ≈ 1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaximu import _validation as val
+from jaximu import so3
+from jaximu.noise import ImuNoise
+from jaximu.preintegration import preintegrate, residual
+from jaximu.propagate import propagate_final
+from jaximu.state import ImuBias, NavState
+
+__all__ = [
+    "ImuCalibration",
+    "Reference",
+    "CalibrationProblem",
+    "CalibrationResult",
+    "CalibrationError",
+    "calibration_problem",
+    "calibration_loss",
+    "calibration_residuals",
+    "calibrate",
+    "FIELDS",
+    "SCALES",
+]
+
+FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
+          "accel_misalignment", "gravity", "time_offset")
+_SIZES = {"b_g": 3, "b_a": 3, "gyro_scale": 3, "gyro_misalignment": 3, "accel_scale": 3,
+          "accel_misalignment": 3, "gravity": 1, "time_offset": 1}
+SCALES = {"b_g": 1e-2, "b_a": 1e-1, "gyro_scale": 1e-2, "gyro_misalignment": 1e-2,
+          "accel_scale": 1e-2, "accel_misalignment": 1e-2, "gravity": 1e-1,
+          "time_offset": 1e-2}
+"""Typical magnitude of each field [its units]: the unit of the normalised coordinates."""
+_VELOCITY_SCALE = 0.1  # m/s, nuisance keyframe velocities
+MODELS = ("preintegration", "propagation")
+OPTIMIZERS = ("lbfgs", "adam")
+
+
+class CalibrationError(ValueError):
+    """The data cannot be calibrated as given (units, frames or conventions disagree)."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ImuCalibration:
+    """IMU intrinsics and the IMU–reference time offset (a pytree; fields may be batched).
+
+    Attributes:
+        b_g: ``(..., 3)`` gyroscope bias [rad/s]; b_a: ``(..., 3)`` accelerometer bias [m/s²].
+        gyro_scale, accel_scale: ``(..., 3)`` scale-factor errors (diagonal of ``S``) [-].
+        gyro_misalignment, accel_misalignment: ``(..., 3)`` ``[S_10, S_20, S_21]`` [-].
+        gravity: ``(...)`` gravity magnitude [m/s²] (``g_W = [0, 0, -g]``).
+        time_offset: ``(...)`` IMU time minus reference time of one instant [s].
+    """
+
+    b_g: jax.Array
+    b_a: jax.Array
+    gyro_scale: jax.Array
+    gyro_misalignment: jax.Array
+    accel_scale: jax.Array
+    accel_misalignment: jax.Array
+    gravity: jax.Array
+    time_offset: jax.Array
+
+    @classmethod
+    def default(cls, gravity=9.81, dtype=None, **fields) -> "ImuCalibration":
+        """Zero biases, scale, misalignment and offset (unless given in ``fields``)."""
+        dtype = jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
+        vals = {name: jnp.zeros((_SIZES[name],) if _SIZES[name] > 1 else (), dtype)
+                for name in FIELDS}
+        vals["gravity"] = jnp.asarray(gravity, dtype)
+        for name, x in fields.items():
+            if name not in vals:
+                raise ValueError(f"unknown calibration field {name!r}; fields are {FIELDS}")
+            vals[name] = jnp.asarray(x, dtype)
+        return cls(**vals)
+
+    @property
+    def bias(self) -> ImuBias:
+        return ImuBias(self.b_g, self.b_a)
+
+    def gyro_matrix(self):
+        """``(..., 3, 3)`` ``I + S_g``."""
+        return sensor_matrix(self.gyro_scale, self.gyro_misalignment)
+
+    def accel_matrix(self):
+        """``(..., 3, 3)`` ``I + S_a``."""
+        return sensor_matrix(self.accel_scale, self.accel_misalignment)
+
+    def apply(self, gyro, accel):
+        """Corrected samples ``(I + S)⁻¹ (m - b)`` from raw ``(..., T, 3)`` ones."""
+        def fix(M, b, x):
+            Minv = jnp.linalg.inv(M)[..., None, :, :]
+            return jnp.einsum("...ij,...j->...i", Minv, x - b[..., None, :])
+
+        return (fix(self.gyro_matrix(), self.b_g, gyro),
+                fix(self.accel_matrix(), self.b_a, accel))
+
+
+def sensor_matrix(scale, misalignment):
+    """``I + diag(scale) + L(misalignment)`` with ``L`` strictly lower: ``(..., 3, 3)``."""
+    s, m = jnp.asarray(scale), jnp.asarray(misalignment)
+    z = jnp.zeros_like(s[..., 0])
+    one = jnp.ones_like(z)
+    rows = [
+        jnp.stack([one + s[..., 0], z, z], -1),
+        jnp.stack([m[..., 0], one + s[..., 1], z], -1),
+        jnp.stack([m[..., 1], m[..., 2], one + s[..., 2]], -1),
+    ]
+    return jnp.stack(rows, -2)
+
+
+@dataclasses.dataclass(frozen=True)
+class Reference:
+    """A reference trajectory of the IMU (body) frame, on the reference clock.
+
+    Attributes:
+        t: ``(M,)`` strictly increasing times [s].
+        q: ``(M, 4)`` ``[w, x, y, z]`` of ``R_WB`` (within 1e-3 of unit norm; a normalised
+            copy is used); p: ``(M, 3)`` positions in W [m].
+        v: ``(M, 3)`` velocities in W [m/s], or ``None`` (then estimated at the keyframes).
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    p: np.ndarray
+    v: np.ndarray | None = None
+
+
+# --------------------------------------------------------------------------- the problem
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CalibrationProblem:
+    """Windows of IMU samples between keyframes with the reference, ready for a loss.
+
+    Built by :func:`calibration_problem`. ``K`` windows of ``W`` samples, padded to
+    ``G × C`` (groups of ``C = windows_per_group``; padding windows have weight 0).
+
+    Attributes:
+        gyro, accel: ``(G, C, W + 1, 3)`` raw samples, keyframe to keyframe; dt:
+            ``(G, C, W)`` the intervals between them [s].
+        t_start, t_end: ``(G, C)`` IMU times of each window's keyframes [s].
+        window: ``(G, C)`` index of each window (its velocity is ``velocities[window]``).
+        weight: ``(G, C)`` 1 for a real window, 0 for padding.
+        sqrt_info: ``(G, C, 9, 9)`` ``L⁻¹`` of each residual covariance.
+        ref_t, ref_q, ref_p, ref_v: the reference (``ref_v`` zeros when it has none).
+        velocities: ``(K + 1, 3)`` keyframe velocities (reference or finite differences).
+        scheme, model, has_velocity: static settings.
+        diagnostics: the consistency checks' numbers (``gyro_ratio``, ``gyro_frame_error``,
+            ``accel_ratio``, ``accel_frame_error``; NaN where the motion could not tell).
+    """
+
+    gyro: jax.Array
+    accel: jax.Array
+    dt: jax.Array
+    t_start: jax.Array
+    t_end: jax.Array
+    window: jax.Array
+    weight: jax.Array
+    sqrt_info: jax.Array
+    ref_t: jax.Array
+    ref_q: jax.Array
+    ref_p: jax.Array
+    ref_v: jax.Array
+    velocities: jax.Array
+    scheme: str = dataclasses.field(metadata=dict(static=True), default="euler")
+    model: str = dataclasses.field(metadata=dict(static=True), default="preintegration")
+    has_velocity: bool = dataclasses.field(metadata=dict(static=True), default=True)
+    diagnostics: dict = dataclasses.field(default_factory=dict)
+    n_windows: int = dataclasses.field(metadata=dict(static=True), default=0)
+
+    @property
+    def n_samples(self) -> int:
+        return self.n_windows * self.dt.shape[-1]
+
+
+def _interp(problem_t, ref_t, ref_q, ref_p, ref_v):
+    """Reference pose and velocity at ``problem_t`` (linear, slerp; extrapolated past the ends)."""
+    M = ref_t.shape[0]
+    i = jnp.clip(jnp.searchsorted(ref_t, problem_t, side="right") - 1, 0, M - 2)
+    t0, t1 = ref_t[i], ref_t[i + 1]
+    a = ((problem_t - t0) / (t1 - t0))[..., None]  # no clip: exact gradients in time
+    q0, q1 = ref_q[i], ref_q[i + 1]
+    q = so3.quat_mul(q0, so3.exp(a * so3.log(so3.quat_mul(so3.quat_conj(q0), q1))))
+    return q, ref_p[i] + a * (ref_p[i + 1] - ref_p[i]), ref_v[i] + a * (ref_v[i + 1] - ref_v[i])
+
+
+def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocities, g_idx):
+    """``(C, 9)`` whitened residuals of group ``g_idx`` (weights applied)."""
+    gyro, accel = problem.gyro[g_idx], problem.accel[g_idx]
+    dt = problem.dt[g_idx]
+    td = calib.time_offset
+    qi, pi, vi = _interp(problem.t_start[g_idx] + td, problem.ref_t, problem.ref_q,
+                         problem.ref_p, problem.ref_v)
+    qj, pj, vj = _interp(problem.t_end[g_idx] + td, problem.ref_t, problem.ref_q,
+                         problem.ref_p, problem.ref_v)
+    if not problem.has_velocity:
+        k = problem.window[g_idx]
+        vi, vj = velocities[k], velocities[k + 1]
+    gyro_c, accel_c = calib.apply(gyro, accel)
+    zero = jnp.zeros_like(pi)
+    state_i = NavState(qi, pi, vi, zero, zero)
+    state_j = NavState(qj, pj, vj, zero, zero)
+    if problem.model == "preintegration":
+        pim = preintegrate(gyro_c, accel_c, dt, scheme=problem.scheme)
+        r = residual(state_i, state_j, pim, gravity=calib.gravity)[..., :9]
+    else:
+        pred = propagate_final(state_i, gyro_c, accel_c, dt, problem.scheme,
+                               gravity=calib.gravity)
+        qi_inv = so3.quat_conj(qi)
+        r = jnp.concatenate([
+            so3.log(so3.quat_mul(so3.quat_conj(pred.q), qj)),
+            so3.quat_rotate(qi_inv, pj - pred.p),
+            so3.quat_rotate(qi_inv, vj - pred.v),
+        ], axis=-1)
+    w = jnp.einsum("...ij,...j->...i", problem.sqrt_info[g_idx], r)
+    return w * problem.weight[g_idx][..., None]
+
+
+def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
+                          velocities=None):
+    """``(K, 9)`` whitened residuals ``L_k⁻¹ [r_θ, r_p, r_v]_k`` of every window."""
+    v = problem.velocities if velocities is None else velocities
+    G = problem.gyro.shape[0]
+    r = jax.vmap(lambda g: _window_residuals(problem, calib, v, g))(jnp.arange(G))
+    return r.reshape(-1, 9)[: problem.n_windows]
+
+
+def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocities=None):
+    """``½ Σ_k |L_k⁻¹ r_k|²`` (a scalar), differentiable in ``calib`` and ``velocities``.
+
+    Groups of windows are scanned under :func:`jax.checkpoint`: reverse mode stores one
+    group's intermediates at a time.
+    """
+    v = problem.velocities if velocities is None else velocities
+
+    @jax.checkpoint
+    def group(g):
+        r = _window_residuals(problem, calib, v, g)
+        return 0.5 * jnp.sum(r * r)
+
+    def body(acc, g):
+        return acc + group(g), None
+
+    dtype = problem.gyro.dtype
+    total, _ = jax.lax.scan(body, jnp.zeros((), dtype), jnp.arange(problem.gyro.shape[0]))
+    return total
+
+
+def _rotation_vectors(dq):
+    return np.asarray(so3.log(dq), np.float64)
+
+
+def _fit_matrix(x, y):
+    """Least squares ``y ≈ M x + c`` over rows (the constant ``c`` absorbs a bias); ``None``
+    when ``x`` does not excite all three axes."""
+    xc, yc = x - x.mean(0), y - y.mean(0)
+    xx = xc.T @ xc
+    ev = np.linalg.eigvalsh(xx)
+    if not (ev.max() > 0 and ev.min() > 1e-3 * ev.max()):
+        return None
+    return (yc.T @ xc) @ np.linalg.inv(xx)
+
+
+def _check_sensor(name, x_imu, x_ref, ratio, unit_hint, tol_matrix, diag):
+    """Units: ``ratio`` (typical IMU magnitude over the reference's) must be within a factor 3
+    of 1. Frames: the affine fit ``x_ref ≈ M x_imu + c`` must have ``M ≈ s I``."""
+    label = "gyroscope" if name == "gyro" else "accelerometer"
+    what = "rotation" if name == "gyro" else "velocity change"
+    diag[f"{name}_ratio"] = ratio
+    if not 1 / 3 < ratio < 3:
+        raise CalibrationError(
+            f"the {label}'s {what} is {ratio:.3g} times the reference's (expected ≈ 1):"
+            f" {unit_hint}")
+    M = _fit_matrix(x_imu, x_ref)
+    if M is not None:
+        err = float(np.linalg.norm(M / np.linalg.svd(M, compute_uv=False).mean() - np.eye(3)))
+        diag[f"{name}_frame_error"] = err
+        if err > tol_matrix:
+            raise CalibrationError(
+                f"the {label}'s axes do not match the reference's body frame: the best fit"
+                f" ref ≈ M imu of the {what} per window has M =\n{np.round(M, 3)}\n(expected"
+                " ≈ I). Is the reference the pose of the IMU frame, and its quaternion"
+                " [w, x, y, z] of R_WB?")
+
+
+def _check_consistency(gyro_mean_rate, phi_imu, phi_ref, dv_imu, dv_ref, Dt, tol_matrix=0.3):
+    """Catch unit and frame mistakes before fitting (see :func:`calibration_problem`)."""
+    diag = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
+                          "accel_frame_error"), np.nan)
+    rate_ref = np.linalg.norm(phi_ref, axis=-1) / Dt
+    moving = rate_ref > 0.2  # rad/s; below, a bias could dominate the gyro's magnitude
+    if moving.sum() >= 3:
+        _check_sensor("gyro", phi_imu[moving], phi_ref[moving],
+                      float(np.median(gyro_mean_rate[moving] / rate_ref[moving])),
+                      "a gyro in deg/s read as rad/s gives ≈ 57; convert to rad/s",
+                      tol_matrix, diag)
+    _check_sensor("accel", dv_imu, dv_ref,
+                  float(np.median(np.linalg.norm(dv_imu, axis=-1)
+                                  / np.maximum(np.linalg.norm(dv_ref, axis=-1), 1e-300))),
+                  "an accelerometer in g read as m/s² gives ≈ 0.10; convert to m/s²",
+                  tol_matrix, diag)
+    return diag
+
+
+def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
+                        keyframe_interval: float = 0.5, scheme: str = "euler",
+                        model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
+                        initial: ImuCalibration | None = None, windows_per_group: int = 64,
+                        check: bool = True) -> CalibrationProblem:
+    """Cut the IMU stream into keyframe windows and pair them with the reference.
+
+    Args:
+        t: ``(N,)`` IMU times [s] (IMU clock); gyro, accel: ``(N, 3)`` raw samples [rad/s],
+            [m/s²]. Their dtype is the computation's.
+        reference: the :class:`Reference` (reference clock). Keyframes lie where both exist.
+        noise: :class:`ImuNoise` of the IMU (whitening of the residuals).
+        keyframe_interval: seconds between keyframes (rounded to whole samples).
+        scheme: ``"euler"`` or ``"midpoint"``; model: ``"preintegration"`` or ``"propagation"``.
+        reference_sigma: ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` of the reference's own errors,
+            added to each residual's covariance as ``diag(2σ_θ², 2σ_p² + σ_v²Δt², 2σ_v²)``
+            (ends assumed independent).
+        initial: the calibration at which the consistency checks integrate (default zero).
+        windows_per_group: windows per checkpointed group (memory of a gradient).
+        check: run the unit and frame checks, raising :class:`CalibrationError`: the
+            rotation (velocity change) of each window from the raw gyro (accel) is compared
+            with the reference's by a least-squares fit ``ref ≈ M imu``; ``M`` must be near
+            ``I`` (a gyro in deg/s gives 57 I, an IMU frame rotated from the reference's
+            body frame or a quaternion in ``[x, y, z, w]`` order gives a rotation).
+
+    Returns:
+        :class:`CalibrationProblem`.
+    """
+    if scheme not in ("euler", "midpoint"):
+        raise ValueError(f"unknown scheme {scheme!r}; choose 'euler' or 'midpoint'")
+    if model not in MODELS:
+        raise ValueError(f"unknown model {model!r}; choose one of {MODELS}")
+    dtype = val.float_dtype(gyro, accel)
+    t = np.asarray(t, np.float64)
+    gyro_np, accel_np = np.asarray(gyro), np.asarray(accel)
+    if t.ndim != 1 or gyro_np.shape != (len(t), 3) or accel_np.shape != (len(t), 3):
+        raise ValueError(f"t, gyro, accel must have shapes (N,), (N, 3), (N, 3); got "
+                         f"{t.shape}, {gyro_np.shape}, {accel_np.shape}")
+    if np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0))
+        raise ValueError(f"IMU times must increase strictly; t[{i + 1}] <= t[{i}]")
+    val.check_finite("gyro", gyro_np)
+    val.check_finite("accel", accel_np)
+    noise = val.check_noise(noise, dtype)
+    rt = np.asarray(reference.t, np.float64)
+    rq = np.asarray(reference.q, np.float64)
+    rp = np.asarray(reference.p, np.float64)
+    M = len(rt)
+    if rt.ndim != 1 or rq.shape != (M, 4) or rp.shape != (M, 3) or M < 2:
+        raise ValueError("reference t, q, p must have shapes (M,), (M, 4), (M, 3) with M ≥ 2")
+    if np.any(np.diff(rt) <= 0):
+        i = int(np.argmax(np.diff(rt) <= 0))
+        raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
+    for name, x in (("reference.q", rq), ("reference.p", rp)):
+        val.check_finite(name, x)
+    norm_err = np.abs(np.linalg.norm(rq, axis=-1) - 1)
+    if norm_err.max() > 1e-3:
+        raise ValueError(f"reference.q is not unit ([w, x, y, z] quaternions); | |q| - 1 | ="
+                         f" {norm_err.max():.3g} at row {int(np.argmax(norm_err))}")
+    rq = rq / np.linalg.norm(rq, axis=-1, keepdims=True)
+    has_v = reference.v is not None
+    rv = np.asarray(reference.v, np.float64) if has_v else np.zeros_like(rp)
+    if rv.shape != (M, 3):
+        raise ValueError(f"reference.v must have shape (M, 3), got {rv.shape}")
+    val.check_finite("reference.v", rv)
+
+    init = initial if initial is not None else ImuCalibration.default(dtype=jnp.float64)
+    td0 = float(np.asarray(init.time_offset))
+    W = max(1, int(round(keyframe_interval / float(np.median(np.diff(t))))))
+    inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
+    if len(inside) < W + 2:
+        raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
+    first, last = inside[0], inside[-1]
+    K = (last - first) // W
+    if K < 1:
+        raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
+    idx = first + W * np.arange(K + 1)
+    # Each window holds the W + 1 samples from keyframe to keyframe and the W intervals
+    # between them (the midpoint rule uses both ends; Euler leaves the last one unused).
+    sl = idx[:-1, None] + np.arange(W + 1)  # (K, W + 1)
+    dt_all = np.diff(t)
+    win_gyro, win_accel, win_dt = gyro_np[sl], accel_np[sl], dt_all[sl[:, :-1]]
+
+    # Keyframe velocities where the reference has none: central differences of positions.
+    qk, pk, vk = (np.asarray(x, np.float64) for x in _interp(
+        jnp.asarray(t[idx] + td0), jnp.asarray(rt), jnp.asarray(rq), jnp.asarray(rp),
+        jnp.asarray(rv)))
+    if not has_v:
+        vk = np.gradient(pk, t[idx], axis=0)
+
+    # Raw preintegration (for the whitening and the checks) at the initial calibration.
+    g_c, a_c = (np.asarray(x) for x in init.apply(jnp.asarray(win_gyro, jnp.float64),
+                                                 jnp.asarray(win_accel, jnp.float64)))
+    pim = preintegrate(jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype),
+                       jnp.asarray(win_dt, dtype), noise=noise, scheme=scheme)
+    cov = np.asarray(pim.cov, np.float64)
+    Dt = win_dt.sum(-1)
+    s_th, s_p, s_v = (float(x) for x in reference_sigma)
+    extra = np.zeros((K, 9))
+    extra[:, 0:3] = 2 * s_th**2
+    extra[:, 3:6] = (2 * s_p**2 + (s_v * Dt) ** 2)[:, None] if has_v else 2 * s_p**2
+    extra[:, 6:9] = 2 * s_v**2 if has_v else 0.0
+    cov = cov + extra[:, :, None] * np.eye(9)
+    L = np.linalg.cholesky(cov)
+    sqrt_info = np.linalg.inv(L)
+
+    diagnostics = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
+                                 "accel_frame_error"), np.nan)
+    if check:
+        g = float(np.asarray(init.gravity))
+        gW = np.array([0.0, 0.0, -g])
+        R_i = np.asarray(so3.quat_to_matrix(jnp.asarray(qk[:-1])))
+        phi_ref = _rotation_vectors(so3.quat_mul(so3.quat_conj(jnp.asarray(qk[:-1])),
+                                                 jnp.asarray(qk[1:])))
+        phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
+        dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
+        gyro_rate = np.linalg.norm(np.asarray(g_c)[:, :-1], axis=-1).mean(-1)
+        diagnostics = _check_consistency(gyro_rate, phi_imu, phi_ref,
+                                         np.asarray(pim.delta_v, np.float64), dv_ref, Dt)
+
+    C = max(1, min(int(windows_per_group), K))
+    G = -(-K // C)
+    pad = G * C - K
+
+    def grp(x):
+        x = np.concatenate([x, np.repeat(x[:1], pad, axis=0)]) if pad else x
+        return jnp.asarray(x.reshape((G, C) + x.shape[1:]))
+
+    as_d = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    t0 = t[idx[0]]  # common time origin: keeps float32 times precise
+    return CalibrationProblem(
+        gyro=as_d(grp(win_gyro)), accel=as_d(grp(win_accel)), dt=as_d(grp(win_dt)),
+        t_start=as_d(grp(t[idx[:-1]] - t0)), t_end=as_d(grp(t[idx[1:]] - t0)),
+        window=grp(np.arange(K)), weight=as_d(grp(np.ones(K))),
+        sqrt_info=as_d(grp(sqrt_info)), ref_t=as_d(rt - t0), ref_q=as_d(rq), ref_p=as_d(rp),
+        ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
+        diagnostics={k: as_d(v) for k, v in diagnostics.items()},
+        n_windows=int(K))
+
+
+# --------------------------------------------------------------------------- fitting
+
+
+class _Layout(NamedTuple):
+    free: tuple  # names of the estimated fields, in FIELDS order
+    n_velocity: int  # 0, or 3 (K + 1) nuisance velocities
+
+
+def _free_indices(free):
+    idx, off = [], 0
+    for name in FIELDS:
+        if name in free:
+            idx.extend(range(off, off + _SIZES[name]))
+        off += _SIZES[name]
+    return np.asarray(idx, np.int32)
+
+
+def _scale_vector(free, dtype):
+    return jnp.asarray(np.concatenate([np.full(_SIZES[n], SCALES[n]) for n in FIELDS if n in free]),
+                       dtype)
+
+
+def _flatten(calib: ImuCalibration):
+    return jnp.concatenate([jnp.reshape(getattr(calib, n), (-1,)) for n in FIELDS])
+
+
+def _unflatten(vec) -> ImuCalibration:
+    out, off = {}, 0
+    for n in FIELDS:
+        k = _SIZES[n]
+        out[n] = vec[off:off + k] if k > 1 else vec[off]
+        off += k
+    return ImuCalibration(**out)
+
+
+def _unpack(z, init_vec, v0, layout: _Layout):
+    n = len(_free_indices(layout.free))
+    scale = _scale_vector(layout.free, z.dtype)
+    vec = init_vec.at[_free_indices(layout.free)].add(scale * z[:n])
+    v = v0 if layout.n_velocity == 0 else v0 + _VELOCITY_SCALE * z[n:].reshape(v0.shape)
+    return _unflatten(vec), v
+
+
+def _objective(z, problem, init_vec, layout):
+    calib, v = _unpack(z, init_vec, problem.velocities, layout)
+    return calibration_loss(problem, calib, v)
+
+
+@functools.lru_cache(maxsize=None)
+def _optimizer(name, learning_rate):
+    if name == "adam":
+        return optax.adam(learning_rate)
+    return optax.lbfgs(memory_size=20)
+
+
+@functools.partial(jax.jit, static_argnames=("layout", "optimizer", "learning_rate"))
+def _step(z, opt_state, problem, init_vec, *, layout, optimizer, learning_rate):
+    """One optimiser step (module-level jit: compiled once per problem shape and settings)."""
+    opt = _optimizer(optimizer, learning_rate)
+    fn = functools.partial(_objective, problem=problem, init_vec=init_vec, layout=layout)
+    if optimizer == "lbfgs":
+        value, grad = optax.value_and_grad_from_state(fn)(z, state=opt_state)
+        updates, opt_state = opt.update(grad, opt_state, z, value=value, grad=grad, value_fn=fn)
+    else:
+        value, grad = jax.value_and_grad(fn)(z)
+        updates, opt_state = opt.update(grad, opt_state, z)
+    return optax.apply_updates(z, updates), opt_state, value, jnp.linalg.norm(grad)
+
+
+@functools.partial(jax.jit, static_argnames=("layout",))
+def _gauss_newton(z, problem, init_vec, *, layout):
+    def res(z_):
+        calib, v = _unpack(z_, init_vec, problem.velocities, layout)
+        return calibration_residuals(problem, calib, v).reshape(-1)
+
+    J = jax.jacfwd(res)(z)
+    return res(z), J
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationResult:
+    """What :func:`calibrate` found.
+
+    Attributes:
+        calibration: the estimate :class:`ImuCalibration`.
+        std: an :class:`ImuCalibration` of 1σ uncertainties (0 for fixed fields).
+        covariance: ``(n, n)`` Laplace covariance of the estimated fields, in the order of
+            ``free`` (each field's components in turn), physical units.
+        free: names of the estimated fields.
+        velocities: ``(K + 1, 3)`` keyframe velocities used (estimated if the reference
+            had none).
+        loss_history: ``(steps + 1,)`` loss before each step and at the end.
+        chi2, dof, reduced_chi2: ``2·loss`` at the estimate, its degrees of freedom
+            (9K - parameters) and their ratio (≈ 1 when the noise model is right).
+        converged: whether the stopping rule was met before ``steps``.
+    """
+
+    calibration: ImuCalibration
+    std: ImuCalibration
+    covariance: np.ndarray
+    free: tuple
+    velocities: np.ndarray
+    loss_history: np.ndarray
+    chi2: float
+    dof: int
+    reduced_chi2: float
+    converged: bool
+
+
+def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None,
+              estimate=("b_g", "b_a"), *, optimizer: str = "lbfgs", steps: int | None = None,
+              learning_rate: float = 0.05, tol: float = 1e-10,
+              max_reduced_chi2: float | None = 100.0) -> CalibrationResult:
+    """Fit the ``estimate``d fields of an :class:`ImuCalibration` by gradient descent.
+
+    Args:
+        problem: from :func:`calibration_problem`.
+        initial: starting values (default :meth:`ImuCalibration.default`); the other fields
+            stay at these values.
+        estimate: names from :data:`FIELDS`.
+        optimizer: ``"lbfgs"`` (optax L-BFGS with zoom line search; default 100 steps) or
+            ``"adam"`` (``learning_rate`` in normalised units; default 1000 steps).
+        tol: stop when the loss changes by less than ``tol · (1 + loss)`` for 5 steps.
+        max_reduced_chi2: warn (``RuntimeWarning``) when ``χ²/dof`` at the estimate is above
+            this: the model does not explain the data (frames, units, time offset, or a
+            noise model far too optimistic); ``None`` disables.
+
+    Returns:
+        :class:`CalibrationResult`.
+    """
+    estimate = tuple(estimate)
+    unknown = [n for n in estimate if n not in FIELDS]
+    if unknown:
+        raise ValueError(f"unknown calibration fields {unknown}; fields are {FIELDS}")
+    if not estimate:
+        raise ValueError("estimate names no field")
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
+    dtype = problem.gyro.dtype
+    free = tuple(n for n in FIELDS if n in estimate)
+    if initial is None:
+        initial = ImuCalibration.default(dtype=dtype)
+    init_vec = jnp.asarray(_flatten(initial), dtype)
+    n_v = 0 if problem.has_velocity else problem.velocities.size
+    layout = _Layout(free, n_v)
+    n = len(_free_indices(free))
+    z = jnp.zeros(n + n_v, dtype)
+    opt = _optimizer(optimizer, float(learning_rate))
+    # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
+    # the same types as that of later steps, and the step compiles once.
+    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
+                                       opt.init(z))
+    steps = steps if steps is not None else (100 if optimizer == "lbfgs" else 1000)
+    history, quiet, converged = [], 0, False
+    for _ in range(steps):
+        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
+                                               optimizer=optimizer,
+                                               learning_rate=float(learning_rate))
+        value = float(value)
+        if not np.isfinite(value):
+            raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")
+        if history and abs(history[-1] - value) <= tol * (1 + abs(value)):
+            quiet += 1
+        else:
+            quiet = 0
+        history.append(value)
+        z = z_new
+        if quiet >= 5 or float(gnorm) == 0.0:
+            converged = True
+            break
+    r, J = _gauss_newton(z, problem, init_vec, layout=layout)
+    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    chi2 = float(r @ r)
+    history.append(0.5 * chi2)
+    cov_z = np.linalg.pinv(J.T @ J)
+    scale = np.concatenate([np.asarray(_scale_vector(free, jnp.float64)),
+                            np.full(n_v, _VELOCITY_SCALE)])
+    cov_all = cov_z * scale[:, None] * scale[None, :]
+    cov = cov_all[:n, :n]
+    calib, v = _unpack(z, init_vec, problem.velocities, layout)
+    std_vec = np.zeros(init_vec.shape[0])
+    std_vec[_free_indices(free)] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    dof = max(len(r) - n - n_v, 1)
+    red = chi2 / dof
+    if max_reduced_chi2 is not None and red > max_reduced_chi2:
+        warnings.warn(
+            f"calibration residual χ²/dof = {red:.3g} > {max_reduced_chi2:g}: the model does not"
+            " explain the reference (check the IMU-reference frame, units, the time offset, or"
+            " the noise densities)", RuntimeWarning, stacklevel=2)
+    return CalibrationResult(
+        calibration=calib, std=_unflatten(jnp.asarray(std_vec, dtype)), covariance=cov,
+        free=free, velocities=np.asarray(v), loss_history=np.asarray(history), chi2=chi2,
+        dof=dof, reduced_chi2=red, converged=converged)
