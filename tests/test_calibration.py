@@ -90,6 +90,22 @@ def test_recovers_all_intrinsics_time_offset_and_gravity():
     assert 0.7 < res.reduced_chi2 < 1.4
 
 
+def test_reference_without_velocities_estimates_them_as_nuisance():
+    """Poses only (motion capture): keyframe velocities join the unknowns; the biases are
+    still recovered within their (now marginal) 3σ, and the velocities near the truth."""
+    b_g, b_a = np.array([0.004, 0.002, -0.003]), np.array([0.06, -0.04, 0.09])
+    t, gm, am, ref = simulate_data(8, b_g, b_a)
+    poses = cal.Reference(ref.t, ref.q, ref.p)
+    prob = problem_for(t, gm, am, poses)
+    res = cal.calibrate(prob)
+    within(res, {"b_g": b_g, "b_a": b_a})
+    t_key = t[0] + np.arange(prob.n_windows + 1) * 0.5
+    v_true = np.asarray(sim.true_states(TRAJ, jnp.asarray(t_key)).v)
+    assert np.abs(res.velocities - v_true).max() < 0.01
+    with_v = cal.calibrate(problem_for(t, gm, am, ref))
+    assert np.all(np.asarray(res.std.b_a) > np.asarray(with_v.std.b_a))  # less information
+
+
 def test_adam_reaches_the_lbfgs_optimum():
     b_g, b_a = np.array([0.002, 0.001, -0.003]), np.array([-0.05, 0.03, 0.07])
     prob = problem_for(*simulate_data(5, b_g, b_a))
