@@ -20,7 +20,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
-from jaximu import NavState, datasets, learning, so3  # noqa: E402
+from jaximu import NavState, datasets, learning  # noqa: E402
 
 
 def recording(seg):

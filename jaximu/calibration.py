@@ -411,7 +411,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"reference.v must have shape (M, 3), got {rv.shape}")
     val.check_finite("reference.v", rv)
 
-    init = initial if initial is not None else ImuCalibration.default(dtype=jnp.float64)
+    init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     td0 = float(np.asarray(init.time_offset))
     W = max(1, int(round(keyframe_interval / float(np.median(np.diff(t))))))
     inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
@@ -436,8 +436,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         vk = np.gradient(pk, t[idx], axis=0)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
-    g_c, a_c = (np.asarray(x) for x in init.apply(jnp.asarray(win_gyro, jnp.float64),
-                                                 jnp.asarray(win_accel, jnp.float64)))
+    g_c, a_c = (np.asarray(x) for x in init.apply(jnp.asarray(win_gyro, dtype),
+                                                 jnp.asarray(win_accel, dtype)))
     pim = preintegrate(jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype),
                        jnp.asarray(win_dt, dtype), noise=noise, scheme=scheme)
     cov = np.asarray(pim.cov, np.float64)
@@ -660,7 +660,7 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     chi2 = float(r @ r)
     history.append(0.5 * chi2)
     cov_z = np.linalg.pinv(J.T @ J)
-    scale = np.concatenate([np.asarray(_scale_vector(free, jnp.float64)),
+    scale = np.concatenate([np.asarray(_scale_vector(free, dtype), np.float64),
                             np.full(n_v, _VELOCITY_SCALE)])
     cov_all = cov_z * scale[:, None] * scale[None, :]
     cov = cov_all[:n, :n]

@@ -250,7 +250,7 @@ def test_learned_correction_lowers_held_out_error():
     assert after < 0.1 * before, (before, after)
     # The zero-initialised last layer makes the untrained model the identity.
     untrained = learning.init_mlp(jax.random.key(1), [24, 32, 6])
-    g, a = learning.correct_samples(untrained, test.gyro, test.accel, 4)
+    g, _ = learning.correct_samples(untrained, test.gyro, test.accel, 4)
     np.testing.assert_array_equal(np.asarray(g), np.asarray(test.gyro))
 
 
