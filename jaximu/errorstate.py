@@ -40,7 +40,7 @@ from jaximu import _blocks as blk
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
-from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages, step
+from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu.propagate import (broadcast_state, flatten_batch, mean_body, n_steps, prepare,

@@ -11,7 +11,6 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu import so3
 from jaximu.errorstate import jacobians_autodiff
 from jaximu.integrators import get_attitude, nav_step
 from jaximu.state import boxminus, boxplus
