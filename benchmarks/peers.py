@@ -45,7 +45,6 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaximu  # noqa: E402
-from jaximu import simulate as sim  # noqa: E402
 from preintegration import bench_gtsam as gtsam_preintegrate  # noqa: E402  (same folder)
 from preintegration import make_inputs  # noqa: E402
 from propagation import machine_info, machine_slug  # noqa: E402
