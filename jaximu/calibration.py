@@ -429,9 +429,10 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     win_gyro, win_accel, win_dt = gyro_np[sl], accel_np[sl], dt_all[sl[:, :-1]]
 
     # Keyframe velocities where the reference has none: central differences of positions.
+    t0 = t[idx[0]]  # common time origin: keeps float32 times (and absolute stamps) precise
     qk, pk, vk = (np.asarray(x, np.float64) for x in _interp(
-        jnp.asarray(t[idx] + td0), jnp.asarray(rt), jnp.asarray(rq), jnp.asarray(rp),
-        jnp.asarray(rv)))
+        jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
+        jnp.asarray(rp), jnp.asarray(rv)))
     if not has_v:
         vk = np.gradient(pk, t[idx], axis=0)
 
@@ -474,7 +475,6 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         return jnp.asarray(x.reshape((G, C) + x.shape[1:]))
 
     as_d = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    t0 = t[idx[0]]  # common time origin: keeps float32 times precise
     return CalibrationProblem(
         gyro=as_d(grp(win_gyro)), accel=as_d(grp(win_accel)), dt=as_d(grp(win_dt)),
         t_start=as_d(grp(t[idx[:-1]] - t0)), t_end=as_d(grp(t[idx[1:]] - t0)),
