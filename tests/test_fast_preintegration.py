@@ -117,10 +117,12 @@ def test_fast_path_gradients_equal_generic(scheme):
                 + jnp.sum(pim.transition[..., 0:9, 9:15]))
 
     args = (g, a, bias.b_g, jnp.asarray(1.7e-4))
-    gr = jax.grad(loss, argnums=(0, 1, 2, 3))(*args, False, "sequential")
+    # One compiled gradient per path (far cheaper than op-by-op reverse mode here).
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)), static_argnums=(4, 5))
+    gr = grad(*args, False, "sequential")
     # (compile time: the parallel path's gradient is checked for Euler only)
     for method in ("sequential", "parallel") if scheme == "euler" else ("sequential",):
-        gf = jax.grad(loss, argnums=(0, 1, 2, 3))(*args, True, method)
+        gf = grad(*args, True, method)
         for x, y in zip(gf, gr):
             assert np.all(np.isfinite(np.asarray(x)))
             np.testing.assert_allclose(x, y, rtol=0, atol=1e-10 * max(np.abs(y).max(), 1e-300))
