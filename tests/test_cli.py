@@ -83,3 +83,17 @@ def test_monte_carlo_example_writes_its_plots(tmp_path):
     for name in ("mc_envelopes.png", "mc_nees.png", "allan.png"):
         assert (tmp_path / name).stat().st_size > 10_000
     assert "average NEES" in res.stdout and "(detected)" in res.stdout
+
+
+def test_learned_correction_example_runs(tmp_path):
+    """A few training steps of examples/learned_correction.py (the full run is ~25 s)."""
+    import pathlib
+
+    example = pathlib.Path(__file__).resolve().parents[1] / "examples" / "learned_correction.py"
+    if not example.exists():
+        pytest.skip("examples/ not present")
+    out = tmp_path / "lc.png"
+    res = subprocess.run([sys.executable, str(example), "--steps", "3", "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "held-out sequence (EuRoC V2_01)" in res.stdout and out.stat().st_size > 10_000
