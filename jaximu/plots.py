@@ -1,4 +1,5 @@
-"""Plots for Monte Carlo studies and Allan deviations (needs matplotlib: ``jaximu[examples]``).
+"""Plots of trajectories against ground truth, Monte Carlo studies and Allan deviations
+(needs matplotlib: ``jaximu[examples]``).
 
 Every function draws into the axes it is given (or a new figure) and returns the figure.
 """
@@ -7,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_monte_carlo", "plot_nees", "plot_allan"]
+__all__ = ["plot_trajectory", "plot_monte_carlo", "plot_nees", "plot_allan"]
 
 _BLOCKS = (("attitude error [deg]", 0, np.rad2deg(1.0)), ("position error [m]", 3, 1.0),
            ("velocity error [m/s]", 6, 1.0))
@@ -91,3 +92,60 @@ def plot_allan(taus, adev, fit=None, labels=("x", "y", "z"), ax=None, unit="rad/
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return fig or ax.figure
+
+
+def plot_trajectory(t, states, ground_truth=None, cov=None, *, label: str = "jaximu",
+                    title: str | None = None):
+    """Trajectory against ground truth, with the errors and their 3σ envelopes.
+
+    Top row: top view (x-y, world frame) and height against time. With ground truth, two
+    more rows: the position error per axis and the orientation error per axis (body frame,
+    ``Log(Rᵀ R̂)``, degrees), each with ±3σ of the propagated covariance when ``cov`` is given.
+
+    Args:
+        t: ``(T,)`` times [s]; states: :class:`jaximu.NavState` with ``(T, ·)`` fields;
+        ground_truth: :class:`jaximu.io.GroundTruth` on the same clock, or ``None``;
+        cov: ``(T, 15, 15)`` covariances of ``[dθ, dp, dv, db_g, db_a]``, or ``None``.
+    """
+    from jaximu.io import trajectory_errors  # noqa: PLC0415
+
+    plt = _plt()
+    t = np.asarray(t, np.float64)
+    p = np.asarray(states.p, np.float64)
+    rows = 1 if ground_truth is None else 3
+    fig = plt.figure(figsize=(13, 3.6 * rows + 0.6))
+    grid = fig.add_gridspec(rows, 3)
+    top = fig.add_subplot(grid[0, :2])
+    height = fig.add_subplot(grid[0, 2])
+    t0 = t[0]
+    if ground_truth is not None:
+        gt = ground_truth
+        span = (gt.t >= t[0] - 1e-5) & (gt.t <= t[-1] + 1e-5)
+        top.plot(gt.p[span, 0], gt.p[span, 1], "k-", lw=2, label="ground truth")
+        height.plot(gt.t[span] - t0, gt.p[span, 2], "k-", lw=2, label="ground truth")
+    top.plot(p[:, 0], p[:, 1], "C0-", lw=1.2, label=label)
+    top.plot(p[:1, 0], p[:1, 1], "go", label="start")
+    top.set(title="Top view (world frame)", xlabel="x [m]", ylabel="y [m]", aspect="equal")
+    top.legend(fontsize=8)
+    height.plot(t - t0, p[:, 2], "C0-", lw=1.2, label=label)
+    height.set(title="Height", xlabel="t [s]", ylabel="z [m]")
+    height.legend(fontsize=8)
+    if ground_truth is not None:
+        err = trajectory_errors(t, states, ground_truth, cov)
+        te = err.t - t0
+        for row, (name, values, i0, scale, unit) in enumerate(
+                (("position error", err.position, 3, 1.0, "m"),
+                 ("orientation error", err.rotation, 0, np.rad2deg(1.0), "deg")), start=1):
+            for c, axis in enumerate("xyz"):
+                ax = fig.add_subplot(grid[row, c])
+                ax.plot(te, values[:, c] * scale, "C0.-", ms=2, lw=1, label=f"{label} − truth")
+                if err.sigma is not None:
+                    s3 = 3 * err.sigma[:, i0 + c] * scale
+                    ax.fill_between(te, -s3, s3, color="C1", alpha=0.2, label="±3σ (propagated)")
+                ax.axhline(0, color="k", lw=0.5)
+                ax.set(title=f"{name} {axis}", xlabel="t [s]", ylabel=f"[{unit}]")
+                if c == 0:
+                    ax.legend(fontsize=8, loc="upper left")
+    fig.suptitle(title or f"{label}: trajectory" + (" against ground truth" if rows > 1 else ""))
+    fig.tight_layout()
+    return fig
