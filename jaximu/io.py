@@ -461,9 +461,13 @@ def _column(header, spec, path):
 def _to_ns(text, unit_ns, label):
     """Exact integer nanoseconds from a decimal string (no float rounding)."""
     try:
-        return int((Decimal(text) * unit_ns).to_integral_value())
-    except (InvalidOperation, ValueError):
-        raise DataError(f"{label}: timestamp {text!r} is not a number") from None
+        ns = int((Decimal(text) * unit_ns).to_integral_value())
+    except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
+        raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
+    if abs(ns) > np.iinfo(np.int64).max:
+        raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds; check the "
+                        "time unit")
+    return ns
 
 
 def _parse(rows, lines, time_col, value_cols, time_unit, path):
@@ -623,14 +627,22 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
     if gyro.shape != (len(t), 3) or accel.shape != (len(t), 3):
         raise DataError(f"gyro and accel must have shape (N, 3) with N = {len(t)}, got "
                         f"{gyro.shape} and {accel.shape}")
+    limit = np.iinfo(np.int64).max // unit_ns  # int64 nanoseconds reach ±292 years
+    labels = _labels(len(t))
+    if np.issubdtype(t.dtype, np.integer):
+        bad = np.abs(t.astype(np.float64)) > limit
+    else:
+        bad = ~np.isfinite(t.astype(np.float64))
+        if bad.any():
+            raise DataError(f"non-finite times at {_rows(labels, np.flatnonzero(bad))}")
+        bad = np.abs(t.astype(np.float64)) > limit
+    if bad.any():
+        raise DataError(f"times beyond ±{limit:.3g} {time_unit} (int64 nanoseconds) at "
+                        f"{_rows(labels, np.flatnonzero(bad))}; check time_unit")
     if np.issubdtype(t.dtype, np.integer):
         stamps = t.astype(np.int64) * unit_ns
     else:
-        tf = t.astype(np.float64)
-        bad = ~np.isfinite(tf)
-        if bad.any():
-            raise DataError(f"non-finite times at {_rows(_labels(len(t)), np.flatnonzero(bad))}")
-        stamps = np.round(tf * unit_ns).astype(np.int64)
+        stamps = np.round(t.astype(np.float64) * unit_ns).astype(np.int64)
     data = _make(stamps, gyro * w_scale, accel * a_scale, source=source, **options)
     if ground_truth is not None:
         shift = (int(stamps[0]) - data.t0_ns) * 1e-9

@@ -332,3 +332,38 @@ def test_initial_state_and_errors_against_known_perturbations():
     pos, vel, att = err.at(1.0)
     assert pos == pytest.approx(0.01) and att == pytest.approx(np.degrees(np.linalg.norm(dtheta)),
                                                                 rel=1e-4)
+
+
+# --------------------------------------------------------------------------- properties
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+_values = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                    st.floats(-20, 20))
+
+
+@settings(max_examples=200, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(0, 12), data=st.data(),
+       t_dtype=st.sampled_from([np.float64, np.float32, np.int64]),
+       repair=st.booleans())
+def test_from_arrays_returns_clean_data_or_a_data_error(n, data, t_dtype, repair):
+    """Random lengths (0 included), NaN/inf anywhere, unsorted and repeated times, huge
+    steps: either a DataError/ValueError, or an ImuData with strictly increasing stamps,
+    finite samples and at least two of them."""
+    t = data.draw(hnp.arrays(t_dtype, n, elements=(st.integers(0, 10**6) if t_dtype == np.int64
+                                                    else st.floats(-1e30, 1e30, width=64))))
+    gyro = data.draw(hnp.arrays(np.float64, (n, 3), elements=_values))
+    accel = data.draw(hnp.arrays(np.float64, (n, 3), elements=_values))
+    kw = dict(sort=True, drop_duplicates=True, drop_nonfinite=True, allow_gaps=True,
+              check_units=False) if repair else {}
+    try:
+        out = io.from_arrays(t, gyro, accel, time_unit="ms", **kw)
+    except ValueError as e:  # DataError is a ValueError
+        assert str(e)
+        return
+    assert len(out) >= 2 and np.all(np.diff(out.stamps_ns) > 0)
+    assert np.isfinite(out.gyro).all() and np.isfinite(out.accel).all()
+    assert np.all(np.diff(out.t) > 0) and out.t[0] == 0
