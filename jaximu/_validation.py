@@ -1,9 +1,11 @@
 """Checks at the API boundary: clear ``ValueError``s that name the problem.
 
-Shape checks are static and always run. Value checks (NaN, dt ≤ 0, non-unit quaternion)
-need concrete numbers, so they run when the public function is called eagerly and are
-skipped when its inputs are tracers (inside a user's ``jit``, ``vmap`` or ``grad``); the
-user's data is never altered, only read.
+Shape checks are static and always run. Value checks (NaN, dt ≤ 0, non-unit quaternion,
+a value the computation dtype cannot hold) need concrete numbers, so they run when the
+public function is called eagerly and are skipped when its inputs are tracers (inside a
+user's ``jit``, ``vmap`` or ``grad``); the user's data is never altered, only read. Eager
+calls also check their outputs (:func:`check_output`): finite inputs can still overflow
+the dtype (``dt = 1e30`` in float32), and that is reported, never returned as NaN/inf.
 """
 
 from __future__ import annotations
@@ -25,6 +27,59 @@ def is_concrete(*trees) -> bool:
 def _first_bad(mask: np.ndarray) -> str:
     idx = np.argwhere(mask)[0]
     return "[" + ", ".join(str(int(i)) for i in idx) + "]"
+
+
+def _cast(x, dtype):
+    """``jnp.asarray(x, dtype)`` without numpy's overflow warning (the callers report it)."""
+    with np.errstate(over="ignore"):
+        return jnp.asarray(x, dtype)
+
+
+def to_dtype(name: str, x, dtype):
+    """``x`` as a ``dtype`` array; a concrete finite value that ``dtype`` cannot hold (1e300
+    in float32) raises ``ValueError`` naming it instead of becoming inf. NaN and inf inputs
+    pass through (:func:`check_finite` reports them)."""
+    y = _cast(x, dtype)
+    if is_concrete(x) and getattr(x, "dtype", None) != y.dtype:
+        src = np.asarray(x)
+        if src.dtype.kind in "fiu":
+            with np.errstate(over="ignore"):
+                over = np.isfinite(src) & ~np.isfinite(src.astype(y.dtype))
+            if over.any():
+                i = tuple(np.argwhere(over)[0])
+                where = _first_bad(over) if src.ndim else ""
+                big = float(jnp.finfo(dtype).max)
+                raise ValueError(
+                    f"{name}{where} = {float(src[i]):g} is too large for the computation dtype "
+                    f"{jnp.dtype(dtype).name} (largest finite value {big:.4g}); rescale it or "
+                    "pass float64 inputs (with jax_enable_x64)"
+                )
+    return y
+
+
+def check_output(fn_name: str, out, cause: str):
+    """Raise ``ValueError`` if a floating leaf of ``out`` holds NaN or inf; returns ``out``.
+
+    The inputs were checked finite, so a non-finite output is an overflow of the
+    computation dtype (``cause`` names the likely culprit). Like the value checks this runs
+    on eager calls only: it is skipped when ``out`` holds tracers.
+    """
+    if not is_concrete(out):
+        return out
+    for path, leaf in jax.tree_util.tree_leaves_with_path(out):
+        arr = np.asarray(leaf)
+        if not jnp.issubdtype(arr.dtype, jnp.inexact):
+            continue
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            where = _first_bad(bad) if arr.ndim else "[]"
+            raise ValueError(
+                f"{fn_name} produced a non-finite value (NaN or inf) from finite inputs, first in "
+                f"output{jax.tree_util.keystr(path)} at index {where}: {cause} for "
+                f"{arr.dtype.name}; rescale them"
+                + ("" if arr.dtype == np.float64 else " or use float64 (jax_enable_x64)")
+            )
+    return out
 
 
 def float_dtype(*xs):
@@ -63,8 +118,8 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
     ``gyro``, ``accel``: ``(..., T, 3)``; ``dt``: scalar or ``(..., T)`` (or ``(..., T-1)``
     with ``allow_intervals``), all ``> 0``.
     """
-    gyro = jnp.asarray(gyro, dtype)
-    accel = jnp.asarray(accel, dtype)
+    gyro = to_dtype("gyro", gyro, dtype)
+    accel = to_dtype("accel", accel, dtype)
     check_vector("gyro", gyro)
     check_vector("accel", accel)
     T = gyro.shape[-2]
@@ -75,7 +130,7 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
     if T < 1:
         raise ValueError("gyro and accel hold no samples (T = 0)")
     dt_in = dt
-    dt = jnp.asarray(dt, dtype)
+    dt = _cast(dt, dtype)
     ok = (T, T - 1) if (allow_intervals and T > 1) else (T,)
     if dt.ndim > 0 and dt.shape[-1] not in ok:
         want = "(..., T) or (..., T-1)" if allow_intervals else "(..., T)"
@@ -86,11 +141,19 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
     check_finite("accel", accel)
     if is_concrete(dt_in):
         arr = np.asarray(dt_in)
-        bad = ~(np.isfinite(arr) & (arr > 0))
+        with np.errstate(over="ignore"):
+            cast = arr.astype(dt.dtype)
+        ok_in = np.isfinite(arr) & (arr > 0)
+        ok_cast = np.isfinite(cast) & (cast > 0)  # in float32, 1e300 -> inf and 1e-300 -> 0
+        bad = ~ok_in if not ok_in.all() else ~ok_cast
         if bad.any():
             i = tuple(np.argwhere(bad)[0]) if arr.ndim else ()
             where = _first_bad(bad) if arr.ndim else ""
-            raise ValueError(f"dt must be positive and finite; dt{where} = {arr[i]}")
+            msg = f"dt must be positive and finite; dt{where} = {arr[i]}"
+            if ok_in.all():
+                msg += (f", which is {cast[i]} in the computation dtype {cast.dtype.name} (out of "
+                        "its range); rescale it or pass float64 inputs (with jax_enable_x64)")
+            raise ValueError(msg)
     return gyro, accel, dt, T
 
 
@@ -105,7 +168,7 @@ def check_state(state: NavState, dtype) -> NavState:
     fields = {"q": 4, "p": 3, "v": 3, "b_g": 3, "b_a": 3}
     out = {}
     for name, dim in fields.items():
-        x = jnp.asarray(getattr(state, name), dtype)
+        x = to_dtype(f"state.{name}", getattr(state, name), dtype)
         if x.ndim < 1 or x.shape[-1] != dim:
             raise ValueError(f"state.{name} must have shape (..., {dim}), got {tuple(x.shape)}")
         check_finite(f"state.{name}", x)
@@ -131,7 +194,7 @@ def check_state(state: NavState, dtype) -> NavState:
 
 def gravity_vector(gravity, dtype):
     """``g_W`` from a magnitude ``g`` (→ ``[0, 0, -g]``) or a ``(..., 3)`` vector."""
-    g = jnp.asarray(gravity, dtype)
+    g = to_dtype("gravity", gravity, dtype)
     if g.ndim == 0:
         g = jnp.stack([jnp.zeros_like(g), jnp.zeros_like(g), -g])
     elif g.shape[-1] != 3:
@@ -158,7 +221,7 @@ def check_noise(noise, dtype):
     fields = {}
     for name in ("gyroscope_noise_density", "accelerometer_noise_density",
                  "gyroscope_random_walk", "accelerometer_random_walk"):
-        x = jnp.asarray(getattr(noise, name), dtype)
+        x = to_dtype(f"noise.{name}", getattr(noise, name), dtype)
         if x.ndim > 0 and x.shape[-1] != 3:
             raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
         check_finite(f"noise.{name}", x)

@@ -33,30 +33,57 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         points_per_decade: density of the default τ grid.
 
     Returns:
-        ``(taus, adev)``: ``(M,)`` and ``(M,)`` or ``(M, d)``.
+        ``(taus, adev)``: ``(M,)`` and ``(M,)`` or ``(M, d)``, finite.
+
+    Raises:
+        ValueError: on a wrong shape, fewer than 10 samples, non-finite samples, a ``dt`` or
+            ``τ`` that is not positive and finite, a ``τ`` of half the recording or more, or a
+            result that overflows float64 (samples near the float64 limit).
     """
     y = np.asarray(y, np.float64)
+    if y.ndim not in (1, 2):
+        raise ValueError(f"y must have shape (N,) or (N, d), got {y.shape}")
     squeeze = y.ndim == 1
     y = y[:, None] if squeeze else y
     n = y.shape[0]
     if n < 10:
         raise ValueError(f"need at least 10 samples, got {n}")
-    if not dt > 0:
-        raise ValueError(f"dt must be positive, got {dt}")
+    if np.ndim(dt) != 0:
+        raise ValueError(f"dt must be a scalar sample period, got shape {np.shape(dt)}")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be positive and finite, got {dt}")
+    if not np.all(np.isfinite(y)):
+        bad = np.argwhere(~np.isfinite(y))[0]
+        raise ValueError(f"y contains non-finite values (NaN or inf), first at sample {bad[0]}"
+                         + ("" if squeeze else f", column {bad[1]}"))
     if taus is None:
+        if not points_per_decade > 0:
+            raise ValueError(f"points_per_decade must be positive, got {points_per_decade}")
         m_max = max(1, n // 10)
         ms = np.unique(np.round(np.logspace(0, np.log10(m_max),
                                             int(np.log10(m_max) * points_per_decade) + 1)).astype(int))
     else:
-        ms = np.unique(np.maximum(1, np.round(np.asarray(taus, float) / dt)).astype(int))
+        taus = np.asarray(taus, float)
+        if not np.all(np.isfinite(taus) & (taus > 0)):
+            raise ValueError(f"every τ must be positive and finite, got {taus}")
+        with np.errstate(over="ignore"):
+            ms = np.maximum(1, np.round(taus / dt))
         if np.any(2 * ms >= n):
             raise ValueError("every τ must be shorter than half the recording")
-    theta = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0) * dt])
-    adev = np.empty((len(ms), y.shape[1]))
-    for i, m in enumerate(ms):
-        d = theta[2 * m:] - 2 * theta[m:-m] + theta[:-2 * m]
-        tau = m * dt
-        adev[i] = np.sqrt(np.sum(d * d, axis=0) / (2 * tau * tau * (n + 1 - 2 * m)))
+        ms = np.unique(ms.astype(int))
+    # Overflow (|y| or dt near the float64 limits) is reported below, not warned about.
+    with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+        theta = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0) * dt])
+        adev = np.empty((len(ms), y.shape[1]))
+        for i, m in enumerate(ms):
+            d = theta[2 * m:] - 2 * theta[m:-m] + theta[:-2 * m]
+            tau = m * dt
+            adev[i] = np.sqrt(np.sum(d * d, axis=0) / (2 * tau * tau * (n + 1 - 2 * m)))
+    if not np.all(np.isfinite(adev)):
+        i, j = np.argwhere(~np.isfinite(adev))[0]
+        raise ValueError(f"the Allan deviation overflowed float64 at τ = {ms[i] * dt:g}"
+                         + ("" if squeeze else f", column {j}")
+                         + ": y or dt is too large (or dt too small); rescale the samples")
     taus = ms * dt
     return taus, (adev[:, 0] if squeeze else adev)
 

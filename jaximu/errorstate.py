@@ -147,13 +147,13 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     dtype = val.float_dtype(state.q, gyro, accel)
     state = val.check_state(state, dtype)
     w0, a0 = jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)
-    w1 = w0 if gyro_next is None else jnp.asarray(gyro_next, dtype)
-    a1 = a0 if accel_next is None else jnp.asarray(accel_next, dtype)
+    w1 = w0 if gyro_next is None else val.to_dtype("gyro_next", gyro_next, dtype)
+    a1 = a0 if accel_next is None else val.to_dtype("accel_next", accel_next, dtype)
     for name, x in (("gyro", w0), ("accel", a0), ("gyro_next", w1), ("accel_next", a1)):
         val.check_vector(name, x, time_axis=False)
         val.check_finite(name, x)
-    h = jnp.asarray(dt, dtype)
-    if val.is_concrete(h) and not np.all(np.asarray(h) > 0):
+    h = val.to_dtype("dt", dt, dtype)
+    if val.is_concrete(h) and not np.all(np.isfinite(np.asarray(h)) & (np.asarray(h) > 0)):
         raise ValueError(f"dt must be positive and finite, got {np.asarray(h)}")
     g = val.gravity_vector(gravity, dtype)
     if method == "autodiff":
@@ -203,19 +203,21 @@ def structured_update(Pb, b: Blocks, qc):
 
 
 def _check_cov(P0, dtype):
-    P0 = jnp.asarray(P0, dtype)
+    P0 = val.to_dtype("P0", P0, dtype)
     if P0.ndim < 2 or P0.shape[-2:] != (15, 15):
         raise ValueError(f"P0 must have shape (..., 15, 15), got {tuple(P0.shape)}")
     val.check_finite("P0", P0)
     if val.is_concrete(P0):
         arr = np.asarray(P0, np.float64)
-        scale = max(1.0, float(np.abs(arr).max()))
-        asym = np.abs(arr - np.swapaxes(arr, -1, -2)).max()
-        if asym > 1e-6 * scale:
-            raise ValueError(f"P0 is not symmetric (max |P - Pᵀ| = {asym:.3g})")
-        min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min()
-        if min_eig < -1e-9 * scale:
-            raise ValueError(f"P0 is not positive semi-definite (smallest eigenvalue {min_eig:.3g})")
+        scale = max(1.0, float(np.abs(arr).max(initial=0.0)))
+        arr = arr / scale  # relative tests; no overflow for entries near the float64 maximum
+        asym = np.abs(arr - np.swapaxes(arr, -1, -2)).max(initial=0.0)
+        if asym > 1e-6:
+            raise ValueError(f"P0 is not symmetric (max |P - Pᵀ| = {asym * scale:.3g})")
+        min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min(initial=0.0)
+        if min_eig < -1e-9:
+            raise ValueError(
+                f"P0 is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g})")
     return P0
 
 
@@ -306,16 +308,20 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
                       save_all):
     from jaximu.propagate import _report_gimbal_lock
 
-    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
+    state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = val.check_noise(noise, dtype)
+    val.batch_shape(batch, P0.shape[:-2],
+                    *(x.shape[:-1] for x in jax.tree_util.tree_leaves(noise) if x.ndim))
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     states, P, locked = _propagate_covariance(
         state, P0, gyro, accel, dt, g, noise, scheme=scheme, attitude=attitude, jacobians=jac,
         save_all=save_all)
     _report_gimbal_lock(locked, attitude)
-    return states, P
+    name = "propagate_covariance" if save_all else "propagate_covariance_final"
+    return val.check_output(name, (states, P), "dt or the IMU samples are too large, or dt so "
+                            "small that the noise σ²/dt overflows,")
 
 
 def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,

@@ -562,7 +562,7 @@ def _check_bias(bias, dtype):
         raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
     out = []
     for name in ("b_g", "b_a"):
-        x = jnp.asarray(getattr(bias, name), dtype)
+        x = val.to_dtype(f"bias.{name}", getattr(bias, name), dtype)
         if x.ndim < 1 or x.shape[-1] != 3:
             raise ValueError(f"bias.{name} must have shape (..., 3), got {tuple(x.shape)}")
         val.check_finite(f"bias.{name}", x)
@@ -594,6 +594,11 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
 
     Returns:
         :class:`Preintegrated`.
+
+    Raises:
+        ValueError: on bad shapes, values or options (as :func:`jaximu.propagate`), and on
+            an eager call whose result is not finite (``dt`` or samples too large, or ``dt``
+            so small that the noise ``σ²/dt`` overflows the dtype).
     """
     if scheme not in SCHEMES:
         raise ValueError(f"unknown preintegration scheme {scheme!r}; choose one of {SCHEMES}")
@@ -608,11 +613,61 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         noise = val.check_noise(noise, dtype)
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1])
-    return _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method=method,
-                         jacobians=jacobians, prefixes=prefixes)
+    pim = _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method=method,
+                        jacobians=jacobians, prefixes=prefixes)
+    return val.check_output("preintegrate", pim, "dt or the IMU samples are too large, or dt so "
+                            "small that the noise σ²/dt overflows,")
 
 
 # --------------------------------------------------------------------------- use
+
+
+def _check_pim(pim):
+    """Type and finiteness of a :class:`Preintegrated` given to :func:`correct` & co.;
+    returns its batch shape."""
+    if not isinstance(pim, Preintegrated):
+        raise ValueError(f"pim must be a jaximu.Preintegrated, got {type(pim).__name__}")
+    for path, x in jax.tree_util.tree_leaves_with_path(pim):
+        val.check_finite("pim" + jax.tree_util.keystr(path), x)
+    return pim.delta_q.shape[:-1]
+
+
+def _check_state_arg(name, state):
+    """Shapes, finiteness and unit ``q`` of a state given to :func:`predict`/:func:`residual`
+    (validation only: the state is used as given)."""
+    if not isinstance(state, NavState):
+        raise ValueError(f"{name} must be a jaximu.NavState, got {type(state).__name__}")
+    try:
+        val.check_state(state, val.float_dtype(*jax.tree_util.tree_leaves(state)))
+    except ValueError as e:
+        raise ValueError(str(e).replace("state", name, 1)) from None
+    return state.batch_shape
+
+
+def _output(fn_name, out):
+    return val.check_output(fn_name, out, "the states or the preintegrated deltas are too large")
+
+
+def _corrected_deltas(pim: Preintegrated, bias: ImuBias):
+    """``(ΔR, Δv, Δp)`` corrected to first order from ``pim.bias_hat`` to ``bias``."""
+    dbg = bias.b_g - pim.bias_hat.b_g
+    dba = bias.b_a - pim.bias_hat.b_a
+
+    def mv(M, x):
+        return jnp.einsum("...ij,...j->...i", M, x)
+
+    return (so3.quat_mul(pim.delta_q, so3.exp(mv(pim.dR_dbg, dbg))),
+            pim.delta_v + mv(pim.dv_dbg, dbg) + mv(pim.dv_dba, dba),
+            pim.delta_p + mv(pim.dp_dbg, dbg) + mv(pim.dp_dba, dba))
+
+
+def _correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
+    dq, dv, dp = _corrected_deltas(pim, bias)
+    return dataclasses.replace(
+        pim, delta_q=dq, delta_v=dv, delta_p=dp,
+        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, pim.bias_hat.b_g.shape),
+                         jnp.broadcast_to(bias.b_a, pim.bias_hat.b_a.shape)),
+    )
 
 
 def correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
@@ -622,21 +677,16 @@ def correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
     ``δb = bias - pim.bias_hat``. The result has ``bias_hat = bias`` and keeps the Jacobians
     and covariances (a first-order re-linearisation). Past
     :data:`REINTEGRATION_THRESHOLD` re-integrating is advised (:func:`needs_reintegration`).
+    ``bias`` may be shared or batched like ``pim`` (its batch must broadcast to ``pim``'s).
     """
-    dbg = bias.b_g - pim.bias_hat.b_g
-    dba = bias.b_a - pim.bias_hat.b_a
-
-    def mv(M, x):
-        return jnp.einsum("...ij,...j->...i", M, x)
-
-    return dataclasses.replace(
-        pim,
-        delta_q=so3.quat_mul(pim.delta_q, so3.exp(mv(pim.dR_dbg, dbg))),
-        delta_v=pim.delta_v + mv(pim.dv_dbg, dbg) + mv(pim.dv_dba, dba),
-        delta_p=pim.delta_p + mv(pim.dp_dbg, dbg) + mv(pim.dp_dba, dba),
-        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, pim.bias_hat.b_g.shape),
-                         jnp.broadcast_to(bias.b_a, pim.bias_hat.b_a.shape)),
-    )
+    batch = _check_pim(pim)
+    if not isinstance(bias, ImuBias):
+        raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
+    bias = _check_bias(bias, val.float_dtype(bias.b_g, bias.b_a))
+    if tuple(val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch)) != tuple(batch):
+        raise ValueError(f"bias has batch shape {bias.b_g.shape[:-1]} / {bias.b_a.shape[:-1]}, "
+                         f"which does not broadcast to the preintegrated batch shape {batch}")
+    return _output("correct", _correct(pim, bias))
 
 
 def needs_reintegration(pim: Preintegrated, bias: ImuBias, gyro_threshold: float = 0.01,
@@ -657,7 +707,7 @@ def compose(pim_ab: Preintegrated, pim_bc: Preintegrated) -> Preintegrated:
     Exact (to rounding) for ``"euler"``; for VINS-Mono's midpoint the conjugation is exact
     only to O((ω dt)²), because VINS-Mono rotates with an unnormalised quaternion.
     """
-    bc = correct(pim_bc, pim_ab.bias_hat)
+    bc = _correct(pim_bc, pim_ab.bias_hat)
     R = pim_ab.delta_R
 
     def mv(M, x):
@@ -703,14 +753,16 @@ def predict(state_i: NavState, pim: Preintegrated, gravity=9.81) -> NavState:
     ``v_j = v_i + g_W Δt + R_i Δv``, ``p_j = p_i + v_i Δt + ½ g_W Δt² + R_i Δp``; the
     biases are carried over.
     """
+    batch = (_check_state_arg("state_i", state_i), _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    c = correct(pim, state_i.bias)
-    dt = c.delta_t[..., None]
-    return NavState(
-        q=so3.quat_mul(state_i.q, c.delta_q),
-        p=state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, c.delta_p),
-        v=state_i.v + g * dt + so3.quat_rotate(state_i.q, c.delta_v),
-        b_g=state_i.b_g, b_a=state_i.b_a)
+    val.batch_shape(*batch, g.shape[:-1])
+    delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
+    dt = pim.delta_t[..., None]
+    return _output("predict", NavState(
+        q=so3.quat_mul(state_i.q, delta_q),
+        p=state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p),
+        v=state_i.v + g * dt + so3.quat_rotate(state_i.q, delta_v),
+        b_g=state_i.b_g, b_a=state_i.b_a))
 
 
 def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
@@ -720,17 +772,21 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
     ``r_v = R_iᵀ(v_j - v_i - g_W Δt) - Δṽ``, ``r_b = b_j - b_i``, with ``~`` the deltas
     corrected to ``state_i``'s biases. Zero for states that agree with the measurement.
     """
+    batch = (_check_state_arg("state_i", state_i), _check_state_arg("state_j", state_j),
+             _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    c = correct(pim, state_i.bias)
-    dt = c.delta_t[..., None]
+    val.batch_shape(*batch, g.shape[:-1])
+    delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
+    dt = pim.delta_t[..., None]
     qi_inv = so3.quat_conj(state_i.q)
-    r_theta = so3.log(so3.quat_mul(so3.quat_conj(c.delta_q), so3.quat_mul(qi_inv, state_j.q)))
+    r_theta = so3.log(so3.quat_mul(so3.quat_conj(delta_q), so3.quat_mul(qi_inv, state_j.q)))
     r_p = so3.quat_rotate(qi_inv, state_j.p - state_i.p - state_i.v * dt - 0.5 * g * dt * dt)
     r_v = so3.quat_rotate(qi_inv, state_j.v - state_i.v - g * dt)
-    parts = [r_theta, r_p - c.delta_p, r_v - c.delta_v, state_j.b_g - state_i.b_g,
+    parts = [r_theta, r_p - delta_p, r_v - delta_v, state_j.b_g - state_i.b_g,
              state_j.b_a - state_i.b_a]
     shape = jnp.broadcast_shapes(*(x.shape for x in parts))
-    return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+    return _output("residual",
+                   jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1))
 
 
 def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):

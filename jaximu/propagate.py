@@ -165,6 +165,11 @@ def _report_gimbal_lock(locked, attitude):
         )
 
 
+def _finite_output(fn_name, out):
+    """Eager calls: an overflow of the dtype is a ``ValueError``, never a NaN/inf result."""
+    return val.check_output(fn_name, out, "dt or the IMU samples are too large")
+
+
 def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
               attitude: str = "quaternion", gravity=9.81) -> NavState:
     """Propagate the navigation state through IMU samples, returning every state.
@@ -195,14 +200,16 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
 
     Raises:
         ValueError: on mismatched shapes, a wrong last-axis size, ``dt ≤ 0`` or non-finite,
-            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q``.
+            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q``; on
+            a value the computation dtype cannot hold (``dt = 1e300`` in float32) and on a
+            non-finite result (finite inputs too large for the dtype: the state overflows).
             Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
     """
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     states, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
                                 save_all=True)
     _report_gimbal_lock(locked, attitude)
-    return states
+    return _finite_output("propagate", states)
 
 
 def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
@@ -216,4 +223,4 @@ def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
     final, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
                                save_all=False)
     _report_gimbal_lock(locked, attitude)
-    return final
+    return _finite_output("propagate_final", final)

@@ -113,13 +113,40 @@ class ImuBias:
         return cls(z, z)
 
 
+def _require_state(name, state):
+    """Type and field shapes (static: free inside ``jit``); returns the fields' batch shapes."""
+    if not isinstance(state, NavState):
+        raise ValueError(f"{name} must be a jaximu.NavState, got {type(state).__name__}")
+    for field, dim in (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3)):
+        shape = jnp.shape(getattr(state, field))
+        if len(shape) < 1 or shape[-1] != dim:
+            raise ValueError(f"{name}.{field} must have shape (..., {dim}), got {tuple(shape)}")
+    return [jnp.shape(x)[:-1] for x in (state.q, state.p, state.v, state.b_g, state.b_a)]
+
+
+def _broadcast(*shapes):
+    try:
+        return jnp.broadcast_shapes(*shapes)
+    except ValueError:
+        raise ValueError("batch shapes do not broadcast: "
+                         + ", ".join(str(tuple(s)) for s in shapes)) from None
+
+
 def boxplus(state: NavState, delta: jax.Array) -> NavState:
     """``state ⊞ δ``: ``(q ⊗ Exp(dθ), p + dp, v + dv, b_g + db_g, b_a + db_a)``.
+
+    A pure array function like :mod:`jaximu.so3`'s (no value checks, so it is cheap inside
+    ``jit``); shapes are checked (``ValueError``).
 
     Args:
         state: the linearisation point.
         delta: ``(..., 15)`` error state ``[dθ, dp, dv, db_g, db_a]``.
     """
+    batch = _require_state("state", state)
+    delta = jnp.asarray(delta)
+    if delta.ndim < 1 or delta.shape[-1] != ERROR_STATE_DIM:
+        raise ValueError(f"delta must have shape (..., {ERROR_STATE_DIM}), got {delta.shape}")
+    _broadcast(*batch, delta.shape[:-1])
     return NavState(
         q=so3.quat_mul(state.q, so3.exp(delta[..., THETA])),
         p=state.p + delta[..., POS],
@@ -133,7 +160,9 @@ def boxminus(state: NavState, reference: NavState) -> jax.Array:
     """``state ⊟ reference``: the ``(..., 15)`` error ``δ`` with ``reference ⊞ δ = state``.
 
     The rotation part is ``Log(R_refᵀ R)`` (body frame of the reference), angle in ``[0, π]``.
+    A pure array function, like :func:`boxplus`.
     """
+    _broadcast(*_require_state("state", state), *_require_state("reference", reference))
     parts = [
         so3.log(so3.quat_mul(so3.quat_conj(reference.q), state.q)),
         state.p - reference.p,
