@@ -341,7 +341,8 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
 
     if check_units:
         g, a = gyro[idx], accel[idx]
-        wn, an = np.linalg.norm(g, axis=1), np.linalg.norm(a, axis=1)
+        with np.errstate(over="ignore"):  # magnitudes near the float64 limit: inf, reported below
+            wn, an = np.linalg.norm(g, axis=1), np.linalg.norm(a, axis=1)
         if wn.max() > _GYRO_MAX or np.median(wn) > _GYRO_MEDIAN_MAX:
             i = int(np.argmax(wn))
             raise DataError(
@@ -387,7 +388,14 @@ def _make(stamps_ns, gyro, accel, *, lines=None, ground_truth=None, source="", *
         gt = GroundTruth(t=t_gt, p=gt_values[:, 0:3].copy(), q=gt_values[:, 3:7].copy(),
                          v=get(7) if cols >= 10 else None, b_g=get(10) if cols >= 13 else None,
                          b_a=get(13) if cols >= 16 else None)
-    return ImuData(stamps_ns=stamps, t=(stamps - t0) * 1e-9,
+    t = (stamps - t0) * 1e-9
+    close = np.flatnonzero(np.diff(t) <= 0)
+    if len(close):  # only past ~10^8 s: float64 seconds then resolve ~15 ns
+        raise DataError(f"stamps {stamps[close[0]]} and "
+                        f"{stamps[close[0] + 1]} ns are distinct but equal in float64 seconds "
+                        f"since the first stamp (the recording spans {t[-1]:.3g} s); check the "
+                        "time unit")
+    return ImuData(stamps_ns=stamps, t=t,
                    gyro=np.array(gyro, np.float64)[idx], accel=np.array(accel, np.float64)[idx],
                    t0_ns=t0, ground_truth=gt, source=source, repairs=repairs)
 

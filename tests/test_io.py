@@ -344,7 +344,7 @@ _values = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
                     st.floats(-20, 20))
 
 
-@settings(max_examples=200, deadline=None, derandomize=True,
+@settings(max_examples=300, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(0, 12), data=st.data(),
        t_dtype=st.sampled_from([np.float64, np.float32, np.int64]),
@@ -367,3 +367,12 @@ def test_from_arrays_returns_clean_data_or_a_data_error(n, data, t_dtype, repair
     assert len(out) >= 2 and np.all(np.diff(out.stamps_ns) > 0)
     assert np.isfinite(out.gyro).all() and np.isfinite(out.accel).all()
     assert np.all(np.diff(out.t) > 0) and out.t[0] == 0
+
+
+def test_stamps_float64_seconds_cannot_separate_are_an_error():
+    """Found by the property test: ns stamps 4 years apart at both ends of 10 ns."""
+    t = np.array([0.0, -1e-5, -1.35286059e11])  # ms
+    zeros = np.zeros((3, 3))
+    with pytest.raises(io.DataError, match="equal in float64 seconds"):
+        io.from_arrays(t, zeros, zeros, time_unit="ms", sort=True, allow_gaps=True,
+                       check_units=False)
