@@ -92,7 +92,7 @@ def _load(args):
     fmt = args.format if args.format != "auto" else _detect_format(path)
     repair = dict(sort=args.sort, drop_duplicates=args.drop_duplicates,
                   drop_nonfinite=args.drop_nonfinite, allow_gaps=args.allow_gaps,
-                  max_gap=args.max_gap)
+                  max_gap=args.max_gap, check_units=not args.no_unit_check)
     units = dict(gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
     if fmt in ("euroc", "tumvi"):
         if args.gyro_unit != "rad/s" or args.accel_unit != "m/s^2":
@@ -141,6 +141,8 @@ def _add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosb
     r.add_argument("--allow-gaps", action="store_true", help="keep gaps longer than --max-gap")
     r.add_argument("--max-gap", type=float, default=None,
                    help="longest interval [s] (default: 5 × the median)")
+    r.add_argument("--no-unit-check", action="store_true",
+                   help="skip the rate and magnitude plausibility checks")
 
 
 def _add_output_options(p, plot_default=None):
@@ -684,6 +686,20 @@ def build_parser():
     return parser
 
 
+# The library's advice names keyword arguments; on the command line they are flags.
+_FLAGS = {"gyro_unit='deg/s'": "--gyro-unit deg/s", "accel_unit='g'": "--accel-unit g",
+          "sort=True": "--sort", "drop_duplicates=True": "--drop-duplicates",
+          "drop_nonfinite=True": "--drop-nonfinite", "allow_gaps=True": "--allow-gaps",
+          "a larger max_gap": "a larger --max-gap", "check_units=False": "--no-unit-check",
+          "time_unit=": "--time-unit", " (then split_at_gaps())": ""}
+
+
+def _as_flags(message: str) -> str:
+    for kw, flag in _FLAGS.items():
+        message = message.replace(kw, flag)
+    return message
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -692,7 +708,7 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except (UsageError, DataError, ValueError, ImportError) as e:  # user mistakes: one line
-        print(f"jaximu {args.command}: error: {e}", file=sys.stderr)
+        print(f"jaximu {args.command}: error: {_as_flags(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaximu: interrupted", file=sys.stderr)

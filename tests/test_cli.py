@@ -69,6 +69,9 @@ def test_user_mistakes_exit_non_zero_without_traceback(tmp_path):
     one_line_error(run("propagate", str(bad)), "line 3", "expected at least 7 columns")
     one_line_error(run("calibrate", str(bad)), "line 3")
     one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"), "--bias needs 6")
+    in_g = tmp_path / "g.csv"  # an accelerometer in g: the advice names the command's flag
+    in_g.write_text("".join(f"{0.005 * k:.3f},0,0,0,0,0,1.0\n" for k in range(50)))
+    one_line_error(run("propagate", str(in_g)), "in g? pass --accel-unit g")
 
 
 def test_help_of_every_command():
