@@ -87,6 +87,12 @@ def _load(args):
     from jaximu import io
 
     path = pathlib.Path(args.file)
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError("--duration must be positive")
+    if args.max_gap is not None and not args.max_gap > 0:
+        raise UsageError("--max-gap must be positive")
+    if not args.start >= 0:
+        raise UsageError("--start must be ≥ 0")
     if not path.exists():
         raise UsageError(f"no such file or directory: {path}")
     fmt = args.format if args.format != "auto" else _detect_format(path)
@@ -94,6 +100,8 @@ def _load(args):
                   drop_nonfinite=args.drop_nonfinite, allow_gaps=args.allow_gaps,
                   max_gap=args.max_gap, check_units=not args.no_unit_check)
     units = dict(gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    if args.time_unit != "s" and fmt not in ("csv", "npz"):
+        raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
     if fmt in ("euroc", "tumvi"):
         if args.gyro_unit != "rad/s" or args.accel_unit != "m/s^2":
             raise UsageError(f"--gyro-unit/--accel-unit do not apply to {fmt} (SI by definition)")
@@ -108,12 +116,12 @@ def _load(args):
     elif fmt == "npz":
         data = io.read_npz(path, time_unit=args.time_unit, **units, **repair)
     else:
-        data = io.read_rosbag(path, args.topic, **repair)
+        data = io.read_rosbag(path, args.topic, **units, **repair)
     print(f"read {len(data)} samples over {data.duration:.3f} s at {data.rate_hz:.1f} Hz from "
           f"{data.source} ({fmt})" + ("; with ground truth" if data.ground_truth else ""))
     for note in data.repairs:
         print(f"repair: {note}", file=sys.stderr)
-    if args.start or args.duration:
+    if args.start or args.duration is not None:
         data = data.window(args.start, args.duration)
     return data
 
@@ -150,6 +158,19 @@ def _add_output_options(p, plot_default=None):
                    help="write a plot" + (" (default: %(default)s)" if plot_default else ""))
     p.add_argument("--float64", action="store_true", help="compute in float64")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _check_outputs(**paths):
+    """Fail before the work, not after it: the output folders exist, the suffixes are known."""
+    suffixes = {"states": (".csv", ".npz"), "plot": (".png", ".pdf", ".svg", ".jpg")}
+    for name, path in paths.items():
+        if not path:
+            continue
+        p = pathlib.Path(path)
+        if not p.parent.is_dir():
+            raise UsageError(f"--{name} {path}: the folder {p.parent} does not exist")
+        if name in suffixes and p.suffix.lower() not in suffixes[name]:
+            raise UsageError(f"--{name} {path}: use one of {', '.join(suffixes[name])}")
 
 
 def _bias(text):
@@ -241,14 +262,20 @@ def _default_P0(from_groundtruth):
     return np.diag(sig**2)
 
 
-def _report_drift(err, duration, out=sys.stdout):
-    """Print the error against ground truth at 1, 2, 5, … s and the drift per second."""
-    marks = [s for s in REPORT_AT if s <= duration + 1e-9] or [duration]
+def _report_drift(err, t_start, out=sys.stdout):
+    """Print the error against ground truth at 1, 2, 5, … s after ``t_start`` (the start of
+    the propagation) and the drift per second, where the ground truth covers those times."""
+    lo, hi = float(err.t[0] - t_start), float(err.t[-1] - t_start)
+    marks = [s for s in REPORT_AT if lo - 0.01 <= s <= hi + 1e-6]
+    if not marks:
+        print(f"(the ground truth covers {lo:.2f}–{hi:.2f} s after the start: no table)",
+              file=out)
+        return marks
     has_v = err.velocity is not None
     print(f"\n{'t [s]':>8}{'position [m]':>15}{'velocity [m/s]':>16}{'attitude [°]':>14}"
           f"{'drift [m/s]':>13}", file=out)
     for s in marks:
-        pos, vel, att = err.at(s)
+        pos, vel, att = err.at(s, t_start)
         vel_text = f"{vel:.3f}" if has_v else "–"
         print(f"{s:>8g}{pos:>15.3f}{vel_text:>16}{att:>14.3f}{pos / s:>13.3f}", file=out)
     return marks
@@ -259,6 +286,7 @@ def cmd_propagate(args):
 
     from jaximu import io
 
+    _check_outputs(out=args.out, states=args.states, plot=args.plot)
     data = _load(args)
     dtype = _dtype(args)
     if args.init_from_groundtruth:
@@ -282,13 +310,16 @@ def cmd_propagate(args):
     print(f"final position {np.array2string(states.p[-1], precision=3)} m, 1σ "
           f"{np.array2string(s_end[3:6], precision=3)} m; attitude 1σ "
           f"{np.array2string(np.rad2deg(s_end[0:3]), precision=2)}°")
-    err = None
     if data.ground_truth is not None:
-        err = io.trajectory_errors(t, states, data.ground_truth, cov)
-        kind = "from the ground-truth state" if args.init_from_groundtruth else \
-            "(not initialised from it: expect an offset; use --init-from-groundtruth)"
-        print(f"against ground truth {kind}:")
-        _report_drift(err, float(err.t[-1] - t[0]))
+        try:
+            err = io.trajectory_errors(t, states, data.ground_truth, cov)
+        except io.DataError as e:  # no overlap: the trajectory is still written
+            print(f"no comparison with the ground truth: {e}")
+        else:
+            kind = "from the ground-truth state" if args.init_from_groundtruth else \
+                "(not initialised from it: expect an offset; use --init-from-groundtruth)"
+            print(f"against ground truth {kind}:")
+            _report_drift(err, float(t[0]))
     if args.out:
         io.write_tum(args.out, t, states, t0_ns=data.t0_ns)
         print(f"trajectory written to {args.out} (TUM format: t tx ty tz qx qy qz qw)")
@@ -341,7 +372,7 @@ def run_demo(seconds: float = 20.0, scheme: str = "midpoint", plot: str | None =
                                              progress=progress)
         results[sch] = (states, cov, time.perf_counter() - tic)
         err = io.trajectory_errors(t, states, gt, cov)
-        table[sch] = {s: err.at(s) for s in report_at}
+        table[sch] = {s: err.at(s, data.t[0]) for s in report_at}
     print(f"\n{'scheme':<10}" + "".join(f"{f'{s} s':>22}" for s in report_at), file=out)
     print(f"{'':<10}" + "".join(f"{'pos m / vel m/s / °':>22}" for _ in report_at), file=out)
     for sch, rows in table.items():
@@ -379,11 +410,15 @@ def cmd_demo(args):
 
 
 def cmd_preintegrate(args):
+    import jax
     import jax.numpy as jnp
 
     import jaximu
     from jaximu import io
 
+    _check_outputs(out=args.out)
+    if not args.window > 0:
+        raise UsageError("--window must be positive")
     data = _load(args)
     dtype = _dtype(args)
     n = int(round(args.window * data.rate_hz))
@@ -401,10 +436,12 @@ def cmd_preintegrate(args):
         k = np.clip(np.searchsorted(gt.t, data.t[0]), 0, len(gt.t) - 1)
         bias, how = np.r_[gt.b_g[k], gt.b_a[k]], "from the ground truth"
     bias = np.zeros(6) if bias is None else bias
-    sl = slice(0, K * n)
-    gyro = jnp.asarray(data.gyro[sl].reshape(K, n, 3), dtype)
-    accel = jnp.asarray(data.accel[sl].reshape(K, n, 3), dtype)
-    dt = jnp.asarray(data.dt[sl].reshape(K, n), dtype)
+    # n + 1 samples per window, the last shared with the next window: the midpoint scheme
+    # then averages the boundary samples as propagate does (interval form of dt)
+    idx = np.arange(K)[:, None] * n + np.arange(n + 1)
+    gyro = jnp.asarray(data.gyro[idx], dtype)
+    accel = jnp.asarray(data.accel[idx], dtype)
+    dt = jnp.asarray(data.dt[: K * n].reshape(K, n), dtype)
     b = jaximu.ImuBias(jnp.asarray(bias[:3], dtype), jnp.asarray(bias[3:], dtype))
     print(f"{K} windows of {n} samples ({args.window:g} s), scheme {args.scheme}, biases {how}")
     tic = time.perf_counter()
@@ -421,18 +458,6 @@ def cmd_preintegrate(args):
               f"{np.linalg.norm(np.asarray(pim.delta_v)[k]):>12.4f}"
               f"{np.linalg.norm(np.asarray(pim.delta_p)[k]):>10.4f}"
               f"{np.rad2deg(sig[k, 0]):>9.4f}{sig[k, 3]:>9.5f}{sig[k, 6]:>10.5f}")
-    if gt is not None and gt.v is not None:
-        ti, tj = data.t[0:K * n:n], data.t[n:K * n + 1:n]
-        states = []
-        for tt in (ti, tj):
-            q, p, v = gt.interpolate(tt)
-            states.append(jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v)),
-                                          b.b_g, b.b_a))
-        r = np.asarray(jaximu.residual(states[0], states[1], pim), np.float64)
-        print(f"\nresiduals against the ground truth (median over windows): rotation "
-              f"{np.rad2deg(np.median(np.linalg.norm(r[:, 0:3], axis=1))):.3f}°, position "
-              f"{np.median(np.linalg.norm(r[:, 3:6], axis=1)):.4f} m, velocity "
-              f"{np.median(np.linalg.norm(r[:, 6:9], axis=1)):.4f} m/s")
     if args.out:
         np.savez(args.out, stamp_i_ns=data.stamps_ns[0:K * n:n],
                  stamp_j_ns=data.stamps_ns[n:K * n + 1:n],
@@ -441,6 +466,23 @@ def cmd_preintegrate(args):
                      "dv_dbg", "dv_dba", "dp_dbg", "dp_dba")},
                  bias=bias)
         print(f"preintegrated measurements written to {args.out}")
+    ti, tj = data.t[0:K * n:n], data.t[n:K * n + 1:n]
+    inside = np.ones(K, bool) if gt is None else (
+        (ti >= gt.t[0] - io.CLOCK_TOLERANCE) & (tj <= gt.t[-1] + io.CLOCK_TOLERANCE))
+    if gt is not None and gt.v is not None and inside.any():
+        ti, tj = ti[inside], tj[inside]
+        states = []
+        for tt in (ti, tj):
+            q, p, v = gt.interpolate(tt)
+            states.append(jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v)),
+                                          b.b_g, b.b_a))
+        sel = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(inside)], pim)
+        r = np.asarray(jaximu.residual(states[0], states[1], sel), np.float64)
+        print(f"\nresiduals against the ground truth (median over the {int(inside.sum())} "
+              f"windows inside it): rotation "
+              f"{np.rad2deg(np.median(np.linalg.norm(r[:, 0:3], axis=1))):.3f}°, position "
+              f"{np.median(np.linalg.norm(r[:, 3:6], axis=1)):.4f} m, velocity "
+              f"{np.median(np.linalg.norm(r[:, 6:9], axis=1)):.4f} m/s")
     return 0
 
 
@@ -453,8 +495,9 @@ def cmd_montecarlo(args):
 
     from jaximu import montecarlo, simulate
 
-    if args.runs < 2 or args.seconds <= 0 or args.rate <= 0:
-        raise UsageError("--runs must be ≥ 2, --seconds and --rate positive")
+    if args.runs < 2 or not (0 < args.seconds < 1e6 and 0 < args.rate < 1e6):
+        raise UsageError("--runs must be ≥ 2, --seconds and --rate positive and finite")
+    _check_outputs(plot=args.plot)
     dtype = _dtype(args)
     traj = {"circle": simulate.circle, "figure-eight": simulate.figure_eight,
             "lissajous": simulate.lissajous, "helix": simulate.helix}[args.trajectory]()
@@ -499,6 +542,9 @@ def cmd_calibrate(args):
 
     from jaximu import calibration as cal
 
+    if not args.keyframe_interval > 0:
+        raise UsageError("--keyframe-interval must be positive")
+    _check_outputs(out=args.out)
     data = _load(args)
     gt = data.ground_truth
     if gt is None:
@@ -546,6 +592,7 @@ def cmd_calibrate(args):
 def cmd_allan(args):
     from jaximu import allan
 
+    _check_outputs(plot=args.plot)
     data = _load(args)
     dt = float(np.median(data.dt))
     jitter = float(np.max(np.abs(data.dt - dt)) / dt)
@@ -664,7 +711,7 @@ def build_parser():
     _add_input_options(p)
     p.add_argument("--estimate", default="b_g,b_a",
                    help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
-                   "scale_g, misalignment_g, scale_a, misalignment_a, gravity, time_offset")
+                   "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, time_offset")
     p.add_argument("--keyframe-interval", type=float, default=0.5)
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
     p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"],
@@ -691,7 +738,8 @@ _FLAGS = {"gyro_unit='deg/s'": "--gyro-unit deg/s", "accel_unit='g'": "--accel-u
           "sort=True": "--sort", "drop_duplicates=True": "--drop-duplicates",
           "drop_nonfinite=True": "--drop-nonfinite", "allow_gaps=True": "--allow-gaps",
           "a larger max_gap": "a larger --max-gap", "check_units=False": "--no-unit-check",
-          "time_unit=": "--time-unit", " (then split_at_gaps())": ""}
+          "(time_unit=)": "(--time-unit)", "check time_unit": "check --time-unit",
+          " (then split_at_gaps())": ""}
 
 
 def _as_flags(message: str) -> str:
@@ -707,7 +755,8 @@ def main(argv=None) -> int:
 
     try:
         return args.func(args)
-    except (UsageError, DataError, ValueError, ImportError) as e:  # user mistakes: one line
+    except (UsageError, DataError, ValueError, ImportError, OSError, OverflowError) as e:
+        # user mistakes (and unwritable outputs, full disks): one line, no traceback
         print(f"jaximu {args.command}: error: {_as_flags(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -53,8 +53,8 @@ _GYRO_MAX = 35.0
 _GYRO_MEDIAN_MAX = 10.0
 _ACCEL_MEDIAN_RANGE = (3.0, 60.0)
 _DT_RANGE = (1e-5, 1.0)  # 1 Hz … 100 kHz
-GAP_FACTOR = 5.0
-CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant  # default gap threshold: this many median intervals
+GAP_FACTOR = 5.0  # default gap threshold: this many median intervals
+CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant
 
 
 class DataError(ValueError):
@@ -425,32 +425,42 @@ def _is_number(s):
 
 def _read_table(path, delimiter=None, comment="#"):
     """``(header, rows, lines)``: the header fields (or None), the text fields of each data
-    row and its 1-based line number. A first line whose fields are not all numbers (with or
-    without a leading comment sign, as ASL files have) is the header."""
+    row and its 1-based line number.
+
+    The header is a first line none of whose fields is a number, or else the last comment
+    line before the data with as many fields as the data (ASL files: ``#timestamp [ns],…``).
+    Every other non-comment line is data: a text field there is reported when its column is
+    used, never dropped as a header.
+    """
     path = pathlib.Path(path)
+    if path.is_dir():
+        raise DataError(f"{path} is a directory, not a file")
     if not path.is_file():
         raise DataError(f"no such file: {path}")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
     except UnicodeDecodeError:
         raise DataError(f"{path} is not a text file") from None
     numbered = [(k, ln.strip()) for k, ln in enumerate(text.splitlines(), start=1) if ln.strip()]
     if delimiter is None:  # sniffed from the first data line (a comment may hold anything)
         first = next((ln for _, ln in numbered if not ln.startswith(comment)), "")
         delimiter = _sniff_delimiter(first)
-    header, rows, lines = None, [], []
-    for i, (k, line) in enumerate(numbered):
-        if i == 0:
-            fields = _split(line.lstrip(comment), delimiter)
-            if not all(_is_number(f) for f in fields if f):
-                header = fields
-                continue
+    header, comments, rows, lines = None, [], [], []
+    for k, line in numbered:
         if line.startswith(comment):
+            if not rows:
+                comments.append(_split(line.lstrip(comment), delimiter))
             continue
-        rows.append(_split(line, delimiter))
+        fields = _split(line, delimiter)
+        if not rows and header is None and not any(_is_number(f) for f in fields if f):
+            header = fields
+            continue
+        rows.append(fields)
         lines.append(k)
     if not rows:
         raise DataError(f"{path}: no data rows")
+    if header is None:
+        header = next((c for c in reversed(comments) if len(c) == len(rows[0])), None)
     return header, rows, np.asarray(lines)
 
 
@@ -469,9 +479,13 @@ def _column(header, spec, path):
 def _to_ns(text, unit_ns, label):
     """Exact integer nanoseconds from a decimal string (no float rounding)."""
     try:
-        ns = int((Decimal(text) * unit_ns).to_integral_value())
+        exact = Decimal(text) * unit_ns
+        ns = int(exact.to_integral_value())
     except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
         raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
+    if unit_ns == 1 and exact != ns:
+        raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds; "
+                        "check the time unit (time_unit=)")
     if abs(ns) > np.iinfo(np.int64).max:
         raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds; check the "
                         "time unit")
@@ -982,9 +996,11 @@ class TrajectoryErrors:
     velocity: np.ndarray | None
     sigma: np.ndarray | None
 
-    def at(self, seconds):
-        """``(|position|, |velocity| or nan, |rotation| in degrees)`` nearest ``t[0] + seconds``."""
-        i = int(np.argmin(np.abs(self.t - self.t[0] - seconds)))
+    def at(self, seconds, t_start: float | None = None):
+        """``(|position|, |velocity| or nan, |rotation| in degrees)`` at the ground-truth stamp
+        nearest ``t_start + seconds`` (``t_start``: the estimate's start; default ``t[0]``)."""
+        ref = self.t[0] if t_start is None else t_start
+        i = int(np.argmin(np.abs(self.t - ref - seconds)))
         vel = float(np.linalg.norm(self.velocity[i])) if self.velocity is not None else math.nan
         return (float(np.linalg.norm(self.position[i])), vel,
                 math.degrees(float(np.linalg.norm(self.rotation[i]))))

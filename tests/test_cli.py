@@ -69,6 +69,10 @@ def test_user_mistakes_exit_non_zero_without_traceback(tmp_path):
     one_line_error(run("propagate", str(bad)), "line 3", "expected at least 7 columns")
     one_line_error(run("calibrate", str(bad)), "line 3")
     one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"), "--bias needs 6")
+    one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--duration", "0"),
+                   "--duration must be positive")
+    one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--out",
+                       str(tmp_path / "no" / "x.tum")), "does not exist")
     in_g = tmp_path / "g.csv"  # an accelerometer in g: the advice names the command's flag
     in_g.write_text("".join(f"{0.005 * k:.3f},0,0,0,0,0,1.0\n" for k in range(50)))
     one_line_error(run("propagate", str(in_g)), "in g? pass --accel-unit g")
@@ -114,3 +118,25 @@ def test_propagate_without_ground_truth_init_says_how(tmp_path):
     assert "gravity alignment" in res.stdout and "biases zero" in res.stdout
     assert "not initialised from it" in res.stdout  # TUM-VI has mocap: compared, with a warning
     assert len((tmp_path / "t.tum").read_text().splitlines()) > 150
+
+
+def test_chunked_propagation_equals_one_call():
+    """The command propagates chunk by chunk (progress bar): the same numbers as one call."""
+    import jax.numpy as jnp
+
+    import jaximu
+    from jaximu import cli, io
+
+    data = io.read_euroc(DATA / "euroc_v1_02_medium").select(slice(0, 700))
+    state0, _ = io.initial_state(data, still_seconds=1.0)
+    P0 = np.diag(np.full(15, 1e-4))
+    noise = jaximu.ImuNoise.euroc()
+    t, states, cov = cli.propagate_recording(data, state0, P0, noise, "midpoint", jnp.float64,
+                                             chunk=233)
+    ref_states, ref_cov = jaximu.propagate_covariance(state0, P0, data.gyro, data.accel, data.dt,
+                                                      noise, "midpoint")
+    assert len(t) == len(states.p) == 700
+    np.testing.assert_allclose(states.p[1:], ref_states.p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(states.q[1:], ref_states.q, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(cov[1:], ref_cov, rtol=1e-12, atol=1e-18)
+    np.testing.assert_array_equal(cov[0], P0)

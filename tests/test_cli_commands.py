@@ -50,3 +50,20 @@ def test_allan_command_warns_on_motion():
     res = run("allan", SEG)
     assert res.returncode == 0, res.stderr
     assert "gyroscope_noise_density" in res.stdout and "does not look static" in res.stdout
+
+
+def test_preintegrate_when_the_ground_truth_starts_later(tmp_path):
+    """Real sequences record IMU before and after the ground truth: only the windows inside
+    it are compared (here 1.0–3.995 s: five 0.5 s windows), and the output is written."""
+    src = pathlib.Path(SEG) / "mav0"
+    mav0 = tmp_path / "seq" / "mav0"
+    (mav0 / "imu0").mkdir(parents=True)
+    (mav0 / "state_groundtruth_estimate0").mkdir()
+    (mav0 / "imu0" / "data.csv").write_text((src / "imu0" / "data.csv").read_text())
+    gt = (src / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines(True)
+    (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text(gt[0] + "".join(gt[201:801]))
+    res = run("preintegrate", str(tmp_path / "seq"), "--bias-from-groundtruth",
+              "--out", str(tmp_path / "pim.npz"))
+    assert res.returncode == 0, res.stderr
+    assert "median over the 5 windows inside it" in res.stdout
+    assert (tmp_path / "pim.npz").exists()

@@ -376,3 +376,24 @@ def test_stamps_float64_seconds_cannot_separate_are_an_error():
     with pytest.raises(io.DataError, match="equal in float64 seconds"):
         io.from_arrays(t, zeros, zeros, time_unit="ms", sort=True, allow_gaps=True,
                        check_units=False)
+
+
+def test_header_detection_never_drops_data(tmp_path):
+    ns, w, a = samples(10)
+    body = [f"{s}," + ",".join(repr(float(x)) for x in np.r_[w[k], a[k]]) for k, s in
+            enumerate(ns)]
+    # headerless, with a text status column: the first row is data, not a header
+    path = write_csv(tmp_path / "status.csv", [r + ",ok" for r in body])
+    data = io.read_csv(path, time_unit="ns")
+    np.testing.assert_array_equal(data.stamps_ns, ns)
+    with pytest.raises(io.DataError, match=r"line 1: 'ok' is not a number"):
+        io.read_csv(path, time_unit="ns", gyro=(7, 2, 3))
+    # a byte-order mark and a free-text comment above the ASL-style header
+    text = ("\ufeff# recorded by foo, units SI\n#t,wx,wy,wz,ax,ay,az\n" + "\n".join(body) + "\n")
+    (tmp_path / "bom.csv").write_text(text, encoding="utf-8")
+    data = io.read_csv(tmp_path / "bom.csv", time="t", gyro=("wx", "wy", "wz"),
+                       accel=("ax", "ay", "az"), time_unit="ns")
+    np.testing.assert_array_equal(data.gyro, w)
+    # fractional nanoseconds in an ASL file: the file is in another unit
+    with pytest.raises(io.DataError, match="not a whole number of nanoseconds"):
+        io.read_csv(write_csv(tmp_path / "s.csv", ["1.5,0,0,0,0,0,9.8"] * 2), time_unit="ns")
