@@ -43,8 +43,9 @@ from jaximu import so3
 from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
-from jaximu.propagate import (broadcast_state, flatten_batch, mean_body, n_steps, prepare,
-                               time_major, used_samples, uses_fast_path)
+from jaximu._batching import ArgSpec, leading_axes
+from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch, mean_body,
+                              n_steps, prepare, time_major, used_samples, uses_fast_path)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -304,6 +305,23 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch):
     return st, unflat(P), jnp.zeros(batch, bool)
 
 
+NOISE = ArgSpec(1, lambda args, batched: 3)  # a density: scalar (isotropic) or (..., 3)
+COVARIANCE = ArgSpec(2)
+
+
+def _steps_of(args, batched):
+    return args[2].shape[-2]  # gyro is argument 2
+
+
+def routed_covariance(scheme, attitude, jacobians, save_all):
+    """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels."""
+    return leading_axes(
+        _propagate_covariance,
+        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE),
+        (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
+         ("scheme", scheme)))
+
+
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all):
     from jaximu.propagate import _report_gimbal_lock
@@ -315,9 +333,8 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     val.batch_shape(batch, P0.shape[:-2],
                     *(x.shape[:-1] for x in jax.tree_util.tree_leaves(noise) if x.ndim))
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
-    states, P, locked = _propagate_covariance(
-        state, P0, gyro, accel, dt, g, noise, scheme=scheme, attitude=attitude, jacobians=jac,
-        save_all=save_all)
+    states, P, locked = routed_covariance(scheme, attitude, jac, save_all)(
+        state, P0, gyro, accel, dt, g, noise)
     _report_gimbal_lock(locked, attitude)
     name = "propagate_covariance" if save_all else "propagate_covariance_final"
     return val.check_output(name, (states, P), "dt or the IMU samples are too large, or dt so "

@@ -44,6 +44,7 @@ from jaximu import _blocks as blk
 from jaximu import _fast_preint
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks, mm
 from jaximu.errorstate import blocks_analytic
 from jaximu.noise import ImuNoise
@@ -555,6 +556,21 @@ def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, pr
     return pim
 
 
+def _steps_of(args, batched):
+    return args[0].shape[-2]  # gyro is argument 0
+
+
+_SAMPLES = ArgSpec(2)
+_VEC = ArgSpec(1, lambda args, batched: 3)  # bias fields (..., 3); densities scalar or (..., 3)
+
+
+def routed_preintegrate(scheme, method, jacobians, prefixes):
+    """:func:`_preintegrate` whose ``jax.vmap`` lands on the batched kernels."""
+    return leading_axes(_preintegrate, (_SAMPLES, _SAMPLES, ArgSpec(1, _steps_of), _VEC, _VEC),
+                        (("jacobians", jacobians), ("method", method), ("prefixes", prefixes),
+                         ("scheme", scheme)))
+
+
 def _check_bias(bias, dtype):
     if bias is None:
         return ImuBias(jnp.zeros(3, dtype), jnp.zeros(3, dtype))
@@ -613,8 +629,7 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         noise = val.check_noise(noise, dtype)
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1])
-    pim = _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method=method,
-                        jacobians=jacobians, prefixes=prefixes)
+    pim = routed_preintegrate(scheme, method, jacobians, prefixes)(gyro, accel, dt, bias, noise)
     return val.check_output("preintegrate", pim, "dt or the IMU samples are too large, or dt so "
                             "small that the noise σ²/dt overflows,")
 

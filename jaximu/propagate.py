@@ -14,6 +14,7 @@ import numpy as np
 
 from jaximu import _fast
 from jaximu import _validation as val
+from jaximu._batching import ArgSpec, leading_axes
 from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, step
 from jaximu.state import NavState
 
@@ -156,6 +157,23 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
     return states, locked
 
 
+def _n_steps_arg(args, batched):
+    """Steps a scalar ``dt`` stands for: T, the time length of ``gyro`` (argument 1)."""
+    return args[1].shape[-2]
+
+
+STATE = ArgSpec(1)
+SAMPLES = ArgSpec(2)
+STEPS = ArgSpec(1, _n_steps_arg)
+VECTOR = ArgSpec(1)
+
+
+def routed_propagate(scheme, attitude, save_all):
+    """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`)."""
+    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR),
+                        (("attitude", attitude), ("save_all", save_all), ("scheme", scheme)))
+
+
 def _report_gimbal_lock(locked, attitude):
     if attitude == "euler_angles" and val.is_concrete(locked) and bool(np.any(np.asarray(locked))):
         raise ValueError(
@@ -206,8 +224,7 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
             Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
     """
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    states, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
-                                save_all=True)
+    states, locked = routed_propagate(scheme, attitude, True)(state, gyro, accel, dt, g)
     _report_gimbal_lock(locked, attitude)
     return _finite_output("propagate", states)
 
@@ -220,7 +237,6 @@ def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
         :class:`NavState` with fields of shape ``batch + (·)`` at ``t_0 + Σ dt``.
     """
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    final, locked = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude=attitude,
-                               save_all=False)
+    final, locked = routed_propagate(scheme, attitude, False)(state, gyro, accel, dt, g)
     _report_gimbal_lock(locked, attitude)
     return _finite_output("propagate_final", final)

@@ -1,0 +1,143 @@
+"""``jax.vmap`` lands on the batched kernels.
+
+Every engine entry (``_propagate``, ``_propagate_covariance``, ``_preintegrate``) already
+broadcasts over leading batch axes and chooses its kernel from the *whole* batch it sees
+(see :mod:`jaximu._dispatch`). Under a plain ``jax.vmap`` it would see one trajectory: the
+dispatcher would pick the small-batch kernel and JAX would then batch that kernel's scan
+generically (batch-major carries, conds turned into selects), several times slower than
+the same work passed as leading axes (docs/DESIGN.md, "vmap").
+
+:func:`leading_axes` wraps an entry so that a ``vmap`` of it is answered by one call of the
+entry with the mapped axis moved in front of the batch axes: the arguments' own batch axes
+stay where they are, unmapped arguments broadcast as they always do, and the result's batch
+is ``(mapped,) + batch``. It nests (the rule calls the wrapped function again, so an outer
+``vmap`` routes once more), works under ``jit``, and keeps autodiff:
+
+* ``jax.custom_batching.custom_vmap`` gives the batching rule but is not linearisable
+  (``grad`` of it fails), so it sits under a ``jax.custom_jvp`` whose rule is the
+  ``jax.jvp`` of the plain entry: forward and reverse mode, ``jacfwd`` and ``hessian``
+  work as before, and the primal of a ``vmap`` takes the batched kernels.
+* A ``vmap`` *of a derivative* (per-example gradients) differentiates the plain entry, which
+  JAX then batches generically: correct, at the speed of the generic kernels.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
+
+__all__ = ["leading_axes", "ArgSpec"]
+
+
+class ArgSpec(NamedTuple):
+    """How one positional argument's leaves look for a single batch element.
+
+    Attributes:
+        core: number of trailing (non-batch) axes of each leaf, e.g. 2 for ``(..., T, 3)``.
+        scalar: for a leaf that may be a 0-d scalar standing for a whole core (``dt`` for
+            every step, an isotropic noise density), ``scalar(args, in_batched)`` gives the
+            core length it stands for; ``None`` if the leaf is never a scalar.
+    """
+
+    core: int
+    scalar: Callable | None = None
+
+
+def _to_leading(axis_size, in_batched, args, specs: Sequence[ArgSpec]):
+    """Batched leaves ``(V, *own_batch, *core)`` -> ``(V, 1.., *own_batch, *core)`` so that,
+    right-aligned against the unmapped leaves, the mapped axis is the leading batch axis."""
+    flat = []  # per argument: (leaves with their flags, treedef)
+    for arg, batched, spec in zip(args, in_batched, specs):
+        leaves, tree = jax.tree_util.tree_flatten(arg)
+        flags = jax.tree_util.tree_leaves(batched)
+        pairs = []
+        for x, b in zip(leaves, flags):
+            if b and x.ndim == 1 and spec.core and spec.scalar is not None:
+                # one scalar per element standing for a whole core of n values
+                x = jnp.broadcast_to(x[:, None], (axis_size, spec.scalar(args, in_batched)))
+            pairs.append((x, b))
+        flat.append((pairs, tree))
+    rank = max([x.ndim - int(b) - spec.core
+                for (pairs, _), spec in zip(flat, specs) for x, b in pairs] + [0])
+    out = []
+    for (pairs, tree), spec in zip(flat, specs):
+        leaves = []
+        for x, b in pairs:
+            if b:
+                own = x.ndim - 1 - spec.core
+                x = x.reshape((axis_size,) + (1,) * (rank - own) + x.shape[1:])
+            leaves.append(x)
+        out.append(jax.tree_util.tree_unflatten(tree, leaves))
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=None)
+def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
+    """``fn(*args, **dict(statics))`` whose ``vmap`` runs as one call over leading axes.
+
+    Args:
+        fn: an engine entry broadcasting over leading batch axes; its outputs carry the full
+            broadcast batch in front.
+        specs: one :class:`ArgSpec` per positional argument.
+        statics: ``(name, value)`` pairs of static keyword arguments (hashable).
+
+    The call is one primitive: its batching rule moves the mapped axis in front
+    (:func:`_to_leading`) and binds it again, so nested ``vmap`` and ``vmap`` under any other
+    transform route to the batched kernels; its JVP rule is ``jax.jvp`` of ``fn`` itself
+    (ordinary operations, so ``linearize``, ``grad`` and ``jacfwd`` need no more rules);
+    evaluation and lowering call ``fn``.
+    """
+    plain = functools.partial(fn, **dict(statics))
+
+    def flat(*leaves, in_tree):
+        out = plain(*jax.tree_util.tree_unflatten(in_tree, leaves))
+        return jax.tree_util.tree_leaves(out)
+
+    prim = Primitive(f"jaximu_{fn.__name__.lstrip('_')}")
+    prim.multiple_results = True
+    prim.def_impl(flat)
+
+    @prim.def_abstract_eval
+    def _abstract(*avals, in_tree):
+        specs_ = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in avals]
+        out = jax.eval_shape(functools.partial(flat, in_tree=in_tree), *specs_)
+        return [jax.core.ShapedArray(o.shape, o.dtype) for o in out]
+
+    mlir.register_lowering(prim, mlir.lower_fun(flat, multiple_results=True))
+
+    def _jvp(primals, tangents, *, in_tree):
+        tangents = tuple(ad.instantiate_zeros(t) for t in tangents)
+        return jax.jvp(functools.partial(flat, in_tree=in_tree), tuple(primals), tangents)
+
+    ad.primitive_jvps[prim] = _jvp
+
+    def _batch(args, dims, *, in_tree):
+        size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
+        leaves = [x if d is None else jnp.moveaxis(x, d, 0)
+                  for x, d in zip(args, dims)]
+        flags = [d is not None for d in dims]
+        tree_args = jax.tree_util.tree_unflatten(in_tree, leaves)
+        tree_flags = jax.tree_util.tree_unflatten(in_tree, flags)
+        moved = _to_leading(size, tree_flags, tree_args, specs)
+        new_leaves, new_tree = jax.tree_util.tree_flatten(moved)
+        out = prim.bind(*new_leaves, in_tree=new_tree)
+        return out, [0] * len(out)
+
+    batching.primitive_batchers[prim] = _batch
+
+    out_trees = {}
+
+    def routed(*args):
+        leaves, in_tree = jax.tree_util.tree_flatten(args)
+        if in_tree not in out_trees:
+            out_trees[in_tree] = jax.tree_util.tree_structure(
+                jax.eval_shape(plain, *args))
+        return jax.tree_util.tree_unflatten(out_trees[in_tree],
+                                            prim.bind(*leaves, in_tree=in_tree))
+
+    return routed
