@@ -36,10 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _fast
-from jaximu._fast import (_E3, _THR, _bmm, _bsym, _bt, _half_any, _half_small, _jr_b_small,
-                          _lane, _outer, _quat_mul, _quat_normalize, _quat_rotate, _skew3, _stage,
-                          _vec3)
+from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
+                         _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
+                         _quat_normalize, _quat_rotate, _skew3, _stage, _time_chunks, _vec3,
+                         quat_matrix, run_blocked)
 
 BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
 MIN_LANES = 8  # below this (sequential, tiny batch) the generic scan is faster
@@ -73,15 +73,6 @@ def _lane_scalars(big):
     return f
 
 
-def _rot(q, dtype):
-    """``R(q)`` as ``(3, 3, B)`` (unit ``q``)."""
-    I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    w0, qv = q[0], q[1:]
-    qv3 = _vec3(qv, dtype)
-    return (_lane(w0 * w0 - (qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2])) * I3
-            + 2.0 * _outer(qv3, qv3) + _lane(2.0 * w0) * _skew3(qv, dtype))
-
-
 def _rot_jl(q, phi, t2, k, b):
     """Stage 2a: ``R = R(q)`` and ``Jl(φ)`` as ``(3, 3, B)``."""
     dtype = q[0].dtype
@@ -89,7 +80,7 @@ def _rot_jl(q, phi, t2, k, b):
     phi3 = _vec3(phi, dtype)
     Jl = (I3 + _lane(2.0 * (k * k)) * _skew3(phi, dtype)
           + _lane(b) * (_outer(phi3, phi3) - _lane(t2) * I3))
-    return _rot(q, dtype), Jl
+    return quat_matrix(q, dtype), Jl
 
 
 def _step_blocks(R, Jl, h, u):
@@ -103,13 +94,6 @@ def _noise_blocks(Bk, Ev, sg, sa):
     """Stage 2c: ``Qθ = B' diag(σ_g²/h) B'ᵀ``, ``Qv = Ev diag(σ_a²/h) Evᵀ``."""
     dtype = Bk.dtype
     return (_bmm(Bk * _diag_row(sg, dtype), _bt(Bk)), _bmm(Ev * _diag_row(sa, dtype), _bt(Ev)))
-
-
-def _diag_row(s3, dtype):
-    """3-tuple of per-axis values (``(B,)`` or scalars) as a ``(1, 3, B)``/``(1, 3, 1)`` row."""
-    if jnp.ndim(s3[0]):
-        return _vec3(s3, dtype)[None]
-    return jnp.stack([jnp.asarray(x, dtype) for x in s3])[None, :, None]
 
 
 # blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4) 0)
@@ -156,7 +140,7 @@ def step(carry, omega, fsp, h, s, guard):
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
     (q1, dv1, dp1, t1), lane = jax.lax.cond(
-        _fast._any_big(t2), _lane_scalars(True), _lane_scalars(False),
+        _any_big(t2), _lane_scalars(True), _lane_scalars(False),
         q, dv, dp, t, omega, fsp, h)
     u, phi, t2, k, b = lane
     ok = jnp.all(jnp.isfinite(h))  # a runtime predicate for the stage conds
@@ -246,16 +230,6 @@ def _zero_carry(Bc, dtype):
 # The carried transition has all eight blocks.
 
 
-def _q2m(q, dtype):
-    """:func:`jaximu.so3.quat_to_matrix` (also for a non-unit ``q``) as ``(3, 3, B)``:
-    ``I + 2(u uᵀ - |u|² I) + 2 w [u]x``."""
-    I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    w, u = q[0], q[1:]
-    u3 = _vec3(u, dtype)
-    return (I3 + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
-            + _lane(2.0 * w) * _skew3(u, dtype))
-
-
 def _mid_lane(q, dv, dp, t, omega, f0, f1, h):
     """Stage 1 (per lane): the mean update, VINS-Mono's unnormalised ``q ⊗ [1, ω̄h/2]``."""
     dq = (jnp.ones_like(h) if jnp.ndim(h) else jnp.ones_like(q[0]),) + tuple(0.5 * h * w
@@ -273,7 +247,7 @@ def _mid_blocks(q, q1u, omega, f0, f1, h):
     dtype = q[0].dtype
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
     hb = _lane(h)
-    R0, R1 = _q2m(q, dtype), _q2m(q1u, dtype)
+    R0, R1 = quat_matrix(q, dtype), quat_matrix(q1u, dtype)
     A = I3 - _skew3(omega, dtype) * hb
     R0a0 = _bmm(R0, _skew3(f0, dtype))
     R1a1 = _bmm(R1, _skew3(f1, dtype))
@@ -441,9 +415,9 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
 
     def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
         Bc = gyro.shape[0]
-        bg = _comps(bg_b if per_lane[0] else b_g)
-        ba = _comps(ba_b if per_lane[1] else b_a)
-        s = _comps(var_b if per_lane[2] else var)
+        bg = _components(bg_b if per_lane[0] else b_g)
+        ba = _components(ba_b if per_lane[1] else b_a)
+        s = _components(var_b if per_lane[2] else var)
 
         def st(c, w, a, h, consts):
             w0 = tuple(w[i] - bg[i] for i in range(3))
@@ -452,7 +426,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
             a1 = tuple(a[3 + i] - ba[i] for i in range(3))
             return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard)
 
-        q, dv, dp, t, Phi, P, d3, d4, S = _fast._time_chunks(
+        q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
             st, _zero_carry_mid(Bc, dtype), gyro, accel, dt if shared_dt else dt_b, None,
             None)[0]
         last = lambda x: jnp.stack(x, -1)  # noqa: E731
@@ -474,14 +448,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
             b_a if per_lane[1] else z, var if per_lane[2] else z)
-    Bc = _block_size(n, block_lanes(dtype))
-    if Bc == n:
-        out = block(*args)
-    else:
-        nb = n // Bc
-        split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
-        out = jax.lax.map(lambda a: block(*a), jax.tree_util.tree_map(split, args))
-        out = jax.tree_util.tree_map(lambda x: x.reshape((n,) + x.shape[2:]), out)
+    out = run_blocked(block, n, block_lanes(dtype), *args)
     if C > 1:
         out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
         out = _reduce_chunks(out, C, rotate=False)
@@ -674,44 +641,25 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C):
 
     def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
         Bc = gyro.shape[0]
-        bg = _comps(bg_b if per_lane[0] else b_g)
-        ba = _comps(ba_b if per_lane[1] else b_a)
-        s = _comps(var_b if per_lane[2] else var)
+        bg = _components(bg_b if per_lane[0] else b_g)
+        ba = _components(ba_b if per_lane[1] else b_a)
+        s = _components(var_b if per_lane[2] else var)
 
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
             f = tuple(a[i] - ba[i] for i in range(3))
             return step(c, omega, f, h, s, guard)
 
-        carry, _ = _fast._time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
+        carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
                                       dt if shared_dt else dt_b, None, None)
         return _to_summary(carry)
 
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
             b_a if per_lane[1] else z, var if per_lane[2] else z)
-    Bc = _block_size(n, block_lanes(dtype))
-    if Bc == n:
-        summ = block(*args)
-    else:
-        nb = n // Bc
-        split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
-        summ = jax.lax.map(lambda a: block(*a), jax.tree_util.tree_map(split, args))
-        summ = jax.tree_util.tree_map(lambda x: x.reshape((n,) + x.shape[2:]), summ)
+    summ = run_blocked(block, n, block_lanes(dtype), *args)
     if C > 1:
         summ = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), summ)
         summ = _reduce_chunks(summ, C)
     return _finish(summ)
 
-
-def _comps(x):
-    return tuple(x[..., i] for i in range(x.shape[-1]))
-
-
-def _block_size(n, lanes):
-    if n <= lanes:
-        return n
-    for nb in range(-(-n // lanes), n // (lanes // 4) + 1):
-        if n % nb == 0:
-            return n // nb
-    return n

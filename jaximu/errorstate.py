@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks as blk
+from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
@@ -45,7 +46,7 @@ from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch, mean_body,
-                              n_steps, prepare, time_major, used_samples, uses_fast_path)
+                              n_steps, prepare, time_major, used_samples)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -240,7 +241,9 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)))
-    if jacobians == "analytic" and not save_all and uses_fast_path(scheme, attitude, fast):
+    lanes = int(np.prod(batch, dtype=np.int64))
+    if dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
+                       save_all=save_all, lanes=lanes, fast=fast) == "soa_cov":
         gyro, accel = used_samples(gyro, accel, dt)
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     state = broadcast_state(state, batch)

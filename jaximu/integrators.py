@@ -45,9 +45,11 @@ import jax
 import jax.numpy as jnp
 
 from jaximu import so3
+from jaximu._vec import V3
 from jaximu.state import NavState
 
-__all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "get_attitude", "step", "nav_step"]
+__all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "Scheme", "get_attitude", "get_scheme",
+           "step", "nav_step"]
 
 SCHEMES = ("euler", "midpoint", "rk4")
 ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
@@ -131,8 +133,109 @@ def check_scheme(scheme: str) -> str:
     return scheme
 
 
+END = "end"
+"""A stage's ``phi`` that means the attitude at the end of the step (computed once)."""
+
+
+class Point(NamedTuple):
+    """One evaluation point of a scheme inside the step, on :class:`~jaximu._vec.V3`s.
+
+    ``phi`` is ``None`` at the start of the step (no rotation), :data:`END` at its end,
+    or the rotation vector of an intermediate attitude; ``tau`` the fraction of the step at
+    which it is taken (for the bias derivative of ``phi``). ``wv``, ``wp``: the weights of
+    the acceleration ``(R ⊞ φ) f + g_W`` in ``v⁺`` and ``p⁺`` (module docstring).
+    """
+
+    phi: object
+    tau: float
+    f: V3
+    wv: jax.Array
+    wp: jax.Array
+
+
+class Scheme:
+    """A one-step scheme: its stages, written once on :class:`~jaximu._vec.V3` components so
+    that the generic kernels (``(..., 3)`` arrays split into components) and the
+    structure-of-arrays kernels (``(B,)`` lanes, :mod:`jaximu._soa`) run the same formulas.
+
+    ``points(ω_k, f_k, ω_k+1, f_k+1, h) -> (list[Point], φ_end)`` with bias-corrected inputs
+    and ``h`` broadcasting against the components; ``dphi_db(ω_k, ω_k+1, h, τ)`` the
+    ``(..., 3, 3)`` derivative of the stage rotation vector at ``τ`` with respect to a
+    common gyro bias (the closed-form Jacobians of :mod:`jaximu.errorstate`).
+    """
+
+    name: str
+    order: int
+    uses_next_sample: bool
+
+    def points(self, omega0, f0, omega1, f1, h):
+        raise NotImplementedError
+
+    def dphi_db(self, omega0, omega1, h, tau):
+        eye = jnp.eye(3, dtype=omega0.dtype)
+        return -h[..., None, None] * eye
+
+
+class Euler(Scheme):
+    """Zero-order hold on sample k (OpenVINS discrete, GTSAM's Forster recursion)."""
+
+    name, order, uses_next_sample = "euler", 1, False
+
+    def points(self, omega0, f0, omega1, f1, h):
+        return [Point(None, 0.0, f0, h, 0.5 * h * h)], h * omega0
+
+
+class Midpoint(Scheme):
+    """VINS-Mono: rate averaged over the step, accelerations at both ends averaged."""
+
+    name, order, uses_next_sample = "midpoint", 2, True
+
+    def points(self, omega0, f0, omega1, f1, h):
+        phi = (0.5 * h) * (omega0 + omega1)
+        hh = 0.25 * h * h
+        return [Point(None, 0.0, f0, 0.5 * h, hh), Point(END, 1.0, f1, 0.5 * h, hh)], phi
+
+
+class RK4(Scheme):
+    """ω, f linear between samples; two-term Magnus rotation; Simpson/RK4 weights."""
+
+    name, order, uses_next_sample = "rk4", 4, True
+
+    @staticmethod
+    def magnus(omega0, omega1, tau, h):
+        """``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` (exact Ω₁ + Ω₂ for a rate
+        linear from ω0 to ω1 over ``h``; ``tau``, ``h`` broadcast against the components)."""
+        return (tau * omega0 + (tau * tau / (2 * h)) * (omega1 - omega0)
+                + (tau**3 / (12 * h)) * omega0.cross(omega1))
+
+    def points(self, omega0, f0, omega1, f1, h):
+        phi_half = self.magnus(omega0, omega1, 0.5 * h, h)
+        phi_end = self.magnus(omega0, omega1, h, h)
+        return [Point(None, 0.0, f0, h / 6, h * h / 6),
+                Point(phi_half, 0.5, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
+                Point(END, 1.0, f1, h / 6, 0.0 * h)], phi_end
+
+    def dphi_db(self, omega0, omega1, h, tau):
+        """``-τ I + τ³/(12h) [ω1 - ω0]x`` with ``τ = tau · h``."""
+        t = tau * h
+        eye = jnp.eye(3, dtype=omega0.dtype)
+        return (-t[..., None, None] * eye
+                + (t**3 / (12 * h))[..., None, None] * so3.skew(omega1 - omega0))
+
+
+SCHEME_OBJECTS = {s.name: s for s in (Euler(), Midpoint(), RK4())}
+
+
+def get_scheme(name: str) -> Scheme:
+    """The scheme called ``name`` (one of :data:`SCHEMES`)."""
+    try:
+        return SCHEME_OBJECTS[check_scheme(name)]
+    except KeyError:  # pragma: no cover - check_scheme raised already
+        raise
+
+
 class Stage(NamedTuple):
-    """One evaluation point of a scheme inside the step (see the module docstring).
+    """A :class:`Point` on ``(..., 3)`` arrays, for the generic kernels.
 
     ``phi`` is ``None`` at the start of the step (no rotation); ``dphi_dbg`` is the
     derivative of ``phi`` with respect to the gyro bias (``None`` when zero).
@@ -146,24 +249,14 @@ class Stage(NamedTuple):
 
 
 def magnus(omega0, omega1, tau, h):
-    """Two-term Magnus rotation vector after ``tau`` for ``ω`` linear from ω0 to ω1 over ``h``.
-
-    ``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` and its derivative with respect
-    to a common bias ``b`` (``ω_i = w_i - b``): ``-τ I + τ³/(12h) [ω1 - ω0]x``.
-    """
-    tau_ = tau[..., None]
-    h_ = h[..., None]
-    phi = tau_ * omega0 + tau_ * tau_ / (2 * h_) * (omega1 - omega0)
-    phi = phi + tau_**3 / (12 * h_) * jnp.cross(omega0, omega1)
-    eye = jnp.eye(3, dtype=omega0.dtype)
-    dphi = -tau[..., None, None] * eye + (tau**3 / (12 * h))[..., None, None] * so3.skew(
-        omega1 - omega0
-    )
-    return phi, dphi
+    """:meth:`RK4.magnus` on ``(..., 3)`` arrays, with its bias derivative."""
+    phi = RK4.magnus(V3.of(omega0), V3.of(omega1), tau, h).stack()
+    return phi, RK4().dphi_db(omega0, omega1, h, tau / h)
 
 
 def stages(scheme, omega0, f0, omega1, f1, h):
-    """The stages of ``scheme`` and the final rotation vector (and its bias derivative).
+    """The stages of ``scheme`` on ``(..., 3)`` arrays and the final rotation vector (and its
+    bias derivative): :meth:`Scheme.points`, stacked back.
 
     Args:
         omega0, f0: ``(..., 3)`` bias-corrected rate and specific force of sample k.
@@ -173,32 +266,22 @@ def stages(scheme, omega0, f0, omega1, f1, h):
     Returns:
         ``(list[Stage], phi_end, dphi_end_dbg)``.
     """
-    eye = jnp.eye(3, dtype=omega0.dtype)
-    if scheme == "euler":
-        phi = h[..., None] * omega0
-        return [Stage(None, None, f0, h, 0.5 * h * h)], phi, -h[..., None, None] * eye
-    if scheme == "midpoint":
-        phi = h[..., None] * 0.5 * (omega0 + omega1)
-        dphi = -h[..., None, None] * eye
-        return (
-            [Stage(None, None, f0, 0.5 * h, 0.25 * h * h), Stage(phi, dphi, f1, 0.5 * h, 0.25 * h * h)],
-            phi,
-            dphi,
-        )
-    if scheme == "rk4":
-        phi_half, dphi_half = magnus(omega0, omega1, 0.5 * h, h)
-        phi_end, dphi_end = magnus(omega0, omega1, h, h)
-        zero = jnp.zeros_like(h)
-        return (
-            [
-                Stage(None, None, f0, h / 6, h * h / 6),
-                Stage(phi_half, dphi_half, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
-                Stage(phi_end, dphi_end, f1, h / 6, zero),
-            ],
-            phi_end,
-            dphi_end,
-        )
-    raise ValueError(f"unknown scheme {scheme!r}; choose one of {SCHEMES}")
+    sch = get_scheme(scheme)
+    pts, phi_end = sch.points(V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1), h)
+    phi_end = phi_end.stack()
+    dphi_end = sch.dphi_db(omega0, omega1, h, 1.0)
+    out = []
+    for pt in pts:
+        shape = jnp.broadcast_shapes(jnp.shape(pt.wv), jnp.shape(h))
+        wv, wp = (jnp.broadcast_to(jnp.asarray(w, h.dtype), shape) for w in (pt.wv, pt.wp))
+        if pt.phi is None:
+            out.append(Stage(None, None, pt.f.stack(), wv, wp))
+        elif pt.phi is END:
+            out.append(Stage(phi_end, dphi_end, pt.f.stack(), wv, wp))
+        else:
+            out.append(Stage(pt.phi.stack(), sch.dphi_db(omega0, omega1, h, pt.tau),
+                             pt.f.stack(), wv, wp))
+    return out, phi_end, dphi_end
 
 
 def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks as blk
+from jaximu import _dispatch as dispatch
 from jaximu import _fast_preint
 from jaximu import _validation as val
 from jaximu import so3
@@ -65,7 +66,7 @@ __all__ = [
 ]
 
 SCHEMES = ("euler", "midpoint")
-METHODS = ("sequential", "parallel")
+METHODS = ("auto", "sequential", "parallel")
 REINTEGRATION_THRESHOLD = {"gyro": 0.01, "accel": 0.10}
 """Bias changes [rad/s, m/s²] past which VINS-Mono re-integrates instead of correcting."""
 
@@ -426,22 +427,6 @@ def _pim_from_dense(dq, d: _Dense, bias):
                          jnp.broadcast_to(bias.b_a, batch + (3,))))
 
 
-def uses_fast_path(scheme, jacobians, prefixes, method="sequential", batch_size=1024,
-                   dtype=jnp.float64, fast=True):
-    """Whether :mod:`jaximu._fast_preint` runs this case (the same numbers up to float
-    rounding, several times faster on XLA CPU); ``fast=False`` forces the generic recursion
-    (the reference it is tested against).
-
-    Analytic Jacobians and only the final ``i→j``, both schemes and methods (the sequential
-    one from :data:`_fast_preint.MIN_LANES` windows on: below that the generic scan is as
-    fast). Prefixes and autodiff Jacobians use the generic code."""
-    if not fast or jacobians != "analytic" or prefixes:
-        return False
-    if method == "sequential" and batch_size < _fast_preint.MIN_LANES:
-        return False
-    return scheme in ("euler", "midpoint")
-
-
 def _time_major_batch(x, batch, tail):
     """``(T,) + own_batch + tail`` -> ``(T,) + batch + tail`` (batch axes right-aligned)."""
     own = x.ndim - 1 - len(tail)
@@ -493,8 +478,10 @@ def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, pr
         gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
         bias.b_a.shape[:-1],
         *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise))))
-    if uses_fast_path(scheme, jacobians, prefixes, method, int(np.prod(batch, dtype=np.int64)),
-                      gyro.dtype, fast):
+    lanes = int(np.prod(batch, dtype=np.int64))
+    method = dispatch.preint_method(method, lanes, gyro.shape[-2], gyro.dtype)
+    if dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
+                                    method=method, lanes=lanes, fast=fast) != dispatch.GENERIC:
         return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme)
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
@@ -587,7 +574,7 @@ def _check_bias(bias, dtype):
 
 
 def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise | None = None,
-                 scheme: str = "euler", method: str = "sequential", *, prefixes: bool = False,
+                 scheme: str = "euler", method: str = "auto", *, prefixes: bool = False,
                  jacobians: str = "analytic") -> Preintegrated:
     """Preintegrate IMU samples between two keyframes.
 
@@ -600,8 +587,11 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         bias: linearisation bias :class:`ImuBias` (default zero).
         noise: :class:`ImuNoise` densities (default none: zero covariances).
         scheme: ``"euler"`` (Forster / GTSAM Manifold) or ``"midpoint"`` (VINS-Mono).
-        method: ``"sequential"`` (``lax.scan``) or ``"parallel"``
-            (``lax.associative_scan``, O(log T) depth; same numbers to rounding).
+        method: ``"auto"`` (default: the fastest for the shape, chosen by
+            :func:`jaximu._dispatch.preint_method`: ``"parallel"`` for few long windows,
+            ``"sequential"`` otherwise), ``"sequential"`` (``lax.scan``) or ``"parallel"``
+            (time chunks side by side composed associatively, O(log T) depth on the generic
+            path); all give the same numbers to rounding.
         prefixes: return every prefix ``i→k`` (fields gain a time axis before their last
             axes) instead of only ``i→j``.
         jacobians: ``"analytic"`` (closed forms; VINS-Mono's own linearisation for the

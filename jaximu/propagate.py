@@ -12,10 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, step
+from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
 from jaximu.state import NavState
 
 __all__ = ["propagate", "propagate_final"]
@@ -71,13 +72,6 @@ def broadcast_state(state: NavState, batch) -> NavState:
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]), state)
 
 
-def uses_fast_path(scheme, attitude, fast=True):
-    """Euler with the exact quaternion exponential runs on :mod:`jaximu._fast` (the same
-    numbers up to float rounding, several times faster on XLA CPU); ``fast=False`` forces
-    the generic kernels (the reference the fast path is tested against)."""
-    return fast and scheme == "euler" and attitude == "quaternion"
-
-
 def flatten_batch(batch, state, gyro, accel, dt, g):
     """Broadcast to ``batch`` and flatten it to one leading axis ``B`` (the fast-path layout).
 
@@ -93,9 +87,26 @@ def flatten_batch(batch, state, gyro, accel, dt, g):
     return fields, flat(gyro, (T, 3)), flat(accel, (T, 3)), dt, g
 
 
-def _propagate_fast(state, gyro, accel, dt, g, batch, save_all):
+def paired_samples(gyro, accel, dt):
+    """``(..., n, 6)`` samples k and k+1 side by side (as :func:`time_major`: with ``n = T``
+    steps the last step holds sample T-1)."""
+    n, T = n_steps(gyro, dt), gyro.shape[-2]
+
+    def pair(x):
+        x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
+        return jnp.concatenate([x[..., :n, :], x1], -1)
+
+    return pair(gyro), pair(accel)
+
+
+def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
+    if get_scheme(scheme).uses_next_sample:
+        gyro, accel = paired_samples(gyro, accel, dt)
+    else:
+        gyro, accel = used_samples(gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
-    out = _fast.propagate_mean(q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f, save_all)
+    out = _fast.propagate_mean(get_scheme(scheme), q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f,
+                               save_all)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q, p, v = (unflat(x) for x in out)
     if save_all:
@@ -131,9 +142,10 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
     att = get_attitude(attitude)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1])
-    if uses_fast_path(scheme, attitude, fast) and np.prod(batch) >= _fast.MEAN_MIN_BATCH:
-        gyro, accel = used_samples(gyro, accel, dt)
-        return _propagate_fast(state, gyro, accel, dt, g, batch, save_all)
+    lanes = int(np.prod(batch, dtype=np.int64))
+    if dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
+                       fast=fast) == "soa_mean":
+        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
     body = mean_body(scheme, att, state.b_g, state.b_a, g)

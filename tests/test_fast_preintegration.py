@@ -11,7 +11,13 @@ import pytest
 
 import jaximu
 from jaximu import _fast_preint
-from jaximu.preintegration import _preintegrate, uses_fast_path
+from jaximu import _dispatch
+from jaximu.preintegration import _preintegrate
+
+
+def uses_fast_path(scheme, jacobians, prefixes, method="sequential", lanes=1024, fast=True):
+    return _dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
+                                         method=method, lanes=lanes, fast=fast) != "generic"
 
 FIELDS = ("delta_t", "delta_q", "delta_v", "delta_p", "transition", "cov15", "cov")
 

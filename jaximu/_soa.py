@@ -1,0 +1,336 @@
+"""Structure-of-arrays (SoA) building blocks of the fast kernels: one home for each.
+
+Why this layout (measured on this project's 2-core AVX2 x86 CPU, JAX 0.10.2; the figures
+and the reasoning are in docs/DESIGN.md, "Kernel layout"):
+
+* **Structure of arrays.** Inside the scan every per-sample quantity is a tuple of ``(B,)``
+  arrays (one per component; :class:`~jaximu._vec.V3` for vectors) and every 3×3 covariance
+  block is a ``(3, 3, B)`` array (batch minor). Each XLA loop fusion is then a plain loop
+  over the batch that LLVM vectorises. With the ``(B, 3)`` layout the fusions read several
+  components of one buffer through the scan's dynamic-slice index, which LLVM cannot
+  vectorise (scalar code).
+* **No concatenates in the loop** (``jnp.stack`` becomes a scalar select loop on XLA CPU);
+  vectors and blocks are assembled by broadcasting against constant one-hot tensors.
+* **Polynomial sin/cos.** ``jnp.sin``/``jnp.cos`` are scalar libm calls on XLA CPU. The half
+  angle of the exponential uses even polynomials in θ² (exact to rounding for θ ≤ π/2, no
+  sqrt/division, NaN-free gradient at 0); a Cody-Waite range-reduced path handles larger
+  angles and runs only when some element needs it (``lax.cond``).
+* **Stage boundaries.** XLA CPU has no multi-output fusion: a value read by several fusions is
+  recomputed in each (and a transposed read recomputes it again). Costly intermediate values
+  are materialised by computing them inside ``lax.cond`` with identical branches
+  (:func:`_stage`).
+* **Blocking.** Batches are processed in blocks of lanes (state in L1/L2), and time in chunks
+  of ``K`` samples whose inputs are transposed to time-major per chunk (:func:`_time_chunks`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu._vec import V3
+
+_CHUNK = (64, 16)  # preferred largest / smallest time chunk
+
+# ----------------------------------------------------------------------------- half angle
+
+_HALF_PI = 0.5 * math.pi
+_THR = _HALF_PI**2  # θ² below which θ/2 ≤ π/4 and the polynomials apply directly
+
+
+def _horner(x, coeffs):
+    out = coeffs[-1]
+    for c in reversed(coeffs[:-1]):
+        out = out * x + c
+    return out
+
+
+def _is64(dtype):
+    return jnp.dtype(dtype) == jnp.float64
+
+
+def _sinc_cos_coeffs(dtype):
+    n = 9 if _is64(dtype) else 6
+    sinc = [(-1) ** i / math.factorial(2 * i + 1) for i in range(n)]  # sin(r)/r in r²
+    cos = [(-1) ** i / math.factorial(2 * i) for i in range(n)]  # cos(r) in r²
+    return sinc, cos
+
+
+def _jr_b_small(t2):
+    """``(θ - sin θ)/θ³`` as a polynomial in ``θ²`` (θ ≤ π/2)."""
+    n = 10 if _is64(t2.dtype) else 6
+    return _horner(t2, [(-1) ** i / math.factorial(2 * i + 3) for i in range(n)])
+
+
+def _half_small(t2):
+    """``(cos(θ/2), sin(θ/2)/θ)`` for θ ≤ π/2: polynomials in θ² (no sqrt, no division)."""
+    sinc, cos = _sinc_cos_coeffs(t2.dtype)
+    r2 = 0.25 * t2
+    return _horner(r2, cos), 0.5 * _horner(r2, sinc)
+
+
+def _half_any(t2):
+    """Same for any θ: Cody-Waite reduction of θ/2 by π/2 and the same polynomials.
+
+    Elements with θ ≤ π/2 get exactly the values of :func:`_half_small`; the others see a
+    safe argument (double where), so values and gradients stay finite everywhere.
+    """
+    sinc, cos = _sinc_cos_coeffs(t2.dtype)
+    small = t2 < _THR
+    theta = jnp.sqrt(jnp.where(small, _THR, t2))
+    x = 0.5 * theta
+    k = jnp.round(x * (2.0 / math.pi))
+    if _is64(t2.dtype):
+        c1, c2, c3 = 1.5707963267341256, 6.077100506506192e-11, 2.0222568e-21
+    else:
+        c1, c2, c3 = 1.5703125, 4.837512969970703125e-4, 7.549789948768648e-8
+    r = ((x - k * c1) - k * c2) - k * c3
+    r2 = jnp.where(small, 0.25 * t2, r * r)
+    S, C = _horner(r2, sinc), _horner(r2, cos)
+    s = r * S
+    n = k - 4.0 * jnp.floor(0.25 * k)  # quadrant
+    odd = (n == 1) | (n == 3)
+    sa, ca = jnp.where(odd, C, s), jnp.where(odd, s, C)
+    sin_x = jnp.where(n >= 2, -sa, sa)
+    cos_x = jnp.where((n == 1) | (n == 2), -ca, ca)
+    return jnp.where(small, C, cos_x), jnp.where(small, 0.5 * S, sin_x / theta)
+
+
+def _any_big(t2):
+    return jnp.any(t2 >= _THR)
+
+
+# ----------------------------------------------------------------------------- SoA algebra
+
+
+def _quat_mul(p, q):
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return (pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw)
+
+
+def _quat_normalize(q):
+    n = jnp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return tuple(x / n for x in q)
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _quat_rotate(q, v):
+    """``R(q) v = v + 2w (u×v) + 2 u×(u×v)`` (as :func:`jaximu.so3.quat_rotate`)."""
+    w, u = q[0], q[1:]
+    t = tuple(2.0 * x for x in _cross(u, v))
+    c = _cross(u, t)
+    return tuple(v[i] + w * t[i] + c[i] for i in range(3))
+
+
+def half_angle(t2):
+    """``(cos(θ/2), sin(θ/2)/θ)`` for per-lane ``θ² = t2``: the range-reduced path only when
+    some lane needs it."""
+    return jax.lax.cond(_any_big(t2), _half_any, _half_small, t2)
+
+
+def quat_exp_mul(q, phi: V3):
+    """``normalize(q ⊗ Exp(φ))`` on SoA lanes (:data:`jaximu.integrators` "quaternion" form):
+    the exact exponential, renormalised so that rounding cannot let ``|q|`` drift."""
+    c, k = half_angle(phi.dot(phi))
+    return _quat_normalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
+
+
+def quat_matrix(q, dtype):
+    """:func:`jaximu.so3.quat_to_matrix` (also for a non-unit ``q``) as ``(3, 3, B)``:
+    ``I + 2(u uᵀ - |u|² I) + 2 w [u]x``."""
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    w, u = q[0], q[1:]
+    u3 = _vec3(u, dtype)
+    return (I3 + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
+            + _lane(2.0 * w) * _skew3(u, dtype))
+
+
+# ----------------------------------------------------------------------------- 3x3 blocks
+
+_E3 = np.eye(3)
+_S3 = np.stack([np.stack([np.cross(_E3[i], _E3[c]) for c in range(3)], axis=1) for i in range(3)])
+
+
+def _bmm(X, Y):
+    """Blockwise ``X @ Y`` of ``(3, 3, B)`` arrays (batch minor): one vectorised loop."""
+    return X[:, 0:1] * Y[0:1, :] + X[:, 1:2] * Y[1:2, :] + X[:, 2:3] * Y[2:3, :]
+
+
+def _bt(X):
+    return jnp.swapaxes(X, 0, 1)
+
+
+def _bsym(X):
+    return 0.5 * (X + _bt(X))
+
+
+def _vec3(t, dtype):
+    """3-tuple of ``(B,)`` -> ``(3, B)`` by broadcasting (no concatenate)."""
+    E = jnp.asarray(_E3, dtype)
+    return E[:, 0:1] * t[0][None] + E[:, 1:2] * t[1][None] + E[:, 2:3] * t[2][None]
+
+
+def _skew3(t, dtype):
+    """3-tuple of ``(B,)`` -> ``[v]x`` as ``(3, 3, B)``."""
+    S = jnp.asarray(_S3, dtype)
+    return sum(S[i][:, :, None] * t[i][None, None] for i in range(3))
+
+
+def _outer(u, v):
+    return u[:, None, :] * v[None, :, :]
+
+
+def _lane(s):
+    """A per-lane scalar ``(B,)`` (or a Python/0-d scalar) broadcast against ``(3, 3, B)``."""
+    return s[None, None] if jnp.ndim(s) else s
+
+
+def _diag_row(s3, dtype):
+    if jnp.ndim(s3[0]):
+        return _vec3(s3, dtype)[None]
+    return jnp.stack([jnp.asarray(x, dtype) for x in s3])[None, :, None]
+
+
+def _stage(pred, fn, *args):
+    """Run ``fn`` inside a ``lax.cond`` with two identical branches: XLA materialises a
+    conditional's outputs, so a value read by several fusions is computed once (XLA CPU has
+    no multi-output fusion and otherwise recomputes it inside every consumer fusion, and twice
+    for a transposed read). ``pred`` must be a runtime value (any): with a constant one XLA
+    inlines the conditional and the boundary disappears."""
+    return jax.lax.cond(pred, fn, fn, *args)
+
+
+# ----------------------------------------------------------------------------- drivers
+
+
+def _components(x):
+    return tuple(x[..., i] for i in range(x.shape[-1]))
+
+
+def _block_size(n, lanes):
+    """Lanes per batch block: ``n`` itself when at most ``lanes``, otherwise a divisor of
+    ``n`` between ``lanes/4`` and ``lanes`` (no padding), or ``n`` when none exists."""
+    if n <= lanes:
+        return n
+    for nb in range(-(-n // lanes), n // (lanes // 4) + 1):
+        if n % nb == 0:
+            return n // nb
+    return n
+
+
+def _chunk_size(T):
+    hi, lo = _CHUNK
+    if T <= hi:
+        return T
+    for K in range(hi, lo - 1, -1):
+        if T % K == 0:
+            return K
+    return 32  # remainder handled by a second (shorter) segment
+
+
+def _time_chunks(step, carry, gyro, accel, dt, consts, save):
+    """Scan ``step(carry, w, a, h, consts) -> carry`` over time for one batch block.
+
+    gyro, accel: ``(Bc, T, 3)``; dt: ``(T,)`` or ``(Bc, T)``. Inputs are transposed to
+    time-major ``(K, Bc)`` components one chunk of K samples at a time (cache-resident).
+    ``save(carry) -> tuple of (Bc, n)`` arrays written at every sample into ``(Bc, T, n)``
+    buffers (or ``None``).
+    """
+    Bc, T, _ = gyro.shape
+    K = _chunk_size(T)
+    nC, rem = divmod(T, K)
+
+    def comps(x, t0, L):
+        c = jax.lax.dynamic_slice_in_dim(x, t0, L, axis=1)  # (Bc, L, 3)
+        ct = jnp.transpose(c, (2, 1, 0))  # (3, L, Bc)
+        return tuple(ct[i] for i in range(ct.shape[0]))
+
+    def hs(t0, L):
+        if dt.ndim == 1:
+            return jax.lax.dynamic_slice_in_dim(dt, t0, L, axis=0)
+        return jnp.transpose(jax.lax.dynamic_slice_in_dim(dt, t0, L, axis=1))  # (L, Bc)
+
+    def segment(state, t0, L):
+        carry, bufs = state
+
+        def body(st, xs):
+            c, bufs = st
+            t, w, a, h = xs
+            c = step(c, w, a, h, consts)
+            if save is not None:
+                bufs = tuple(jax.lax.dynamic_update_index_in_dim(b, y, t, 1)
+                             for b, y in zip(bufs, save(c)))
+            return (c, bufs), None
+
+        xs = (t0 + jnp.arange(L), comps(gyro, t0, L), comps(accel, t0, L), hs(t0, L))
+        return jax.lax.scan(body, (carry, bufs), xs)[0]
+
+    bufs = ()
+    if save is not None:
+        bufs = tuple(jnp.zeros((Bc, T) + y.shape[1:], y.dtype) for y in save(carry))
+    state = (carry, bufs)
+    if nC:
+        state = jax.lax.scan(lambda s, i: (segment(s, i * K, K), None), state, jnp.arange(nC))[0]
+    if rem:
+        state = segment(state, nC * K, rem)
+    return state
+
+
+def run_blocked(block_fn, B, lanes, *args):
+    """``block_fn(*block_args)`` over batch blocks of at most ``lanes`` lanes (a
+    ``lax.map``); every leaf of ``args`` has leading axis B."""
+    Bc = _block_size(B, lanes)
+    if Bc == B:
+        return block_fn(*args)
+    nb = B // Bc
+    split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
+    out = jax.lax.map(lambda a: block_fn(*a), jax.tree_util.tree_map(split, args))
+    return jax.tree_util.tree_map(lambda x: x.reshape((B,) + x.shape[2:]), out)
+
+
+def _stack_last(t):
+    return jnp.stack(t, axis=-1)
+
+
+# ----------------------------------------------------------------------------- mean step
+
+
+def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
+    """One step of ``scheme`` (a :class:`jaximu.integrators.Scheme`) on SoA lanes, exact
+    quaternion exponential: :func:`jaximu.integrators.step` in this layout.
+
+    Args:
+        q: 4-tuple of ``(B,)``; p, v, omega*, f*, g: :class:`V3` of ``(B,)`` (or scalars);
+        h: ``(B,)`` or scalar step [s].
+        end_half: ``(cos(θ/2), sin(θ/2)/θ)`` of the end rotation when the caller has them.
+
+    Returns:
+        ``(q⁺, p⁺, v⁺)``.
+    """
+    from jaximu.integrators import END
+
+    pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
+    c, k = half_angle(phi_end.dot(phi_end)) if end_half is None else end_half
+    q_end = _quat_normalize(_quat_mul(q, (c, k * phi_end.x, k * phi_end.y, k * phi_end.z)))
+    v1, p1 = v, p + v * h
+    for pt in pts:
+        if pt.phi is None:
+            qs = q
+        elif pt.phi is END:
+            qs = q_end
+        else:
+            qs = quat_exp_mul(q, pt.phi)
+        a = V3(*_quat_rotate(qs, pt.f)) + g
+        v1 = v1 + a * pt.wv
+        p1 = p1 + a * pt.wp
+    return q_end, tuple(p1), tuple(v1)

@@ -1,0 +1,53 @@
+"""Three-vectors as named components, so one formula serves every layout.
+
+A scheme's stages (:mod:`jaximu.integrators`) are written once on :class:`V3`. The
+generic kernels split ``(..., 3)`` arrays into components (:meth:`V3.of`); the
+structure-of-arrays kernels (:mod:`jaximu._soa`) keep ``(B,)`` lanes as components, the
+layout XLA:CPU vectorises (docs/DESIGN.md, "kernel layout"). Scalars multiplying a
+``V3`` broadcast against its components (``(...,)`` arrays, or Python/0-d scalars).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class V3(NamedTuple):
+    x: jax.Array
+    y: jax.Array
+    z: jax.Array
+
+    @staticmethod
+    def of(a) -> V3:
+        """Components of a ``(..., 3)`` array."""
+        return V3(a[..., 0], a[..., 1], a[..., 2])
+
+    def stack(self):
+        """The ``(..., 3)`` array."""
+        return jnp.stack(jnp.broadcast_arrays(*self), axis=-1)
+
+    # tuple's + and * concatenate and repeat: a V3 adds and scales instead
+    def __add__(self, o):
+        return V3(self.x + o.x, self.y + o.y, self.z + o.z)
+
+    def __sub__(self, o):
+        return V3(self.x - o.x, self.y - o.y, self.z - o.z)
+
+    def __neg__(self):
+        return V3(-self.x, -self.y, -self.z)
+
+    def __mul__(self, s):
+        return V3(self.x * s, self.y * s, self.z * s)
+
+    def __rmul__(self, s):
+        return V3(s * self.x, s * self.y, s * self.z)
+
+    def dot(self, o):
+        return self.x * o.x + self.y * o.y + self.z * o.z
+
+    def cross(self, o):
+        return V3(self.y * o.z - self.z * o.y, self.z * o.x - self.x * o.z,
+                  self.x * o.y - self.y * o.x)
