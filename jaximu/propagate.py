@@ -84,7 +84,8 @@ def flatten_batch(batch, state, gyro, accel, dt, g):
               (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3))]
     dt = jnp.broadcast_to(dt, (T,)) if dt.ndim <= 1 else flat(dt, (T,))
     g = g if g.ndim == 1 else flat(g, (3,))
-    return fields, flat(gyro, (T, 3)), flat(accel, (T, 3)), dt, g
+    k = gyro.shape[-1]  # 3, or 6 with samples k and k+1 side by side
+    return fields, flat(gyro, (T, k)), flat(accel, (T, k)), dt, g
 
 
 def paired_samples(gyro, accel, dt):

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu import _fast
+from jaximu import _dispatch, _fast, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 
@@ -30,23 +30,25 @@ def inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
     return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("save_all", "fast"))
-def mean(state, gyro, accel, dt, g, *, save_all, fast):
-    return _propagate(state, gyro, accel, dt, g, scheme="euler", attitude="quaternion",
+@functools.partial(jax.jit, static_argnames=("save_all", "fast", "scheme"))
+def mean(state, gyro, accel, dt, g, *, save_all, fast, scheme="euler"):
+    return _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude="quaternion",
                       save_all=save_all, fast=fast)[0]
 
 
-@pytest.mark.parametrize("B,T,big,per_lane_dt", [(64, 97, False, False), (40, 50, True, True),
-                                                 (2100, 40, False, False)])
+@pytest.mark.parametrize("B,T,big,per_lane_dt,scheme", [
+    (64, 97, False, False, "euler"), (40, 50, True, True, "euler"),
+    (2100, 40, False, False, "euler"), (40, 50, True, True, "midpoint"),
+    (64, 97, False, False, "rk4"), (40, 50, True, True, "rk4")])
 @pytest.mark.parametrize("save_all", [False, True])
-def test_mean_fast_path_equals_generic(B, T, big, per_lane_dt, save_all):
-    assert B >= _fast.MEAN_MIN_BATCH
+def test_mean_fast_path_equals_generic(B, T, big, per_lane_dt, scheme, save_all):
+    assert B >= _dispatch.TABLE[0].min_lanes
     state, gyro, accel = inputs(B, T, big_angles=big)
     rng = np.random.default_rng(1)
     dt = jnp.asarray(rng.uniform(0.002, 0.02, size=(B, T) if per_lane_dt else (T,)))
     g = jnp.asarray(np.tile(G_W, (B, 1)) + 0.01 * rng.normal(size=(B, 3))) if big else G_W
-    fast = mean(state, gyro, accel, dt, g, save_all=save_all, fast=True)
-    ref = mean(state, gyro, accel, dt, g, save_all=save_all, fast=False)
+    fast = mean(state, gyro, accel, dt, g, save_all=save_all, fast=True, scheme=scheme)
+    ref = mean(state, gyro, accel, dt, g, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
@@ -114,7 +116,7 @@ def test_half_angle_kernels_match_trig(dtype):
     theta = np.r_[0.0, 1e-8, 1e-3, np.linspace(0.01, 3.2, 400), np.linspace(3.2, 200.0, 400)]
     t2 = jnp.asarray(theta**2, dtype)
     theta = np.sqrt(np.asarray(t2, np.float64))  # the angle the kernel actually sees
-    c, k = jax.jit(_fast._half_any)(t2)
+    c, k = jax.jit(_soa._half_any)(t2)
     safe = np.where(theta > 0, theta, 1.0)
     k_ref = np.where(theta > 0, np.sin(theta / 2) / safe, 0.5)
     eps = np.finfo(dtype).eps
@@ -122,7 +124,7 @@ def test_half_angle_kernels_match_trig(dtype):
     assert np.all(np.abs(np.asarray(c, np.float64) - np.cos(theta / 2))
                   <= 8 * eps * np.maximum(1, theta))
     np.testing.assert_allclose(k, k_ref, rtol=0, atol=8 * eps)
-    small = theta**2 < _fast._THR
-    cs, ks = jax.jit(_fast._half_small)(t2[small])
+    small = theta**2 < _soa._THR
+    cs, ks = jax.jit(_soa._half_small)(t2[small])
     np.testing.assert_allclose(cs, np.cos(theta[small] / 2), rtol=0, atol=4 * eps)
     np.testing.assert_allclose(ks, k_ref[small], rtol=0, atol=4 * eps)
