@@ -130,8 +130,8 @@ UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
 
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
-    """Flat batch: q ``(B, 4)``, p/v/b_g/b_a ``(B, 3)``, gyro/accel ``(B, T, 3)`` (or
-    ``(B, T, 6)``: samples k and k+1 side by side, for a scheme that uses both), dt ``(T,)``
+    """Flat batch: q ``(B, 4)``, p/v/b_g/b_a ``(B, 3)``, gyro/accel ``(B, T, 3)`` (``T + 1``
+    samples for a scheme that uses sample k+1: the last one ends the last step), dt ``(T,)``
     or ``(B, T)``, g ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with
     save_all, the ``(B, T, ·)`` trajectories."""
     B = gyro.shape[0]
@@ -150,7 +150,8 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
             return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
-        carry, bufs = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b, consts, save)
+        carry, bufs = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b, consts,
+                                   save, next_sample=scheme.uses_next_sample)
         if save_all:
             return bufs
         return tuple(_stack_last(x) for x in carry)

@@ -238,21 +238,25 @@ def _chunk_size(T):
     return 32  # remainder handled by a second (shorter) segment
 
 
-def _time_chunks(step, carry, gyro, accel, dt, consts, save):
+def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
     """Scan ``step(carry, w, a, h, consts) -> carry`` over time for one batch block.
 
     gyro, accel: ``(Bc, T, 3)``; dt: ``(T,)`` or ``(Bc, T)``. Inputs are transposed to
     time-major ``(K, Bc)`` components one chunk of K samples at a time (cache-resident).
+    With ``next_sample`` the inputs hold ``T + 1`` samples and ``w``, ``a`` are 6-tuples:
+    samples k and k+1, both read from the same chunk (no paired copy of the inputs).
     ``save(carry) -> tuple of (Bc, n)`` arrays written at every sample into ``(Bc, T, n)``
     buffers (or ``None``).
     """
-    Bc, T, _ = gyro.shape
+    Bc, T = gyro.shape[0], gyro.shape[1] - int(next_sample)
     K = _chunk_size(T)
     nC, rem = divmod(T, K)
 
     def comps(x, t0, L):
-        c = jax.lax.dynamic_slice_in_dim(x, t0, L, axis=1)  # (Bc, L, 3)
-        ct = jnp.transpose(c, (2, 1, 0))  # (3, L, Bc)
+        c = jax.lax.dynamic_slice_in_dim(x, t0, L + int(next_sample), axis=1)  # (Bc, L(+1), 3)
+        ct = jnp.transpose(c, (2, 1, 0))  # (3, L(+1), Bc)
+        if next_sample:
+            return tuple(ct[i, :L] for i in range(3)) + tuple(ct[i, 1:] for i in range(3))
         return tuple(ct[i] for i in range(ct.shape[0]))
 
     def hs(t0, L):

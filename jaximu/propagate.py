@@ -80,29 +80,29 @@ def flatten_batch(batch, state, gyro, accel, dt, g):
     T = gyro.shape[-2]
     B = int(np.prod(batch, dtype=np.int64))
     flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
+    steps = dt.shape[-1] if dt.ndim else T  # gyro may hold one sample more
     fields = [flat(getattr(state, n), (k,)) for n, k in
               (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3))]
-    dt = jnp.broadcast_to(dt, (T,)) if dt.ndim <= 1 else flat(dt, (T,))
+    dt = jnp.broadcast_to(dt, (steps,)) if dt.ndim <= 1 else flat(dt, (steps,))
     g = g if g.ndim == 1 else flat(g, (3,))
-    k = gyro.shape[-1]  # 3, or 6 with samples k and k+1 side by side
+    k = gyro.shape[-1]
     return fields, flat(gyro, (T, k)), flat(accel, (T, k)), dt, g
 
 
-def paired_samples(gyro, accel, dt):
-    """``(..., n, 6)`` samples k and k+1 side by side (as :func:`time_major`: with ``n = T``
-    steps the last step holds sample T-1)."""
+def extended_samples(gyro, accel, dt):
+    """``(..., n + 1, 3)`` samples for the steps of a scheme that uses sample k+1: with
+    ``n = T`` steps the last sample is held (repeated once, as :func:`time_major`); with
+    ``n = T - 1`` the samples are already the ends of the intervals."""
     n, T = n_steps(gyro, dt), gyro.shape[-2]
-
-    def pair(x):
-        x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
-        return jnp.concatenate([x[..., :n, :], x1], -1)
-
-    return pair(gyro), pair(accel)
+    if n < T:
+        return gyro, accel
+    return tuple(jnp.concatenate([x, x[..., -1:, :]], -2) for x in (gyro, accel))
 
 
 def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
     if get_scheme(scheme).uses_next_sample:
-        gyro, accel = paired_samples(gyro, accel, dt)
+        dt = jnp.broadcast_to(dt, (n_steps(gyro, dt),)) if dt.ndim == 0 else dt
+        gyro, accel = extended_samples(gyro, accel, dt)
     else:
         gyro, accel = used_samples(gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
