@@ -1,6 +1,6 @@
 """One propagation step for each scheme and attitude form.
 
-Continuous model (DESIGN.md): ``Ṙ = R [ω]x``, ``v̇ = R f + g_W``, ``ṗ = v``, with the
+Continuous model (docs/DESIGN.md): ``Ṙ = R [ω]x``, ``v̇ = R f + g_W``, ``ṗ = v``, with the
 bias-corrected rate ``ω = w_m - b_g`` and specific force ``f = a_m - b_a``; the biases are
 constant in the mean (their random walk has zero mean).
 
@@ -26,7 +26,7 @@ rk4        ω, f linear between samples k and k+1; φ(τ) is   4
 
 The attitude form decides what ``R ⊞ φ`` means:
 
-* ``"quaternion"``: exact exponential ``q ⊗ Exp(φ)`` (the Θ(Δt) of DESIGN.md), renormalised
+* ``"quaternion"``: exact exponential ``q ⊗ Exp(φ)`` (the Θ(Δt) of docs/DESIGN.md), renormalised
   so that rounding cannot let ``|q|`` drift;
 * ``"quaternion_first_order"``: ``normalize(q ⊗ [1, φ/2])``; an angle error θ³/12 per
   step, so attitude is at most second order whatever the scheme;

@@ -1,7 +1,8 @@
 """Mean propagation over time: the ``lax.scan`` drivers.
 
-Batch axes stay inside the scan step (every kernel broadcasts over leading axes), which
-DESIGN.md measured as the fastest layout; ``jax.vmap`` over these functions works too.
+Batch axes stay inside the scan step (every kernel broadcasts over leading axes), the
+fastest layout (docs/DESIGN.md, section 3); a ``jax.vmap`` of these functions is routed to
+the same batched kernels (section 4), and :mod:`jaximu._dispatch` picks the kernel.
 """
 
 from __future__ import annotations

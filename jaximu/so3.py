@@ -7,7 +7,7 @@ Every function acts on one sample and broadcasts over leading axes:
 * rotation matrices are ``(..., 3, 3)``.
 
 A quaternion ``q`` represents ``R = R(q)``, which maps body vectors into the world
-(``R_WB``, see DESIGN.md). ``exp`` and ``log`` are the SO(3) exponential and logarithm of
+(``R_WB``, see docs/DESIGN.md). ``exp`` and ``log`` are the SO(3) exponential and logarithm of
 the rotation vector ``phi = theta * axis``.
 
 Values *and* gradients are finite and correct at zero angle, at tiny angles and near pi,
@@ -174,7 +174,7 @@ def matrix_to_quat(R):
 def exp(phi):
     """SO(3) exponential as a quaternion: ``[cos(θ/2), sin(θ/2) φ/θ]``. ``(..., 3) -> (..., 4)``.
 
-    This is the exact constant-rate orientation update ``Θ(Δt)`` of DESIGN.md for
+    This is the exact constant-rate orientation update ``Θ(Δt)`` of docs/DESIGN.md for
     ``φ = ω Δt``.
     """
     theta_sq = jnp.sum(phi * phi, axis=-1)

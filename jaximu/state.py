@@ -1,6 +1,6 @@
 """Navigation state, IMU bias, and the 15-dim error state.
 
-Conventions (DESIGN.md): ``q`` is the Hamilton quaternion ``[w, x, y, z]`` of ``R_WB``
+Conventions (docs/DESIGN.md): ``q`` is the Hamilton quaternion ``[w, x, y, z]`` of ``R_WB``
 (body to world); ``p``, ``v`` are in the world frame W (z up); ``b_g``, ``b_a`` are in the
 body frame B. The error state is ordered ``[dθ, dp, dv, db_g, db_a]``; the rotation error
 is on the right (body frame), ``R = R̂ Exp(dθ)``, and the rest is additive. This equals
