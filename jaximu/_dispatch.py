@@ -20,6 +20,16 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 
+LONG_STEPS = 2048
+"""From this many steps a sequence of a small batch is cut into time chunks (mean)."""
+
+CHUNK_LANES = 1024
+"""Lanes the time chunks of long sequences aim to fill (one batch block)."""
+
+MIN_CHUNK_STEPS = 32
+"""Shortest time chunk of a long sequence."""
+
+
 class Row(NamedTuple):
     entry: str  # "mean", "covariance", "preintegrate"
     schemes: tuple  # schemes the kernel implements
@@ -27,19 +37,23 @@ class Row(NamedTuple):
     jacobians: tuple | None  # Jacobian options (None: not applicable)
     save_all: tuple  # (False,) final only, (False, True) both
     min_lanes: int  # below this many batch elements the generic kernel is as fast
+    min_steps: int  # fewer steps than this: the row does not apply
     kernel: str
 
 
 TABLE = (
     # mean of every scheme with the exact quaternion exponential; below 32 lanes XLA's
     # generic scan (one fused kernel per step) is as fast
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32,
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
         "soa_mean"),
+    # a few long sequences: time chunks side by side as lanes (mean_chunks), composed
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
+        LONG_STEPS, "soa_mean_chunked"),
     # final covariance, Euler, closed-form Jacobians
-    Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, "soa_cov"),
+    Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, 1, "soa_cov"),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
-    Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, "soa_preint_euler"),
-    Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1,
+    Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler"),
+    Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,
         "soa_preint_midpoint"),
 )
 
@@ -49,18 +63,26 @@ PREINT_MIN_LANES_SEQUENTIAL = 8
 """Sequential preintegration of fewer windows than this runs the generic scan (as fast)."""
 
 
-def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1,
+def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
            fast=True) -> str:
-    """The kernel that runs ``entry`` for these static options and ``lanes`` batch elements."""
+    """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
+    and ``steps`` time steps."""
     if not fast:
         return GENERIC
     for row in TABLE:
         if (row.entry == entry and scheme in row.schemes
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
-                and save_all in row.save_all and lanes >= row.min_lanes):
+                and save_all in row.save_all and lanes >= row.min_lanes
+                and steps >= row.min_steps):
             return row.kernel
     return GENERIC
+
+
+def mean_chunks(lanes, steps) -> int:
+    """Time chunks per sequence for ``soa_mean_chunked``: enough to fill about
+    :data:`CHUNK_LANES` lanes, each at least :data:`MIN_CHUNK_STEPS` steps long."""
+    return int(max(1, min(-(-CHUNK_LANES // lanes), steps // MIN_CHUNK_STEPS)))
 
 
 # --------------------------------------------------------------------------- preintegration

@@ -16,6 +16,7 @@ import numpy as np
 from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
+from jaximu import so3
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
 from jaximu.state import NavState
@@ -121,6 +122,80 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
     return states, jnp.zeros(batch, bool)
 
 
+def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
+    """A few long sequences, cut into ``C`` time chunks that run side by side as lanes.
+
+    Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
+    known relative to its start, and its acceleration weights sum to ``h`` (in v) and
+    ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
+    exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The deltas are
+    composed in sequence (``C`` cheap steps: ``R ΔR``, ``v + g Δt + R Δv``,
+    ``p + v Δt + ½ g Δt² + R Δp``) to give each chunk's start state, and, when every state
+    is asked for, the chunks are propagated again from those states, side by side. Equal to
+    the plain scan to rounding.
+    """
+    sch = get_scheme(scheme)
+    n, T = n_steps(gyro, dt), gyro.shape[-2]
+    dtype = gyro.dtype
+    B = int(np.prod(batch, dtype=np.int64))
+    C = dispatch.mean_chunks(B, n)
+    L = -(-n // C)
+    pad = C * L - n
+    if sch.uses_next_sample:
+        gyro, accel = extended_samples(gyro, accel, dt)  # n + 1 samples
+    else:
+        gyro, accel = gyro[..., :n, :], accel[..., :n, :]
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
+                                                                   dt, g)
+    dt_f = jnp.broadcast_to(dt_f, (B, n))
+    extra = int(sch.uses_next_sample)
+    if pad:  # padded steps have dt = 0: exact identities for every scheme
+        dt_f = jnp.pad(dt_f, ((0, 0), (0, pad)))
+        gyro_f, accel_f = (jnp.pad(x, ((0, 0), (0, pad), (0, 0)), mode="edge")
+                           for x in (gyro_f, accel_f))
+    # chunk c holds steps [cL, cL + L) and, for sample k+1 schemes, sample cL + L too
+    idx = np.arange(C)[:, None] * L + np.arange(L + extra)[None, :]
+    lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])  # noqa: E731
+    gyro_c, accel_c = lanes(gyro_f), lanes(accel_f)
+    dt_c = dt_f.reshape(B * C, L)
+    rep = lambda x: jnp.repeat(x, C, axis=0)  # noqa: E731
+    z = jnp.zeros((B * C, 3), dtype)
+    q_id = jnp.zeros((B * C, 4), dtype).at[:, 0].set(1)
+    dq, dp, dv = _fast.propagate_mean(sch, q_id, z, z, rep(b_g), rep(b_a), gyro_c, accel_c,
+                                      dt_c, jnp.zeros(3, dtype), False)
+    unlane = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), 1, 0)  # noqa: E731
+    t_c = unlane(jnp.sum(dt_c, axis=-1))  # (C, B)
+    g_b = jnp.broadcast_to(g_f, (B, 3))
+
+    def compose(carry, x):
+        q0, p0, v0 = carry
+        dq_c, dp_c, dv_c, t = x
+        tt = t[:, None]
+        q1 = so3.quat_normalize(so3.quat_mul(q0, dq_c))
+        v1 = v0 + g_b * tt + so3.quat_rotate(q0, dv_c)
+        p1 = p0 + v0 * tt + 0.5 * g_b * tt * tt + so3.quat_rotate(q0, dp_c)
+        return (q1, p1, v1), (q0, p0, v0)
+
+    (qf, pf, vf), starts = jax.lax.scan(compose, (q, p, v),
+                                        (unlane(dq), unlane(dp), unlane(dv), t_c))
+    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
+    if not save_all:
+        states = NavState(unflat(qf), unflat(pf), unflat(vf),
+                          jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+                          jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+        return states, jnp.zeros(batch, bool)
+    q0, p0, v0 = (jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:]) for x in starts)
+    g_c = g_f if g_f.ndim == 1 else rep(g_f)
+    qs, ps, vs = _fast.propagate_mean(sch, q0, p0, v0, rep(b_g), rep(b_a), gyro_c, accel_c,
+                                      dt_c, g_c, True)
+    whole = lambda x: unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n])  # noqa: E731
+    bshape = tuple(batch) + (n, 3)
+    states = NavState(whole(qs), whole(ps), whole(vs),
+                      jnp.broadcast_to(state.b_g[..., None, :], bshape),
+                      jnp.broadcast_to(state.b_a[..., None, :], bshape))
+    return states, jnp.zeros(batch, bool)
+
+
 def mean_body(scheme, att, b_g, b_a, g):
     """The scan body of the mean: carry ``(x, p, v, locked)``, input one time slice."""
 
@@ -145,9 +220,12 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1])
     lanes = int(np.prod(batch, dtype=np.int64))
-    if dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
-                       fast=fast) == "soa_mean":
+    kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
+                             steps=n_steps(gyro, dt), fast=fast)
+    if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
+    if kernel == "soa_mean_chunked":
+        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
     body = mean_body(scheme, att, state.b_g, state.b_a, g)
