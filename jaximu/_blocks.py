@@ -23,6 +23,31 @@ import jax
 import jax.numpy as jnp
 
 
+class Layout(NamedTuple):
+    """How 3×3 blocks are stored: the products and transposes every function here uses.
+
+    :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu._soa.SOA`:
+    ``(3, 3, B)`` batch-minor blocks (the structure-of-arrays kernels). One copy of the
+    block algebra serves both.
+    """
+
+    matmul: object  # X @ Y
+    transpose: object  # Xᵀ
+    scale: object  # s X for a per-element scalar s
+    scale_cols: object  # X diag(s) for a per-element 3-vector s
+    diag: object  # diag(s) for a per-element 3-vector s
+    barrier: object = lambda tree: tree  # materialise a pytree of blocks (SoA: see _soa)
+
+
+ARRAYS = Layout(
+    matmul=jnp.matmul,
+    transpose=lambda x: jnp.swapaxes(x, -1, -2),
+    scale=lambda s, X: s[..., None, None] * X,
+    scale_cols=lambda X, s: X * s[..., None, :],
+    diag=lambda s: s[..., :, None] * jnp.eye(3, dtype=s.dtype),
+)
+
+
 class Blocks(NamedTuple):
     """Non-trivial 3×3 blocks of ``Φ`` (``(..., 3, 3)``; ``None`` where zero) and ``dt``."""
 
@@ -40,15 +65,15 @@ class Blocks(NamedTuple):
 UPPER = [(i, j) for i in range(5) for j in range(i, 5)]
 
 
-def t(x):
-    return None if x is None else jnp.swapaxes(x, -1, -2)
+def t(x, ops: Layout = ARRAYS):
+    return None if x is None else ops.transpose(x)
 
 
-def mm(X, Y):
+def mm(X, Y, ops: Layout = ARRAYS):
     """3×3 (batched) product; ``None`` (a zero block) if either factor is ``None``."""
     if X is None or Y is None:
         return None
-    return jnp.matmul(X, Y)
+    return ops.matmul(X, Y)
 
 
 def add(*terms):
@@ -62,12 +87,12 @@ def add(*terms):
     return out
 
 
-def scale(s, X):
-    return None if X is None else s[..., None, None] * X
+def scale(s, X, ops: Layout = ARRAYS):
+    return None if X is None else ops.scale(s, X)
 
 
-def sym(x):
-    return 0.5 * (x + t(x))
+def sym(x, ops: Layout = ARRAYS):
+    return 0.5 * (x + t(x, ops))
 
 
 def dense_to_blocks(P):
@@ -134,11 +159,20 @@ def phi_compose(F: Blocks, P: Blocks) -> Blocks:
     )
 
 
-def phi_p_phit(Pb, b: Blocks):
+def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS):
     """``Φ P Φᵀ`` on upper blocks (``None``/missing blocks of ``P`` are zero)."""
 
     def P(i, j):
-        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)))
+        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+
+    def mm(X, Y):
+        return globals()["mm"](X, Y, ops)
+
+    def scale(s, X):
+        return globals()["scale"](s, X, ops)
+
+    def t(x, ops=ops):
+        return globals()["t"](x, ops)
 
     hh = b.dt
     # M = Φ P, rows θ (0), p (1), v (2); rows b_g (3), b_a (4) are those of P.
@@ -148,6 +182,7 @@ def phi_p_phit(Pb, b: Blocks):
                    mm(b.Ep, P(4, j))) for j in range(5)}
     M[2] = {j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
             for j in range(5)}
+    M[0], M[1], M[2] = ops.barrier((M[0], M[1], M[2]))  # each is read by several products
     At, Bt, Cpt, Cvt = t(b.A), t(b.B), t(b.Cp), t(b.Cv)
     Dpt, Dvt, Ept, Evt = t(b.Dp), t(b.Dv), t(b.Ep), t(b.Ev)
     out = {}
@@ -173,24 +208,46 @@ def add_blocks(Pb, Qb):
     return {k: add(Pb.get(k), Qb.get(k)) for k in keys}
 
 
-def symmetrize_diagonal(Pb):
-    return {k: (sym(v) if (v is not None and k[0] == k[1]) else v) for k, v in Pb.items()}
+def symmetrize_diagonal(Pb, ops: Layout = ARRAYS):
+    return {k: (sym(v, ops) if (v is not None and k[0] == k[1]) else v) for k, v in Pb.items()}
 
 
-def noise_blocks(columns, variances):
+def noise_blocks(columns, variances, ops: Layout = ARRAYS):
     """Upper blocks of ``Σ_n V_n diag(s_n) V_nᵀ`` for noise inputs ``n``.
 
     Args:
         columns: list over noise inputs of ``{row_block: V_rn}`` (``(..., 3, 3)``; a missing
             row block is zero).
-        variances: list over noise inputs of ``(..., 3)`` per-axis variances ``s_n``.
+        variances: list over noise inputs of per-axis variances ``s_n`` (``(..., 3)``, or
+            as ``ops`` stores 3-vectors).
     """
     out = {}
     for V, s in zip(columns, variances):
         V = {k: v for k, v in V.items() if v is not None}
         rows = sorted(V)
         for a_i, i in enumerate(rows):
-            Vs = V[i] * s[..., None, :]
+            Vs = ops.scale_cols(V[i], s)
             for j in rows[a_i:]:
-                out[(i, j)] = add(out.get((i, j)), mm(Vs, t(V[j])))
+                out[(i, j)] = add(out.get((i, j)), mm(Vs, t(V[j], ops), ops))
     return out
+
+
+def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS):
+    """``Φ P Φᵀ + G Q_c Gᵀ`` on the upper blocks of ``P``, using the structure of ``Φ``.
+
+    Args:
+        Pb: upper blocks of ``P`` (see :func:`dense_to_blocks`).
+        b: blocks of ``Φ``; ``G`` follows from them (module docstring).
+        qc: the diagonal of ``Q_c`` as four per-axis 3-vectors ``[σ_g², σ_a², σ_bg², σ_ba²]/dt``
+            (``(..., 3)`` each, or as ``ops`` stores 3-vectors); a ``(..., 12)`` array is split.
+        ops: the block layout (:data:`ARRAYS` or :data:`jaximu._soa.SOA`).
+    """
+    if not isinstance(qc, (tuple, list)):
+        qc = (qc[..., 0:3], qc[..., 3:6], qc[..., 6:9], qc[..., 9:12])
+    b = ops.barrier(b)  # every block is read by several products
+    h = b.dt
+    Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)
+    hh = h * h
+    Q[(3, 3)] = ops.scale(hh, ops.diag(qc[2]))
+    Q[(4, 4)] = ops.scale(hh, ops.diag(qc[3]))
+    return symmetrize_diagonal(add_blocks(phi_p_phit(Pb, b, ops), Q), ops)

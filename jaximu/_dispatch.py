@@ -51,6 +51,9 @@ TABLE = (
         LONG_STEPS, "soa_mean_chunked"),
     # final covariance, Euler, closed-form Jacobians
     Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, 1, "soa_cov"),
+    # final covariance, every scheme, blocks by autodiff of the SoA step
+    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
+        1, "soa_cov_autodiff"),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
     Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler"),
     Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,

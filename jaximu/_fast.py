@@ -7,11 +7,14 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _skew3, _stack_last, _stage,
                          _time_chunks, _vec3, mean_step, quat_matrix, run_blocked)
+from jaximu._blocks import Blocks, structured_update
+from jaximu._soa import SOA
 from jaximu._vec import V3
 from jaximu.integrators import SCHEME_OBJECTS
 
@@ -176,9 +179,66 @@ def blocks_to_dense(Pb):
     return jnp.moveaxis(D, -1, 0)
 
 
-def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane):
+def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
+    """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
+
+    ``jax.linearize`` of :func:`jaximu._soa.mean_step` gives the step and its linear map;
+    the map is evaluated on the 9 non-structural directions at once (``dθ``: the tangent
+    ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``; ``db_g``, ``db_a``: ``-e_j`` on both samples' rate
+    or specific force), a ``vmap`` whose direction axis is major and whose lanes stay minor.
+    The rotation rows are ``2 vec(q⁺* ⊗ δq⁺)`` (the tangent of ``Log(q̂⁺* q⁺)``). As
+    :func:`jaximu.errorstate.blocks_autodiff`, on this layout.
+
+    Returns:
+        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
+    """
+    def step(q, omega0, omega1, f0, f1):
+        return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
+
+    (q1, p1, v1), lin = jax.linearize(step, q, omega0, omega1, f0, f1)
+    dtype = q[0].dtype
+    lanes = q[0].shape
+    E = np.eye(9)
+
+    def const(col):  # (9,) per direction, broadcast over the lanes
+        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (9,) + lanes)
+
+    half = [_quat_mul(q, (0.0, 0.5 * E[j, 0], 0.5 * E[j, 1], 0.5 * E[j, 2])) for j in range(3)]
+    tq = tuple(sum(const(E[j])[...] * half[j][c][None] for j in range(3)) for c in range(4))
+    tw = V3(*(const(-E[:, 3 + i]) for i in range(3)))
+    tf = V3(*(const(-E[:, 6 + i]) for i in range(3)))
+    tq1, tp1, tv1 = jax.vmap(lin)(tq, tw, tw, tf, tf)
+    conj = (q1[0], -q1[1], -q1[2], -q1[3])
+    rel = _quat_mul(tuple(x[None] for x in conj), tq1)
+    th = tuple(2.0 * rel[1 + i] for i in range(3))
+
+    E3 = jnp.asarray(_E3, dtype)
+
+    def block(rows, c0):  # rows: 3 components (9, B); columns c0..c0+2 -> (3, 3, B)
+        # one-hot broadcasting, not jnp.stack (a concatenate is a scalar loop on XLA:CPU)
+        return sum(E3[:, i, None, None] * r[None, c0:c0 + 3] for i, r in enumerate(rows))
+
+    b = Blocks(A=block(th, 0), B=block(th, 3), Cp=block(tp1, 0), Cv=block(tv1, 0),
+               Dp=block(tp1, 3), Dv=block(tv1, 3), Ep=block(tp1, 6), Ev=block(tv1, 6), dt=h)
+    return (q1, p1, v1), b
+
+
+def cov_step_autodiff(scheme, carry, omega0, f0, omega1, f1, h, g, qc):
+    """Mean + covariance step of any scheme with autodiff blocks and the block update of
+    :func:`jaximu._blocks.structured_update` on the SoA layout. ``carry = (q, p, v, Pb)``."""
+    q, p, v, Pb = carry
+    (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g)
+    new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA)
+    return q1, p1, v1, tuple(new[k] for k in UPPER)
+
+
+def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
+                        scheme=None):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
-    ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise)."""
+    ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
+    ``scheme``: None for the Euler step with closed-form blocks (:func:`cov_step`), or a
+    scheme whose blocks come from autodiff (:func:`cov_step_autodiff`; inputs with ``T + 1``
+    samples when it uses sample k+1)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -190,14 +250,20 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
 
         def step(c, w, a, h, consts):
             bg, ba, gv, ln = consts
-            omega = tuple(w[i] - bg[i] for i in range(3))
-            f = tuple(a[i] - ba[i] for i in range(3))
             qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
             qc = tuple(qc[..., i] for i in range(12))
-            return cov_step(c, omega, f, h, gv, qc)
+            if scheme is None:
+                omega = tuple(w[i] - bg[i] for i in range(3))
+                f = tuple(a[i] - ba[i] for i in range(3))
+                return cov_step(c, omega, f, h, gv, qc)
+            bg, ba = V3(*bg), V3(*ba)
+            omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
+            omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
+            return cov_step_autodiff(scheme, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
-                                        consts, None)
+                                        consts, None,
+                                        next_sample=scheme is not None and scheme.uses_next_sample)
         return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
 
     z = jnp.zeros((B, 1), gyro.dtype)

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu._blocks import Layout
 from jaximu._vec import V3
 
 _CHUNK = (64, 16)  # preferred largest / smallest time chunk
@@ -199,6 +200,29 @@ def _diag_row(s3, dtype):
     if jnp.ndim(s3[0]):
         return _vec3(s3, dtype)[None]
     return jnp.stack([jnp.asarray(x, dtype) for x in s3])[None, :, None]
+
+
+def _materialise(tree):
+    """:func:`_stage` of the identity on a pytree: its leaves are computed once, in memory."""
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if jnp.ndim(x)]
+    pred = leaves[0].ravel()[0] == leaves[0].ravel()[0]  # any runtime value: branches agree
+    return _stage(pred, lambda t: jax.tree_util.tree_map(lambda x: x * 1, t), tree)
+
+
+def _diag3(s3, dtype):
+    return jnp.asarray(_E3, dtype)[:, :, None] * _diag_row(s3, dtype)
+
+
+SOA = Layout(
+    matmul=lambda X, Y: _bmm(X, Y),
+    transpose=lambda X: _bt(X),
+    scale=lambda s, X: _lane(s) * X,
+    scale_cols=lambda X, s: X * _diag_row(s, X.dtype),
+    diag=lambda s: _diag3(s, jnp.result_type(*s)),
+    barrier=lambda tree: _materialise(tree),
+)
+"""The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
+per lane are 3-tuples of ``(B,)`` arrays (or scalars)."""
 
 
 def _stage(pred, fn, *args):

@@ -41,12 +41,14 @@ from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
-from jaximu.integrators import Attitude, check_scheme, get_attitude, nav_step, stages
+from jaximu.integrators import (Attitude, check_scheme, get_attitude, get_scheme, nav_step,
+                                stages)
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch, mean_body,
-                              n_steps, prepare, time_major, used_samples)
+from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, extended_samples,
+                              flatten_batch, mean_body, n_steps, prepare, time_major,
+                              used_samples)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -215,23 +217,7 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
 # --------------------------------------------------------------------------- covariance
 
 
-def structured_update(Pb, b: Blocks, qc):
-    """``Φ P Φᵀ + G Q_c Gᵀ`` on the upper blocks of ``P``, using the structure of ``Φ``.
-
-    Args:
-        Pb: upper blocks of ``P`` (see :func:`jaximu._blocks.dense_to_blocks`).
-        b: blocks of ``Φ``; qc: ``(..., 12)`` diagonal of ``Q_c``.
-    """
-    h = b.dt
-    Q = blk.noise_blocks(
-        [{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}],
-        [qc[..., 0:3], qc[..., 3:6]],
-    )
-    eye = jnp.eye(3, dtype=qc.dtype)
-    hh = (h * h)[..., None, None]
-    Q[(3, 3)] = hh * (qc[..., 6:9, None] * eye)
-    Q[(4, 4)] = hh * (qc[..., 9:12, None] * eye)
-    return blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(Pb, b), Q))
+structured_update = blk.structured_update
 
 
 def _check_cov(P0, dtype):
@@ -272,10 +258,12 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)))
     lanes = int(np.prod(batch, dtype=np.int64))
-    if dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                       save_all=save_all, lanes=lanes, fast=fast) == "soa_cov":
-        gyro, accel = used_samples(gyro, accel, dt)
+    kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
+                             save_all=save_all, lanes=lanes, fast=fast)
+    if kernel == "soa_cov":
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
+    if kernel == "soa_cov_autodiff":
+        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -314,9 +302,15 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch):
-    """Euler / exact quaternion exponential / analytic Jacobians, final covariance only: the
-    block-structured update of :func:`structured_update` on the :mod:`jaximu._fast` layout."""
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None):
+    """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
+    Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
+    (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
+    if scheme is not None and get_scheme(scheme).uses_next_sample:
+        dt = jnp.broadcast_to(dt, (n_steps(gyro, dt),)) if dt.ndim == 0 else dt
+        gyro, accel = extended_samples(gyro, accel, dt)
+    else:
+        gyro, accel = used_samples(gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
@@ -329,7 +323,8 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch):
         return v_ / (h[..., None] if jnp.ndim(h) else h)
 
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
-                                           qc_fn, var_f)
+                                           qc_fn, var_f,
+                                           None if scheme is None else get_scheme(scheme))
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
