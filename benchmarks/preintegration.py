@@ -146,7 +146,7 @@ def main(argv=None):
     agreement = {}
     for dtype in (jnp.float64, jnp.float32):
         for name, data in (("long", long), ("windows", windows)):
-            for method in ("sequential", "parallel"):
+            for method in ("auto", "sequential", "parallel"):  # auto: the default
                 out, run, comp = bench_jaximu(data, bias, dtype, method)
                 n = int(np.prod(data[0].shape[:-1]))
                 row = dict(tool="jaximu", workload=name, dtype=jnp.dtype(dtype).name,

@@ -680,7 +680,8 @@ def build_parser():
     _add_input_options(p)
     p.add_argument("--window", type=float, default=0.5, help="seconds per window")
     p.add_argument("--scheme", default="euler", choices=["euler", "midpoint"])
-    p.add_argument("--method", default="sequential", choices=["sequential", "parallel"])
+    p.add_argument("--method", default="auto", choices=["auto", "sequential", "parallel"],
+                   help="auto (default): the fastest for the windows; all give the same numbers")
     p.add_argument("--bias", metavar="'BGX BGY BGZ BAX BAY BAZ'", help="biases [rad/s, m/s²]")
     p.add_argument("--bias-from-groundtruth", action="store_true",
                    help="use the ground truth's bias estimate")

@@ -141,6 +141,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
     C = dispatch.mean_chunks(B, n)
     L = -(-n // C)
     pad = C * L - n
+    dt = jnp.broadcast_to(dt, (n,)) if dt.ndim == 0 else dt
     if sch.uses_next_sample:
         gyro, accel = extended_samples(gyro, accel, dt)  # n + 1 samples
     else:
