@@ -16,6 +16,10 @@ class is the one that equals exact Euler preintegration) fed sample by sample fr
 and ``PreintegratedCombinedMeasurementsManifold`` (15×15) for reference. Reported: samples/s
 (run time excludes compilation), compile time apart, the ratio to GTSAM, and the agreement
 of the deltas with GTSAM (max abs difference, float64 Euler), so a fast wrong answer shows.
+
+Where g++ and Eigen are found, a C++/Eigen program of ours (``cpp/preintegrate_reference.cpp``,
+built by ``cpp_reference.py``; one core, float64, 9×9 covariance and bias Jacobians) runs on
+the same samples as the row "C++ Eigen reference (1 core)", with the ratio jaximu / C++.
 """
 
 from __future__ import annotations
@@ -143,6 +147,38 @@ def main(argv=None):
     except ImportError:
         print("gtsam is not installed: baseline skipped (pip install gtsam)", flush=True)
 
+    # --- C++ Eigen reference (optional: needs g++ and Eigen; see cpp_reference.py) ---------
+    from cpp_reference import run_cpp_reference  # same folder
+
+    cpp_rate = {}
+    for name, data in (("long", long), ("windows", windows)):
+        ref = run_cpp_reference(*data, *bias, jaximu.ImuNoise.euroc(), name, kernels=("blocked",))
+        if ref is None:
+            break
+        k = ref["kernels"]["blocked"]
+        cpp_rate[name] = k["samples_per_s"]
+        row = dict(tool="C++ Eigen reference (1 core)", workload=name, dtype="float64",
+                   method="blocked", samples=ref["samples"], run_s=k["best_s"], compile_s=0.0,
+                   rate=k["samples_per_s"], us_per_sample=k["us_per_sample"],
+                   command=ref["command"], compiler=ref["compiler"])
+        if name in gtsam_rate:
+            row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
+        if name in gtsam_out:  # the same comparison as the jaximu rows'
+            res, ref_g = k["result"], gtsam_out[name]
+            if name == "long":
+                R = np.asarray(jaximu.so3.quat_to_matrix(res["delta_q"]))
+                d = max(np.abs(res["delta_p"] - ref_g.deltaPij()).max(),
+                        np.abs(res["delta_v"] - ref_g.deltaVij()).max(),
+                        np.abs(R - ref_g.deltaRij().matrix()).max())
+            else:
+                d = max(np.abs(res["delta_p"][i] - ref_g[i].deltaPij()).max()
+                        for i in range(0, len(ref_g), max(1, len(ref_g) // 16)))
+            row["max_abs_diff_vs_gtsam"] = float(d)
+        rows.append(row)
+        print(f"C++ Eigen reference {name}: {k['samples_per_s'] / 1e6:.3f} M samples/s "
+              f"({k['us_per_sample']:.3f} µs/sample)", flush=True)
+    # ------------------------------------------------------------------------------------------
+
     agreement = {}
     for dtype in (jnp.float64, jnp.float32):
         for name, data in (("long", long), ("windows", windows)):
@@ -186,6 +222,15 @@ def main(argv=None):
             verdict = "met" if ratio >= target else f"missed by {target / ratio:.1f}×"
             print(f"- {name}: {ratio:.1f}× GTSAM ({best['method']}), target {target:.0f}×: "
                   f"{verdict}")
+    # --- jaximu / C++ Eigen reference --------------------------------------------------------
+    if cpp_rate:
+        print("\njaximu / C++ Eigen reference (one core, float64, blocked 9×9 covariance and "
+              "bias Jacobians; > 1: jaximu faster):")
+        for r in rows:
+            if r["tool"] == "jaximu" and r["workload"] in cpp_rate:
+                r["ratio_to_cpp"] = r["rate"] / cpp_rate[r["workload"]]
+                print(f"- {r['workload']} {r['dtype']} {r['method']}: {r['ratio_to_cpp']:.2f}")
+    # ------------------------------------------------------------------------------------------
     out_path = args.out or os.path.join(
         os.path.dirname(__file__), "results",
         f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
