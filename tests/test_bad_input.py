@@ -77,6 +77,14 @@ def test_so3_reported_examples_raise_naming_the_argument():
         so3.log_matrix(np.eye(4))
 
 
+def test_so3_batches_that_do_not_broadcast_are_named():
+    with pytest.raises(ValueError, match=r"so3\.quat_rotate: the batch shapes of q \(2, 4\) "
+                                         r"and v \(3, 3\) do not broadcast"):
+        so3.quat_rotate(np.ones((2, 4)), np.ones((3, 3)))
+    with pytest.raises(ValueError, match=r"so3\.quat_mul: the batch shapes of p"):
+        so3.quat_mul(np.ones((2, 4)), np.ones((5, 4)))
+
+
 def test_so3_accepts_python_lists_like_arrays():
     """A ROS quaternion as a list: the same numbers as scipy's."""
     q_xyzw = [0.1, -0.2, 0.3, 0.9273618495495704]  # unit
@@ -101,8 +109,10 @@ def test_so3_kernels_refuse_wrong_shapes_naming_the_argument(data):
     args = []
     for i, (arg, shape) in enumerate(sig):
         if i == bad:
+            # wrong: not ending in the shape wanted ((2, 4) is a batch of quaternions)
             shape = data.draw(st.sampled_from([s for s in ((), (2,), (3,), (4,), (5,), (3, 3),
-                                                           (4, 4), (3, 4)) if s != shape]),
+                                                           (4, 4), (3, 4), (4, 3))
+                                               if s[len(s) - len(shape):] != shape]),
                               label="wrong shape")
             args.append(np.ones(batch + shape if shape else ()))
         else:
