@@ -111,9 +111,35 @@ def fit_noise(taus, adev) -> NoiseFit:
     Weighted least squares on the relative error of ``σ²``, weighted by ``τ^(-1/2)``: the
     relative uncertainty of an overlapping Allan variance grows like ``√(τ/T)`` (fewer
     independent clusters), so long τ count less. Both coefficients are kept non-negative.
+
+    Args:
+        taus: ``(n,)`` cluster times [s], positive and finite, at least 2.
+        adev: ``(n,)`` or ``(n, d)`` Allan deviations at ``taus``, positive and finite (as
+            :func:`allan_deviation` returns them).
+
+    Raises:
+        ValueError: naming ``taus`` or ``adev`` when they are outside that domain.
     """
     taus = np.asarray(taus, float)
     adev = np.asarray(adev, float)
+    if taus.ndim != 1 or len(taus) < 2:
+        raise ValueError(f"taus must be a 1-D array of at least 2 cluster times, got shape "
+                         f"{taus.shape}")
+    if adev.ndim not in (1, 2):
+        raise ValueError(f"adev must have shape (n,) or (n, d), got {adev.shape}")
+    if adev.shape[0] != len(taus):
+        raise ValueError(f"taus and adev have different lengths: {len(taus)} and {adev.shape[0]}")
+    if not np.all(np.isfinite(taus) & (taus > 0)):
+        raise ValueError(f"taus must be positive and finite, got {taus[~(np.isfinite(taus) & (taus > 0))][0]} "
+                         f"at index {int(np.argmax(~(np.isfinite(taus) & (taus > 0))))}")
+    bad = ~np.isfinite(adev)
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"adev contains non-finite values (NaN or inf), first at index {list(i)}")
+    if np.any(adev <= 0):
+        i = tuple(int(k) for k in np.argwhere(adev <= 0)[0])
+        raise ValueError(f"adev must be positive (a constant signal has no noise to fit), got "
+                         f"{adev[i]} at index {list(i)}")
     squeeze = adev.ndim == 1
     adev = adev[:, None] if squeeze else adev
     white, walk = [], []

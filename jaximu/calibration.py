@@ -357,13 +357,15 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             [m/s²]. Their dtype is the computation's.
         reference: the :class:`Reference` (reference clock). Keyframes lie where both exist.
         noise: :class:`ImuNoise` of the IMU (whitening of the residuals).
-        keyframe_interval: seconds between keyframes (rounded to whole samples).
+        keyframe_interval: seconds between keyframes, positive, at least one sample interval
+            (rounded to whole samples).
         scheme: ``"euler"`` or ``"midpoint"``; model: ``"preintegration"`` or ``"propagation"``.
-        reference_sigma: ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` of the reference's own errors,
+        reference_sigma: ``(σ_θ [rad], σ_p [m], σ_v [m/s])``, each ``≥ 0``, of the
+            reference's own errors,
             added to each residual's covariance as ``diag(2σ_θ², 2σ_p² + σ_v²Δt², 2σ_v²)``
             (ends assumed independent).
         initial: the calibration at which the consistency checks integrate (default zero).
-        windows_per_group: windows per checkpointed group (memory of a gradient).
+        windows_per_group: windows per checkpointed group (memory of a gradient), ≥ 1.
         check: run the unit and frame checks, raising :class:`CalibrationError`: the
             rotation (velocity change) of each window from the raw gyro (accel) is compared
             with the reference's by a least-squares fit ``ref ≈ M imu``; ``M`` must be near
@@ -377,12 +379,27 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"unknown scheme {scheme!r}; choose 'euler' or 'midpoint'")
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; choose one of {MODELS}")
+    keyframe_interval = val.check_positive("keyframe_interval", keyframe_interval)
+    windows_per_group = val.check_int("windows_per_group", windows_per_group, 1)
+    sig = np.asarray(reference_sigma, np.float64) if np.ndim(reference_sigma) == 1 else None
+    if sig is None or sig.shape != (3,) or not np.all(np.isfinite(sig) & (sig >= 0)):
+        raise ValueError("reference_sigma must be three non-negative numbers (σ_θ [rad], σ_p [m], "
+                         f"σ_v [m/s]), got {reference_sigma!r}")
+    if not isinstance(reference, Reference):
+        raise ValueError(f"reference must be a jaximu.calibration.Reference, got "
+                         f"{type(reference).__name__}")
+    if initial is not None and not isinstance(initial, ImuCalibration):
+        raise ValueError(f"initial must be an ImuCalibration or None, got {type(initial).__name__}")
     dtype = val.float_dtype(gyro, accel)
     t = np.asarray(t, np.float64)
     gyro_np, accel_np = np.asarray(gyro), np.asarray(accel)
     if t.ndim != 1 or gyro_np.shape != (len(t), 3) or accel_np.shape != (len(t), 3):
         raise ValueError(f"t, gyro, accel must have shapes (N,), (N, 3), (N, 3); got "
                          f"{t.shape}, {gyro_np.shape}, {accel_np.shape}")
+    if len(t) < 3:
+        raise ValueError(f"t, gyro, accel hold {len(t)} samples; a calibration needs at least "
+                         "two keyframe windows of samples")
+    val.check_finite("t", t)
     if np.any(np.diff(t) <= 0):
         i = int(np.argmax(np.diff(t) <= 0))
         raise ValueError(f"IMU times must increase strictly; t[{i + 1}] <= t[{i}]")
@@ -413,7 +430,12 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     td0 = float(np.asarray(init.time_offset))
-    W = max(1, int(round(keyframe_interval / float(np.median(np.diff(t))))))
+    period = float(np.median(np.diff(t)))
+    W = int(round(keyframe_interval / period))
+    if W < 1:
+        raise ValueError(f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
+                         f"interval ({period:g} s); keyframes are whole samples apart: pass "
+                         f"keyframe_interval ≥ {period:g} (typically 0.1–1 s)")
     inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
     if len(inside) < W + 2:
         raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
@@ -604,13 +626,14 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         problem: from :func:`calibration_problem`.
         initial: starting values (default :meth:`ImuCalibration.default`); the other fields
             stay at these values.
-        estimate: names from :data:`FIELDS`.
+        estimate: names from :data:`FIELDS` (at least one).
         optimizer: ``"lbfgs"`` (optax L-BFGS with zoom line search; default 100 steps) or
-            ``"adam"`` (``learning_rate`` in normalised units; default 1000 steps).
-        tol: stop when the loss changes by less than ``tol · (1 + loss)`` for 5 steps.
+            ``"adam"`` (``learning_rate > 0`` in normalised units; default 1000 steps).
+        steps: the most optimiser steps, an integer ≥ 1 (default: by optimizer).
+        tol: ``≥ 0``; stop when the loss changes by less than ``tol · (1 + loss)`` for 5 steps.
         max_reduced_chi2: warn (``RuntimeWarning``) when ``χ²/dof`` at the estimate is above
             this: the model does not explain the data (frames, units, time offset, or a
-            noise model far too optimistic); ``None`` disables.
+            noise model far too optimistic); positive, or ``None`` to disable.
 
     Returns:
         :class:`CalibrationResult`.
@@ -623,6 +646,17 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         raise ValueError("estimate names no field")
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
+    if not isinstance(problem, CalibrationProblem):
+        raise ValueError("problem must be a CalibrationProblem (from calibration_problem), got "
+                         f"{type(problem).__name__}")
+    if initial is not None and not isinstance(initial, ImuCalibration):
+        raise ValueError(f"initial must be an ImuCalibration or None, got {type(initial).__name__}")
+    if steps is not None:
+        steps = val.check_int("steps", steps, 1)
+    learning_rate = val.check_positive("learning_rate", learning_rate)
+    tol = val.check_positive("tol", tol, allow_zero=True)
+    if max_reduced_chi2 is not None:
+        max_reduced_chi2 = val.check_positive("max_reduced_chi2", max_reduced_chi2)
     dtype = problem.gyro.dtype
     free = tuple(n for n in FIELDS if n in estimate)
     if initial is None:

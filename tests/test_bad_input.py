@@ -169,7 +169,7 @@ def test_p0_from_rounding_at_any_scale_is_accepted():
 
 def test_gravity_magnitude_must_not_be_negative():
     s = NavState.identity((), jnp.float64)
-    msg = r"gravity = -9\.81 is a magnitude .*gravity=9\.81"
+    msg = r"gravity = -9\.81 is a magnitude.*pass gravity=9\.81"
     with pytest.raises(ValueError, match=msg):
         jaximu.propagate(s, W1, A1, 0.01, gravity=-9.81)
     pim = jaximu.preintegrate(W1, A1, 0.01)
@@ -283,14 +283,12 @@ def test_needs_reintegration_checks_its_inputs():
     assert not bool(jaximu.needs_reintegration(PIM, ImuBias.zeros()))
 
 
-def test_discrete_process_noise_checks_dt_and_shapes():
+def test_discrete_process_noise_checks_dt():
     G = np.zeros((15, 12))
     G[np.arange(12) + 3, np.arange(12)] = 1.0
     for dt in (0.0, -0.01, np.nan):
         with pytest.raises(ValueError, match=r"dt must be positive and finite"):
             jaximu.discrete_process_noise(G, ImuNoise.euroc(), dt)
-    with pytest.raises(ValueError, match=r"G must have shape \(\.\.\., 15, 12\)"):
-        jaximu.discrete_process_noise(np.zeros((15, 15)), ImuNoise.euroc(), 0.01)
     n = ImuNoise.euroc()
     Q = np.asarray(jaximu.discrete_process_noise(G, n, 0.01))
     want = np.r_[[n.gyroscope_noise_density**2] * 3, [n.accelerometer_noise_density**2] * 3,
