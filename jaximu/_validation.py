@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.errors import Fix, InputError
 from jaximu.noise import ImuNoise
 from jaximu.state import NavState
 
@@ -204,10 +205,11 @@ def gravity_vector(gravity, dtype):
         check_finite("gravity", g)
         if is_concrete(g) and float(g) < 0:
             v = float(np.asarray(gravity))
-            raise ValueError(
+            raise InputError(
                 f"gravity = {v:g} is a magnitude, so it must be ≥ 0 (g_W = [0, 0, -g] in the "
-                f"z-up world): pass gravity={-v:g}, or the vector gravity=[0, 0, {-v:g}] if "
-                "your world's z axis points down")
+                "z-up world)", [Fix("gravity", -v)], sep=": ",
+                api_note=f", or the vector gravity=[0, 0, {-v:g}] if your world's z axis "
+                         "points down")
         g = jnp.stack([jnp.zeros_like(g), jnp.zeros_like(g), -g])
     elif g.shape[-1] != 3:
         raise ValueError(
@@ -282,8 +284,10 @@ def check_fraction(name: str, x) -> float:
     """A probability strictly between 0 and 1 (a confidence level)."""
     v = _number(name, x)
     if not (0.0 < v < 1.0):
-        hint = f"; for {v:g}% pass {name}={v / 100:g}" if 1.0 < v < 100.0 else ""
-        raise ValueError(f"{name} must be in (0, 1), got {x!r}{hint}")
+        if 1.0 < v < 100.0:
+            raise InputError(f"{name} must be in (0, 1), got {x!r}", [Fix(name, v / 100)],
+                             lead=f"for {v:g}% pass")
+        raise ValueError(f"{name} must be in (0, 1), got {x!r}")
     return v
 
 

@@ -43,6 +43,7 @@ import numpy as np
 import optax
 
 from jaximu import _validation as val
+from jaximu.errors import InputError
 from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate, residual
@@ -76,7 +77,7 @@ MODELS = ("preintegration", "propagation")
 OPTIMIZERS = ("lbfgs", "adam")
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """The data cannot be calibrated as given (units, frames or conventions disagree)."""
 
 

@@ -100,7 +100,7 @@ def _load(args):
                   drop_nonfinite=args.drop_nonfinite, allow_gaps=args.allow_gaps,
                   max_gap=args.max_gap, check_units=not args.no_unit_check)
     units = dict(gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
-    if args.time_unit != "s" and fmt not in ("csv", "npz"):
+    if args.time_unit is not None and fmt not in ("csv", "npz"):
         raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
     if fmt in ("euroc", "tumvi"):
         if args.gyro_unit != "rad/s" or args.accel_unit != "m/s^2":
@@ -114,7 +114,7 @@ def _load(args):
         data = io.read_csv(path, time=cols[0], gyro=cols[1:4], accel=cols[4:7],
                            time_unit=args.time_unit, **units, **repair)
     elif fmt == "npz":
-        data = io.read_npz(path, time_unit=args.time_unit, **units, **repair)
+        data = io.read_npz(path, time_unit=args.time_unit or "s", **units, **repair)
     else:
         data = io.read_rosbag(path, args.topic, **units, **repair)
     print(f"read {len(data)} samples over {data.duration:.3f} s at {data.rate_hz:.1f} Hz from "
@@ -134,8 +134,9 @@ def _add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosb
                    help="input format (default: from the path)")
     g.add_argument("--columns", default="0,1,2,3,4,5,6", metavar="T,WX,WY,WZ,AX,AY,AZ",
                    help="CSV columns, indices or header names (default: EuRoC order)")
-    g.add_argument("--time-unit", default="s", choices=["s", "ms", "us", "ns"],
-                   help="CSV/NPZ time unit (default: %(default)s)")
+    g.add_argument("--time-unit", default=None, choices=["s", "ms", "us", "ns"],
+                   help="CSV/NPZ time unit (default: the unit the CSV header states, such as "
+                   "EuRoC's '#timestamp [ns]', else s)")
     g.add_argument("--gyro-unit", default="rad/s", choices=["rad/s", "deg/s"])
     g.add_argument("--accel-unit", default="m/s^2", choices=["m/s^2", "g"])
     g.add_argument("--topic", help="ROS bag: the sensor_msgs/Imu topic (default: the only one)")
@@ -167,6 +168,9 @@ def _check_outputs(**paths):
         if not path:
             continue
         p = pathlib.Path(path)
+        if p.is_dir():
+            raise UsageError(f"--{name} {path} is a folder: name a file in it, e.g. "
+                             f"--{name} {p / ('out' + suffixes.get(name, ('.json',))[0])}")
         if not p.parent.is_dir():
             raise UsageError(f"--{name} {path}: the folder {p.parent} does not exist")
         if name in suffixes and p.suffix.lower() not in suffixes[name]:
@@ -221,6 +225,14 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
 
     import jaximu
 
+    from jaximu import _validation as val
+    from jaximu.errorstate import _check_cov
+
+    # the checks the jit below skips (traced values): run them on the concrete inputs first
+    val.gravity_vector(gravity, dtype)
+    noise = val.check_noise(noise, dtype)
+    _check_cov(P0, dtype)
+    val.check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
     step = jax.jit(lambda x, P, w, a, h: jaximu.propagate_covariance(
         x, P, w, a, h, noise, scheme, gravity=gravity))
     gyro = jnp.asarray(data.gyro, dtype)
@@ -253,6 +265,16 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     return data.t, states, cov
 
 
+def _check_gravity(g):
+    """``--gravity``: a finite magnitude ≥ 0, checked before the work (the propagation runs
+    under ``jit``, where the library's own check cannot run)."""
+    from jaximu import _validation as val
+
+    if not np.isfinite(g):
+        raise UsageError(f"--gravity must be a finite magnitude ≥ 0 [m/s²], got {g}")
+    val.gravity_vector(g, np.float64)  # a negative magnitude: an error whose fix is a flag
+
+
 def _default_P0(from_groundtruth):
     """Initial uncertainty: the ground truth's own (~0.1°, 1 mm, 1 cm/s), or a gravity
     alignment's (1° tilt, 10° yaw, position/velocity known: the origin and still), and the
@@ -262,9 +284,10 @@ def _default_P0(from_groundtruth):
     return np.diag(sig**2)
 
 
-def _report_drift(err, t_start, out=sys.stdout):
+def _report_drift(err, t_start, out=None):
     """Print the error against ground truth at 1, 2, 5, … s after ``t_start`` (the start of
     the propagation) and the drift per second, where the ground truth covers those times."""
+    out = out if out is not None else sys.stdout
     lo, hi = float(err.t[0] - t_start), float(err.t[-1] - t_start)
     marks = [s for s in REPORT_AT if lo - 0.01 <= s <= hi + 1e-6]
     if not marks:
@@ -286,6 +309,7 @@ def cmd_propagate(args):
 
     from jaximu import io
 
+    _check_gravity(args.gravity)
     _check_outputs(out=args.out, states=args.states, plot=args.plot)
     data = _load(args)
     dtype = _dtype(args)
@@ -340,9 +364,11 @@ def cmd_propagate(args):
 
 
 def run_demo(seconds: float = 20.0, scheme: str = "midpoint", plot: str | None = "jaximu_demo.png",
-             out=sys.stdout, progress: bool = False) -> dict:
+             out=None, progress: bool = False) -> dict:
     """Dead reckoning on the bundled EuRoC excerpt with every scheme; returns the drift
-    table ``{scheme: {t: (pos_m, vel_mps, att_deg)}}``."""
+    table ``{scheme: {t: (pos_m, vel_mps, att_deg)}}`` (``out``: a text stream, default
+    ``sys.stdout``)."""
+    out = out if out is not None else sys.stdout
     from importlib import resources
 
     import jax
@@ -365,6 +391,8 @@ def run_demo(seconds: float = 20.0, scheme: str = "midpoint", plot: str | None =
     print("propagating from the ground-truth state with the ground-truth biases; "
           "no corrections (pure dead reckoning)", file=out)
     report_at = [s for s in (1, 2, 5, 10, 20, 30, 60) if s <= data.duration + 1e-9]
+    if not report_at:  # shorter than the first mark: report at the end
+        report_at = [round(float(seconds), 3)]
     table, results = {}, {}
     for sch in DEMO_SCHEMES:
         tic = time.perf_counter()
@@ -398,9 +426,17 @@ def run_demo(seconds: float = 20.0, scheme: str = "midpoint", plot: str | None =
     return table
 
 
+DEMO_SECONDS = 20.0  # ground truth in the bundled excerpt
+
+
 def cmd_demo(args):
     if not args.seconds > 0:
         raise UsageError("--seconds must be positive")
+    if not args.seconds <= DEMO_SECONDS:
+        raise UsageError(f"--seconds {args.seconds:g}: the bundled excerpt holds {DEMO_SECONDS:g} s "
+                         f"of ground truth; pass --seconds ≤ {DEMO_SECONDS:g}")
+    if not args.no_plot:
+        _check_outputs(plot=args.plot)
     run_demo(args.seconds, args.scheme, None if args.no_plot else args.plot,
              progress=not args.no_progress)
     return 0
@@ -497,6 +533,9 @@ def cmd_montecarlo(args):
 
     if args.runs < 2 or not (0 < args.seconds < 1e6 and 0 < args.rate < 1e6):
         raise UsageError("--runs must be ≥ 2, --seconds and --rate positive and finite")
+    if args.seconds * args.rate < 1:
+        raise UsageError(f"--seconds {args.seconds:g} at --rate {args.rate:g} Hz holds no sample "
+                         f"interval; pass --seconds ≥ {1 / args.rate:g} or a higher --rate")
     _check_outputs(plot=args.plot)
     dtype = _dtype(args)
     traj = {"circle": simulate.circle, "figure-eight": simulate.figure_eight,
@@ -609,6 +648,9 @@ def cmd_allan(args):
         taus, adev = allan.allan_deviation(y, dt)
         fit = allan.fit_noise(taus, adev)
         results[name] = (taus, adev, fit, unit)
+    if not args.no_unit_check:
+        allan.check_units(results["gyroscope"][2], results["accelerometer"][2])
+    for name, (taus, adev, fit, unit) in results.items():
         print(f"{name}_noise_density: {np.array2string(np.asarray(fit.white), precision=4)}"
               f"   # {unit}/√Hz (x, y, z)")
         print(f"{name}_random_walk:   {np.array2string(np.asarray(fit.random_walk), precision=4)}"
@@ -733,19 +775,39 @@ def build_parser():
     return parser
 
 
-# The library's advice names keyword arguments; on the command line they are flags.
-_FLAGS = {"gyro_unit='deg/s'": "--gyro-unit deg/s", "accel_unit='g'": "--accel-unit g",
-          "sort=True": "--sort", "drop_duplicates=True": "--drop-duplicates",
-          "drop_nonfinite=True": "--drop-nonfinite", "allow_gaps=True": "--allow-gaps",
-          "a larger max_gap": "a larger --max-gap", "check_units=False": "--no-unit-check",
-          "(time_unit=)": "(--time-unit)", "check time_unit": "check --time-unit",
-          " (then split_at_gaps())": ""}
+# The library's errors carry their repairs as data (jaximu.errors.Fix: option and value); on
+# the command line they are flags.
+FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": "--time-unit",
+         "sort": "--sort", "drop_duplicates": "--drop-duplicates",
+         "drop_nonfinite": "--drop-nonfinite", "allow_gaps": "--allow-gaps",
+         "max_gap": "--max-gap", "gravity": "--gravity",
+         "keyframe_interval": "--keyframe-interval"}
+INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
+API_ONLY_OPTIONS = frozenset()
+"""Options the library's fixes may name that have no flag (rendered as keywords)."""
 
 
-def _as_flags(message: str) -> str:
-    for kw, flag in _FLAGS.items():
-        message = message.replace(kw, flag)
-    return message
+def flag_of(fix) -> str:
+    """A :class:`jaximu.errors.Fix` as the command's flag: ``--gyro-unit deg/s``, ``--sort``."""
+    from jaximu.errors import ANY
+
+    inverted = INVERTED_FLAGS.get((fix.option, fix.value))
+    if inverted:
+        return inverted
+    flag = FLAGS.get(fix.option)
+    if flag is None:
+        return fix.as_keyword()
+    if fix.value is ANY:
+        return f"{fix.phrase} {flag}".strip()
+    if fix.value is True:
+        return flag
+    return f"{flag} {fix.value:g}" if isinstance(fix.value, float) else f"{flag} {fix.value}"
+
+
+def _message(e) -> str:
+    from jaximu.errors import InputError
+
+    return e.render(flag_of) if isinstance(e, InputError) else str(e)
 
 
 def main(argv=None) -> int:
@@ -757,7 +819,7 @@ def main(argv=None) -> int:
         return args.func(args)
     except (UsageError, DataError, ValueError, ImportError, OSError, OverflowError) as e:
         # user mistakes (and unwritable outputs, full disks): one line, no traceback
-        print(f"jaximu {args.command}: error: {_as_flags(str(e))}", file=sys.stderr)
+        print(f"jaximu {args.command}: error: {_message(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaximu: interrupted", file=sys.stderr)
