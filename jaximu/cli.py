@@ -798,7 +798,7 @@ def flag_of(fix) -> str:
     if flag is None:
         return fix.as_keyword()
     if fix.value is ANY:
-        return f"{fix.phrase} {flag}".strip()
+        return fix.describe(flag)
     if fix.value is True:
         return flag
     return f"{flag} {fix.value:g}" if isinstance(fix.value, float) else f"{flag} {fix.value}"

@@ -37,7 +37,8 @@ class Fix:
         option: the keyword argument of the function that raised (``"gyro_unit"``).
         value: the value that repairs the input (``"deg/s"``, ``True``), or :data:`ANY` when
             the right value is the user's to choose (``phrase`` then says how: ``"a larger"``).
-        phrase: words before the option when ``value`` is :data:`ANY`.
+        phrase: when ``value`` is :data:`ANY`, the words around the option: ``"a larger"``
+            (the option follows) or ``"check the time unit ({})"`` (it replaces ``{}``).
     """
 
     option: str
@@ -47,8 +48,15 @@ class Fix:
     def as_keyword(self) -> str:
         """``option='value'`` (or ``phrase option``), as a Python call would take it."""
         if self.value is ANY:
-            return f"{self.phrase} {self.option}".strip()
+            return self.describe(self.option)
         return f"{self.option}={self.value!r}"
+
+    def describe(self, name: str) -> str:
+        """The ``phrase`` with ``name`` (the option, or the command's flag) in its ``{}``,
+        or after it."""
+        if "{}" in self.phrase:
+            return self.phrase.format(name)
+        return f"{self.phrase} {name}".strip()
 
 
 class InputError(ValueError):

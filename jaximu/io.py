@@ -330,7 +330,7 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     med = float(np.median(dt))
     if check_units and not _DT_RANGE[0] <= med <= _DT_RANGE[1]:
         raise DataError(f"median sampling interval {med:.3g} s ({1 / med:.3g} Hz) is implausible "
-                        "for an IMU", [Fix("time_unit", phrase="check")],
+                        "for an IMU", [Fix("time_unit", phrase="check the time unit ({})")],
                         lead="")
     limit = max_gap if max_gap is not None else GAP_FACTOR * med
     gaps = np.flatnonzero(dt > limit)
@@ -492,10 +492,10 @@ def _to_ns(text, unit_ns, label):
         raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
     if unit_ns == 1 and exact != ns:
         raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
-                        [Fix("time_unit", phrase="check")], lead="")
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
     if abs(ns) > np.iinfo(np.int64).max:
         raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
-                        [Fix("time_unit", phrase="check")], lead="")
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
     return ns
 
 
