@@ -185,3 +185,10 @@ def test_allan_unit_check_is_a_library_function_with_fixes():
         allan.check_units(gyro, accel)
     assert Fix("gyro_unit", "deg/s") in e.value.fixes
     allan.check_units(allan.fit_noise(taus, np.sqrt((1.7e-4) ** 2 / taus)), accel)
+
+
+def test_allan_on_a_moving_recording_notes_motion_and_skips_the_unit_check(capsys):
+    """Motion inflates the densities: the command says so and does not call it deg/s."""
+    code, out, err = main(capsys, "allan", DATA / "euroc_v1_02_medium")
+    assert code == 0, err
+    assert "does not look static" in out
