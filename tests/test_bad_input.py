@@ -347,3 +347,30 @@ def test_compose_of_mismatched_batches_names_them():
         jaximu.compose(ab, bc)
     with pytest.raises(ValueError, match=r"pim_bc must be a jaximu\.Preintegrated"):
         jaximu.compose(ab, (bc.delta_q,))
+
+
+# --------------------------------------------------------------------------- simulate domains
+
+
+@pytest.mark.parametrize("call,message", [
+    (lambda: simulate.circle(radius=0.0), r"radius must be positive and finite, got 0\.0"),
+    (lambda: simulate.circle(speed=np.nan), r"speed must be finite"),
+    (lambda: simulate.figure_eight(period=-1.0), r"period must be positive and finite"),
+    (lambda: simulate.lissajous(amplitude=(1.0, 2.0)), r"amplitude must have shape \(3,\)"),
+    (lambda: simulate.helix(radius=-3.0), r"radius must be positive"),
+    (lambda: simulate.waypoints([0.0, np.nan, 2.0], np.zeros((3, 3))), r"times contains non-finite"),
+    (lambda: simulate.ideal_imu(lambda t: t, np.zeros(3)), r"traj must be a jaximu\.simulate\.Trajectory"),
+    (lambda: simulate.ideal_imu(TRAJ, np.zeros((3, 2))), r"t must be a 1-D array"),
+    (lambda: simulate.true_states(TRAJ, np.array([0.0, np.inf])), r"t contains non-finite"),
+    (lambda: simulate.ideal_imu(TRAJ, np.zeros(3), gravity=-9.81), r"gravity = -9\.81 is a magnitude"),
+    (lambda: simulate.add_noise(jax.random.PRNGKey(0), np.zeros((3, 2)), np.zeros((3, 3)), 0.01,
+                                ImuNoise.euroc()), r"gyro must have shape \(\.\.\., T, 3\)"),
+    (lambda: simulate.add_noise(jax.random.PRNGKey(0), np.zeros((3, 3)), np.zeros((3, 3)), 0.0,
+                                ImuNoise.euroc()), r"dt must be positive and finite"),
+    (lambda: simulate.add_noise(jax.random.PRNGKey(0), np.zeros((3, 3)), np.zeros((3, 3)), 0.01,
+                                ImuNoise.euroc(), gyro_misalignment=np.zeros(3)),
+     r"gyro_misalignment must have shape \(3, 3\)"),
+])
+def test_simulate_parameters_outside_their_domain(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
