@@ -140,8 +140,8 @@ def _add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosb
     g.add_argument("--gyro-unit", default="rad/s", choices=["rad/s", "deg/s"])
     g.add_argument("--accel-unit", default="m/s^2", choices=["m/s^2", "g"])
     g.add_argument("--topic", help="ROS bag: the sensor_msgs/Imu topic (default: the only one)")
-    g.add_argument("--start", type=float, default=0.0, help="skip this many seconds")
-    g.add_argument("--duration", type=float, default=None, help="use this many seconds")
+    g.add_argument("--start", type=float, default=0.0, help="skip this many seconds (≥ 0)")
+    g.add_argument("--duration", type=float, default=None, help="use this many seconds (> 0)")
     r = p.add_argument_group("repairs (off by default: problems are errors)")
     r.add_argument("--sort", action="store_true", help="sort samples by time")
     r.add_argument("--drop-duplicates", action="store_true",
@@ -310,6 +310,8 @@ def cmd_propagate(args):
     from jaximu import io
 
     _check_gravity(args.gravity)
+    if not args.still > 0:
+        raise UsageError(f"--still must be positive (seconds of still samples), got {args.still}")
     _check_outputs(out=args.out, states=args.states, plot=args.plot)
     data = _load(args)
     dtype = _dtype(args)
@@ -583,6 +585,8 @@ def cmd_calibrate(args):
 
     if not args.keyframe_interval > 0:
         raise UsageError("--keyframe-interval must be positive")
+    if args.steps is not None and args.steps < 1:
+        raise UsageError(f"--steps must be at least 1, got {args.steps}")
     _check_outputs(out=args.out)
     data = _load(args)
     gt = data.ground_truth
@@ -702,7 +706,8 @@ def build_parser():
                        description="Propagate the bundled 20 s EuRoC MAV V1_02_medium excerpt "
                        "from the ground-truth state with the ground-truth biases, with every "
                        "scheme; print the drift against ground truth; write a plot.")
-    p.add_argument("--seconds", type=float, default=20.0, help="length to propagate (≤ 20 s)")
+    p.add_argument("--seconds", type=float, default=20.0,
+                   help="length to propagate, 0 < s ≤ 20 (the excerpt's ground truth)")
     p.add_argument("--scheme", default="midpoint", choices=DEMO_SCHEMES)
     p.add_argument("--plot", default="jaximu_demo.png", help="output PNG (default: %(default)s)")
     p.add_argument("--no-plot", action="store_true", help="do not write a plot")
@@ -720,11 +725,12 @@ def build_parser():
                    help="start from the ground-truth pose, velocity and biases")
     p.add_argument("--bias", metavar="'BGX BGY BGZ BAX BAY BAZ'",
                    help="biases [rad/s, m/s²] (overrides the ground truth's)")
-    p.add_argument("--still", type=float, default=1.0,
+    p.add_argument("--still", type=float, default=1.0,  # > 0
                    help="seconds of still samples for gravity alignment (default: %(default)s)")
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS,
                    help="noise densities for the covariance (default: %(default)s)")
-    p.add_argument("--gravity", type=float, default=9.81, help="g [m/s²] (default: %(default)s)")
+    p.add_argument("--gravity", type=float, default=9.81, help="gravity magnitude g ≥ 0 [m/s²] (g_W = [0, 0, -g]; default: "
+                   "%(default)s)")
     p.add_argument("--out", metavar="TUM", help="write the trajectory in TUM format (for evo)")
     p.add_argument("--states", metavar="CSV|NPZ", help="write states and covariances")
     _add_output_options(p)
@@ -735,7 +741,7 @@ def build_parser():
                        "(deltas, 9×9 and 15×15 covariances, bias Jacobians); compare with the "
                        "ground truth when it has velocities.")
     _add_input_options(p)
-    p.add_argument("--window", type=float, default=0.5, help="seconds per window")
+    p.add_argument("--window", type=float, default=0.5, help="seconds per window (> 0, at least 2 samples)")
     p.add_argument("--scheme", default="euler", choices=["euler", "midpoint"])
     p.add_argument("--method", default="sequential", choices=["sequential", "parallel"])
     p.add_argument("--bias", metavar="'BGX BGY BGZ BAX BAY BAZ'", help="biases [rad/s, m/s²]")
@@ -752,12 +758,13 @@ def build_parser():
                        "(NEES with its χ² interval).")
     p.add_argument("--trajectory", default="figure-eight",
                    choices=["circle", "figure-eight", "lissajous", "helix"])
-    p.add_argument("--runs", type=int, default=1000)
-    p.add_argument("--seconds", type=float, default=10.0)
-    p.add_argument("--rate", type=float, default=200.0, help="IMU rate [Hz]")
+    p.add_argument("--runs", type=int, default=1000, help="Monte Carlo runs (≥ 2)")
+    p.add_argument("--seconds", type=float, default=10.0,
+                   help="trajectory length (> 0, at least one sample interval)")
+    p.add_argument("--rate", type=float, default=200.0, help="IMU rate [Hz] (> 0)")
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--scheme", default="euler", choices=DEMO_SCHEMES)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed (any integer)")
     _add_output_options(p)
     p.set_defaults(func=cmd_montecarlo)
 
@@ -769,13 +776,14 @@ def build_parser():
     p.add_argument("--estimate", default="b_g,b_a",
                    help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
                    "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, time_offset")
-    p.add_argument("--keyframe-interval", type=float, default=0.5)
+    p.add_argument("--keyframe-interval", type=float, default=0.5,
+                   help="seconds between keyframes (> 0, at least one sample interval)")
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
     p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"],
                    help="optax L-BFGS (default; ~40 s to compile on 2 CPU cores) or Adam "
                    "(compiles in ~10 s, needs more steps)")
     p.add_argument("--steps", type=int, default=None,
-                   help="optimiser steps (default: 100 L-BFGS, 1000 Adam)")
+                   help="optimiser steps (≥ 1; default: 100 L-BFGS, 1000 Adam)")
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
     p.add_argument("--float64", action="store_true", help="compute in float64")
@@ -788,6 +796,33 @@ def build_parser():
     p.add_argument("--plot", metavar="PNG", help="write a plot")
     p.set_defaults(func=cmd_allan)
     return parser
+
+
+def options_table() -> str:
+    """Markdown of every command's options (flag, accepts, default, help), generated from
+    the parser: the "what each function accepts" document embeds it, and a test keeps the
+    two equal."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    lines = []
+    for name, p in sub.choices.items():
+        lines += [f"### `jaximu {name}`", "", "| option | accepts | default | meaning |",
+                  "|---|---|---|---|"]
+        for a in p._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            flag = ", ".join(a.option_strings) or a.dest
+            if a.choices:
+                accepts = " ".join(f"`{c}`" for c in a.choices)
+            elif a.nargs == 0:
+                accepts = "flag"
+            else:
+                accepts = {float: "number", int: "integer"}.get(a.type, "text")
+            default = "" if a.default is None or a.nargs == 0 else f"`{a.default}`"
+            text = (a.help or "").replace("%(default)s", str(a.default)).replace("|", "/")
+            lines.append(f"| `{flag}` | {accepts} | {default} | {text} |")
+        lines.append("")
+    return "\n".join(lines)
 
 
 # The library's errors carry their repairs as data (jaximu.errors.Fix: option and value); on
