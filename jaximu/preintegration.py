@@ -730,10 +730,17 @@ def compose(pim_ab: Preintegrated, pim_bc: Preintegrated) -> Preintegrated:
         except ValueError as e:
             raise ValueError(str(e).replace("pim", name, 1)) from None
     try:
-        jnp.broadcast_shapes(*batches)
+        batch = jnp.broadcast_shapes(*batches)
     except ValueError:
         raise ValueError(f"pim_ab and pim_bc have batch shapes {tuple(batches[0])} and "
                          f"{tuple(batches[1])}, which do not broadcast") from None
+
+    def widen(p, own):  # a shared measurement against a batch: broadcast it first
+        n = len(own)
+        return p if tuple(own) == tuple(batch) else jax.tree_util.tree_map(
+            lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[n:]), p)
+
+    pim_ab, pim_bc = widen(pim_ab, batches[0]), widen(pim_bc, batches[1])
     bc = _correct(pim_bc, pim_ab.bias_hat)
     R = pim_ab.delta_R
 
