@@ -947,9 +947,12 @@ def gravity_alignment(accel_mean) -> np.ndarray:
 
     Roll and pitch put the measured specific force along world +z (still and level reads
     ``[0, 0, +g]``); yaw is not observable from gravity and is set to 0 (ZYX convention,
-    ``R = Rz(0) Ry(pitch) Rx(roll)``).
+    ``R = Rz(0) Ry(pitch) Rx(roll)``). ``accel_mean``: ``(3,)`` m/s², finite, non-zero.
     """
     f = np.asarray(accel_mean, np.float64)
+    if f.shape != (3,) or not np.all(np.isfinite(f)) or not np.any(f):
+        raise ValueError(f"accel_mean must be a finite, non-zero (3,) specific force [m/s²], got "
+                         f"{np.array2string(f, precision=4)}")
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
     cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
@@ -966,7 +969,7 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
             the ground truth at ``t[0]`` (v from differences of p when the ground truth has
             none; biases zero when it has none).
         still_seconds: otherwise the attitude comes from gravity alignment of the mean
-            specific force over the first ``still_seconds`` (yaw 0), with p = v = 0.
+            specific force over the first ``still_seconds`` (``> 0``; yaw 0), with p = v = 0.
         bias: ``(6,)`` ``[b_g, b_a]`` [rad/s, m/s²] to use (default zero without ground truth).
 
     Returns:
@@ -974,6 +977,11 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     """
     from jaximu.state import NavState  # noqa: PLC0415
 
+    if not (np.isfinite(still_seconds) and still_seconds > 0):
+        raise ValueError(f"still_seconds must be positive and finite, got {still_seconds}")
+    if bias is not None and (np.shape(bias) != (6,) or not np.all(np.isfinite(bias))):
+        raise ValueError(f"bias must be six finite numbers [b_g (rad/s), b_a (m/s²)], got "
+                         f"shape {np.shape(bias)}")
     b = np.zeros(6) if bias is None else np.asarray(bias, np.float64).reshape(6)
     t0 = data.t[:1]
     if from_groundtruth:

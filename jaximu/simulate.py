@@ -292,7 +292,7 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
             finite.
         dt: ``(T,)`` or scalar sample periods [s] (sample k held over ``dt[k]``), ``> 0``.
         noise: the densities; white-noise std ``σ/√dt``, bias steps std ``σ_rw·√dt``.
-        b_g0, b_a0: turn-on biases ``(..., 3)`` (or scalars).
+        b_g0, b_a0: turn-on biases ``(..., 3)`` (or scalars), finite.
         gyro_misalignment, accel_misalignment: optional ``(3, 3)`` ``S`` with ``M = I + S``
             (scale factors on the diagonal, misalignment off it).
         batch_shape: draw this many independent streams at once (outputs ``batch + (T, 3)``);
@@ -327,6 +327,10 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     def before(walk):  # sum of the steps before each sample
         return jnp.concatenate([jnp.zeros_like(walk[..., :1, :]), walk[..., :-1, :]], axis=-2)
 
+    for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
+        if jnp.ndim(b) and jnp.shape(b)[-1] != 3:
+            raise ValueError(f"{name} must be a scalar or have shape (..., 3), got {jnp.shape(b)}")
+        val.check_finite(name, b)
     b_g0 = jnp.asarray(b_g0, dtype)[..., None, :] if jnp.ndim(b_g0) else jnp.asarray(b_g0, dtype)
     b_a0 = jnp.asarray(b_a0, dtype)[..., None, :] if jnp.ndim(b_a0) else jnp.asarray(b_a0, dtype)
     b_g, b_a = b_g0 + before(walk_g), b_a0 + before(walk_a)

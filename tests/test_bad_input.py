@@ -374,3 +374,15 @@ def test_compose_of_mismatched_batches_names_them():
 def test_simulate_parameters_outside_their_domain(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+@pytest.mark.parametrize("call,message", [
+    (lambda: jaximu.io.gravity_alignment(np.zeros(3)), r"accel_mean must be a finite, non-zero"),
+    (lambda: jaximu.io.gravity_alignment([0.0, np.nan, 9.8]), r"accel_mean must be a finite"),
+    (lambda: simulate.add_noise(jax.random.PRNGKey(0), np.zeros((3, 3)), np.zeros((3, 3)), 0.01,
+                                ImuNoise.euroc(), b_g0=np.zeros(2)),
+     r"b_g0 must be a scalar or have shape \(\.\.\., 3\)"),
+])
+def test_io_and_simulate_helpers_name_their_arguments(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
