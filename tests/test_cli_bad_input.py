@@ -192,3 +192,28 @@ def test_allan_on_a_moving_recording_notes_motion_and_skips_the_unit_check(capsy
     code, out, err = main(capsys, "allan", DATA / "euroc_v1_02_medium")
     assert code == 0, err
     assert "does not look static" in out
+
+
+# --------------------------------------------------------------------------- compilation cache
+
+
+def test_cache_folder_follows_the_environment(tmp_path):
+    assert cli.cache_folder({"JAXIMU_CACHE_DIR": str(tmp_path)}) == tmp_path
+    assert cli.cache_folder({"JAXIMU_CACHE_DIR": "off"}) is None
+    assert cli.cache_folder({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "jaximu" / "xla"
+    assert cli.cache_folder({}) == pathlib.Path.home() / ".cache" / "jaximu" / "xla"
+
+
+def test_the_command_keeps_its_compilations(tmp_path):
+    """Run as the command (a subprocess): the Monte Carlo chunk's compilation lands in the
+    cache folder, for the next run to reuse."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, JAXIMU_CACHE_DIR=str(tmp_path / "xla"))
+    res = subprocess.run([sys.executable, "-m", "jaximu", "montecarlo", "--runs", "4",
+                          "--seconds", "0.5", "--rate", "100", "--no-progress"],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert res.returncode == 0, res.stderr
+    assert any((tmp_path / "xla").iterdir()), "nothing was cached"
