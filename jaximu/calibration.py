@@ -43,7 +43,7 @@ import numpy as np
 import optax
 
 from jaximu import _validation as val
-from jaximu.errors import InputError
+from jaximu.errors import Fix, InputError
 from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate, residual
@@ -480,9 +480,9 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     period = float(np.median(np.diff(t)))
     W = int(round(keyframe_interval / period))
     if W < 1:
-        raise ValueError(f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
-                         f"interval ({period:g} s); keyframes are whole samples apart: pass "
-                         f"keyframe_interval ≥ {period:g} (typically 0.1–1 s)")
+        raise InputError(f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
+                         f"interval ({period:.3g} s): keyframes are whole samples apart "
+                         "(typically 0.1–1 s)", [Fix("keyframe_interval", phrase=f"{{}} ≥ {period:.3g}")])
     inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
     if len(inside) < W + 2:
         raise ValueError("the IMU and the reference overlap by less than one keyframe interval")

@@ -217,3 +217,11 @@ def test_the_command_keeps_its_compilations(tmp_path):
                          capture_output=True, text=True, timeout=300, env=env)
     assert res.returncode == 0, res.stderr
     assert any((tmp_path / "xla").iterdir()), "nothing was cached"
+
+
+def test_library_fixes_render_as_flags_in_calibrate(capsys):
+    """A keyframe interval below one sample: the library's fix (keyframe_interval ≥ 0.005)
+    is shown as the command's flag."""
+    line, _ = one_line_error(capsys, "calibrate", DATA / "euroc_v1_02_medium",
+                             "--keyframe-interval", "0.001")
+    assert "--keyframe-interval ≥ 0.005" in line, line
