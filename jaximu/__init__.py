@@ -6,6 +6,7 @@ with the rotation error on the right; Kalibr noise densities.
 """
 
 from jaximu import allan as allan
+from jaximu import errors as errors
 from jaximu import io as io
 from jaximu import montecarlo as montecarlo
 from jaximu import simulate as simulate

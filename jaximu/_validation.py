@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.errors import Fix, InputError
 from jaximu.noise import ImuNoise
 from jaximu.state import NavState
 
@@ -83,10 +84,13 @@ def check_output(fn_name: str, out, cause: str):
 
 
 def float_dtype(*xs):
-    """The floating dtype of the computation: the promotion of the inputs' dtypes."""
+    """The floating dtype of the computation: the promotion of the inputs' dtypes, at least
+    float32. Integer inputs and half precision (float16, bfloat16: 3 significant digits,
+    which lose every position increment below 1/1000 of the position) are computed in
+    float32; the outputs are then float32. The inputs themselves are not changed."""
     dt = jnp.result_type(*(x if hasattr(x, "dtype") else np.asarray(x) for x in xs))
-    if not jnp.issubdtype(dt, jnp.floating):
-        dt = jnp.result_type(dt, jnp.float32)
+    if not jnp.issubdtype(dt, jnp.floating) or jnp.dtype(dt).itemsize < 4:
+        dt = jnp.result_type(jnp.float32)
     return dt
 
 
@@ -193,9 +197,19 @@ def check_state(state: NavState, dtype) -> NavState:
 
 
 def gravity_vector(gravity, dtype):
-    """``g_W`` from a magnitude ``g`` (→ ``[0, 0, -g]``) or a ``(..., 3)`` vector."""
+    """``g_W`` from a magnitude ``g ≥ 0`` (→ ``[0, 0, -g]``) or a ``(..., 3)`` vector (any
+    direction). A negative magnitude is refused: it would flip gravity (a still IMU climbing
+    at 2 g), and is most often the vector's z component given as the magnitude."""
     g = to_dtype("gravity", gravity, dtype)
     if g.ndim == 0:
+        check_finite("gravity", g)
+        if is_concrete(g) and float(g) < 0:
+            v = float(np.asarray(gravity))
+            raise InputError(
+                f"gravity = {v:g} is a magnitude, so it must be ≥ 0 (g_W = [0, 0, -g] in the "
+                "z-up world)", [Fix("gravity", -v)], sep=": ",
+                api_note=f", or the vector gravity=[0, 0, {-v:g}] if your world's z axis "
+                         "points down")
         g = jnp.stack([jnp.zeros_like(g), jnp.zeros_like(g), -g])
     elif g.shape[-1] != 3:
         raise ValueError(
@@ -229,3 +243,80 @@ def check_noise(noise, dtype):
             raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
         fields[name] = x
     return ImuNoise(**fields)
+
+
+# --------------------------------------------------------------------------- scalar options
+
+
+def _number(name, x):
+    if isinstance(x, (bool, np.bool_)) or np.ndim(x) != 0:
+        raise ValueError(f"{name} must be a number, got {x!r}")
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {x!r}") from None
+
+
+def check_int(name: str, x, minimum: int, what: str | None = None) -> int:
+    """``x`` as an ``int`` if it is a whole number ≥ ``minimum`` (``1e4`` is fine, ``1.5``
+    and ``True`` are not); else a ``ValueError`` naming ``name``."""
+    what = what or ("a positive integer" if minimum == 1 else
+                    "a non-negative integer" if minimum == 0 else f"an integer ≥ {minimum}")
+    try:
+        v = _number(name, x)
+    except ValueError:
+        raise ValueError(f"{name} must be {what}, got {x!r}") from None
+    if not (np.isfinite(v) and v == int(v) and v >= minimum):
+        raise ValueError(f"{name} must be {what}, got {x!r}")
+    return int(v)
+
+
+def check_positive(name: str, x, *, allow_zero: bool = False, hint: str = "") -> float:
+    """``x`` as a ``float`` if finite and ``> 0`` (``≥ 0`` with ``allow_zero``)."""
+    v = _number(name, x)
+    if not (np.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        kind = "non-negative" if allow_zero else "positive"
+        raise ValueError(f"{name} must be {kind} and finite, got {x!r}{hint}")
+    return v
+
+
+def check_fraction(name: str, x) -> float:
+    """A probability strictly between 0 and 1 (a confidence level)."""
+    v = _number(name, x)
+    if not (0.0 < v < 1.0):
+        if 1.0 < v < 100.0:
+            raise InputError(f"{name} must be in (0, 1), got {x!r}", [Fix(name, v / 100)],
+                             lead=f"for {v:g}% pass")
+        raise ValueError(f"{name} must be in (0, 1), got {x!r}")
+    return v
+
+
+def check_choice(name: str, x, choices, what: str | None = None):
+    if x not in choices:
+        raise ValueError(f"unknown {what or name} {x!r}; choose one of {tuple(choices)}")
+    return x
+
+
+def compute_dtype(name: str, dtype):
+    """A user's ``dtype`` option: float32 or float64 (the latter needs ``jax_enable_x64``)."""
+    try:
+        d = jnp.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"{name} must be a floating dtype (float32 or float64), got {dtype!r}") \
+            from None
+    if not jnp.issubdtype(d, jnp.floating) or d.itemsize < 4:
+        raise ValueError(f"{name} must be a floating dtype (float32 or float64), got {d.name}")
+    if d == jnp.float64 and not jax.config.jax_enable_x64:
+        raise ValueError(f"{name}=float64 needs 64-bit JAX: call "
+                         "jax.config.update('jax_enable_x64', True) first, or pass float32")
+    return d
+
+
+def check_array(name: str, x, shape: tuple) -> np.ndarray:
+    """A concrete numpy array of exactly ``shape``, finite; named in the error."""
+    arr = np.asarray(x)
+    if arr.shape != tuple(shape) or arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {arr.shape}"
+                         if arr.shape != tuple(shape) else f"{name} must be numeric, got {arr.dtype}")
+    check_finite(name, arr)
+    return arr

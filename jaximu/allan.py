@@ -19,7 +19,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["allan_deviation", "fit_noise", "NoiseFit"]
+from jaximu.errors import Fix, InputError
+
+__all__ = ["allan_deviation", "fit_noise", "NoiseFit", "check_units", "GYRO_WHITE_MAX"]
+
+GYRO_WHITE_MAX = 2e-3
+"""Largest plausible gyro white-noise density [rad/s/√Hz] (0.11 °/s/√Hz: four times the
+noisiest consumer MEMS gyro's datasheet figure, 0.03 °/s/√Hz)."""
 
 
 def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
@@ -111,9 +117,35 @@ def fit_noise(taus, adev) -> NoiseFit:
     Weighted least squares on the relative error of ``σ²``, weighted by ``τ^(-1/2)``: the
     relative uncertainty of an overlapping Allan variance grows like ``√(τ/T)`` (fewer
     independent clusters), so long τ count less. Both coefficients are kept non-negative.
+
+    Args:
+        taus: ``(n,)`` cluster times [s], positive and finite, at least 2.
+        adev: ``(n,)`` or ``(n, d)`` Allan deviations at ``taus``, positive and finite (as
+            :func:`allan_deviation` returns them).
+
+    Raises:
+        ValueError: naming ``taus`` or ``adev`` when they are outside that domain.
     """
     taus = np.asarray(taus, float)
     adev = np.asarray(adev, float)
+    if taus.ndim != 1 or len(taus) < 2:
+        raise ValueError(f"taus must be a 1-D array of at least 2 cluster times, got shape "
+                         f"{taus.shape}")
+    if adev.ndim not in (1, 2):
+        raise ValueError(f"adev must have shape (n,) or (n, d), got {adev.shape}")
+    if adev.shape[0] != len(taus):
+        raise ValueError(f"taus and adev have different lengths: {len(taus)} and {adev.shape[0]}")
+    if not np.all(np.isfinite(taus) & (taus > 0)):
+        raise ValueError(f"taus must be positive and finite, got {taus[~(np.isfinite(taus) & (taus > 0))][0]} "
+                         f"at index {int(np.argmax(~(np.isfinite(taus) & (taus > 0))))}")
+    bad = ~np.isfinite(adev)
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"adev contains non-finite values (NaN or inf), first at index {list(i)}")
+    if np.any(adev <= 0):
+        i = tuple(int(k) for k in np.argwhere(adev <= 0)[0])
+        raise ValueError(f"adev must be positive (a constant signal has no noise to fit), got "
+                         f"{adev[i]} at index {list(i)}")
     squeeze = adev.ndim == 1
     adev = adev[:, None] if squeeze else adev
     white, walk = [], []
@@ -133,3 +165,25 @@ def fit_noise(taus, adev) -> NoiseFit:
         walk.append(np.sqrt(max(coef[1], 0.0)))
     white, walk = np.array(white), np.array(walk)
     return NoiseFit(white[0], walk[0]) if squeeze else NoiseFit(white, walk)
+
+
+def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
+    """Refuse gyro densities that are implausible in rad/s: a static recording whose gyro is
+    in deg/s gives densities 57× too large (EuRoC's ADIS16448, 1.7e-4 rad/s/√Hz, reads
+    9.7e-3), which nothing downstream would notice.
+
+    Raises :class:`jaximu.errors.InputError` (a ``ValueError``) whose fixes are
+    ``gyro_unit='deg/s'`` (the readers' option) or ``check_units=False``, when the median
+    white-noise density over the axes exceeds :data:`GYRO_WHITE_MAX`. A gyro in deg/s that
+    is quieter than 3.5e-5 rad/s/√Hz (tactical grade) is not caught; motion in a recording
+    that is not static inflates the densities and can trip the check.
+    """
+    del accel  # the accelerometer's unit is judged by the readers (gravity's magnitude)
+    white = float(np.median(np.atleast_1d(np.asarray(gyro.white, float))))
+    if white > GYRO_WHITE_MAX:
+        raise InputError(
+            f"the gyro white-noise density {white:.3g} rad/s/√Hz is implausible for an IMU in "
+            f"rad/s (the noisiest MEMS gyros stay below {GYRO_WHITE_MAX:g}; read as deg/s it is "
+            f"{np.deg2rad(white):.3g} rad/s/√Hz): is the gyro in deg/s, or the recording not "
+            "static?",
+            [Fix("gyro_unit", "deg/s"), Fix("check_units", False)], sep=" ")

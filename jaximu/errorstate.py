@@ -221,21 +221,44 @@ structured_update = blk.structured_update
 
 
 def _check_cov(P0, dtype):
+    """Shape, finiteness, symmetry and semi-definiteness of ``P0``, judged relative to the
+    matrix's own scale (its largest entry): a covariance of 1e-6 m² is held to the same
+    relative rounding tolerance (``60 ε`` of the computation dtype, ``4 n ε`` with n = 15)
+    as one of 1e6, so a one-sided cross term or a negative variance is caught at any scale,
+    while the rounding of ``A Aᵀ`` computed in the dtype passes."""
     P0 = val.to_dtype("P0", P0, dtype)
     if P0.ndim < 2 or P0.shape[-2:] != (15, 15):
         raise ValueError(f"P0 must have shape (..., 15, 15), got {tuple(P0.shape)}")
     val.check_finite("P0", P0)
     if val.is_concrete(P0):
         arr = np.asarray(P0, np.float64)
-        scale = max(1.0, float(np.abs(arr).max(initial=0.0)))
+        scale = float(np.abs(arr).max(initial=0.0))
+        if scale == 0.0:
+            return P0
         arr = arr / scale  # relative tests; no overflow for entries near the float64 maximum
-        asym = np.abs(arr - np.swapaxes(arr, -1, -2)).max(initial=0.0)
-        if asym > 1e-6:
-            raise ValueError(f"P0 is not symmetric (max |P - Pᵀ| = {asym * scale:.3g})")
-        min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min(initial=0.0)
-        if min_eig < -1e-9:
+        tol = 60 * float(jnp.finfo(P0.dtype).eps)
+        asym = np.abs(arr - np.swapaxes(arr, -1, -2))
+        if asym.max(initial=0.0) > tol:
+            i = np.unravel_index(int(np.argmax(asym)), asym.shape)
+            j = i[:-2] + (i[-1], i[-2])
             raise ValueError(
-                f"P0 is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g})")
+                f"P0 is not symmetric: P0[{', '.join(map(str, i))}] = {arr[i] * scale:.6g} but "
+                f"P0[{', '.join(map(str, j))}] = {arr[j] * scale:.6g} (max |P - Pᵀ| = "
+                f"{asym.max() * scale:.3g}, {asym.max():.2g} of the largest entry {scale:.3g}); "
+                "set both, e.g. P0 = (P0 + P0ᵀ) / 2")
+        diag = np.diagonal(arr, axis1=-2, axis2=-1)
+        if diag.min(initial=0.0) < -tol:
+            i = np.unravel_index(int(np.argmin(diag)), diag.shape)
+            where = ", ".join(map(str, i[:-1] + (i[-1], i[-1])))
+            raise ValueError(
+                f"P0 is not positive semi-definite: the variance P0[{where}] = "
+                f"{diag[i] * scale:.3g} is negative; variances are σ² ≥ 0")
+        min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min(initial=0.0)
+        if min_eig < -tol:
+            raise ValueError(
+                f"P0 is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g}, "
+                f"{-min_eig:.2g} of the largest entry {scale:.3g}): the cross terms exceed what "
+                "the variances allow")
     return P0
 
 

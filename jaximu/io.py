@@ -34,6 +34,8 @@ from decimal import Decimal, InvalidOperation
 
 import numpy as np
 
+from jaximu.errors import Fix, InputError
+
 __all__ = [
     "DataError", "GroundTruth", "ImuData", "validate_imu", "read_euroc", "read_tumvi",
     "read_csv", "from_arrays", "read_npz", "read_rosbag", "write_tum", "read_tum",
@@ -57,9 +59,9 @@ GAP_FACTOR = 5.0  # default gap threshold: this many median intervals
 CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant
 
 
-class DataError(ValueError):
-    """A recording that cannot be used as it is; the message names the rows and the option
-    that repairs it."""
+class DataError(InputError):
+    """A recording that cannot be used as it is; the message names the rows, and
+    :attr:`fixes` holds the options that repair it (:class:`jaximu.errors.InputError`)."""
 
 
 def _rows(labels, idx, limit=5) -> str:
@@ -291,7 +293,8 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
         rows = np.flatnonzero(bad)
         if not drop_nonfinite:
             raise DataError(f"{len(rows)} sample(s) with NaN or inf values at "
-                            f"{_rows(labels, rows)}; pass drop_nonfinite=True to drop them")
+                            f"{_rows(labels, rows)}", [Fix("drop_nonfinite", True)],
+                            api_note=" to drop them")
         repairs.append(f"dropped {len(rows)} sample(s) with NaN/inf values: {_rows(labels, rows, 20)}")
         idx = idx[~bad]
 
@@ -300,8 +303,8 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
         if not sort:
             i = idx[back]
             raise DataError(f"timestamps go backwards at {len(back)} place(s): "
-                            f"{_rows(labels, i)} (earlier than the row before); "
-                            "pass sort=True to sort by time")
+                            f"{_rows(labels, i)} (earlier than the row before)",
+                            [Fix("sort", True)], api_note=" to sort by time")
         order = np.argsort(stamps_ns[idx], kind="stable")
         moved = int(np.sum(order != np.arange(len(order))))
         repairs.append(f"sorted by time: {moved} sample(s) moved (first out of order at "
@@ -312,8 +315,8 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     if len(dup):
         if not drop_duplicates:
             raise DataError(f"{len(dup)} duplicate timestamp(s) at {_rows(labels, idx[dup])} "
-                            "(same stamp as the row before); pass drop_duplicates=True to "
-                            "keep the first of each")
+                            "(same stamp as the row before)", [Fix("drop_duplicates", True)],
+                            api_note=" to keep the first of each")
         same = np.all(gyro[idx[dup]] == gyro[idx[dup - 1]], axis=1) & np.all(
             accel[idx[dup]] == accel[idx[dup - 1]], axis=1)
         repairs.append(f"dropped {len(dup)} sample(s) with a duplicate timestamp "
@@ -327,16 +330,17 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     med = float(np.median(dt))
     if check_units and not _DT_RANGE[0] <= med <= _DT_RANGE[1]:
         raise DataError(f"median sampling interval {med:.3g} s ({1 / med:.3g} Hz) is implausible "
-                        "for an IMU; check the time unit (time_unit=)")
+                        "for an IMU", [Fix("time_unit", phrase="check the time unit ({})")],
+                        lead="")
     limit = max_gap if max_gap is not None else GAP_FACTOR * med
     gaps = np.flatnonzero(dt > limit)
     if len(gaps):
         where = ", ".join(f"{dt[g]:.4g} s after {labels[idx[g]]}" for g in gaps[:5])
         more = f", … ({len(gaps)} in all)" if len(gaps) > 5 else ""
         if not allow_gaps:
-            raise DataError(f"{len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}; pass "
-                            "allow_gaps=True to keep them (then split_at_gaps()), or a "
-                            "larger max_gap")
+            raise DataError(f"{len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}",
+                            [Fix("allow_gaps", True), Fix("max_gap", phrase="a larger")],
+                            api_note=" (allow_gaps keeps them: then split_at_gaps())")
         repairs.append(f"kept {len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}")
 
     if check_units:
@@ -348,13 +352,16 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
             raise DataError(
                 f"gyro magnitudes up to {wn.max():.4g} (median {np.median(wn):.3g}) at "
                 f"{labels[idx[i]]} are implausible in rad/s (±2000 °/s = 34.9 rad/s): is the "
-                "gyro in deg/s? pass gyro_unit='deg/s' (or check_units=False)")
+                "gyro in deg/s?", [Fix("gyro_unit", "deg/s"), Fix("check_units", False)],
+                sep=" ")
         am = float(np.median(an))
         if not _ACCEL_MEDIAN_RANGE[0] <= am <= _ACCEL_MEDIAN_RANGE[1]:
-            hint = ("is the accelerometer in g? pass accel_unit='g'" if am < _ACCEL_MEDIAN_RANGE[0]
-                    else "check the accelerometer unit")
+            in_g = am < _ACCEL_MEDIAN_RANGE[0]
+            hint = "is the accelerometer in g?" if in_g else "check the accelerometer unit;"
             raise DataError(f"median accelerometer magnitude {am:.4g} is implausible in m/s² "
-                            f"(gravity alone reads 9.81): {hint} (or check_units=False)")
+                            f"(gravity alone reads 9.81): {hint}",
+                            ([Fix("accel_unit", "g")] if in_g else []) + [Fix("check_units", False)],
+                            sep=" ")
     return idx, tuple(repairs)
 
 
@@ -484,11 +491,11 @@ def _to_ns(text, unit_ns, label):
     except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
         raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
     if unit_ns == 1 and exact != ns:
-        raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds; "
-                        "check the time unit (time_unit=)")
+        raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
     if abs(ns) > np.iinfo(np.int64).max:
-        raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds; check the "
-                        "time unit")
+        raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
     return ns
 
 
@@ -599,7 +606,17 @@ def read_tumvi(path, *, groundtruth=True, **options) -> ImuData:
     return _read_asl(path, groundtruth, "tumvi", options)
 
 
-def read_csv(path, *, time=0, gyro=(1, 2, 3), accel=(4, 5, 6), time_unit: str = "s",
+def _header_time_unit(header, col):
+    """The unit a header states for the time column (``#timestamp [ns]``), or None."""
+    if header is None or col >= len(header):
+        return None
+    import re
+
+    m = re.search(r"\[\s*(ns|us|µs|ms|s)\s*\]", str(header[col]))
+    return None if m is None else {"µs": "us"}.get(m.group(1), m.group(1))
+
+
+def read_csv(path, *, time=0, gyro=(1, 2, 3), accel=(4, 5, 6), time_unit: str | None = None,
              gyro_unit: str = "rad/s", accel_unit: str = "m/s^2", delimiter: str | None = None,
              comment: str = "#", **options) -> ImuData:
     """Read IMU samples from a delimited text file.
@@ -611,18 +628,28 @@ def read_csv(path, *, time=0, gyro=(1, 2, 3), accel=(4, 5, 6), time_unit: str = 
         time, gyro, accel: columns: indices, or header names (matched case-insensitively,
             ignoring a trailing ``[unit]``). Default: EuRoC's order ``t, wx, wy, wz, ax, ay, az``.
         time_unit: ``"s"``, ``"ms"``, ``"us"`` or ``"ns"``; stamps are converted to
-            integer nanoseconds exactly from their decimal text.
+            integer nanoseconds exactly from their decimal text. Default ``None``: the unit
+            the time column's header states (``#timestamp [ns]``, as in EuRoC's files), else
+            seconds. A unit given that contradicts the header is a :class:`DataError`.
         gyro_unit: ``"rad/s"`` or ``"deg/s"`` (converted to rad/s).
         accel_unit: ``"m/s^2"`` or ``"g"`` (× 9.80665, converted to m/s²).
         options: {repair}
     """
-    _check_unit("time_unit", time_unit, _TIME_UNITS)
+    if time_unit is not None:
+        _check_unit("time_unit", time_unit, _TIME_UNITS)
     w_scale = _check_unit("gyro_unit", gyro_unit, _GYRO_UNITS)
     a_scale = _check_unit("accel_unit", accel_unit, _ACCEL_UNITS)
     header, rows, lines = _read_table(path, delimiter, comment)
     cols = [_column(header, c, path) for c in (time, *gyro, *accel)]
     if len(cols) != 7:
         raise ValueError("gyro and accel each need 3 columns")
+    stated = _header_time_unit(header, cols[0])
+    if time_unit is None:
+        time_unit = stated or "s"
+    elif stated is not None and stated != time_unit:
+        raise DataError(f"{path}: the header states the time column in [{stated}] "
+                        f"({header[cols[0]].strip()!r}) but time_unit={time_unit!r} was given",
+                        [Fix("time_unit", stated)], api_note=" (or leave it out)")
     stamps, values = _parse(rows, lines, cols[0], cols[1:], time_unit, path)
     return _make(stamps, values[:, 0:3] * w_scale, values[:, 3:6] * a_scale, lines=lines,
                  source=str(path), **options)
@@ -920,9 +947,12 @@ def gravity_alignment(accel_mean) -> np.ndarray:
 
     Roll and pitch put the measured specific force along world +z (still and level reads
     ``[0, 0, +g]``); yaw is not observable from gravity and is set to 0 (ZYX convention,
-    ``R = Rz(0) Ry(pitch) Rx(roll)``).
+    ``R = Rz(0) Ry(pitch) Rx(roll)``). ``accel_mean``: ``(3,)`` m/s², finite, non-zero.
     """
     f = np.asarray(accel_mean, np.float64)
+    if f.shape != (3,) or not np.all(np.isfinite(f)) or not np.any(f):
+        raise ValueError(f"accel_mean must be a finite, non-zero (3,) specific force [m/s²], got "
+                         f"{np.array2string(f, precision=4)}")
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
     cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
@@ -939,7 +969,7 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
             the ground truth at ``t[0]`` (v from differences of p when the ground truth has
             none; biases zero when it has none).
         still_seconds: otherwise the attitude comes from gravity alignment of the mean
-            specific force over the first ``still_seconds`` (yaw 0), with p = v = 0.
+            specific force over the first ``still_seconds`` (``> 0``; yaw 0), with p = v = 0.
         bias: ``(6,)`` ``[b_g, b_a]`` [rad/s, m/s²] to use (default zero without ground truth).
 
     Returns:
@@ -947,6 +977,11 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     """
     from jaximu.state import NavState  # noqa: PLC0415
 
+    if not (np.isfinite(still_seconds) and still_seconds > 0):
+        raise ValueError(f"still_seconds must be positive and finite, got {still_seconds}")
+    if bias is not None and (np.shape(bias) != (6,) or not np.all(np.isfinite(bias))):
+        raise ValueError(f"bias must be six finite numbers [b_g (rad/s), b_a (m/s²)], got "
+                         f"shape {np.shape(bias)}")
     b = np.zeros(6) if bias is None else np.asarray(bias, np.float64).reshape(6)
     t0 = data.t[:1]
     if from_groundtruth:

@@ -80,11 +80,13 @@ class MonteCarloResult(NamedTuple):
 def chi2_interval(dof, confidence: float = 0.95):
     """Two-sided interval of a ``χ²(dof)`` variable by the Wilson-Hilferty approximation
     (no scipy needed). Relative error at 99%: 1.2% at dof 15, 2e-4 at 150, 5e-6 at 1500,
-    5e-8 at 30000 (the average NEES of N runs has dof 15 N). Returns ``(lo, hi)``."""
+    5e-8 at 30000 (the average NEES of N runs has dof 15 N). ``dof > 0``; ``confidence``
+    in ``(0, 1)`` (0.95, not 95). Returns ``(lo, hi)``."""
     from jax.scipy.special import ndtri
 
+    k = val.check_positive("dof", dof)
+    confidence = val.check_fraction("confidence", confidence)
     z = float(ndtri(0.5 + confidence / 2))
-    k = float(dof)
     c = 2.0 / (9.0 * k)
     return (k * (1 - c - z * math.sqrt(c)) ** 3, k * (1 - c + z * math.sqrt(c)) ** 3)
 
@@ -149,54 +151,86 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     """Monte Carlo covariance study of ``n_runs`` noisy copies of one trajectory.
 
     Args:
-        trajectory: the true motion (:mod:`jaximu.simulate`).
-        times: ``(T+1,)`` sample times [s]; T steps (the samples are the interval ends).
-        P0: ``(15, 15)`` initial error covariance ``[dθ, dp, dv, db_g, db_a]``.
-        noise: the IMU densities used both to draw the noise and to predict the covariance.
-            (To test a filter's noise model, draw with one and predict with another: pass
-            ``noise=(draw, predict)``.)
-        n_runs: N.
+        trajectory: the true motion, a :class:`jaximu.simulate.Trajectory`.
+        times: ``(T+1,)`` sample times [s], finite and strictly increasing, at least 2; T
+            steps (the samples are the interval ends).
+        P0: ``(15, 15)`` initial error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
+            positive semi-definite (judged relative to its scale, as
+            :func:`jaximu.propagate_covariance`).
+        noise: the :class:`ImuNoise` densities used both to draw the noise and to predict the
+            covariance. (To test a filter's noise model, draw with one and predict with
+            another: pass ``noise=(draw, predict)``.)
+        n_runs: N, an integer ≥ 2.
         key: a ``jax.random`` key.
-        scheme: the propagation scheme of the estimator.
-        b_g0, b_a0: true turn-on biases ``(3,)`` (default zero).
-        record_every: record errors every this many steps (and at the last).
-        chunk_size: runs per batched call (memory: ``chunk × T × 16`` floats).
-        n_keep: runs whose errors are returned in ``sample_errors``.
+        scheme: the propagation scheme of the estimator (``"euler"``, ``"midpoint"``,
+            ``"rk4"``).
+        gravity: magnitude ``g ≥ 0`` [m/s²] (``g_W = [0, 0, -g]``) or a ``(3,)`` vector.
+        b_g0, b_a0: true turn-on biases ``(3,)`` [rad/s], [m/s²], finite (default zero).
+        record_every: record errors every this many steps (and at the last); an integer ≥ 1.
+        chunk_size: runs per batched call, an integer ≥ 1 (memory: ``chunk × T × 16``
+            floats).
+        n_keep: runs whose errors are returned in ``sample_errors``, an integer ≥ 0.
+        confidence: the NEES interval's probability, in ``(0, 1)`` (0.95, not 95).
         progress: show a progress bar (needs ``tqdm``).
         shard: split each chunk's runs over all JAX devices (``jax.sharding``).
-        dtype: computation dtype (default: float64 if enabled, else float32).
+        dtype: computation dtype, float32 or float64 (float64 needs ``jax_enable_x64``;
+            default: float64 if enabled, else float32).
 
     Returns:
         :class:`MonteCarloResult`.
+
+    Raises:
+        ValueError: naming the argument, for any of them outside the domain above.
     """
+    from jaximu.errorstate import _check_cov
+    from jaximu.integrators import SCHEMES
+
+    if not isinstance(trajectory, Trajectory):
+        raise ValueError("trajectory must be a jaximu.simulate.Trajectory (e.g. "
+                         f"jaximu.simulate.circle()), got {type(trajectory).__name__}")
     if isinstance(noise, tuple):
+        if len(noise) != 2:
+            raise ValueError("noise must be an ImuNoise or a pair (draw, predict) of them, got a "
+                             f"tuple of {len(noise)}")
         draw_noise, model_noise = noise
     else:
         draw_noise = model_noise = noise
-    if n_runs < 2:
-        raise ValueError(f"n_runs must be at least 2, got {n_runs}")
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    n_runs = val.check_int("n_runs", n_runs, 2)
+    record_every = val.check_int("record_every", record_every, 1)
+    chunk_size = val.check_int("chunk_size", chunk_size, 1)
+    n_keep = val.check_int("n_keep", n_keep, 0)
+    confidence = val.check_fraction("confidence", confidence)
+    val.check_choice("scheme", scheme, SCHEMES)
+    dtype = val.compute_dtype("dtype", dtype) if dtype is not None else jnp.result_type(float)
     times = np.asarray(times, np.float64)
-    if times.ndim != 1 or len(times) < 2 or np.any(np.diff(times) <= 0):
-        raise ValueError("times must be a strictly increasing 1-D array of at least 2 times")
+    if times.ndim != 1 or len(times) < 2:
+        raise ValueError(f"times must be a 1-D array of at least 2 sample times, got shape "
+                         f"{times.shape}")
+    val.check_finite("times", times)
+    if np.any(np.diff(times) <= 0):
+        i = int(np.argmax(np.diff(times) <= 0))
+        raise ValueError(f"times must increase strictly; times[{i + 1}] = {times[i + 1]:g} ≤ "
+                         f"times[{i}] = {times[i]:g}")
     P0 = np.asarray(P0, np.float64)
     if P0.shape != (15, 15):
         raise ValueError(f"P0 must have shape (15, 15), got {P0.shape}")
+    _check_cov(P0, np.float64)
     lam, V = np.linalg.eigh(0.5 * (P0 + P0.T))
-    if lam.min() < -1e-12 * max(lam.max(), 1e-300):
-        raise ValueError("P0 is not positive semi-definite")
     L0 = jnp.asarray(V * np.sqrt(np.clip(lam, 0, None)), dtype)  # L0 L0ᵀ = P0, also if singular
     model_noise = val.check_noise(model_noise, dtype)
     draw_noise = val.check_noise(draw_noise, dtype)
+    g = val.gravity_vector(gravity, dtype)
+    if g.ndim != 1:
+        raise ValueError(f"gravity must be a magnitude or a (3,) vector, got shape {g.shape}")
+    b_g0 = np.zeros(3) if b_g0 is None else val.check_array("b_g0", b_g0, (3,))
+    b_a0 = np.zeros(3) if b_a0 is None else val.check_array("b_a0", b_a0, (3,))
     T = len(times) - 1
     dt = jnp.asarray(np.diff(times), dtype)
     t = jnp.asarray(times, dtype)
     gyro, accel = ideal_imu(trajectory, t, gravity)
-    g = val.gravity_vector(gravity, dtype)
     truth = true_states(trajectory, t)
-    zero3 = jnp.zeros(3, dtype)
-    b_g0 = zero3 if b_g0 is None else jnp.asarray(b_g0, dtype)
-    b_a0 = zero3 if b_a0 is None else jnp.asarray(b_a0, dtype)
+    b_g0 = jnp.asarray(b_g0, dtype)
+    b_a0 = jnp.asarray(b_a0, dtype)
     x0 = NavState(truth.q[0], truth.p[0], truth.v[0], b_g0, b_a0)
     rec = np.unique(np.r_[np.arange(record_every - 1, T, record_every), T - 1])
     rec_j = jnp.asarray(rec)

@@ -24,6 +24,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = ["ImuNoise"]
 
@@ -72,12 +73,14 @@ class ImuNoise:
         return out
 
     def sample_std(self, dt, dtype=None):
-        """Per-sample standard deviations for a sample held over ``dt`` [s].
+        """Per-sample standard deviations for a sample held over ``dt`` [s] (``> 0``, finite;
+        checked on eager calls).
 
         Returns:
             ``(gyro_white, accel_white, gyro_bias_step, accel_bias_step)``, each ``(..., 3)``:
             ``σ/√dt`` for the white noises and ``σ_rw·√dt`` for the bias steps.
         """
+        _check_dt(dt)
         dt = jnp.asarray(dt, dtype)
         sg, sa, sbg, sba = self._per_axis(dt.dtype)
         root = jnp.sqrt(dt)[..., None]
@@ -86,7 +89,7 @@ class ImuNoise:
     def discrete_covariance(self, dt, dtype=None):
         """``Q_c``: the ``(..., 12, 12)`` covariance of the step noise ``[n_g, n_a, n_wg, n_wa]``.
 
-        Diagonal ``[σ_g², σ_a², σ_bg², σ_ba²] / dt`` (each over 3 axes).
+        Diagonal ``[σ_g², σ_a², σ_bg², σ_ba²] / dt`` (each over 3 axes); ``dt > 0``, finite.
         """
         var = self.discrete_variances(dt, dtype)
         return var[..., None] * jnp.eye(12, dtype=var.dtype)
@@ -98,6 +101,23 @@ class ImuNoise:
         return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
 
     def discrete_variances(self, dt, dtype=None):
-        """Diagonal of :meth:`discrete_covariance`: :meth:`variances` ``/ dt``, ``(..., 12)``."""
+        """Diagonal of :meth:`discrete_covariance`: :meth:`variances` ``/ dt``, ``(..., 12)``.
+
+        ``dt > 0`` and finite (a ``ValueError`` on eager calls: ``dt = 0`` would give inf,
+        then NaN in ``G Q Gᵀ``)."""
+        _check_dt(dt)
         dt = jnp.asarray(dt, dtype)
         return self.variances(dt.dtype) / dt[..., None]
+
+
+def _check_dt(dt):
+    """``dt > 0`` and finite, when concrete (inside a caller's ``jit`` it is not checked)."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(dt)):
+        return
+    arr = np.asarray(dt)
+    bad = ~(np.isfinite(arr) & (arr > 0))
+    if bad.any():
+        where = ("[" + ", ".join(str(int(i)) for i in np.argwhere(bad)[0]) + "]") if arr.ndim else ""
+        value = arr[tuple(np.argwhere(bad)[0])] if arr.ndim else arr
+        raise ValueError(f"dt must be positive and finite; dt{where} = {value} (the noise "
+                         "variances are σ²/dt)")

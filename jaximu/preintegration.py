@@ -697,7 +697,20 @@ def correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
 def needs_reintegration(pim: Preintegrated, bias: ImuBias, gyro_threshold: float = 0.01,
                         accel_threshold: float = 0.10):
     """Whether ``bias`` is far enough from ``pim.bias_hat`` that re-integration is advised
-    (VINS-Mono: ``|δb_a| > 0.10`` m/s² or ``|δb_g| > 0.01`` rad/s). ``(...,)`` bool."""
+    (VINS-Mono: ``|δb_a| > 0.10`` m/s² or ``|δb_g| > 0.01`` rad/s). ``(...,)`` bool.
+
+    ``pim``: a :class:`Preintegrated`; ``bias``: an :class:`ImuBias` whose batch broadcasts
+    to ``pim``'s; thresholds ``≥ 0`` and finite [rad/s], [m/s²]. Bad values (a NaN bias,
+    which would answer False) raise ``ValueError`` on eager calls.
+    """
+    batch = _check_pim(pim)
+    if not isinstance(bias, ImuBias):
+        raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
+    bias = _check_bias(bias, val.float_dtype(bias.b_g, bias.b_a))
+    val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch)
+    for name, x in (("gyro_threshold", gyro_threshold), ("accel_threshold", accel_threshold)):
+        if val.is_concrete(x):
+            val.check_positive(name, x, allow_zero=True)
     dbg = jnp.linalg.norm(bias.b_g - pim.bias_hat.b_g, axis=-1)
     dba = jnp.linalg.norm(bias.b_a - pim.bias_hat.b_a, axis=-1)
     return (dbg > gyro_threshold) | (dba > accel_threshold)
@@ -711,7 +724,28 @@ def compose(pim_ab: Preintegrated, pim_bc: Preintegrated) -> Preintegrated:
     and composed: ``Φ_ac = (T Φ_bc T⁻¹) Φ_ab``, ``Q_ac = (T Φ_bc T⁻¹) Q_ab (·)ᵀ + T Q_bc Tᵀ``.
     Exact (to rounding) for ``"euler"``; for VINS-Mono's midpoint the conjugation is exact
     only to O((ω dt)²), because VINS-Mono rotates with an unnormalised quaternion.
+
+    Both are :class:`Preintegrated` with finite values and batch shapes that broadcast
+    (``ValueError`` naming ``pim_ab`` / ``pim_bc`` otherwise).
     """
+    batches = []
+    for name, p in (("pim_ab", pim_ab), ("pim_bc", pim_bc)):
+        try:
+            batches.append(_check_pim(p))
+        except ValueError as e:
+            raise ValueError(str(e).replace("pim", name, 1)) from None
+    try:
+        batch = jnp.broadcast_shapes(*batches)
+    except ValueError:
+        raise ValueError(f"pim_ab and pim_bc have batch shapes {tuple(batches[0])} and "
+                         f"{tuple(batches[1])}, which do not broadcast") from None
+
+    def widen(p, own):  # a shared measurement against a batch: broadcast it first
+        n = len(own)
+        return p if tuple(own) == tuple(batch) else jax.tree_util.tree_map(
+            lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[n:]), p)
+
+    pim_ab, pim_bc = widen(pim_ab, batches[0]), widen(pim_bc, batches[1])
     bc = _correct(pim_bc, pim_ab.bias_hat)
     R = pim_ab.delta_R
 
@@ -797,11 +831,20 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
 def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
     """``L⁻¹ r`` with ``cov15 = L Lᵀ`` (Cholesky): ``|L⁻¹ r|² = rᵀ cov15⁻¹ r``.
 
-    ``cov15`` must be positive definite (give the bias random walk a non-zero density).
+    ``cov15`` must be positive definite: preintegrate with ``noise=`` whose densities and
+    random walks are all non-zero. On an eager call a ``cov15`` that is not (a measurement
+    preintegrated without noise) raises ``ValueError``; inside a caller's ``jit`` the
+    result is then NaN.
     """
     r = residual(state_i, state_j, pim, gravity)
     L = jnp.linalg.cholesky(pim.cov15)
-    return jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
+    if val.is_concrete(L) and not np.isfinite(np.asarray(L)).all():
+        raise ValueError(
+            "pim.cov15 is not positive definite, so the residual cannot be whitened: the "
+            "measurement was preintegrated without noise (or with a zero density or random "
+            "walk); preintegrate with noise=jaximu.ImuNoise(...) whose four densities are > 0")
+    return _output("whitened_residual",
+                   jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0])
 
 
 def bias_jacobians_autodiff(gyro, accel, dt, bias: ImuBias | None = None,
@@ -810,7 +853,11 @@ def bias_jacobians_autodiff(gyro, accel, dt, bias: ImuBias | None = None,
 
     Returns ``(dR_dbg, dp_dbg, dp_dba, dv_dbg, dv_dba)``, each ``(..., 3, 3)``, with the
     rotation one defined as in :class:`Preintegrated` (``Log(ΔR̂ᵀ ΔR(b̂ + δ))``).
+    ``gyro``, ``accel``, ``dt``, ``bias`` as :func:`preintegrate`; ``scheme`` ``"euler"`` or
+    ``"midpoint"``.
     """
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown preintegration scheme {scheme!r}; choose one of {SCHEMES}")
     dtype = val.float_dtype(gyro, accel)
     gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     bias = _check_bias(bias, dtype)

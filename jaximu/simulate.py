@@ -59,6 +59,31 @@ class Trajectory:
         return self.pose(t)
 
 
+def _finite(name, x, positive=False, shape=None):
+    """A trajectory parameter: finite (and > 0 with ``positive``; of ``shape`` if given)."""
+    arr = np.asarray(x, float) if not isinstance(x, jax.core.Tracer) else None
+    if arr is None:
+        return x
+    if shape is not None and arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)) or (positive and not np.all(arr > 0)):
+        raise ValueError(f"{name} must be {'positive and ' if positive else ''}finite, got {x!r}")
+    return x
+
+
+def _check_traj(traj, t):
+    if not isinstance(traj, Trajectory):
+        raise ValueError(f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got "
+                         f"{type(traj).__name__}")
+    t = jnp.asarray(t)
+    if t.ndim != 1:
+        raise ValueError(f"t must be a 1-D array of times (T,), got shape {tuple(t.shape)}")
+    if not jnp.issubdtype(t.dtype, jnp.floating):
+        t = t.astype(val.float_dtype(t))
+    val.check_finite("t", t)
+    return t
+
+
 def _yaw_pitch_roll_quat(yaw, pitch, roll):
     return so3.euler_zyx_to_quat(jnp.stack([roll, pitch, yaw]))
 
@@ -68,7 +93,9 @@ def circle(radius: float = 5.0, speed: float = 2.0, height: float = 1.0) -> Traj
 
     Yaw rate ``ω = speed / radius``; the IMU reads ``gyro = (0, 0, ω)`` and
     ``accel = (0, speed·ω, g)`` (centripetal force plus gravity reaction), constant.
+    ``radius > 0`` [m], ``speed`` and ``height`` finite [m/s], [m].
     """
+    _finite("radius", radius, True), _finite("speed", speed), _finite("height", height)
     w = speed / radius
 
     def pose(t):
@@ -82,7 +109,11 @@ def circle(radius: float = 5.0, speed: float = 2.0, height: float = 1.0) -> Traj
 def figure_eight(a: float = 6.0, b: float = 3.0, period: float = 20.0, height: float = 1.5,
                  bank: float = 0.25) -> Trajectory:
     """Horizontal figure eight ``(a sin wt, b sin 2wt)`` with heading along the velocity and a
-    banking roll ``bank·sin(2wt)`` [rad]."""
+    banking roll ``bank·sin(2wt)`` [rad]. ``a``, ``b``, ``height``, ``bank`` finite [m, rad];
+    ``period > 0`` [s]."""
+    for name, x in (("a", a), ("b", b), ("height", height), ("bank", bank)):
+        _finite(name, x)
+    _finite("period", period, True)
     w = 2 * np.pi / period
 
     def pose(t):
@@ -96,7 +127,12 @@ def figure_eight(a: float = 6.0, b: float = 3.0, period: float = 20.0, height: f
 
 def lissajous(amplitude=(3.0, 2.0, 0.5), frequency=(0.1, 0.15, 0.23),
               attitude_amplitude=(0.3, 0.2, 0.8), attitude_frequency=(0.21, 0.17, 0.07)) -> Trajectory:
-    """3-D Lissajous curve with independently oscillating roll, pitch and yaw [rad, Hz]."""
+    """3-D Lissajous curve with independently oscillating roll, pitch and yaw [rad, Hz].
+    Each argument: three finite numbers (amplitudes [m, rad], frequencies [Hz])."""
+    for name, x in (("amplitude", amplitude), ("frequency", frequency),
+                    ("attitude_amplitude", attitude_amplitude),
+                    ("attitude_frequency", attitude_frequency)):
+        _finite(name, x, shape=(3,))
     A, f = np.asarray(amplitude, float), np.asarray(frequency, float)
     B, g = np.asarray(attitude_amplitude, float), np.asarray(attitude_frequency, float)
 
@@ -110,7 +146,11 @@ def lissajous(amplitude=(3.0, 2.0, 0.5), frequency=(0.1, 0.15, 0.23),
 
 def helix(radius: float = 3.0, turn_rate: float = 0.4, climb_rate: float = 0.2,
           wobble: float = 0.2) -> Trajectory:
-    """Climbing helix, heading along the track, with roll and pitch wobbling by ``wobble`` rad."""
+    """Climbing helix, heading along the track, with roll and pitch wobbling by ``wobble`` rad.
+    ``radius > 0`` [m]; ``turn_rate`` [rad/s], ``climb_rate`` [m/s], ``wobble`` finite."""
+    _finite("radius", radius, True)
+    for name, x in (("turn_rate", turn_rate), ("climb_rate", climb_rate), ("wobble", wobble)):
+        _finite(name, x)
 
     def pose(t):
         wt = turn_rate * t
@@ -160,6 +200,8 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
     """
     times = np.asarray(times, float)
     positions = np.asarray(positions, float)
+    val.check_finite("times", times)
+    val.check_finite("positions", positions)
     if times.ndim != 1 or len(times) < 2 or np.any(np.diff(times) <= 0):
         raise ValueError("times must be a strictly increasing 1-D array of at least 2 waypoints")
     if positions.shape != (len(times), 3):
@@ -205,19 +247,21 @@ def _kinematics_at(traj: Trajectory, t):
 
 
 def true_states(traj: Trajectory, t) -> NavState:
-    """The exact states at times ``t`` ``(T,)`` (zero biases): fields ``(T, ·)``."""
-    q, p, v, _, _ = _kinematics_at(traj, jnp.asarray(t))
+    """The exact states at times ``t`` ``(T,)`` (finite; zero biases): fields ``(T, ·)``."""
+    t = _check_traj(traj, t)
+    q, p, v, _, _ = _kinematics_at(traj, t)
     z = jnp.zeros_like(p)
     return NavState(q, p, v, z, z)
 
 
 def ideal_imu(traj: Trajectory, t, gravity=9.81):
-    """Exact body rate and specific force at times ``t`` ``(T,)``.
+    """Exact body rate and specific force at times ``t`` ``(T,)`` (finite); ``gravity`` a
+    magnitude ``≥ 0`` or a ``(3,)`` vector as :func:`jaximu.propagate`.
 
     Returns:
         ``(gyro, accel)``, each ``(T, 3)``: ``ω_B`` [rad/s] and ``f_B = R_WBᵀ(a_W - g_W)`` [m/s²].
     """
-    t = jnp.asarray(t)
+    t = _check_traj(traj, t)
     g = val.gravity_vector(gravity, t.dtype)
     q, _, _, omega, a = _kinematics_at(traj, t)
     accel = so3.quat_rotate(so3.quat_conj(q), a - g)
@@ -244,10 +288,11 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
 
     Args:
         key: a ``jax.random`` key.
-        gyro, accel: ``(T, 3)`` true body rate and specific force (e.g. :func:`ideal_imu`).
-        dt: ``(T,)`` or scalar sample periods [s] (sample k held over ``dt[k]``).
+        gyro, accel: ``(T, 3)`` true body rate and specific force (e.g. :func:`ideal_imu`),
+            finite.
+        dt: ``(T,)`` or scalar sample periods [s] (sample k held over ``dt[k]``), ``> 0``.
         noise: the densities; white-noise std ``σ/√dt``, bias steps std ``σ_rw·√dt``.
-        b_g0, b_a0: turn-on biases ``(..., 3)`` (or scalars).
+        b_g0, b_a0: turn-on biases ``(..., 3)`` (or scalars), finite.
         gyro_misalignment, accel_misalignment: optional ``(3, 3)`` ``S`` with ``M = I + S``
             (scale factors on the diagonal, misalignment off it).
         batch_shape: draw this many independent streams at once (outputs ``batch + (T, 3)``);
@@ -258,7 +303,20 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         the turn-on bias plus the sum of the random-walk steps before k.
     """
     gyro, accel = jnp.asarray(gyro), jnp.asarray(accel)
-    dtype = gyro.dtype
+    val.check_vector("gyro", gyro)
+    val.check_vector("accel", accel)
+    if gyro.shape[-2] != accel.shape[-2]:
+        raise ValueError(f"gyro and accel have different numbers of samples: {gyro.shape[-2]} "
+                         f"and {accel.shape[-2]}")
+    val.check_finite("gyro", gyro)
+    val.check_finite("accel", accel)
+    dtype = val.float_dtype(gyro, accel)
+    gyro, accel = gyro.astype(dtype), accel.astype(dtype)
+    noise = val.check_noise(noise, dtype)
+    for name, M in (("gyro_misalignment", gyro_misalignment),
+                    ("accel_misalignment", accel_misalignment)):
+        if M is not None and jnp.shape(M) != (3, 3):
+            raise ValueError(f"{name} must have shape (3, 3) or be None, got {jnp.shape(M)}")
     T = gyro.shape[-2]
     dt = jnp.broadcast_to(jnp.asarray(dt, dtype), (T,))
     sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each
@@ -269,6 +327,10 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     def before(walk):  # sum of the steps before each sample
         return jnp.concatenate([jnp.zeros_like(walk[..., :1, :]), walk[..., :-1, :]], axis=-2)
 
+    for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
+        if jnp.ndim(b) and jnp.shape(b)[-1] != 3:
+            raise ValueError(f"{name} must be a scalar or have shape (..., 3), got {jnp.shape(b)}")
+        val.check_finite(name, b)
     b_g0 = jnp.asarray(b_g0, dtype)[..., None, :] if jnp.ndim(b_g0) else jnp.asarray(b_g0, dtype)
     b_a0 = jnp.asarray(b_a0, dtype)[..., None, :] if jnp.ndim(b_a0) else jnp.asarray(b_a0, dtype)
     b_g, b_a = b_g0 + before(walk_g), b_a0 + before(walk_a)

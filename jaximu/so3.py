@@ -6,6 +6,11 @@ Every function acts on one sample and broadcasts over leading axes:
 * rotation vectors and 3-vectors are ``(..., 3)``;
 * rotation matrices are ``(..., 3, 3)``.
 
+Inputs may be arrays or nested Python lists / tuples (a ROS quaternion ``[x, y, z, w]``).
+Shapes are checked (a ``ValueError`` naming the function and the argument: ``so3.exp`` of a
+quaternion is an error, not a 5-vector); values are not (these kernels run inside ``jit``
+and ``grad`` loops), so a quaternion is assumed unit where the docstring says so.
+
 A quaternion ``q`` represents ``R = R(q)``, which maps body vectors into the world
 (``R_WB``, see docs/DESIGN.md). ``exp`` and ``log`` are the SO(3) exponential and logarithm of
 the rotation vector ``phi = theta * axis``.
@@ -67,8 +72,30 @@ def _split(theta_sq):
     return small, jnp.sqrt(safe_sq)
 
 
+def _arg(fn: str, name: str, x, tail: tuple):
+    """``x`` as an array (a Python list or tuple is fine: a ROS quaternion), checked to end
+    in ``tail``; else a ``ValueError`` naming ``so3.fn``, the argument and the shape wanted.
+    A static check: it also runs inside ``jit``, at trace time only."""
+    x = jnp.asarray(x)
+    n = len(tail)
+    if x.ndim < n or tuple(x.shape[x.ndim - n:]) != tuple(tail):
+        want = ", ".join(str(d) for d in tail)
+        raise ValueError(f"so3.{fn}: {name} must have shape (..., {want}), got {tuple(x.shape)}")
+    return x
+
+
+def _batches(fn: str, a: str, x, na: int, b: str, y, nb: int):
+    """The batch shapes of two arguments broadcast; else a ``ValueError`` naming both."""
+    try:
+        jnp.broadcast_shapes(x.shape[:x.ndim - na], y.shape[:y.ndim - nb])
+    except ValueError:
+        raise ValueError(f"so3.{fn}: the batch shapes of {a} {tuple(x.shape)} and {b} "
+                         f"{tuple(y.shape)} do not broadcast") from None
+
+
 def skew(v):
     """Skew-symmetric matrix ``[v]x`` with ``[v]x w = v x w``. ``(..., 3) -> (..., 3, 3)``."""
+    v = _arg("skew", "v", v, (3,))
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     o = jnp.zeros_like(x)
     return jnp.stack(
@@ -91,6 +118,9 @@ def quat_identity(batch_shape=(), dtype=jnp.float32):
 
 def quat_mul(p, q):
     """Hamilton product ``p ⊗ q`` (``R(p ⊗ q) = R(p) R(q)``). ``(..., 4), (..., 4) -> (..., 4)``."""
+    p = _arg("quat_mul", "p", p, (4,))
+    q = _arg("quat_mul", "q", q, (4,))
+    _batches("quat_mul", "p", p, 1, "q", q, 1)
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return jnp.stack(
@@ -106,11 +136,13 @@ def quat_mul(p, q):
 
 def quat_conj(q):
     """Conjugate ``[w, -x, -y, -z]`` (the inverse of a unit quaternion)."""
+    q = _arg("quat_conj", "q", q, (4,))
     return q * jnp.array([1, -1, -1, -1], dtype=q.dtype)
 
 
 def quat_normalize(q):
     """``q / |q|``. The caller guarantees ``q != 0``."""
+    q = _arg("quat_normalize", "q", q, (4,))
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
@@ -119,6 +151,9 @@ def quat_rotate(q, v):
 
     Uses ``v + 2 w (u x v) + 2 u x (u x v)`` (u the vector part), cheaper than forming R.
     """
+    q = _arg("quat_rotate", "q", q, (4,))
+    v = _arg("quat_rotate", "v", v, (3,))
+    _batches("quat_rotate", "q", q, 1, "v", v, 1)
     w = q[..., :1]
     u = q[..., 1:]
     t = 2.0 * jnp.cross(u, v)
@@ -127,6 +162,7 @@ def quat_rotate(q, v):
 
 def quat_to_matrix(q):
     """Rotation matrix of a unit quaternion. ``(..., 4) -> (..., 3, 3)``."""
+    q = _arg("quat_to_matrix", "q", q, (4,))
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -148,6 +184,7 @@ def matrix_to_quat(R):
     denominator is chosen, so it is accurate everywhere, including at pi. The result is
     normalised, so a slightly non-orthogonal ``R`` gives the nearest-direction quaternion.
     """
+    R = _arg("matrix_to_quat", "R", R, (3, 3))
     r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     r01, r02, r10 = R[..., 0, 1], R[..., 0, 2], R[..., 1, 0]
     r12, r20, r21 = R[..., 1, 2], R[..., 2, 0], R[..., 2, 1]
@@ -177,6 +214,7 @@ def exp(phi):
     This is the exact constant-rate orientation update ``Θ(Δt)`` of docs/DESIGN.md for
     ``φ = ω Δt``.
     """
+    phi = _arg("exp", "phi", phi, (3,))
     theta_sq = jnp.sum(phi * phi, axis=-1)
     small, theta = _split(theta_sq)
     t2, t4, t6 = theta_sq, theta_sq * theta_sq, theta_sq * theta_sq * theta_sq
@@ -191,6 +229,7 @@ def log(q):
 
     ``q`` and ``-q`` give the same result. ``(..., 4) -> (..., 3)``.
     """
+    q = _arg("log", "q", q, (4,))
     q = jnp.where(q[..., :1] < 0, -q, q)
     w = q[..., 0]
     u = q[..., 1:]
@@ -208,11 +247,13 @@ def log(q):
 
 def exp_matrix(phi):
     """SO(3) exponential as a rotation matrix (Rodrigues). ``(..., 3) -> (..., 3, 3)``."""
+    phi = _arg("exp_matrix", "phi", phi, (3,))
     return quat_to_matrix(exp(phi))
 
 
 def log_matrix(R):
     """SO(3) logarithm of a rotation matrix, angle in ``[0, π]``. ``(..., 3, 3) -> (..., 3)``."""
+    R = _arg("log_matrix", "R", R, (3, 3))
     return log(matrix_to_quat(R))
 
 
@@ -237,6 +278,7 @@ def right_jacobian(phi):
 
     ``Exp(φ + δ) ≈ Exp(φ) Exp(Jr(φ) δ)``; GTSAM's ``Rot3::ExpmapDerivative``.
     """
+    phi = _arg("right_jacobian", "phi", phi, (3,))
     a, b, _ = _jacobian_coeffs(phi)
     K = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
@@ -248,6 +290,7 @@ def right_jacobian_inv(phi):
 
     ``Log(Exp(φ) Exp(δ)) ≈ φ + Jr(φ)⁻¹ δ``; GTSAM's ``Rot3::LogmapDerivative``.
     """
+    phi = _arg("right_jacobian_inv", "phi", phi, (3,))
     _, _, c = _jacobian_coeffs(phi)
     K = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
@@ -256,6 +299,7 @@ def right_jacobian_inv(phi):
 
 def left_jacobian(phi):
     """Left Jacobian ``Jl(φ) = Jr(-φ) = Jr(φ)ᵀ``. ``(..., 3) -> (..., 3, 3)``."""
+    phi = _arg("left_jacobian", "phi", phi, (3,))
     return right_jacobian(-phi)
 
 
@@ -264,6 +308,9 @@ def quat_first_order_update(q, phi):
 
     Equals ``q ⊗ Exp(φ')`` with angle ``2 atan(θ/2)``: an angle error of ``θ³/12`` per step.
     """
+    q = _arg("quat_first_order_update", "q", q, (4,))
+    phi = _arg("quat_first_order_update", "phi", phi, (3,))
+    _batches("quat_first_order_update", "q", q, 1, "phi", phi, 1)
     dq = jnp.concatenate([jnp.ones_like(phi[..., :1]), 0.5 * phi], axis=-1)
     return quat_normalize(quat_mul(q, dq))
 
@@ -273,11 +320,13 @@ def quat_first_order_update(q, phi):
 
 def xyzw_to_wxyz(q):
     """``[x, y, z, w]`` (scipy, Eigen ``coeffs()``, PyPose, ROS) to ``[w, x, y, z]``."""
+    q = _arg("xyzw_to_wxyz", "q", q, (4,))
     return jnp.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
 def wxyz_to_xyzw(q):
     """``[w, x, y, z]`` to ``[x, y, z, w]`` (scipy, Eigen ``coeffs()``, PyPose, ROS)."""
+    q = _arg("wxyz_to_xyzw", "q", q, (4,))
     return jnp.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
 
@@ -288,11 +337,13 @@ def jpl_to_hamilton(q_jpl):
     OpenVINS's ``C(^I_G q̄) = R_GtoI = R_WBᵀ``, so ``q_WB = [s, u]``: the same four numbers,
     reordered (Trawny & Roumeliotis, TR 2005-002, eq. 62).
     """
+    q_jpl = _arg("jpl_to_hamilton", "q_jpl", q_jpl, (4,))
     return xyzw_to_wxyz(q_jpl)
 
 
 def hamilton_to_jpl(q_wb):
     """Hamilton ``q_WB`` ``[w, x, y, z]`` to JPL ``^I_G q̄`` ``[q1, q2, q3, q4]`` (OpenVINS)."""
+    q_wb = _arg("hamilton_to_jpl", "q_wb", q_wb, (4,))
     return wxyz_to_xyzw(q_wb)
 
 
@@ -305,6 +356,7 @@ def euler_zyx_to_quat(chi):
     ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (GTSAM ``Rot3::Ypr(yaw, pitch, roll)``, scipy
     ``Rotation.from_euler("ZYX", [yaw, pitch, roll])``). ``(..., 3) -> (..., 4)``.
     """
+    chi = _arg("euler_zyx_to_quat", "chi", chi, (3,))
     hr, hp, hy = 0.5 * chi[..., 0], 0.5 * chi[..., 1], 0.5 * chi[..., 2]
     cr, sr = jnp.cos(hr), jnp.sin(hr)
     cp, sp = jnp.cos(hp), jnp.sin(hp)
@@ -322,6 +374,7 @@ def euler_zyx_to_quat(chi):
 
 def euler_zyx_to_matrix(chi):
     """``Rz(yaw) Ry(pitch) Rx(roll)`` for ``χ = [roll, pitch, yaw]``. ``(..., 3) -> (..., 3, 3)``."""
+    chi = _arg("euler_zyx_to_matrix", "chi", chi, (3,))
     cr, sr = jnp.cos(chi[..., 0]), jnp.sin(chi[..., 0])
     cp, sp = jnp.cos(chi[..., 1]), jnp.sin(chi[..., 1])
     cy, sy = jnp.cos(chi[..., 2]), jnp.sin(chi[..., 2])
@@ -342,6 +395,7 @@ def quat_to_euler_zyx(q):
     infinite; this is the representation's singularity, not hidden here.
     ``(..., 4) -> (..., 3)``.
     """
+    q = _arg("quat_to_euler_zyx", "q", q, (4,))
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
@@ -354,6 +408,7 @@ def euler_rate_matrix(chi):
 
     Singular at pitch ±π/2 (``1/cos(pitch)``). ``(..., 3) -> (..., 3, 3)``.
     """
+    chi = _arg("euler_rate_matrix", "chi", chi, (3,))
     cr, sr = jnp.cos(chi[..., 0]), jnp.sin(chi[..., 0])
     cp = jnp.cos(chi[..., 1])
     tp = jnp.tan(chi[..., 1])
