@@ -39,6 +39,7 @@ class Row(NamedTuple):
     min_lanes: int  # below this many batch elements the generic kernel is as fast
     min_steps: int  # fewer steps than this: the row does not apply
     kernel: str
+    dtypes: tuple = ("float32", "float64")
 
 
 TABLE = (
@@ -46,9 +47,12 @@ TABLE = (
     # generic scan (one fused kernel per step) is as fast
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
         "soa_mean"),
-    # a few long sequences: time chunks side by side as lanes (mean_chunks), composed
+    # a few long sequences in float64: time chunks side by side as lanes (mean_chunks),
+    # composed. float32 keeps the plain scan: it is fast there (XLA:CPU keeps a float32
+    # loop body under its small-loop limit), and the chunk deltas, which carry the
+    # specific force without gravity cancelling it, round 4x worse in float32
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
-        LONG_STEPS, "soa_mean_chunked"),
+        LONG_STEPS, "soa_mean_chunked", ("float64",)),
     # final covariance, Euler, closed-form Jacobians
     Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, 1, "soa_cov"),
     # final covariance, every scheme, blocks by autodiff of the SoA step
@@ -67,7 +71,7 @@ PREINT_MIN_LANES_SEQUENTIAL = 8
 
 
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
-           fast=True) -> str:
+           dtype="float64", fast=True) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
     and ``steps`` time steps."""
     if not fast:
@@ -77,7 +81,7 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
-                and steps >= row.min_steps):
+                and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes):
             return row.kernel
     return GENERIC
 

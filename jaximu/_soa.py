@@ -345,20 +345,11 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
     Returns:
         ``(q⁺, p⁺, v⁺)``.
     """
-    from jaximu.integrators import END
+    from jaximu.integrators import stage_sum
 
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
     c, k = half_angle(phi_end.dot(phi_end)) if end_half is None else end_half
     q_end = _quat_normalize(_quat_mul(q, (c, k * phi_end.x, k * phi_end.y, k * phi_end.z)))
-    v1, p1 = v, p + v * h
-    for pt in pts:
-        if pt.phi is None:
-            qs = q
-        elif pt.phi is END:
-            qs = q_end
-        else:
-            qs = quat_exp_mul(q, pt.phi)
-        a = V3(*_quat_rotate(qs, pt.f)) + g
-        v1 = v1 + a * pt.wv
-        p1 = p1 + a * pt.wp
+    p1, v1 = stage_sum(pts, q, q_end, quat_exp_mul, lambda q, f: V3(*_quat_rotate(q, f)),
+                       p, v, h, g)
     return q_end, tuple(p1), tuple(v1)

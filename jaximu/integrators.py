@@ -202,25 +202,25 @@ class RK4(Scheme):
     name, order, uses_next_sample = "rk4", 4, True
 
     @staticmethod
-    def magnus(omega0, omega1, tau, h):
-        """``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` (exact Ω₁ + Ω₂ for a rate
-        linear from ω0 to ω1 over ``h``; ``tau``, ``h`` broadcast against the components)."""
-        return (tau * omega0 + (tau * tau / (2 * h)) * (omega1 - omega0)
-                + (tau**3 / (12 * h)) * omega0.cross(omega1))
+    def magnus(omega0, omega1, alpha, h):
+        """``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` at ``τ = alpha h`` (exact
+        Ω₁ + Ω₂ for a rate linear from ω0 to ω1 over ``h``), written without dividing by
+        ``h`` so that a zero step is an exact identity with finite derivatives."""
+        return ((alpha * h) * omega0 + (alpha * alpha * 0.5 * h) * (omega1 - omega0)
+                + (alpha**3 / 12 * h * h) * omega0.cross(omega1))
 
     def points(self, omega0, f0, omega1, f1, h):
-        phi_half = self.magnus(omega0, omega1, 0.5 * h, h)
-        phi_end = self.magnus(omega0, omega1, h, h)
+        phi_half = self.magnus(omega0, omega1, 0.5, h)
+        phi_end = self.magnus(omega0, omega1, 1.0, h)
         return [Point(None, 0.0, f0, h / 6, h * h / 6),
                 Point(phi_half, 0.5, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
                 Point(END, 1.0, f1, h / 6, 0.0 * h)], phi_end
 
     def dphi_db(self, omega0, omega1, h, tau):
         """``-τ I + τ³/(12h) [ω1 - ω0]x`` with ``τ = tau · h``."""
-        t = tau * h
         eye = jnp.eye(3, dtype=omega0.dtype)
-        return (-t[..., None, None] * eye
-                + (t**3 / (12 * h))[..., None, None] * so3.skew(omega1 - omega0))
+        return (-(tau * h)[..., None, None] * eye
+                + (tau**3 / 12 * h * h)[..., None, None] * so3.skew(omega1 - omega0))
 
 
 SCHEME_OBJECTS = {s.name: s for s in (Euler(), Midpoint(), RK4())}
@@ -250,8 +250,9 @@ class Stage(NamedTuple):
 
 def magnus(omega0, omega1, tau, h):
     """:meth:`RK4.magnus` on ``(..., 3)`` arrays, with its bias derivative."""
-    phi = RK4.magnus(V3.of(omega0), V3.of(omega1), tau, h).stack()
-    return phi, RK4().dphi_db(omega0, omega1, h, tau / h)
+    alpha = tau / h
+    phi = RK4.magnus(V3.of(omega0), V3.of(omega1), alpha, h).stack()
+    return phi, RK4().dphi_db(omega0, omega1, h, alpha)
 
 
 def stages(scheme, omega0, f0, omega1, f1, h):
@@ -322,21 +323,34 @@ def step(scheme, attitude: Attitude, x, p, v, omega0, f0, omega1, f1, h, g):
     """
     if scheme == "rk4" and attitude.name == "euler_angles":
         return _rk4_euler_angles(x, p, v, omega0, f0, omega1, f1, h, g)
-    stage_list, phi_end, _ = stages(scheme, omega0, f0, omega1, f1, h)
-    x_end = attitude.advance(x, phi_end)
-    h_ = h[..., None]
-    v1, p1 = v, p + h_ * v
-    for s in stage_list:
-        if s.phi is None:
+    pts, phi_end = get_scheme(scheme).points(V3.of(omega0), V3.of(f0), V3.of(omega1),
+                                             V3.of(f1), h)
+    x_end = attitude.advance(x, phi_end.stack())
+    p1, v1 = stage_sum(pts, x, x_end, lambda x, phi: attitude.advance(x, phi.stack()),
+                       lambda x, f: V3.of(attitude.rotate(x, f.stack())), V3.of(p), V3.of(v),
+                       h, V3.of(g))
+    return x_end, p1.stack(), v1.stack()
+
+
+def stage_sum(points, x, x_end, advance, rotate, p: V3, v: V3, h, g: V3):
+    """``p⁺``, ``v⁺`` of a step from its stages, in any layout (the one home of the sum):
+
+        v⁺ = v + Σ_s wv_s a_s,   p⁺ = p + v h + Σ_s wp_s a_s,   a_s = (R ⊞ φ_s) f_s + g_W,
+
+    with ``x`` the attitude at the start, ``x_end`` at the end, ``advance(x, φ)`` and
+    ``rotate(x, f)`` the layout's ``R ⊞ φ`` and ``R f`` (:class:`~jaximu._vec.V3` vectors)."""
+    v1, p1 = v, p + v * h
+    for pt in points:
+        if pt.phi is None:
             xs = x
-        elif s.phi is phi_end:
+        elif pt.phi is END:
             xs = x_end
         else:
-            xs = attitude.advance(x, s.phi)
-        a = attitude.rotate(xs, s.f) + g
-        v1 = v1 + s.wv[..., None] * a
-        p1 = p1 + s.wp[..., None] * a
-    return x_end, p1, v1
+            xs = advance(x, pt.phi)
+        a = rotate(xs, pt.f) + g
+        v1 = v1 + a * pt.wv
+        p1 = p1 + a * pt.wp
+    return p1, v1
 
 
 def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, noise=None):

@@ -222,7 +222,7 @@ def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=Tr
                                  dt.shape[:-1], g.shape[:-1])
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
-                             steps=n_steps(gyro, dt), fast=fast)
+                             steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast)
     if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
     if kernel == "soa_mean_chunked":
