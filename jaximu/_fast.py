@@ -203,7 +203,8 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     def const(col):  # (9,) per direction, broadcast over the lanes
         return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (9,) + lanes)
 
-    half = [_quat_mul(q, (0.0, 0.5 * E[j, 0], 0.5 * E[j, 1], 0.5 * E[j, 2])) for j in range(3)]
+    # Python floats (weakly typed): the tangents keep the lanes' dtype
+    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j, :3]))) for j in range(3)]
     tq = tuple(sum(const(E[j])[...] * half[j][c][None] for j in range(3)) for c in range(4))
     tw = V3(*(const(-E[:, 3 + i]) for i in range(3)))
     tf = V3(*(const(-E[:, 6 + i]) for i in range(3)))

@@ -172,5 +172,13 @@ def test_autodiff_covariance_kernel_equals_generic_closed_forms(scheme, B, inter
                             lanes=B) == "soa_cov_autodiff"
     (s1, P1), (s2, P2) = run("autodiff", True), run("analytic", False)
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
+    if scheme == "euler":  # float32 in, float32 out, close to float64
+        f32 = lambda x: jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)  # noqa: E731
+        s3, P3 = jax.jit(lambda s, P, w, a, h: _propagate_covariance(
+            s, P, w, a, h, G_W.astype(jnp.float32), f32(noise), scheme=scheme,
+            attitude="quaternion", jacobians="autodiff", save_all=False, fast=True)[:2])(
+            *f32((state, P0, gyro, accel, dt)))
+        assert P3.dtype == jnp.float32 and s3.q.dtype == jnp.float32
+        np.testing.assert_allclose(P3, P2, rtol=0, atol=1e-4 * np.abs(P2).max())
     for a, b in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1, np.abs(b).max()))
