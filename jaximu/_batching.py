@@ -7,18 +7,20 @@ dispatcher would pick the small-batch kernel and JAX would then batch that kerne
 generically (batch-major carries, conds turned into selects), several times slower than
 the same work passed as leading axes (docs/DESIGN.md, "vmap").
 
-:func:`leading_axes` wraps an entry so that a ``vmap`` of it is answered by one call of the
-entry with the mapped axis moved in front of the batch axes: the arguments' own batch axes
-stay where they are, unmapped arguments broadcast as they always do, and the result's batch
-is ``(mapped,) + batch``. It nests (the rule calls the wrapped function again, so an outer
-``vmap`` routes once more), works under ``jit``, and keeps autodiff:
+:func:`leading_axes` binds an entry as one JAX primitive so that a ``vmap`` of it is
+answered by one call of the entry with the mapped axis moved in front of the batch axes: the
+arguments' own batch axes stay where they are, unmapped arguments broadcast as they always
+do, and the result's batch is ``(mapped,) + batch``. The batching rule binds the primitive
+again, so it nests (an outer ``vmap`` routes once more) and works under ``jit``; the JVP rule
+is ``jax.jvp`` of the entry, ordinary operations, so ``grad``, ``jacfwd``, ``hessian`` and
+``grad`` of a ``vmap`` (which differentiates the batched call) need no further rules.
 
-* ``jax.custom_batching.custom_vmap`` gives the batching rule but is not linearisable
-  (``grad`` of it fails), so it sits under a ``jax.custom_jvp`` whose rule is the
-  ``jax.jvp`` of the plain entry: forward and reverse mode, ``jacfwd`` and ``hessian``
-  work as before, and the primal of a ``vmap`` takes the batched kernels.
-* A ``vmap`` *of a derivative* (per-example gradients) differentiates the plain entry, which
-  JAX then batches generically: correct, at the speed of the generic kernels.
+A ``vmap`` *of a derivative* (per-example gradients) differentiates the per-element call,
+which JAX then batches generically: correct, at the speed of the generic kernels.
+``jax.custom_batching.custom_vmap`` was tried first: it is not linearisable (``grad`` of it
+fails in JAX 0.10), and under a ``custom_jvp`` the batched JVP rule (a ``vmap`` of the
+per-element derivative) failed to transpose through the SoA kernel's conds
+(docs/DESIGN.md, section 4).
 """
 
 from __future__ import annotations
