@@ -11,7 +11,7 @@ import numpy as np
 
 from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
-                         _quat_normalize, _quat_rotate, _skew3, _stack_last, _stage,
+                         _quat_rotate, _skew3, _stack_last, _stage,
                          _time_chunks, _vec3, mean_step, quat_matrix, run_blocked)
 from jaximu._blocks import Blocks, structured_update
 from jaximu._soa import SOA
@@ -21,7 +21,6 @@ from jaximu.integrators import SCHEME_OBJECTS
 EULER = SCHEME_OBJECTS["euler"]
 
 BLOCK_LANES = 1024  # lanes per batch block
-MEAN_MIN_BATCH = 32  # below this the generic mean loop is as fast (XLA compiles it to one kernel)
 
 def _lane_scalars(big):
     """Stage 1 (per lane): the mean update and the scalars of the Φ blocks."""

@@ -42,7 +42,6 @@ from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _di
                          quat_matrix, run_blocked)
 
 BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
-MIN_LANES = 8  # below this (sequential, tiny batch) the generic scan is faster
 MIN_CHUNK = 16
   # shortest time chunk per lane
 

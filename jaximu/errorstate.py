@@ -46,9 +46,8 @@ from jaximu.integrators import (Attitude, check_scheme, get_attitude, get_scheme
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, extended_samples,
-                              flatten_batch, mean_body, n_steps, prepare, time_major,
-                              used_samples)
+from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch,
+                              kernel_samples, mean_body, n_steps, prepare, time_major)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -329,11 +328,7 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
-    if scheme is not None and get_scheme(scheme).uses_next_sample:
-        dt = jnp.broadcast_to(dt, (n_steps(gyro, dt),)) if dt.ndim == 0 else dt
-        gyro, accel = extended_samples(gyro, accel, dt)
-    else:
-        gyro, accel = used_samples(gyro, accel, dt)
+    gyro, accel, dt = kernel_samples(scheme or "euler", gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))

@@ -248,13 +248,6 @@ class Stage(NamedTuple):
     wp: jax.Array
 
 
-def magnus(omega0, omega1, tau, h):
-    """:meth:`RK4.magnus` on ``(..., 3)`` arrays, with its bias derivative."""
-    alpha = tau / h
-    phi = RK4.magnus(V3.of(omega0), V3.of(omega1), alpha, h).stack()
-    return phi, RK4().dphi_db(omega0, omega1, h, alpha)
-
-
 def stages(scheme, omega0, f0, omega1, f1, h):
     """The stages of ``scheme`` on ``(..., 3)`` arrays and the final rotation vector (and its
     bias derivative): :meth:`Scheme.points`, stacked back.

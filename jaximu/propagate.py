@@ -64,12 +64,6 @@ def n_steps(gyro, dt) -> int:
     return dt.shape[-1] if dt.ndim else gyro.shape[-2]
 
 
-def used_samples(gyro, accel, dt):
-    """The samples the Euler scheme uses: the first ``n_steps`` of them."""
-    n = n_steps(gyro, dt)
-    return gyro[..., :n, :], accel[..., :n, :]
-
-
 def broadcast_state(state: NavState, batch) -> NavState:
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]), state)
 
@@ -101,12 +95,19 @@ def extended_samples(gyro, accel, dt):
     return tuple(jnp.concatenate([x, x[..., -1:, :]], -2) for x in (gyro, accel))
 
 
-def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
+def kernel_samples(scheme, gyro, accel, dt):
+    """What a structure-of-arrays kernel reads: ``dt`` with one entry per step (a scalar
+    broadcast), and the samples of the steps — the first ``n`` (Euler), or ``n + 1`` for a
+    scheme that uses sample k+1 (:func:`extended_samples`)."""
+    n = n_steps(gyro, dt)
+    dt = jnp.broadcast_to(dt, (n,)) if dt.ndim == 0 else dt
     if get_scheme(scheme).uses_next_sample:
-        dt = jnp.broadcast_to(dt, (n_steps(gyro, dt),)) if dt.ndim == 0 else dt
-        gyro, accel = extended_samples(gyro, accel, dt)
-    else:
-        gyro, accel = used_samples(gyro, accel, dt)
+        return (*extended_samples(gyro, accel, dt), dt)
+    return gyro[..., :n, :], accel[..., :n, :], dt
+
+
+def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
+    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     out = _fast.propagate_mean(get_scheme(scheme), q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f,
                                save_all)
@@ -135,17 +136,13 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
     the plain scan to rounding.
     """
     sch = get_scheme(scheme)
-    n, T = n_steps(gyro, dt), gyro.shape[-2]
+    n = n_steps(gyro, dt)
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
     C = dispatch.mean_chunks(B, n)
     L = -(-n // C)
     pad = C * L - n
-    dt = jnp.broadcast_to(dt, (n,)) if dt.ndim == 0 else dt
-    if sch.uses_next_sample:
-        gyro, accel = extended_samples(gyro, accel, dt)  # n + 1 samples
-    else:
-        gyro, accel = gyro[..., :n, :], accel[..., :n, :]
+    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
                                                                    dt, g)
     dt_f = jnp.broadcast_to(dt_f, (B, n))

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu import _dispatch, _fast, _soa
+from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 

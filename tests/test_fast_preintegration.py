@@ -83,7 +83,7 @@ def test_dispatch():
                              "batched_noise": True, "intervals": True}),
     ((), 2000, "parallel", {"per_lane_dt": True}),
     ((1100,), 40, "sequential", {"big": True}),  # several batch blocks
-    ((4,), 80, "sequential", {}),  # below MIN_LANES: the generic path itself
+    ((4,), 80, "sequential", {}),  # below _dispatch.PREINT_MIN_LANES_SEQUENTIAL: the generic path itself
 ])
 def test_fast_path_equals_generic(batch, T, method, kw):
     """The reference is the generic sequential scan (quick to compile; the generic parallel
