@@ -40,6 +40,7 @@ class Row(NamedTuple):
     min_steps: int  # fewer steps than this: the row does not apply
     kernel: str
     dtypes: tuple = ("float32", "float64")
+    rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
 
 
 TABLE = (
@@ -71,9 +72,10 @@ PREINT_MIN_LANES_SEQUENTIAL = 8
 
 
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
-           dtype="float64", fast=True) -> str:
+           dtype="float64", fast=True, rotating=False) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
-    and ``steps`` time steps."""
+    and ``steps`` time steps; ``rotating``: a world rotation rate (``omega_coriolis``) is
+    given, which only the generic kernels implement."""
     if not fast:
         return GENERIC
     for row in TABLE:
@@ -81,7 +83,8 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
-                and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes):
+                and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
+                and rotating in row.rotating):
             return row.kernel
     return GENERIC
 

@@ -41,6 +41,7 @@ from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu import world
 from jaximu.integrators import (Attitude, check_scheme, get_attitude, get_scheme, nav_step,
                                 stages)
 from jaximu._blocks import Blocks, add, mm
@@ -271,17 +272,20 @@ def _resolve_jacobians(jacobians, att):
     return jacobians
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast"))
-def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attitude, jacobians,
-                          save_all, fast=True):
+@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
+                                             "second_order"))
+def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, scheme, attitude,
+                          jacobians, save_all, fast=True, second_order=False):
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
-        g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)))
+        g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
+        *(() if omega is None else (omega.shape[:-1],)))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                             save_all=save_all, lanes=lanes, fast=fast)
+                             save_all=save_all, lanes=lanes, fast=fast,
+                             rotating=omega is not None)
     if kernel == "soa_cov":
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     if kernel == "soa_cov_autodiff":
@@ -290,7 +294,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
     b_g, b_a = state.b_g, state.b_a
-    mean = mean_body(scheme, att, b_g, b_a, g)
+    mean = mean_body(scheme, att, b_g, b_a, g, omega, second_order)
 
     def body(carry, xs):
         x, p, v, locked, Pc = carry
@@ -302,6 +306,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
             lin = NavState(att.to_quat(x), p, v, b_g, b_a)
             b = blocks_autodiff(scheme, att, lin, w0, a0, w1, a1, h, g)
         Pn = structured_update(Pc, b, qc)
+        if omega is not None:  # the rotating world's increments, applied after the step
+            Pn = _coriolis_update(Pn, omega, h, second_order)
         (x, p, v, locked), _ = mean((x, p, v, locked), xs)
         out = None
         if save_all:
@@ -322,6 +328,17 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
         return states, P_t, locked
     P_final = blk.blocks_to_dense(Pc)
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
+
+
+def _coriolis_update(Pb, omega, h, second_order):
+    """``M P Mᵀ`` with ``M`` the identity but for its ``[p, v]`` block,
+    :func:`jaximu.world.coriolis_transition` (the increments are linear in ``p``, ``v`` and
+    leave ``θ`` (right error; ``Exp(dθ_W)`` multiplies on the left) and the biases alone)."""
+    P = blk.blocks_to_dense(Pb)
+    M6 = world.coriolis_transition(omega, h, second_order).astype(P.dtype)
+    M = jnp.broadcast_to(jnp.eye(15, dtype=P.dtype), M6.shape[:-2] + (15, 15))
+    M = M.at[..., 3:9, 3:9].set(M6)
+    return blk.dense_to_blocks(M @ P @ jnp.swapaxes(M, -1, -2))
 
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None):
@@ -358,18 +375,21 @@ def _steps_of(args, batched):
     return args[2].shape[-2]  # gyro is argument 2
 
 
-def routed_covariance(scheme, attitude, jacobians, save_all):
-    """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels."""
+def routed_covariance(scheme, attitude, jacobians, save_all, second_order=False):
+    """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels;
+    arguments ``(state, P0, gyro, accel, dt, g, noise, omega)`` (``omega`` may be ``None``)."""
     return leading_axes(
         _propagate_covariance,
-        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE),
+        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR),
         (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
-         ("scheme", scheme)))
+         ("scheme", scheme), ("second_order", bool(second_order))))
 
 
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
-                      save_all):
-    from jaximu.propagate import _report_gimbal_lock
+                      save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
+                      coriolis_second_order=False):
+    from jaximu import sensor
+    from jaximu.propagate import _report_gimbal_lock, _sensor_inputs, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     dtype = state.q.dtype
@@ -378,8 +398,18 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     val.batch_shape(batch, P0.shape[:-2],
                     *(x.shape[:-1] for x in jax.tree_util.tree_leaves(noise) if x.ndim))
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
-    states, P, locked = routed_covariance(scheme, attitude, jac, save_all)(
-        state, P0, gyro, accel, dt, g, noise)
+    inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
+                                               omega_coriolis)
+    if body_P_sensor is not None:  # bias errors in S outside, in B inside (jaximu/sensor.py)
+        pose = sensor.check_pose(body_P_sensor, dtype)
+        T = sensor.bias_transform(pose)
+        P0 = sensor.congruence(T, P0)
+        noise = sensor.noise_to_body(pose, noise)
+    states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis_second_order)(
+        inner, P0, gyro, accel, dt, g, noise, omega)
+    if body_P_sensor is not None:
+        states = sensor_biases(states, state, save_all)
+        P = sensor.congruence(T[..., None, :, :] if save_all else T, P, inverse=True)
     _report_gimbal_lock(locked, attitude)
     name = "propagate_covariance" if save_all else "propagate_covariance_final"
     return val.check_output(name, (states, P), "dt or the IMU samples are too large, or dt so "
@@ -388,7 +418,8 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
 
 def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
                          scheme: str = "euler", *, attitude: str = "quaternion", gravity=9.81,
-                         jacobians: str = "auto"):
+                         jacobians: str = "auto", body_P_sensor=None, tangential: bool = True,
+                         omega_coriolis=None, coriolis_second_order: bool = False):
     """Propagate the state and its 15×15 error-state covariance through IMU samples.
 
     ``P⁺ = Φ P Φᵀ + G Q_c Gᵀ`` at every sample, linearised at the state before the step.
@@ -401,6 +432,12 @@ def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
             forms), ``"autodiff"`` (``jax.jacfwd`` of the step in the 9 non-structural
             directions, :func:`blocks_autodiff`; any form; the same block update) or ``"auto"``
             (analytic where available).
+        body_P_sensor, tangential, omega_coriolis, coriolis_second_order: as
+            :func:`jaximu.propagate`. With ``body_P_sensor`` the bias rows and columns of
+            ``P0`` and of the result refer to the sensor frame, and the densities are the
+            sensor's (what is approximated: :mod:`jaximu.sensor`). With ``omega_coriolis``
+            the covariance takes the rotating world's increments through their exact
+            ``[p, v]`` Jacobian (generic kernels).
 
     Returns:
         ``(states, covariances)``: a :class:`NavState` with fields ``batch + (T, ·)`` as
@@ -408,12 +445,16 @@ def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
         sample k), symmetric and positive semi-definite.
     """
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
-                             jacobians, save_all=True)
+                             jacobians, True, body_P_sensor, tangential, omega_coriolis,
+                             coriolis_second_order)
 
 
 def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
                                scheme: str = "euler", *, attitude: str = "quaternion",
-                               gravity=9.81, jacobians: str = "auto"):
+                               gravity=9.81, jacobians: str = "auto", body_P_sensor=None,
+                               tangential: bool = True, omega_coriolis=None,
+                               coriolis_second_order: bool = False):
     """Like :func:`propagate_covariance`, returning only the final state and ``(..., 15, 15)`` covariance."""
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
-                             jacobians, save_all=False)
+                             jacobians, False, body_P_sensor, tangential, omega_coriolis,
+                             coriolis_second_order)

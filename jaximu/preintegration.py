@@ -45,6 +45,7 @@ from jaximu import _dispatch as dispatch
 from jaximu import _fast_preint
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks, mm
 from jaximu.errorstate import blocks_analytic
@@ -575,7 +576,8 @@ def _check_bias(bias, dtype):
 
 def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise | None = None,
                  scheme: str = "euler", method: str = "auto", *, prefixes: bool = False,
-                 jacobians: str = "analytic") -> Preintegrated:
+                 jacobians: str = "analytic", body_P_sensor=None,
+                 tangential: bool = True) -> Preintegrated:
     """Preintegrate IMU samples between two keyframes.
 
     Args:
@@ -597,6 +599,13 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         jacobians: ``"analytic"`` (closed forms; VINS-Mono's own linearisation for the
             midpoint) or ``"autodiff"`` (``jax.jacfwd`` of each step's mean: exact
             derivatives, also for the midpoint).
+        body_P_sensor: optional :class:`jaximu.SensorPose`: the IMU's pose in the body frame
+            (GTSAM's ``PreintegrationParams.body_P_sensor``). The deltas are then the body's
+            (frame ``B_i``); ``bias``, ``bias_hat`` and the bias rows and columns of
+            ``transition`` and ``cov15`` are the sensor's, in S (:mod:`jaximu.sensor`; what
+            is approximated in the covariance is said there).
+        tangential: with ``body_P_sensor``, correct the tangential acceleration ``α×r``
+            too; ``False`` reproduces GTSAM (centripetal ``ω×(ω×r)`` only).
 
     Returns:
         :class:`Preintegrated`.
@@ -619,9 +628,38 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         noise = val.check_noise(noise, dtype)
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1])
+    if body_P_sensor is not None:
+        return _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
+                                    jacobians, body_P_sensor, tangential)
     pim = routed_preintegrate(scheme, method, jacobians, prefixes)(gyro, accel, dt, bias, noise)
     return val.check_output("preintegrate", pim, "dt or the IMU samples are too large, or dt so "
                             "small that the noise σ²/dt overflows,")
+
+
+def _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes, jacobians,
+                         body_P_sensor, tangential):
+    """:func:`preintegrate` of a sensor at ``body_P_sensor``: the body's samples
+    (:func:`jaximu.sensor.to_body`) with body-frame biases, and the result's bias
+    quantities back in the sensor frame (``Φ_S = Tᵀ Φ_B T``, ``C_S = Tᵀ C_B T``)."""
+    from jaximu import sensor
+
+    pose = sensor.check_pose(body_P_sensor, gyro.dtype)
+    gyro_b, accel_b = sensor.to_body(pose, gyro, accel, dt, bias.b_g, tangential=tangential)
+    bias_b = ImuBias(sensor.bias_to_body(pose, bias.b_g), sensor.bias_to_body(pose, bias.b_a))
+    noise_b = None if noise is None else sensor.noise_to_body(pose, noise)
+    pim = routed_preintegrate(scheme, method, jacobians, prefixes)(gyro_b, accel_b, dt, bias_b,
+                                                                   noise_b)
+    T = sensor.bias_transform(pose)
+    if prefixes:
+        T = T[..., None, :, :]
+    pim = dataclasses.replace(
+        pim, transition=sensor.congruence(T, pim.transition, inverse=True),
+        cov15=sensor.congruence(T, pim.cov15, inverse=True),
+        bias_hat=ImuBias(*(jnp.broadcast_to(b if b.ndim == h.ndim else b[..., None, :], h.shape)
+                           for b, h in
+                           ((bias.b_g, pim.bias_hat.b_g), (bias.b_a, pim.bias_hat.b_a)))))
+    return val.check_output("preintegrate", pim, "dt or the IMU samples are too large, or dt "
+                            "so small that the noise σ²/dt overflows,")
 
 
 # --------------------------------------------------------------------------- use
@@ -785,42 +823,83 @@ def _gravity(gravity, dtype):
     return val.gravity_vector(gravity, dtype)
 
 
-def predict(state_i: NavState, pim: Preintegrated, gravity=9.81) -> NavState:
+def _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order, dtype):
+    """GTSAM's ``correctPIM`` increments from the state at i (:mod:`jaximu.world`): the
+    world-frame ``(dθ, dp, dv)`` over ``Δt_ij``, or ``None`` in a still world."""
+    if omega_coriolis is None:
+        return None
+    omega = world.check_omega(omega_coriolis, dtype)
+    return world.coriolis_increments(omega, state_i.p, state_i.v, pim.delta_t,
+                                     coriolis_second_order)
+
+
+def _delta_rotation(state_i, delta_q, cor):
+    """``ΔR``, or with the rotating world GTSAM's ``Exp(Log ΔR + R_iᵀ dθ_W)``."""
+    if cor is None:
+        return delta_q
+    return so3.exp(so3.log(delta_q) + so3.quat_rotate(so3.quat_conj(state_i.q), cor[0]))
+
+
+def predict(state_i: NavState, pim: Preintegrated, gravity=9.81, *, omega_coriolis=None,
+            coriolis_second_order: bool = False) -> NavState:
     """The state at keyframe j from the state at i and the preintegrated measurement.
 
     The deltas are first corrected to ``state_i``'s biases; then ``R_j = R_i ΔR``,
     ``v_j = v_i + g_W Δt + R_i Δv``, ``p_j = p_i + v_i Δt + ½ g_W Δt² + R_i Δp``; the
     biases are carried over.
+
+    ``omega_coriolis``: optional ``(3,)`` world rotation rate [rad/s] in W (GTSAM's
+    ``omegaCoriolis``, e.g. :func:`jaximu.earth_rate`): GTSAM's ``NavState::correctPIM``,
+    ``R_j = R_i Exp(Log ΔR - Δt R_iᵀ ω)``, ``v_j += -2Δt ω×v_i``, ``p_j += -Δt² ω×v_i``, and with
+    ``coriolis_second_order`` the centrifugal ``-Δt ω×(ω×p_i)``, ``-½Δt² ω×(ω×p_i)``
+    (:func:`jaximu.world.coriolis_increments`).
     """
     batch = (_check_state_arg("state_i", state_i), _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
     val.batch_shape(*batch, g.shape[:-1])
+    cor = _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order,
+                          pim.delta_v.dtype)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
+    p = state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p)
+    v = state_i.v + g * dt + so3.quat_rotate(state_i.q, delta_v)
+    if cor is not None:
+        p, v = p + cor[1], v + cor[2]
     return _output("predict", NavState(
-        q=so3.quat_mul(state_i.q, delta_q),
-        p=state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p),
-        v=state_i.v + g * dt + so3.quat_rotate(state_i.q, delta_v),
+        q=so3.quat_mul(state_i.q, _delta_rotation(state_i, delta_q, cor)), p=p, v=v,
         b_g=state_i.b_g, b_a=state_i.b_a))
 
 
-def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
+def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81, *,
+             omega_coriolis=None, coriolis_second_order: bool = False):
     """The 15-dim residual ``[r_θ, r_p, r_v, r_bg, r_ba]`` (VINS-Mono's ``evaluate``, our order).
 
     ``r_θ = Log(ΔR̃ᵀ R_iᵀ R_j)``, ``r_p = R_iᵀ(p_j - p_i - v_i Δt - ½ g_W Δt²) - Δp̃``,
-    ``r_v = R_iᵀ(v_j - v_i - g_W Δt) - Δṽ``, ``r_b = b_j - b_i``, with ``~`` the deltas
+    ``r_v = R_iᵀ(v_j - v_i - g_W Δt) - Δṽ``, ``r_b = b_j - b_i``, with ``~`` the deltas
     corrected to ``state_i``'s biases. Zero for states that agree with the measurement.
+
+    ``omega_coriolis``, ``coriolis_second_order``: as :func:`predict`, whose prediction
+    the residual then measures against (``ΔR̃`` becomes ``Exp(Log ΔR̃ + R_iᵀ dθ_W)``, and
+    the world increments ``dp``, ``dv`` join the gravity terms): zero for
+    ``state_j = predict(state_i, ...)``.
     """
     batch = (_check_state_arg("state_i", state_i), _check_state_arg("state_j", state_j),
              _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
     val.batch_shape(*batch, g.shape[:-1])
+    cor = _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order,
+                          pim.delta_v.dtype)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
     qi_inv = so3.quat_conj(state_i.q)
-    r_theta = so3.log(so3.quat_mul(so3.quat_conj(delta_q), so3.quat_mul(qi_inv, state_j.q)))
-    r_p = so3.quat_rotate(qi_inv, state_j.p - state_i.p - state_i.v * dt - 0.5 * g * dt * dt)
-    r_v = so3.quat_rotate(qi_inv, state_j.v - state_i.v - g * dt)
+    dp_w = state_j.p - state_i.p - state_i.v * dt - 0.5 * g * dt * dt
+    dv_w = state_j.v - state_i.v - g * dt
+    if cor is not None:
+        dp_w, dv_w = dp_w - cor[1], dv_w - cor[2]
+    rot = _delta_rotation(state_i, delta_q, cor)
+    r_theta = so3.log(so3.quat_mul(so3.quat_conj(rot), so3.quat_mul(qi_inv, state_j.q)))
+    r_p = so3.quat_rotate(qi_inv, dp_w)
+    r_v = so3.quat_rotate(qi_inv, dv_w)
     parts = [r_theta, r_p - delta_p, r_v - delta_v, state_j.b_g - state_i.b_g,
              state_j.b_a - state_i.b_a]
     shape = jnp.broadcast_shapes(*(x.shape for x in parts))
@@ -828,7 +907,8 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
                    jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1))
 
 
-def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81):
+def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81,
+                      *, omega_coriolis=None, coriolis_second_order: bool = False):
     """``L⁻¹ r`` with ``cov15 = L Lᵀ`` (Cholesky): ``|L⁻¹ r|² = rᵀ cov15⁻¹ r``.
 
     ``cov15`` must be positive definite: preintegrate with ``noise=`` whose densities and
@@ -836,7 +916,8 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
     preintegrated without noise) raises ``ValueError``; inside a caller's ``jit`` the
     result is then NaN.
     """
-    r = residual(state_i, state_j, pim, gravity)
+    r = residual(state_i, state_j, pim, gravity, omega_coriolis=omega_coriolis,
+                 coriolis_second_order=coriolis_second_order)
     L = jnp.linalg.cholesky(pim.cov15)
     if val.is_concrete(L) and not np.isfinite(np.asarray(L)).all():
         raise ValueError(

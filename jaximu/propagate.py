@@ -17,6 +17,7 @@ from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
 from jaximu.state import NavState
@@ -194,13 +195,27 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
     return states, jnp.zeros(batch, bool)
 
 
-def mean_body(scheme, att, b_g, b_a, g):
-    """The scan body of the mean: carry ``(x, p, v, locked)``, input one time slice."""
+def coriolis_step(att, x, p, v, omega, h, second_order):
+    """The rotating world's increments (:func:`jaximu.world.coriolis_increments`) applied
+    after a scheme step, at its end state: ``R ← Exp(-ω_W h) R``, ``p += dp``, ``v += dv``."""
+    dth, dp, dv = world.coriolis_increments(omega, p, v, h, second_order)
+    if att.name == "matrix":
+        x = so3.exp_matrix(dth) @ x
+    else:
+        x = att.from_quat(so3.quat_normalize(so3.quat_mul(so3.exp(dth), att.to_quat(x))))
+    return x, p + dp, v + dv
+
+
+def mean_body(scheme, att, b_g, b_a, g, omega=None, second_order=False):
+    """The scan body of the mean: carry ``(x, p, v, locked)``, input one time slice;
+    ``omega``: the world's rotation rate (``None``: a still world)."""
 
     def body(carry, xs):
         x, p, v, locked = carry
         w0, a0, w1, a1, h = xs
         x, p, v = step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g)
+        if omega is not None:
+            x, p, v = coriolis_step(att, x, p, v, omega, h, second_order)
         if att.name == "euler_angles":
             # Report the pitch ±90° singularity: from the first step that reaches it the
             # state is NaN, never a silently wrong attitude.
@@ -212,21 +227,25 @@ def mean_body(scheme, att, b_g, b_a, g):
     return body
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast"))
-def _propagate(state, gyro, accel, dt, g, *, scheme, attitude, save_all, fast=True):
+@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast",
+                                             "second_order"))
+def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_all, fast=True,
+               second_order=False):
     att = get_attitude(attitude)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
-                                 dt.shape[:-1], g.shape[:-1])
+                                 dt.shape[:-1], g.shape[:-1],
+                                 *(() if omega is None else (omega.shape[:-1],)))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
-                             steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast)
+                             steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
+                             rotating=omega is not None)
     if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
-    body = mean_body(scheme, att, state.b_g, state.b_a, g)
+    body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, second_order)
 
     def scan_body(carry, xs):
         carry, _ = body(carry, xs)
@@ -258,10 +277,13 @@ STEPS = ArgSpec(1, _n_steps_arg)
 VECTOR = ArgSpec(1)
 
 
-def routed_propagate(scheme, attitude, save_all):
-    """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`)."""
-    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR),
-                        (("attitude", attitude), ("save_all", save_all), ("scheme", scheme)))
+def routed_propagate(scheme, attitude, save_all, second_order=False):
+    """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`).
+
+    Its arguments: ``(state, gyro, accel, dt, g, omega)``, ``omega`` ``None`` or ``(..., 3)``."""
+    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR),
+                        (("attitude", attitude), ("save_all", save_all), ("scheme", scheme),
+                         ("second_order", bool(second_order))))
 
 
 def _report_gimbal_lock(locked, attitude):
@@ -278,8 +300,64 @@ def _finite_output(fn_name, out):
     return val.check_output(fn_name, out, "dt or the IMU samples are too large")
 
 
+SENSOR_ARGS_DOC = """
+        body_P_sensor: optional :class:`jaximu.SensorPose` ``(q_BS, p_BS)``: the IMU's pose in
+            the body frame. The samples are then the sensor's (frame S, at the lever arm
+            ``p_BS``), ``state`` is the body's, and the biases are the sensor's, in S
+            (:mod:`jaximu.sensor`). ``None``: the IMU is the body.
+        tangential: with ``body_P_sensor``, correct the lever arm's tangential acceleration
+            ``α×r`` too (``α`` from central differences of the gyro samples); ``False``
+            keeps only the centripetal ``ω×(ω×r)``, as GTSAM does.
+        omega_coriolis: optional ``(3,)`` rotation rate of the world frame [rad/s] in W
+            (GTSAM's ``omegaCoriolis``; :func:`jaximu.earth_rate` gives Earth's): the rotating-
+            world mechanisation (:mod:`jaximu.world`): ``R ← Exp(-ω_W dt) R``, the Coriolis
+            acceleration ``-2ω_W×v`` and, with ``coriolis_second_order``, the centrifugal
+            ``-ω_W×(ω_W×p)``, applied after each scheme step (first order in dt).
+"""
+
+
+def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
+    """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
+    samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
+    from jaximu import sensor
+
+    dtype = state.q.dtype
+    omega = None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
+    if body_P_sensor is None:
+        return state, gyro, accel, omega
+    pose = sensor.check_pose(body_P_sensor, dtype)
+    gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
+    state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
+                     sensor.bias_to_body(pose, state.b_a))
+    return state, gyro, accel, omega
+
+
+def sensor_biases(states, state, per_step):
+    """``states`` with the (constant) biases of ``state`` (the sensor-frame ones) again."""
+    def put(b, like):
+        return jnp.broadcast_to(b[..., None, :] if per_step else b, like.shape)
+
+    return NavState(states.q, states.p, states.v, put(state.b_g, states.b_g),
+                    put(state.b_a, states.b_a))
+
+
+def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity, body_P_sensor,
+           tangential, omega_coriolis, coriolis_second_order):
+    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
+    inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
+                                               omega_coriolis)
+    out, locked = routed_propagate(scheme, attitude, save_all, coriolis_second_order)(
+        inner, gyro, accel, dt, g, omega)
+    if body_P_sensor is not None:
+        out = sensor_biases(out, state, save_all)
+    _report_gimbal_lock(locked, attitude)
+    return _finite_output(fn_name, out)
+
+
 def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
-              attitude: str = "quaternion", gravity=9.81) -> NavState:
+              attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
+              tangential: bool = True, omega_coriolis=None,
+              coriolis_second_order: bool = False) -> NavState:
     """Propagate the navigation state through IMU samples, returning every state.
 
     Args:
@@ -299,7 +377,7 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
             ±90° singularity is reported: states become NaN from that step, and an eager
             call raises ``ValueError``).
         gravity: magnitude ``g`` (``g_W = [0, 0, -g]``, default 9.81) or a ``(..., 3)`` vector.
-
+{sensor}
     Returns:
         :class:`NavState` whose fields have shape ``batch + (n, ·)`` with ``n`` the number of
         steps (``dt``'s length): entry k is the state at ``t_k + dt_k``, after step k (time
@@ -308,25 +386,27 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
 
     Raises:
         ValueError: on mismatched shapes, a wrong last-axis size, ``dt ≤ 0`` or non-finite,
-            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q``; on
+            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q`` (of
+            the state or of ``body_P_sensor``); on
             a value the computation dtype cannot hold (``dt = 1e300`` in float32) and on a
             non-finite result (finite inputs too large for the dtype: the state overflows).
             Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
     """
-    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    states, locked = routed_propagate(scheme, attitude, True)(state, gyro, accel, dt, g)
-    _report_gimbal_lock(locked, attitude)
-    return _finite_output("propagate", states)
+    return _entry("propagate", True, state, gyro, accel, dt, scheme, attitude, gravity,
+                  body_P_sensor, tangential, omega_coriolis, coriolis_second_order)
 
 
 def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
-                    attitude: str = "quaternion", gravity=9.81) -> NavState:
+                    attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
+                    tangential: bool = True, omega_coriolis=None,
+                    coriolis_second_order: bool = False) -> NavState:
     """Like :func:`propagate` but returns only the final state, without storing the trajectory.
 
     Returns:
         :class:`NavState` with fields of shape ``batch + (·)`` at ``t_0 + Σ dt``.
     """
-    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    final, locked = routed_propagate(scheme, attitude, False)(state, gyro, accel, dt, g)
-    _report_gimbal_lock(locked, attitude)
-    return _finite_output("propagate_final", final)
+    return _entry("propagate_final", False, state, gyro, accel, dt, scheme, attitude, gravity,
+                  body_P_sensor, tangential, omega_coriolis, coriolis_second_order)
+
+
+propagate.__doc__ = propagate.__doc__.replace("{sensor}", SENSOR_ARGS_DOC)

@@ -1,0 +1,222 @@
+"""Where the IMU sits on the body: the sensor pose ``body_P_sensor`` (GTSAM's name).
+
+The state tracks a body frame B (its origin the point whose position and velocity are
+estimated); the IMU's own frame S is rotated by ``R_BS`` and its origin sits at the lever
+arm ``r = p_BS`` (in B). A :class:`SensorPose` ``(q, p)`` holds ``q_BS`` (Hamilton
+``[w, x, y, z]``) and ``p_BS`` [m].
+
+**Measurements into the body frame** (:func:`to_body`), a pure transformation applied before
+any kernel, so every scheme, fast kernel and the ``vmap`` routing run unchanged:
+
+    ω_B = R_BS ω_S,      f_B = R_BS f_S - α_B × r - ω_B × (ω_B × r),
+
+with ``ω_B = R_BS (w_m - b_g)`` (bias-corrected) and ``α_B = ω̇_B``. The biases are the
+sensor's own, **in frame S** (GTSAM's convention: ``bias_hat``, ``NavState.b_g``/``b_a``
+and the bias rows/columns of the covariances refer to S); the engine runs on
+``b_B = R_BS b_S``.
+
+**Angular acceleration.** ``α`` at sample k is the derivative of the rate at ``t_k``:
+central differences of consecutive gyro samples on the (possibly uneven) sample grid,
+``α_k = (h₋² ω_k+1 - h₊² ω_k-1 + (h₊² - h₋²) ω_k) / (h₋ h₊ (h₋ + h₊))`` (second order;
+exact for a rate quadratic in time), one-sided at the first and last sample. Second order
+is what the schemes need on sampled data (Euler 1, midpoint 2, RK4 2: linear interpolation
+of the samples is itself second order), so the correction never limits their order. GTSAM
+omits the tangential term ``α×r``; ``tangential=False`` does the same (to compare).
+
+**Covariance.** Isotropic densities are unchanged by the rotation. Per-axis densities are
+rotated as variances, ``σ²_B = diag(R_BS diag(σ²_S) R_BSᵀ)``: exact for axis permutations,
+the cross-axis correlations of a general rotation are dropped. The lever arm couples gyro
+noise into the body specific force (``∂(ω×(ω×r))/∂ω`` times ``σ_g``, about ``2|ω||r| σ_g``);
+that coupling is not modelled (GTSAM's Manifold preintegration does model it in its
+covariance), nor the dependence of ``ω×(ω×r)`` on the gyro bias in the bias Jacobians
+(GTSAM neither).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu import _validation as val
+from jaximu import so3
+from jaximu.noise import ImuNoise
+
+__all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
+           "angular_acceleration"]
+
+NAME = "body_P_sensor"
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SensorPose:
+    """The IMU's pose in the body frame (a registered pytree, differentiable).
+
+    Attributes:
+        q: ``(..., 4)`` ``q_BS``, Hamilton ``[w, x, y, z]``, unit norm (``R_BS`` maps sensor
+            vectors into the body frame).
+        p: ``(..., 3)`` ``p_BS`` [m]: the IMU's origin in the body frame (the lever arm).
+    """
+
+    q: jax.Array
+    p: jax.Array
+
+    @property
+    def R(self):
+        """``(..., 3, 3)`` ``R_BS``."""
+        return so3.quat_to_matrix(self.q)
+
+    @classmethod
+    def identity(cls, dtype=jnp.float64) -> SensorPose:
+        return cls(jnp.array([1.0, 0, 0, 0], dtype), jnp.zeros(3, dtype))
+
+    @classmethod
+    def from_matrix(cls, T_BS) -> SensorPose:
+        """From a ``(4, 4)`` homogeneous ``T_BS`` (Kalibr's ``T_BS``; a camera's
+        ``T_cam_imu`` is ``T_CS``: pass it when the camera is the body). Its rotation must be
+        orthonormal with determinant +1 (to 1e-6): it is checked, never re-orthonormalised."""
+        T = np.asarray(T_BS, float)
+        if T.shape != (4, 4):
+            raise ValueError(f"{NAME} must be a (4, 4) homogeneous transform T_BS, got shape "
+                             f"{T.shape}")
+        if not np.all(np.isfinite(T)):
+            raise ValueError(f"{NAME} contains non-finite values")
+        if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
+            raise ValueError(f"{NAME}'s last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        return cls.from_rotation(T[:3, :3], T[:3, 3])
+
+    @classmethod
+    def from_rotation(cls, R_BS, p_BS) -> SensorPose:
+        """From a ``(3, 3)`` rotation matrix ``R_BS`` (orthonormal, det +1, to 1e-6) and the
+        lever arm ``p_BS`` ``(3,)`` [m]."""
+        R = np.asarray(R_BS, float)
+        if R.shape != (3, 3):
+            raise ValueError(f"{NAME}: R_BS must have shape (3, 3), got {R.shape}")
+        err = np.max(np.abs(R.T @ R - np.eye(3)))
+        if not np.isfinite(err) or err > 1e-6 or np.linalg.det(R) < 0:
+            raise ValueError(
+                f"{NAME}: R_BS is not a rotation matrix (max |RᵀR - I| = {err:.3g}, det = "
+                f"{np.linalg.det(R):.6g}); pass an orthonormal matrix with determinant +1 "
+                "(re-orthonormalise it, e.g. with scipy's Rotation.from_matrix)")
+        p = np.asarray(p_BS, float)
+        if p.shape != (3,):
+            raise ValueError(f"{NAME}: the lever arm p_BS must have shape (3,) [m], got {p.shape}")
+        q = np.asarray(so3.matrix_to_quat(jnp.asarray(R)))
+        return cls(jnp.asarray(q), jnp.asarray(p))
+
+
+def check_pose(pose, dtype, name: str = NAME) -> SensorPose:
+    """Type, shapes, finiteness and unit ``q`` of a :class:`SensorPose` (``ValueError``
+    naming ``body_P_sensor``); returns it as ``dtype`` arrays, never normalised."""
+    if not isinstance(pose, SensorPose):
+        raise ValueError(f"{name} must be a jaximu.SensorPose(q, p) (q_BS [w, x, y, z], p_BS "
+                         f"[m]) or None, got {type(pose).__name__}")
+    q = val.to_dtype(f"{name}.q", pose.q, dtype)
+    p = val.to_dtype(f"{name}.p", pose.p, dtype)
+    if q.ndim < 1 or q.shape[-1] != 4:
+        raise ValueError(f"{name}.q must be the quaternion q_BS of shape (..., 4) "
+                         f"[w, x, y, z], got shape {tuple(q.shape)}")
+    if p.ndim < 1 or p.shape[-1] != 3:
+        raise ValueError(f"{name}.p must be the lever arm p_BS of shape (..., 3) [m], got "
+                         f"shape {tuple(p.shape)}")
+    val.check_finite(f"{name}.q", q)
+    val.check_finite(f"{name}.p", p)
+    if val.is_concrete(q):
+        err = np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)
+        tol = val.unit_tolerance(dtype)
+        if np.any(err > tol):
+            raise ValueError(
+                f"{name}.q is not a unit quaternion (| |q| - 1 | = {err.max():.3g} > {tol:g}); "
+                "normalise it first (jaximu.so3.quat_normalize), or build the pose with "
+                "SensorPose.from_rotation(R_BS, p_BS)")
+    return SensorPose(q, p)
+
+
+def _mv(M, x):
+    return jnp.einsum("...ij,...j->...i", M, x)
+
+
+def angular_acceleration(omega, dt):
+    """``α`` at every sample from the rates ``omega`` ``(..., T, 3)`` on the grid of ``dt``.
+
+    ``dt``: scalar, ``(..., T)`` (sample k held over ``dt[k]``) or ``(..., T-1)`` (the
+    intervals between samples); the spacing between samples k and k+1 is ``dt[k]`` either
+    way. Central differences inside, one-sided at the ends (module docstring); zero for
+    ``T = 1``. Returns ``(..., T, 3)`` [rad/s²].
+    """
+    T = omega.shape[-2]
+    if T < 2:
+        return jnp.zeros_like(omega)
+    dt = jnp.asarray(dt, omega.dtype)
+    h = (jnp.broadcast_to(dt, (T - 1,)) if dt.ndim == 0 else dt[..., :T - 1])[..., None]
+    d = jnp.diff(omega, axis=-2) / h  # (..., T-1, 3) forward differences
+    if T == 2:
+        return jnp.concatenate([d, d], axis=-2)
+    h1, h2 = h[..., :-1, :], h[..., 1:, :]
+    # weighted mean of the neighbouring slopes: exact for a quadratic rate
+    mid = (h2 * d[..., :-1, :] + h1 * d[..., 1:, :]) / (h1 + h2)
+    return jnp.concatenate([d[..., :1, :], mid, d[..., -1:, :]], axis=-2)
+
+
+def lever_arm_acceleration(omega, alpha, r):
+    """``α × r + ω × (ω × r)``: the acceleration of a point at ``r`` on a rigid body relative
+    to its origin (body frame, ``(..., 3)``); ``alpha=None`` drops the tangential term."""
+    a = jnp.cross(omega, jnp.cross(omega, r))
+    return a if alpha is None else a + jnp.cross(alpha, r)
+
+
+def to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool = True):
+    """The raw samples of the sensor as raw samples of the body (module docstring).
+
+    Args:
+        pose: checked :class:`SensorPose`.
+        gyro, accel: ``(..., T, 3)`` raw sensor samples (frame S).
+        dt: the steps as :func:`jaximu.propagate` takes them.
+        b_g: ``(..., 3)`` gyro bias in S (the centripetal term uses the corrected rate).
+        tangential: include ``α × r``.
+
+    Returns:
+        ``(gyro_B, accel_B)``: ``(..., T, 3)`` raw body-frame samples whose bias is
+        ``R_BS b`` (:func:`bias_to_body`), i.e. ``gyro_B - R_BS b_g = ω_B`` and
+        ``accel_B - R_BS b_a = f_B``.
+    """
+    R = pose.R[..., None, :, :]
+    gyro_b = _mv(R, gyro)
+    omega = gyro_b - _mv(pose.R, b_g)[..., None, :]
+    alpha = angular_acceleration(gyro_b, dt) if tangential else None
+    accel_b = _mv(R, accel) - lever_arm_acceleration(omega, alpha, pose.p[..., None, :])
+    return gyro_b, accel_b
+
+
+def bias_to_body(pose: SensorPose, b):
+    """``R_BS b`` for a ``(..., 3)`` sensor-frame bias."""
+    return _mv(pose.R, b)
+
+
+def noise_to_body(pose: SensorPose, noise: ImuNoise) -> ImuNoise:
+    """Densities of the body-frame samples: isotropic ones unchanged (the same object);
+    per-axis ones rotated as variances, ``σ_B² = (R∘R) σ_S²`` (module docstring)."""
+    RR = pose.R * pose.R
+
+    def rot(s):
+        s = jnp.asarray(s)
+        return s if s.ndim == 0 else jnp.sqrt(_mv(RR, s * s))
+
+    return ImuNoise(*(rot(getattr(noise, f.name)) for f in dataclasses.fields(ImuNoise)))
+
+
+def bias_transform(pose: SensorPose, n: int = 15):
+    """``T = blockdiag(I₉, R_BS, R_BS)`` ``(..., n, n)``: error with sensor-frame bias
+    errors → error with body-frame ones (``n = 15``, error order ``[θ, p, v, b_g, b_a]``)."""
+    R = pose.R
+    T = jnp.broadcast_to(jnp.eye(n, dtype=R.dtype), R.shape[:-2] + (n, n))
+    return T.at[..., 9:12, 9:12].set(R).at[..., 12:15, 12:15].set(R)
+
+
+def congruence(T, P, inverse=False):
+    """``T P Tᵀ``, or ``Tᵀ P T`` with ``inverse`` (``T`` orthogonal)."""
+    Tt = jnp.swapaxes(T, -1, -2)
+    return Tt @ P @ T if inverse else T @ P @ Tt
