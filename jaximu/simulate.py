@@ -254,16 +254,60 @@ def true_states(traj: Trajectory, t) -> NavState:
     return NavState(q, p, v, z, z)
 
 
-def ideal_imu(traj: Trajectory, t, gravity=9.81):
+def _sensor_kinematics(traj: Trajectory, t, q_bs, r):
+    """Like :func:`_kinematics` for the point ``r`` (body frame) and the frame rotated by
+    ``q_BS``: the sensor's position is ``p_S(t) = p(t) + R_WB(t) r``, differentiated by AD."""
+    q, _, _, omega, _ = _kinematics(traj, t)
+
+    def pos(s):
+        q_s, p_s = traj.pose(s)
+        return p_s + so3.quat_rotate(q_s, r)
+
+    v = jax.jacfwd(pos)(t)
+    a = jax.jacfwd(jax.jacfwd(pos))(t)
+    return so3.quat_mul(q, q_bs), pos(t), v, so3.quat_rotate(so3.quat_conj(q_bs), omega), a
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _sensor_kinematics_at(traj: Trajectory, t, q_bs, r):
+    return jax.vmap(lambda s: _sensor_kinematics(traj, s, q_bs, r))(t)
+
+
+def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_coriolis=None):
     """Exact body rate and specific force at times ``t`` ``(T,)`` (finite); ``gravity`` a
     magnitude ``≥ 0`` or a ``(3,)`` vector as :func:`jaximu.propagate`.
 
+    Args:
+        body_P_sensor: optional :class:`jaximu.SensorPose`: the signals of an IMU mounted at
+            that pose on the body (rotated by ``R_BS``, at the lever arm ``p_BS``), exact:
+            ``ω_S = R_BSᵀ ω_B`` and ``f_S = R_WSᵀ(p̈_S - g_W)`` with the sensor's position
+            ``p_S = p + R_WB p_BS`` differentiated twice by autodiff (not the lever-arm formula
+            of :mod:`jaximu.sensor`, which it tests).
+        omega_coriolis: optional ``(3,)`` rotation rate ``ω_W`` [rad/s] of the world frame in
+            which ``traj`` is given (e.g. :func:`jaximu.earth_rate`): the gyro then measures
+            the rate relative to inertial space, ``ω + R_WSᵀ ω_W``, and the accelerometer the
+            inertial acceleration, ``f = R_WSᵀ(p̈ + 2ω_W×ṗ + ω_W×(ω_W×p) - g_W)`` (Coriolis and
+            centrifugal both; ``g_W`` the gravity given).
+
     Returns:
-        ``(gyro, accel)``, each ``(T, 3)``: ``ω_B`` [rad/s] and ``f_B = R_WBᵀ(a_W - g_W)`` [m/s²].
+        ``(gyro, accel)``, each ``(T, 3)``: ``ω_B`` [rad/s] and ``f_B = R_WBᵀ(a_W - g_W)`` [m/s²]
+        (of the sensor frame S with ``body_P_sensor``).
     """
     t = _check_traj(traj, t)
     g = val.gravity_vector(gravity, t.dtype)
-    q, _, _, omega, a = _kinematics_at(traj, t)
+    if body_P_sensor is None:
+        q, p, v, omega, a = _kinematics_at(traj, t)
+    else:
+        from jaximu.sensor import check_pose
+
+        pose = check_pose(body_P_sensor, t.dtype)
+        q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
+    if omega_coriolis is not None:
+        from jaximu.world import check_omega
+
+        w = check_omega(omega_coriolis, t.dtype)
+        omega = omega + so3.quat_rotate(so3.quat_conj(q), jnp.broadcast_to(w, omega.shape))
+        a = a + 2 * jnp.cross(w, v) + jnp.cross(w, jnp.cross(w, p))
     accel = so3.quat_rotate(so3.quat_conj(q), a - g)
     return omega, accel
 
