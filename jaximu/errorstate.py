@@ -47,8 +47,9 @@ from jaximu.integrators import (Attitude, check_scheme, get_attitude, get_scheme
 from jaximu._blocks import Blocks, add, mm
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch,
-                              kernel_samples, mean_body, n_steps, prepare, time_major)
+from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
+                              flatten_batch, kernel_samples, mean_body, n_steps, prepare,
+                              time_major)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -273,9 +274,9 @@ def _resolve_jacobians(jacobians, att):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
-                                             "second_order"))
+                                             "coriolis"))
 def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, scheme, attitude,
-                          jacobians, save_all, fast=True, second_order=False):
+                          jacobians, save_all, fast=True, coriolis="exact"):
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
@@ -294,7 +295,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
     b_g, b_a = state.b_g, state.b_a
-    mean = mean_body(scheme, att, b_g, b_a, g, omega, second_order)
+    mean = mean_body(scheme, att, b_g, b_a, g, omega, coriolis)
 
     def body(carry, xs):
         x, p, v, locked, Pc = carry
@@ -303,11 +304,13 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
         if jacobians == "analytic":
             b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h)
         else:
-            lin = NavState(att.to_quat(x), p, v, b_g, b_a)
+            v_lin = v if omega is None or coriolis != "exact" else world.to_inertial(omega, p, v)
+            lin = NavState(att.to_quat(x), p, v_lin, b_g, b_a)
             b = blocks_autodiff(scheme, att, lin, w0, a0, w1, a1, h, g)
-        Pn = structured_update(Pc, b, qc)
-        if omega is not None:  # the rotating world's increments, applied after the step
-            Pn = _coriolis_update(Pn, omega, h, second_order)
+        if omega is None:
+            Pn = structured_update(Pc, b, qc)
+        else:
+            Pn = _rotating_update(Pc, b, qc, omega, h, coriolis)
         (x, p, v, locked), _ = mean((x, p, v, locked), xs)
         out = None
         if save_all:
@@ -330,15 +333,27 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _coriolis_update(Pb, omega, h, second_order):
-    """``M P Mᵀ`` with ``M`` the identity but for its ``[p, v]`` block,
-    :func:`jaximu.world.coriolis_transition` (the increments are linear in ``p``, ``v`` and
-    leave ``θ`` (right error; ``Exp(dθ_W)`` multiplies on the left) and the biases alone)."""
+def _rotating_update(Pb, b, qc, omega, h, coriolis):
+    """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
+    ``Pb``. Exact transition: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the error maps
+    into and out of the step's inertial frame (:func:`jaximu.world.exact_error_maps`; the
+    still-world step's ``Φ`` in between). Classic terms: ``M (Φ P Φᵀ + G Q Gᵀ) Mᵀ`` with
+    ``M`` the identity but for its ``[p, v]`` block, :func:`jaximu.world.coriolis_transition`
+    (the increments are linear in ``p``, ``v``; ``Exp(dθ_W)`` multiplies ``R`` on the left,
+    which leaves the right rotation error alone)."""
+    def congruence(M, P):
+        return M @ P @ jnp.swapaxes(M, -1, -2)
+
     P = blk.blocks_to_dense(Pb)
-    M6 = world.coriolis_transition(omega, h, second_order).astype(P.dtype)
+    if coriolis == "exact":
+        pre, post = world.exact_error_maps(omega, h)
+        Pn = structured_update(blk.dense_to_blocks(congruence(pre.astype(P.dtype), P)), b, qc)
+        return blk.dense_to_blocks(congruence(post.astype(P.dtype), blk.blocks_to_dense(Pn)))
+    Pn = blk.blocks_to_dense(structured_update(Pb, b, qc))
+    M6 = world.coriolis_transition(omega, h, coriolis == "second_order").astype(P.dtype)
     M = jnp.broadcast_to(jnp.eye(15, dtype=P.dtype), M6.shape[:-2] + (15, 15))
     M = M.at[..., 3:9, 3:9].set(M6)
-    return blk.dense_to_blocks(M @ P @ jnp.swapaxes(M, -1, -2))
+    return blk.dense_to_blocks(congruence(M, Pn))
 
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None):
@@ -375,19 +390,19 @@ def _steps_of(args, batched):
     return args[2].shape[-2]  # gyro is argument 2
 
 
-def routed_covariance(scheme, attitude, jacobians, save_all, second_order=False):
+def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact"):
     """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels;
     arguments ``(state, P0, gyro, accel, dt, g, noise, omega)`` (``omega`` may be ``None``)."""
     return leading_axes(
         _propagate_covariance,
         (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR),
         (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
-         ("scheme", scheme), ("second_order", bool(second_order))))
+         ("scheme", scheme), ("coriolis", coriolis)))
 
 
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
-                      coriolis_second_order=False):
+                      coriolis="exact"):
     from jaximu import sensor
     from jaximu.propagate import _report_gimbal_lock, _sensor_inputs, sensor_biases
 
@@ -405,7 +420,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
         T = sensor.bias_transform(pose)
         P0 = sensor.congruence(T, P0)
         noise = sensor.noise_to_body(pose, noise)
-    states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis_second_order)(
+    states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis)(
         inner, P0, gyro, accel, dt, g, noise, omega)
     if body_P_sensor is not None:
         states = sensor_biases(states, state, save_all)
@@ -419,7 +434,8 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
 def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
                          scheme: str = "euler", *, attitude: str = "quaternion", gravity=9.81,
                          jacobians: str = "auto", body_P_sensor=None, tangential: bool = True,
-                         omega_coriolis=None, coriolis_second_order: bool = False):
+                         omega_coriolis=None, coriolis_exact: bool = True,
+                         coriolis_second_order: bool = False):
     """Propagate the state and its 15×15 error-state covariance through IMU samples.
 
     ``P⁺ = Φ P Φᵀ + G Q_c Gᵀ`` at every sample, linearised at the state before the step.
@@ -432,12 +448,12 @@ def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
             forms), ``"autodiff"`` (``jax.jacfwd`` of the step in the 9 non-structural
             directions, :func:`blocks_autodiff`; any form; the same block update) or ``"auto"``
             (analytic where available).
-        body_P_sensor, tangential, omega_coriolis, coriolis_second_order: as
+        body_P_sensor, tangential, omega_coriolis, coriolis_exact, coriolis_second_order: as
             :func:`jaximu.propagate`. With ``body_P_sensor`` the bias rows and columns of
             ``P0`` and of the result refer to the sensor frame, and the densities are the
             sensor's (what is approximated: :mod:`jaximu.sensor`). With ``omega_coriolis``
-            the covariance takes the rotating world's increments through their exact
-            ``[p, v]`` Jacobian (generic kernels).
+            the covariance takes the rotating world's transition through its exact Jacobian
+            (generic kernels).
 
     Returns:
         ``(states, covariances)``: a :class:`NavState` with fields ``batch + (T, ·)`` as
@@ -446,15 +462,15 @@ def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
     """
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
                              jacobians, True, body_P_sensor, tangential, omega_coriolis,
-                             coriolis_second_order)
+                             coriolis_mode(coriolis_exact, coriolis_second_order))
 
 
 def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
                                scheme: str = "euler", *, attitude: str = "quaternion",
                                gravity=9.81, jacobians: str = "auto", body_P_sensor=None,
                                tangential: bool = True, omega_coriolis=None,
-                               coriolis_second_order: bool = False):
+                               coriolis_exact: bool = True, coriolis_second_order: bool = False):
     """Like :func:`propagate_covariance`, returning only the final state and ``(..., 15, 15)`` covariance."""
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
                              jacobians, False, body_P_sensor, tangential, omega_coriolis,
-                             coriolis_second_order)
+                             coriolis_mode(coriolis_exact, coriolis_second_order))

@@ -823,81 +823,97 @@ def _gravity(gravity, dtype):
     return val.gravity_vector(gravity, dtype)
 
 
-def _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order, dtype):
-    """GTSAM's ``correctPIM`` increments from the state at i (:mod:`jaximu.world`): the
-    world-frame ``(dθ, dp, dv)`` over ``Δt_ij``, or ``None`` in a still world."""
-    if omega_coriolis is None:
-        return None
-    omega = world.check_omega(omega_coriolis, dtype)
-    return world.coriolis_increments(omega, state_i.p, state_i.v, pim.delta_t,
-                                     coriolis_second_order)
+def _world(omega_coriolis, dtype):
+    return None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
 
 
-def _delta_rotation(state_i, delta_q, cor):
-    """``ΔR``, or with the rotating world GTSAM's ``Exp(Log ΔR + R_iᵀ dθ_W)``."""
-    if cor is None:
-        return delta_q
-    return so3.exp(so3.log(delta_q) + so3.quat_rotate(so3.quat_conj(state_i.q), cor[0]))
+def _coriolis_terms(state_i, pim, omega, second_order):
+    """GTSAM ≤ 4.2's ``correctPIM`` increments from the state at i (:mod:`jaximu.world`):
+    the world-frame ``(dθ, dp, dv)`` over ``Δt_ij``."""
+    return world.coriolis_increments(omega, state_i.p, state_i.v, pim.delta_t, second_order)
+
+
+def _delta_rotation(state_i, delta_q, dth):
+    """GTSAM's classic ``Exp(Log ΔR + R_iᵀ dθ_W)``."""
+    return so3.exp(so3.log(delta_q) + so3.quat_rotate(so3.quat_conj(state_i.q), dth))
+
+
+CORIOLIS_DOC = """
+    ``omega_coriolis``: optional ``(3,)`` world rotation rate [rad/s] in W (GTSAM's
+    ``omegaCoriolis``, e.g. :func:`jaximu.earth_rate`), with ``coriolis_exact=True``
+    (default) the exact rotating-world transition over ``Δt_ij`` (GTSAM ≥ 4.3's prediction,
+    Coriolis and centrifugal both; :mod:`jaximu.world`), or with ``coriolis_exact=False``
+    GTSAM ≤ 4.2's classic ``correctPIM`` terms, ``R_j = R_i Exp(Log ΔR - Δt R_iᵀ ω)``,
+    ``v_j += -2Δt ω×v_i``, ``p_j += -Δt² ω×v_i``, and with ``coriolis_second_order`` the
+    centrifugal ``-Δt ω×(ω×p_i)``, ``-½Δt² ω×(ω×p_i)``.
+"""
 
 
 def predict(state_i: NavState, pim: Preintegrated, gravity=9.81, *, omega_coriolis=None,
-            coriolis_second_order: bool = False) -> NavState:
+            coriolis_exact: bool = True, coriolis_second_order: bool = False) -> NavState:
     """The state at keyframe j from the state at i and the preintegrated measurement.
 
     The deltas are first corrected to ``state_i``'s biases; then ``R_j = R_i ΔR``,
     ``v_j = v_i + g_W Δt + R_i Δv``, ``p_j = p_i + v_i Δt + ½ g_W Δt² + R_i Δp``; the
     biases are carried over.
-
-    ``omega_coriolis``: optional ``(3,)`` world rotation rate [rad/s] in W (GTSAM's
-    ``omegaCoriolis``, e.g. :func:`jaximu.earth_rate`): GTSAM's ``NavState::correctPIM``,
-    ``R_j = R_i Exp(Log ΔR - Δt R_iᵀ ω)``, ``v_j += -2Δt ω×v_i``, ``p_j += -Δt² ω×v_i``, and with
-    ``coriolis_second_order`` the centrifugal ``-Δt ω×(ω×p_i)``, ``-½Δt² ω×(ω×p_i)``
-    (:func:`jaximu.world.coriolis_increments`).
-    """
+    {coriolis}"""
     batch = (_check_state_arg("state_i", state_i), _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
     val.batch_shape(*batch, g.shape[:-1])
-    cor = _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order,
-                          pim.delta_v.dtype)
+    omega = _world(omega_coriolis, pim.delta_v.dtype)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
-    p = state_i.p + state_i.v * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p)
-    v = state_i.v + g * dt + so3.quat_rotate(state_i.q, delta_v)
-    if cor is not None:
-        p, v = p + cor[1], v + cor[2]
-    return _output("predict", NavState(
-        q=so3.quat_mul(state_i.q, _delta_rotation(state_i, delta_q, cor)), p=p, v=v,
-        b_g=state_i.b_g, b_a=state_i.b_a))
+    v_i = state_i.v
+    if omega is not None and coriolis_exact:
+        v_i = world.to_inertial(omega, state_i.p, v_i)
+    p = state_i.p + v_i * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p)
+    v = v_i + g * dt + so3.quat_rotate(state_i.q, delta_v)
+    q = so3.quat_mul(state_i.q, delta_q)
+    if omega is not None and coriolis_exact:
+        dth, p, v = world.leave_inertial(omega, pim.delta_t, g, p, v)
+        q = so3.quat_mul(so3.exp(dth), q)
+    elif omega is not None:
+        dth, dp, dv = _coriolis_terms(state_i, pim, omega, coriolis_second_order)
+        p, v = p + dp, v + dv
+        q = so3.quat_mul(state_i.q, _delta_rotation(state_i, delta_q, dth))
+    return _output("predict", NavState(q=q, p=p, v=v, b_g=state_i.b_g, b_a=state_i.b_a))
 
 
 def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81, *,
-             omega_coriolis=None, coriolis_second_order: bool = False):
+             omega_coriolis=None, coriolis_exact: bool = True,
+             coriolis_second_order: bool = False):
     """The 15-dim residual ``[r_θ, r_p, r_v, r_bg, r_ba]`` (VINS-Mono's ``evaluate``, our order).
 
     ``r_θ = Log(ΔR̃ᵀ R_iᵀ R_j)``, ``r_p = R_iᵀ(p_j - p_i - v_i Δt - ½ g_W Δt²) - Δp̃``,
     ``r_v = R_iᵀ(v_j - v_i - g_W Δt) - Δṽ``, ``r_b = b_j - b_i``, with ``~`` the deltas
     corrected to ``state_i``'s biases. Zero for states that agree with the measurement.
-
-    ``omega_coriolis``, ``coriolis_second_order``: as :func:`predict`, whose prediction
-    the residual then measures against (``ΔR̃`` becomes ``Exp(Log ΔR̃ + R_iᵀ dθ_W)``, and
-    the world increments ``dp``, ``dv`` join the gravity terms): zero for
-    ``state_j = predict(state_i, ...)``.
+    {coriolis}
+    The residual then measures ``state_j`` against that prediction: with the exact
+    transition in the inertial frame of ``t_i`` (``state_j`` mapped there, the transported
+    velocities ``v + ω×p`` and the turning gravity); with the classic terms ``ΔR̃`` becomes
+    ``Exp(Log ΔR̃ + R_iᵀ dθ_W)`` and ``dp``, ``dv`` join the gravity terms. Zero for
+    ``state_j = predict(state_i, ...)`` with the same options.
     """
     batch = (_check_state_arg("state_i", state_i), _check_state_arg("state_j", state_j),
              _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
     val.batch_shape(*batch, g.shape[:-1])
-    cor = _coriolis_terms(state_i, pim, omega_coriolis, coriolis_second_order,
-                          pim.delta_v.dtype)
+    omega = _world(omega_coriolis, pim.delta_v.dtype)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
     qi_inv = so3.quat_conj(state_i.q)
-    dp_w = state_j.p - state_i.p - state_i.v * dt - 0.5 * g * dt * dt
-    dv_w = state_j.v - state_i.v - g * dt
-    if cor is not None:
-        dp_w, dv_w = dp_w - cor[1], dv_w - cor[2]
-    rot = _delta_rotation(state_i, delta_q, cor)
-    r_theta = so3.log(so3.quat_mul(so3.quat_conj(rot), so3.quat_mul(qi_inv, state_j.q)))
+    p_i, v_i, p_j, v_j, q_j, rot = state_i.p, state_i.v, state_j.p, state_j.v, state_j.q, delta_q
+    if omega is not None and coriolis_exact:
+        v_i = world.to_inertial(omega, p_i, v_i)
+        dth, p_j, v_j = world.enter_inertial(omega, pim.delta_t, g, p_j, v_j)
+        q_j = so3.quat_mul(so3.exp(-dth), q_j)
+    dp_w = p_j - p_i - v_i * dt - 0.5 * g * dt * dt
+    dv_w = v_j - v_i - g * dt
+    if omega is not None and not coriolis_exact:
+        dth, dp, dv = _coriolis_terms(state_i, pim, omega, coriolis_second_order)
+        dp_w, dv_w = dp_w - dp, dv_w - dv
+        rot = _delta_rotation(state_i, delta_q, dth)
+    r_theta = so3.log(so3.quat_mul(so3.quat_conj(rot), so3.quat_mul(qi_inv, q_j)))
     r_p = so3.quat_rotate(qi_inv, dp_w)
     r_v = so3.quat_rotate(qi_inv, dv_w)
     parts = [r_theta, r_p - delta_p, r_v - delta_v, state_j.b_g - state_i.b_g,
@@ -907,8 +923,13 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
                    jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1))
 
 
+predict.__doc__ = predict.__doc__.replace("{coriolis}", CORIOLIS_DOC)
+residual.__doc__ = residual.__doc__.replace("{coriolis}", CORIOLIS_DOC)
+
+
 def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81,
-                      *, omega_coriolis=None, coriolis_second_order: bool = False):
+                      *, omega_coriolis=None, coriolis_exact: bool = True,
+                      coriolis_second_order: bool = False):
     """``L⁻¹ r`` with ``cov15 = L Lᵀ`` (Cholesky): ``|L⁻¹ r|² = rᵀ cov15⁻¹ r``.
 
     ``cov15`` must be positive definite: preintegrate with ``noise=`` whose densities and
@@ -917,7 +938,7 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
     result is then NaN.
     """
     r = residual(state_i, state_j, pim, gravity, omega_coriolis=omega_coriolis,
-                 coriolis_second_order=coriolis_second_order)
+                 coriolis_exact=coriolis_exact, coriolis_second_order=coriolis_second_order)
     L = jnp.linalg.cholesky(pim.cov15)
     if val.is_concrete(L) and not np.isfinite(np.asarray(L)).all():
         raise ValueError(

@@ -195,27 +195,48 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
     return states, jnp.zeros(batch, bool)
 
 
-def coriolis_step(att, x, p, v, omega, h, second_order):
-    """The rotating world's increments (:func:`jaximu.world.coriolis_increments`) applied
-    after a scheme step, at its end state: ``R ← Exp(-ω_W h) R``, ``p += dp``, ``v += dv``."""
-    dth, dp, dv = world.coriolis_increments(omega, p, v, h, second_order)
+CORIOLIS = ("exact", "first_order", "second_order")
+
+
+def coriolis_mode(exact, second_order) -> str:
+    """The rotating world's model (:mod:`jaximu.world`): ``"exact"`` or GTSAM ≤ 4.2's
+    classic ``"first_order"`` / ``"second_order"`` terms."""
+    return "exact" if exact else ("second_order" if second_order else "first_order")
+
+
+def _rotate_left(att, x, dth):
+    """``Exp(dθ) R`` in the attitude form's representation."""
     if att.name == "matrix":
-        x = so3.exp_matrix(dth) @ x
-    else:
-        x = att.from_quat(so3.quat_normalize(so3.quat_mul(so3.exp(dth), att.to_quat(x))))
-    return x, p + dp, v + dv
+        return so3.exp_matrix(dth) @ x
+    return att.from_quat(so3.quat_normalize(so3.quat_mul(so3.exp(dth), att.to_quat(x))))
 
 
-def mean_body(scheme, att, b_g, b_a, g, omega=None, second_order=False):
+def rotating_step(scheme, att, x, p, v, omega0, f0, omega1, f1, h, g, omega, coriolis):
+    """One step in the world turning at ``omega`` (:mod:`jaximu.world`): the exact transition
+    (the scheme's still-world step in the inertial frame of the step's start), or the
+    classic increments applied after the step at its end state."""
+    if coriolis == "exact":
+        v = world.to_inertial(omega, p, v)
+        x, p, v = step(scheme, att, x, p, v, omega0, f0, omega1, f1, h, g)
+        dth, p, v = world.leave_inertial(omega, h, g, p, v)
+        return _rotate_left(att, x, dth), p, v
+    x, p, v = step(scheme, att, x, p, v, omega0, f0, omega1, f1, h, g)
+    dth, dp, dv = world.coriolis_increments(omega, p, v, h, coriolis == "second_order")
+    return _rotate_left(att, x, dth), p + dp, v + dv
+
+
+def mean_body(scheme, att, b_g, b_a, g, omega=None, coriolis="exact"):
     """The scan body of the mean: carry ``(x, p, v, locked)``, input one time slice;
-    ``omega``: the world's rotation rate (``None``: a still world)."""
+    ``omega``: the world's rotation rate (``None``: a still world), ``coriolis`` its model."""
 
     def body(carry, xs):
         x, p, v, locked = carry
         w0, a0, w1, a1, h = xs
-        x, p, v = step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g)
-        if omega is not None:
-            x, p, v = coriolis_step(att, x, p, v, omega, h, second_order)
+        if omega is None:
+            x, p, v = step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g)
+        else:
+            x, p, v = rotating_step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g,
+                                    a1 - b_a, h, g, omega, coriolis)
         if att.name == "euler_angles":
             # Report the pitch ±90° singularity: from the first step that reaches it the
             # state is NaN, never a silently wrong attitude.
@@ -228,9 +249,9 @@ def mean_body(scheme, att, b_g, b_a, g, omega=None, second_order=False):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast",
-                                             "second_order"))
+                                             "coriolis"))
 def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_all, fast=True,
-               second_order=False):
+               coriolis="exact"):
     att = get_attitude(attitude)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1],
@@ -245,7 +266,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
-    body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, second_order)
+    body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, coriolis)
 
     def scan_body(carry, xs):
         carry, _ = body(carry, xs)
@@ -277,13 +298,13 @@ STEPS = ArgSpec(1, _n_steps_arg)
 VECTOR = ArgSpec(1)
 
 
-def routed_propagate(scheme, attitude, save_all, second_order=False):
+def routed_propagate(scheme, attitude, save_all, coriolis="exact"):
     """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`).
 
     Its arguments: ``(state, gyro, accel, dt, g, omega)``, ``omega`` ``None`` or ``(..., 3)``."""
     return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR),
                         (("attitude", attitude), ("save_all", save_all), ("scheme", scheme),
-                         ("second_order", bool(second_order))))
+                         ("coriolis", coriolis)))
 
 
 def _report_gimbal_lock(locked, attitude):
@@ -309,10 +330,15 @@ SENSOR_ARGS_DOC = """
             ``α×r`` too (``α`` from central differences of the gyro samples); ``False``
             keeps only the centripetal ``ω×(ω×r)``, as GTSAM does.
         omega_coriolis: optional ``(3,)`` rotation rate of the world frame [rad/s] in W
-            (GTSAM's ``omegaCoriolis``; :func:`jaximu.earth_rate` gives Earth's): the rotating-
-            world mechanisation (:mod:`jaximu.world`): ``R ← Exp(-ω_W dt) R``, the Coriolis
-            acceleration ``-2ω_W×v`` and, with ``coriolis_second_order``, the centrifugal
-            ``-ω_W×(ω_W×p)``, applied after each scheme step (first order in dt).
+            (GTSAM's ``omegaCoriolis``; :func:`jaximu.earth_rate` gives Earth's): the samples
+            are then relative to inertial space and the states relative to the turning W.
+        coriolis_exact: ``True`` (default): the exact rotating-world transition of each step
+            (Coriolis and centrifugal, GTSAM ≥ 4.3; the scheme keeps its order);
+            ``False``: GTSAM ≤ 4.2's classic additive terms after each step (first order
+            in dt), the centrifugal one only with ``coriolis_second_order``
+            (:mod:`jaximu.world`).
+        coriolis_second_order: with ``coriolis_exact=False``, add the centrifugal term
+            (inert with the exact transition, which holds it, as in GTSAM ≥ 4.3).
 """
 
 
@@ -342,11 +368,11 @@ def sensor_biases(states, state, per_step):
 
 
 def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity, body_P_sensor,
-           tangential, omega_coriolis, coriolis_second_order):
+           tangential, omega_coriolis, coriolis):
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
                                                omega_coriolis)
-    out, locked = routed_propagate(scheme, attitude, save_all, coriolis_second_order)(
+    out, locked = routed_propagate(scheme, attitude, save_all, coriolis)(
         inner, gyro, accel, dt, g, omega)
     if body_P_sensor is not None:
         out = sensor_biases(out, state, save_all)
@@ -356,7 +382,7 @@ def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity,
 
 def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
               attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
-              tangential: bool = True, omega_coriolis=None,
+              tangential: bool = True, omega_coriolis=None, coriolis_exact: bool = True,
               coriolis_second_order: bool = False) -> NavState:
     """Propagate the navigation state through IMU samples, returning every state.
 
@@ -393,12 +419,13 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
             Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
     """
     return _entry("propagate", True, state, gyro, accel, dt, scheme, attitude, gravity,
-                  body_P_sensor, tangential, omega_coriolis, coriolis_second_order)
+                  body_P_sensor, tangential, omega_coriolis,
+                  coriolis_mode(coriolis_exact, coriolis_second_order))
 
 
 def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
                     attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
-                    tangential: bool = True, omega_coriolis=None,
+                    tangential: bool = True, omega_coriolis=None, coriolis_exact: bool = True,
                     coriolis_second_order: bool = False) -> NavState:
     """Like :func:`propagate` but returns only the final state, without storing the trajectory.
 
@@ -406,7 +433,8 @@ def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
         :class:`NavState` with fields of shape ``batch + (·)`` at ``t_0 + Σ dt``.
     """
     return _entry("propagate_final", False, state, gyro, accel, dt, scheme, attitude, gravity,
-                  body_P_sensor, tangential, omega_coriolis, coriolis_second_order)
+                  body_P_sensor, tangential, omega_coriolis,
+                  coriolis_mode(coriolis_exact, coriolis_second_order))
 
 
 propagate.__doc__ = propagate.__doc__.replace("{sensor}", SENSOR_ARGS_DOC)

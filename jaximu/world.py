@@ -1,26 +1,38 @@
-"""The rotating world: Earth's rate and the Coriolis / centrifugal terms (one home).
+"""The rotating world: Earth's rate, the exact rotating-frame transition and GTSAM's
+classic Coriolis terms (the one home of both).
 
-A world frame W fixed to the Earth (east-north-up, z up) turns with the Earth's rate
-``ω_W`` relative to inertial space. A gyroscope measures the body's rate relative to
-inertial space, ``ω_IB = ω_WB + R_WBᵀ ω_W``, and in W the velocity obeys
+A world frame W fixed to the Earth (east-north-up, z up) turns at ``ω_W`` relative to
+inertial space. A gyroscope measures the body's rate relative to inertial space,
+``ω_IB = ω_WB + R_WBᵀ ω_W``, and in W
 
-    v̇ = R f + g_W - 2 ω_W × v - ω_W × (ω_W × p),   Ṙ = R [ω_IB]x - [ω_W]x R
+    Ṙ = R [ω_IB]x - [ω_W]x R,    v̇ = R f + g_W - 2 ω_W × v - ω_W × (ω_W × p),    ṗ = v
 
-(Coriolis and centrifugal accelerations; ``g_W`` is the gravity the user passes). GTSAM calls
-``ω_W`` ``omegaCoriolis`` and keeps only the Coriolis term unless ``use2ndOrderCoriolis``;
-jaximu uses its name and meaning: ``omega_coriolis=`` ``(3,)`` [rad/s] in W, with
-``coriolis_second_order=False`` by default (centrifugal term off: a user whose ``g_W`` is
-the local apparent gravity, which already holds it, keeps it off).
+(Coriolis and centrifugal accelerations; ``g_W`` the gravity the user passes, constant in
+W). GTSAM calls ``ω_W`` ``omegaCoriolis``; jaximu uses its name and meaning
+(``omega_coriolis=``, ``(3,)`` [rad/s] in W; :func:`earth_rate` gives Earth's).
 
-:func:`coriolis_increments` is the one home of the discretised terms over a step ``Δt`` from
-a state ``(p, v)``: the world-frame rotation ``-ω_W Δt``, position ``-ω_W×v Δt²`` and velocity
-``-2 ω_W×v Δt`` (plus ``-½ Δt² ω×(ω×p)`` and ``-Δt ω×(ω×p)`` at second order). These are
-GTSAM's ``NavState::coriolis`` (its ``dP`` drops a factor 2 against an INS text: it is the
-exact ``½ a Δt²`` of the Coriolis acceleration ``a = -2ω×v``). :func:`jaximu.predict` adds
-them to the preintegrated tangent as GTSAM's ``correctPIM`` does; :func:`jaximu.propagate`
-applies them after each scheme step (``R ← Exp(-ω_W Δt) R``, ``p``, ``v`` incremented at the
-step's end state), a first-order splitting whose error per unit time is
-``O(|ω_W| |f| Δt)`` (about 1e-6 m/s² at Earth's rate and 200 Hz).
+**Exact transition** (the default, ``coriolis_exact=True``; GTSAM ≥ 4.3, after Brossard,
+Barrau & Bonnabel). In the inertial frame I that coincides with W at the start of an
+interval, ``x_I(t) = Exp(ω t) x_W(t)``: the body obeys the still-world equations with the
+transported velocity ``v̄ = v + ω × p`` and a gravity that turns, ``Exp(ω t) g_W``. So a
+step (or a preintegrated window) of length ``T`` is
+
+    v̄ = v + ω×p                                  (:func:`to_inertial`)
+    (R', p', v̄') = the still-world step from (R, p, v̄) with the constant g_W
+    v̄' += T (J_l(ωT) - I) g_W,  p' += T² (Γ₂(ωT) - ½ I) g_W      (the turning gravity)
+    R⁺ = Exp(-ωT) R',  p⁺ = Exp(-ωT) p',  v⁺ = Exp(-ωT) v̄' - ω×p⁺   (:func:`leave_inertial`)
+
+with ``J_l(φ) = Σ [φ]xⁿ/(n+1)!`` (SO(3)'s left Jacobian) and ``Γ₂(φ) = Σ [φ]xⁿ/(n+2)!``
+(:func:`gamma2`). Exact for a constant ``ω_W``: the rotating world adds no error to a
+scheme, whose order it keeps. Coriolis and centrifugal are both in it
+(``coriolis_second_order`` is inert, as in GTSAM ≥ 4.3).
+
+**Classic additive terms** (``coriolis_exact=False``; GTSAM ≤ 4.2's ``NavState::coriolis``
+in ``correctPIM``): :func:`coriolis_increments` over ``Δt`` from ``(p, v)``: rotation
+``-ω Δt``, position ``-ω×v Δt²``, velocity ``-2 ω×v Δt``, plus ``-½ Δt² ω×(ω×p)`` and
+``-Δt ω×(ω×p)`` with ``coriolis_second_order``. :func:`jaximu.predict` adds them to the
+preintegrated tangent as ``correctPIM`` does; :func:`jaximu.propagate` applies them after
+each scheme step at its end state (``R ← Exp(-ωΔt) R``), a first-order splitting.
 """
 
 from __future__ import annotations
@@ -31,7 +43,8 @@ import numpy as np
 from jaximu import _validation as val
 from jaximu import so3
 
-__all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega"]
+__all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
+           "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
 
 EARTH_RATE = 7.292115e-5
 """Earth's sidereal rotation rate [rad/s] (WGS-84)."""
@@ -60,8 +73,86 @@ def check_omega(omega, dtype, name="omega_coriolis"):
     return w
 
 
+# --------------------------------------------------------------------------- exact
+
+
+def gamma2(phi):
+    """``Γ₂(φ) = Σ_n [φ]xⁿ / (n+2)! = ½ I + b [φ]x + e [φ]x²`` with ``b = (θ - sin θ)/θ³``,
+    ``e = (θ²/2 + cos θ - 1)/θ⁴`` (Taylor series near 0). ``(..., 3) -> (..., 3, 3)``.
+    ``∫₀ᵀ∫₀ˢ Exp(ω u) du ds = T² Γ₂(ωT)``."""
+    theta_sq = jnp.sum(phi * phi, axis=-1)
+    a, b, _ = so3._jacobian_coeffs(phi)  # a = (1 - cos θ)/θ²
+    small = theta_sq < 1e-2
+    safe = jnp.where(small, jnp.ones_like(theta_sq), theta_sq)
+    t2 = theta_sq
+    e = jnp.where(small, 1 / 24 - t2 / 720 + t2 * t2 / 40320 - t2 ** 3 / 3628800,
+                  (0.5 - a) / safe)
+    K = so3.skew(phi)
+    eye = jnp.eye(3, dtype=phi.dtype)
+    return 0.5 * eye + b[..., None, None] * K + e[..., None, None] * (K @ K)
+
+
+def _mv(M, x):
+    return jnp.einsum("...ij,...j->...i", M, x)
+
+
+def to_inertial(omega, p, v):
+    """The transported velocity ``v̄ = v + ω × p`` (velocity in the inertial frame that
+    coincides with W now)."""
+    return v + jnp.cross(omega, p)
+
+
+def gravity_excess(omega, dt, g):
+    """What the turning gravity adds over ``dt`` beyond a constant ``g``, in the inertial
+    frame of the start: ``(dp, dv) = (T²(Γ₂(ωT) - ½I) g, T (J_l(ωT) - I) g)``."""
+    T = jnp.asarray(dt)[..., None]
+    phi = omega * T
+    eye = jnp.eye(3, dtype=phi.dtype)
+    dv = T * _mv(so3.left_jacobian(phi) - eye, g)
+    dp = T * T * _mv(gamma2(phi) - 0.5 * eye, g)
+    return dp, dv
+
+
+def leave_inertial(omega, dt, g, p, v):
+    """From the inertial frame of the start back to W after ``dt``, the turning gravity
+    added: returns ``(dθ, p⁺, v⁺)`` with ``R⁺ = Exp(dθ) R'``, ``dθ = -ω dt``."""
+    dp, dv = gravity_excess(omega, dt, g)
+    dth = -jnp.asarray(dt)[..., None] * omega
+    Q = so3.exp_matrix(dth)
+    p1 = _mv(Q, p + dp)
+    v1 = _mv(Q, v + dv) - jnp.cross(omega, p1)
+    return dth, p1, v1
+
+
+def enter_inertial(omega, dt, g, p, v):
+    """The inverse of :func:`leave_inertial` (same returns: ``R' = Exp(-dθ) R⁺``)."""
+    dp, dv = gravity_excess(omega, dt, g)
+    dth = -jnp.asarray(dt)[..., None] * omega
+    Qt = jnp.swapaxes(so3.exp_matrix(dth), -1, -2)
+    return dth, _mv(Qt, p) - dp, _mv(Qt, v + jnp.cross(omega, p)) - dv
+
+
+def exact_error_maps(omega, dt):
+    """Error-state maps of :func:`to_inertial` (``Pre``) and of :func:`leave_inertial`
+    (``Post``), ``(..., 15, 15)``, order ``[θ, p, v, b_g, b_a]`` (rotation error on the right:
+    a rotation on the left leaves it unchanged): ``δv̄ = δv + [ω]x δp``;
+    ``δp⁺ = Q δp'``, ``δv⁺ = Q δv̄' - [ω]x Q δp'`` with ``Q = Exp(-ω dt)``."""
+    W = so3.skew(omega)
+    Q = so3.exp_matrix(-jnp.asarray(dt)[..., None] * omega)
+    shape = jnp.broadcast_shapes(W.shape, Q.shape)
+    eye = jnp.broadcast_to(jnp.eye(15, dtype=Q.dtype), shape[:-2] + (15, 15))
+    pre = eye.at[..., 6:9, 3:6].set(jnp.broadcast_to(W, shape))
+    post = (eye.at[..., 3:6, 3:6].set(jnp.broadcast_to(Q, shape))
+            .at[..., 6:9, 6:9].set(jnp.broadcast_to(Q, shape))
+            .at[..., 6:9, 3:6].set(-(W @ Q)))
+    return pre, post
+
+
+# --------------------------------------------------------------------------- classic
+
+
 def coriolis_increments(omega, p, v, dt, second_order: bool = False):
-    """World-frame increments of the rotating world over a step (GTSAM's ``coriolis``).
+    """World-frame increments of GTSAM ≤ 4.2's classic model over a step (``coriolis``).
 
     Args:
         omega: ``(..., 3)`` world rotation rate ``ω_W`` [rad/s] in W.
@@ -97,4 +188,3 @@ def coriolis_transition(omega, dt, second_order: bool = False):
     top = jnp.concatenate(jnp.broadcast_arrays(eye - 0.5 * s * h * h * W2, -(h * h) * W), -1)
     bot = jnp.concatenate(jnp.broadcast_arrays(-s * h * W2, eye - 2.0 * h * W), -1)
     return jnp.concatenate([top, bot], -2)
-
