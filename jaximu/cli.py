@@ -65,6 +65,44 @@ def _noise(name):
     return {"euroc": jaximu.ImuNoise.euroc, "tum-vi": jaximu.ImuNoise.tum_vi}[name]()
 
 
+def _sensor_and_world(args, rate_hz=None):
+    """``--body-P-sensor`` and ``--earth-rate``: ``(body_P_sensor, omega_coriolis, noise)``
+    (``noise``: the YAML's densities, which replace ``--noise``, or ``None``)."""
+    import jaximu
+    from jaximu import kalibr
+
+    pose = noise = omega = None
+    if getattr(args, "body_P_sensor", None):
+        cfg = kalibr.parse_body_P_sensor(args.body_P_sensor)
+        pose, noise = cfg.body_P_sensor, cfg.noise
+        if pose is not None:
+            print(f"IMU pose on the body from {cfg.source}: q_BS = "
+                  f"{np.array2string(np.asarray(pose.q), precision=6)}, p_BS = "
+                  f"{np.array2string(np.asarray(pose.p), precision=4)} m")
+        if noise is not None:
+            print(f"noise densities from {cfg.source} (they replace --noise)")
+        if cfg.rate_hz and rate_hz and abs(cfg.rate_hz - rate_hz) > 0.05 * rate_hz:
+            print(f"note: the YAML's rate {cfg.rate_hz:g} Hz differs from the recording's "
+                  f"{rate_hz:.1f} Hz")
+    if getattr(args, "earth_rate", None) is not None:
+        omega = np.asarray(jaximu.earth_rate(args.earth_rate), np.float64)
+        print(f"rotating world: Earth's rate at latitude {args.earth_rate:g}° (east-north-up) "
+              f"{np.array2string(omega, precision=4)} rad/s")
+    return pose, omega, noise
+
+
+def _add_sensor_options(p):
+    g = p.add_argument_group("sensor pose and rotating world")
+    g.add_argument("--body-P-sensor", metavar="QW,QX,QY,QZ,PX,PY,PZ|YAML",
+                   help="the IMU's pose in the body frame: q_BS (Hamilton) and the lever arm "
+                   "p_BS [m]; or an EuRoC sensor.yaml (T_BS) or Kalibr camchain (cam0 "
+                   "T_cam_imu: the camera is the body) / imu.yaml, whose noise densities "
+                   "replace --noise")
+    g.add_argument("--earth-rate", type=float, metavar="LAT",
+                   help="latitude [°] of the local east-north-up world: Earth's rotation "
+                   "(Coriolis and centrifugal, exact transition) at it")
+
+
 def _detect_format(path: pathlib.Path) -> str:
     if path.is_dir():
         if (path / "metadata.yaml").is_file():
@@ -212,7 +250,7 @@ def _plot_or_say(make, path):
 
 
 def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
-                        chunk=2000, progress=False):
+                        chunk=2000, progress=False, **frames):
     """Propagate state and covariance through a whole recording, chunk by chunk (for the
     progress bar), exactly as one call: consecutive chunks share their boundary sample, and
     the intervals ``dt`` are the ends-of-interval form of :func:`jaximu.propagate`.
@@ -220,6 +258,10 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     Returns:
         ``(t, states, cov)`` with numpy float64 arrays, the initial state included
         (``len(data)`` entries).
+
+    ``frames``: ``body_P_sensor=`` and ``omega_coriolis=`` of
+    :func:`jaximu.propagate_covariance` (with a sensor pose, ``α`` at a chunk boundary is a
+    one-sided difference: a first-order error at one sample in ``chunk``).
     """
     import jax
     import jax.numpy as jnp
@@ -235,7 +277,7 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     _check_cov(P0, dtype)
     val.check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
     step = jax.jit(lambda x, P, w, a, h: jaximu.propagate_covariance(
-        x, P, w, a, h, noise, scheme, gravity=gravity))
+        x, P, w, a, h, noise, scheme, gravity=gravity, **frames))
     gyro = jnp.asarray(data.gyro, dtype)
     accel = jnp.asarray(data.accel, dtype)
     dt = jnp.asarray(data.dt, dtype)
@@ -326,10 +368,13 @@ def cmd_propagate(args):
                                    still_seconds=args.still, bias=_bias(args.bias))
     print(how)
     noise = _noise(args.noise)
+    pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
+    noise = yaml_noise or noise
     P0 = _default_P0(args.init_from_groundtruth)
     tic = time.perf_counter()
     t, states, cov = propagate_recording(data, state0, P0, noise, args.scheme, dtype,
-                                         gravity=args.gravity, progress=not args.no_progress)
+                                         gravity=args.gravity, progress=not args.no_progress,
+                                         body_P_sensor=pose, omega_coriolis=omega)
     elapsed = time.perf_counter() - tic
     print(f"propagated {len(data.dt)} steps ({args.scheme}, {np.dtype(dtype).name}, "
           f"{jax.default_backend()}) in {elapsed:.2f} s including compilation")
@@ -483,9 +528,10 @@ def cmd_preintegrate(args):
     dt = jnp.asarray(data.dt[: K * n].reshape(K, n), dtype)
     b = jaximu.ImuBias(jnp.asarray(bias[:3], dtype), jnp.asarray(bias[3:], dtype))
     print(f"{K} windows of {n} samples ({args.window:g} s), scheme {args.scheme}, biases {how}")
+    pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
     tic = time.perf_counter()
-    pim = jaximu.preintegrate(gyro, accel, dt, b, _noise(args.noise), args.scheme,
-                              method=args.method)
+    pim = jaximu.preintegrate(gyro, accel, dt, b, yaml_noise or _noise(args.noise), args.scheme,
+                              method=args.method, body_P_sensor=pose)
     pim.delta_p.block_until_ready()
     print(f"preintegrated in {time.perf_counter() - tic:.2f} s including compilation")
     angle = np.rad2deg(2 * np.arccos(np.clip(np.abs(np.asarray(pim.delta_q)[:, 0]), 0, 1)))
@@ -516,7 +562,8 @@ def cmd_preintegrate(args):
             states.append(jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v)),
                                           b.b_g, b.b_a))
         sel = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(inside)], pim)
-        r = np.asarray(jaximu.residual(states[0], states[1], sel), np.float64)
+        r = np.asarray(jaximu.residual(states[0], states[1], sel, omega_coriolis=omega),
+                       np.float64)
         print(f"\nresiduals against the ground truth (median over the {int(inside.sum())} "
               f"windows inside it): rotation "
               f"{np.rad2deg(np.median(np.linalg.norm(r[:, 0:3], axis=1))):.3f}°, position "
@@ -739,6 +786,7 @@ def build_parser():
                    "%(default)s)")
     p.add_argument("--out", metavar="TUM", help="write the trajectory in TUM format (for evo)")
     p.add_argument("--states", metavar="CSV|NPZ", help="write states and covariances")
+    _add_sensor_options(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_propagate)
 
@@ -757,6 +805,7 @@ def build_parser():
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--out", metavar="NPZ", help="write the preintegrated measurements")
     p.add_argument("--float64", action="store_true", help="compute in float64")
+    _add_sensor_options(p)
     p.set_defaults(func=cmd_preintegrate)
 
     p = sub.add_parser("montecarlo", help="Monte Carlo covariance study on a simulated trajectory",

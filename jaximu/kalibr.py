@@ -1,0 +1,157 @@
+"""Sensor configuration files as the field writes them: EuRoC / ASL ``sensor.yaml`` and
+Kalibr's ``camchain-imucam.yaml`` and ``imu.yaml``.
+
+* EuRoC ``mav0/imu0/sensor.yaml`` (ASL format): ``T_BS`` (``rows: 4``, ``cols: 4``, ``data``:
+  16 numbers, row-major), ``rate_hz`` and the four Kalibr noise densities at the top level.
+* Kalibr ``camchain-imucam.yaml``: ``cam0: T_cam_imu`` (a 4×4 nested list): the IMU's pose
+  in the camera frame, ``T_CS``; with the camera as the body it is ``T_BS``.
+* Kalibr ``imu.yaml``: ``imu0:`` with ``update_rate`` and the densities (no pose).
+
+:func:`read_sensor_yaml` returns a :class:`SensorConfig`; :func:`parse_body_P_sensor` reads
+the command's ``--body-P-sensor`` (seven numbers or such a file). Reading YAML needs PyYAML
+(``pip install jaximu[kalibr]``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import numpy as np
+
+from jaximu.noise import ImuNoise
+from jaximu.sensor import SensorPose
+
+__all__ = ["SensorConfig", "read_sensor_yaml", "parse_body_P_sensor"]
+
+DENSITIES = ("gyroscope_noise_density", "accelerometer_noise_density", "gyroscope_random_walk",
+             "accelerometer_random_walk")
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    """What a sensor file says.
+
+    Attributes:
+        body_P_sensor: the IMU's pose in the body frame (``None`` if the file has none).
+        rate_hz: the IMU rate [Hz] (``rate_hz`` / ``update_rate``), or ``None``.
+        noise: the four densities as :class:`jaximu.ImuNoise`, or ``None`` if it has none.
+        source: the file and the key the pose came from.
+    """
+
+    body_P_sensor: SensorPose | None
+    rate_hz: float | None
+    noise: ImuNoise | None
+    source: str
+
+
+def _load_yaml(path):
+    try:
+        import yaml
+    except ImportError:
+        raise ImportError("reading a sensor YAML file needs PyYAML: pip install pyyaml "
+                          "(or jaximu[kalibr])") from None
+    text = pathlib.Path(path).read_text(encoding="utf-8")
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: not valid YAML ({e})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a YAML mapping (EuRoC sensor.yaml or a Kalibr "
+                         "camchain/imu file), got " + type(doc).__name__)
+    return doc
+
+
+def _number(path, key, x):
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {key} must be a number, got {x!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{path}: {key} must be finite and ≥ 0, got {x!r}")
+    return v
+
+
+def _matrix(path, key, node):
+    """A 4×4 from ASL's ``{rows, cols, data}`` or Kalibr's nested list."""
+    if isinstance(node, dict):
+        missing = [k for k in ("rows", "cols", "data") if k not in node]
+        if missing:
+            raise ValueError(f"{path}: {key} lacks the field(s) {', '.join(missing)} (ASL "
+                             "format: rows: 4, cols: 4, data: [16 numbers, row-major])")
+        if (node["rows"], node["cols"]) != (4, 4):
+            raise ValueError(f"{path}: {key} must be 4×4, got rows: {node['rows']}, "
+                             f"cols: {node['cols']}")
+        data = node["data"]
+    else:
+        data = node
+    try:
+        T = np.asarray(data, float).reshape(4, 4)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {key} must hold 16 numbers (a 4×4 homogeneous transform), "
+                         f"got {data!r}") from None
+    try:
+        return SensorPose.from_matrix(T)
+    except ValueError as e:
+        raise ValueError(f"{path}: {key}: {e}") from None
+
+
+def read_sensor_yaml(path, camera: str = "cam0") -> SensorConfig:
+    """Read an EuRoC ``sensor.yaml``, a Kalibr ``camchain-imucam.yaml`` (the pose of
+    ``camera``'s ``T_cam_imu``: the camera is then the body) or a Kalibr ``imu.yaml``.
+
+    Raises ``ValueError`` naming the file and the field on a missing or malformed field
+    (``T_BS`` without ``data``, a non-rotation, three of the four densities, …); a file
+    with neither a pose nor densities is refused.
+    """
+    doc = _load_yaml(path)
+    pose, where = None, None
+    if "T_BS" in doc:
+        pose, where = _matrix(path, "T_BS", doc["T_BS"]), "T_BS"
+    elif isinstance(doc.get(camera), dict) and "T_cam_imu" in doc[camera]:
+        pose, where = _matrix(path, f"{camera}.T_cam_imu", doc[camera]["T_cam_imu"]), \
+            f"{camera}.T_cam_imu"
+    elif any(isinstance(v, dict) and "T_cam_imu" in v for v in doc.values()):
+        cams = [k for k, v in doc.items() if isinstance(v, dict) and "T_cam_imu" in v]
+        raise ValueError(f"{path}: no {camera!r} with T_cam_imu; the file has {cams}")
+    imu = doc["imu0"] if isinstance(doc.get("imu0"), dict) else doc
+    present = [k for k in DENSITIES if k in imu]
+    if present and len(present) < 4:
+        missing = [k for k in DENSITIES if k not in imu]
+        raise ValueError(f"{path}: the noise densities are incomplete: {', '.join(missing)} "
+                         "missing (Kalibr names, continuous-time densities)")
+    noise = ImuNoise(*(_number(path, k, imu[k]) for k in DENSITIES)) if present else None
+    rate_key = "rate_hz" if "rate_hz" in imu else ("update_rate" if "update_rate" in imu else None)
+    rate = _number(path, rate_key, imu[rate_key]) if rate_key else None
+    if pose is None and noise is None:
+        raise ValueError(f"{path}: neither a pose (T_BS, or cam0.T_cam_imu) nor noise densities "
+                         "found; expected an EuRoC sensor.yaml or a Kalibr camchain/imu file")
+    return SensorConfig(pose, rate, noise, f"{path}" + (f" ({where})" if where else ""))
+
+
+def parse_body_P_sensor(text: str, camera: str = "cam0") -> SensorConfig:
+    """``--body-P-sensor``: ``"qw,qx,qy,qz,px,py,pz"`` (``q_BS`` Hamilton, ``p_BS`` [m]) or
+    the path of a YAML file (:func:`read_sensor_yaml`). A quaternion typed with a few digits
+    (``|q|`` within 1e-3 of 1) is normalised and said so in ``source``; beyond that it is an
+    error."""
+    p = pathlib.Path(text)
+    if p.suffix.lower() in (".yaml", ".yml") or p.is_file():
+        if not p.is_file():
+            raise ValueError(f"--body-P-sensor {text}: no such file")
+        return read_sensor_yaml(p, camera)
+    parts = [s for s in text.replace(" ", ",").split(",") if s]
+    try:
+        vals = np.array([float(s) for s in parts])
+    except ValueError:
+        vals = np.array([])
+    if vals.shape != (7,) or not np.all(np.isfinite(vals)):
+        raise ValueError(f"--body-P-sensor {text!r}: expected seven numbers qw,qx,qy,qz,px,py,pz "
+                         "(q_BS Hamilton, p_BS in metres) or a sensor YAML file")
+    q = vals[:4]
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1) > 1e-3:
+        raise ValueError(f"--body-P-sensor: q_BS = {q.tolist()} is not a unit quaternion "
+                         f"(|q| = {norm:.6g}); give a unit quaternion [w, x, y, z]")
+    note = "" if abs(norm - 1) < 1e-12 else f" (q normalised from |q| = {norm:.6g})"
+    pose = SensorPose(np.asarray(q / norm), np.asarray(vals[4:]))
+    return SensorConfig(pose, None, None, f"--body-P-sensor{note}")
