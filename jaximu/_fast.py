@@ -14,7 +14,7 @@ from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _di
                          _quat_rotate, _skew3, _stack_last, _stage,
                          _time_chunks, _vec3, mean_step, quat_matrix, run_blocked)
 from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import SOA
+from jaximu._soa import SOA, _materialise
 from jaximu._vec import V3
 from jaximu.integrators import SCHEME_OBJECTS
 
@@ -223,17 +223,24 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     return (q1, p1, v1), b
 
 
-def cov_step_autodiff(scheme, carry, omega0, f0, omega1, f1, h, g, qc):
-    """Mean + covariance step of any scheme with autodiff blocks and the block update of
-    :func:`jaximu._blocks.structured_update` on the SoA layout. ``carry = (q, p, v, Pb)``."""
+def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc):
+    """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
+    form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
+    of the step (:func:`blocks_autodiff`), and the block update of
+    :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``."""
     q, p, v, Pb = carry
-    (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g)
+    if jacobians == "analytic":
+        q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g)
+        b = scheme.blocks(quat_matrix(q, q[0].dtype), omega0, f0, omega1, f1, h, SOA)
+    else:
+        (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
+                                          h, g)
     new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA)
     return q1, p1, v1, tuple(new[k] for k in UPPER)
 
 
 def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
-                        scheme=None):
+                        scheme=None, jacobians="autodiff"):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
     ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
     ``scheme``: None for the Euler step with closed-form blocks (:func:`cov_step`), or a
@@ -259,7 +266,10 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
             bg, ba = V3(*bg), V3(*ba)
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
-            return cov_step_autodiff(scheme, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
+            # the step's inputs in memory: read through the scan's dynamic slice inside the
+            # 3-D block fusions they stop LLVM from vectorising them (as h, qc in cov_step)
+            omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
+            return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
                                         consts, None,
