@@ -44,14 +44,7 @@ class Layout(NamedTuple):
     barrier: object = lambda tree: tree  # materialise a pytree of blocks (SoA: see _soa)
     skew: object = None  # [v]x of a V3
     matvec: object = None  # X v -> V3
-    lin: object = None  # a I + [c]x for a per-element scalar a and a V3 c (or None)
     exp_jr: object = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
-
-
-def _arrays_lin(a, c):
-    a = jnp.asarray(a)
-    out = a[..., None, None] * jnp.eye(3, dtype=a.dtype)
-    return out if c is None else out + so3.skew(c.stack())
 
 
 ARRAYS = Layout(
@@ -62,7 +55,6 @@ ARRAYS = Layout(
     diag=lambda s: s[..., :, None] * jnp.eye(3, dtype=s.dtype),
     skew=lambda v: so3.skew(v.stack()),
     matvec=lambda X, v: V3.of(jnp.einsum("...ij,...j->...i", X, v.stack())),
-    lin=_arrays_lin,
     exp_jr=lambda phi: (so3.exp_matrix(phi.stack()), so3.right_jacobian(phi.stack())),
 )
 

@@ -257,12 +257,6 @@ def exp_jr(phi: V3, half=None):
     return E, J
 
 
-def _soa_lin(a, c):
-    dtype = jnp.result_type(a) if c is None else _dtype_of(c)
-    out = _lane(a) * jnp.asarray(_E3, dtype)[:, :, None]
-    return out if c is None else out + _skew3(c, dtype)
-
-
 SOA = Layout(
     matmul=lambda X, Y: _bmm(X, Y),
     transpose=lambda X: _bt(X),
@@ -272,7 +266,6 @@ SOA = Layout(
     barrier=lambda tree: _materialise(tree),
     skew=lambda v: _skew3(v, _dtype_of(v)),
     matvec=lambda X, v: V3(*(X[i, 0] * v.x + X[i, 1] * v.y + X[i, 2] * v.z for i in range(3))),
-    lin=_soa_lin,
     exp_jr=exp_jr,
 )
 """The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors

@@ -176,7 +176,7 @@ class Scheme:
     def dphi_db(self, omega0, omega1, h, tau):
         return -h, None
 
-    def blocks(self, R0, omega0, f0, omega1, f1, h, ops):
+    def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
         ``ops`` (:data:`jaximu._blocks.ARRAYS` or :data:`jaximu._soa.SOA`). With the stages
         ``R_s = R̂ Exp(φ_s)``, ``u_s = R_s f_s`` (OpenVINS / Solà; docs/DESIGN.md):
@@ -190,6 +190,8 @@ class Scheme:
             R0: the attitude ``R̂`` at the start of the step, a block of ``ops``.
             omega0, f0, omega1, f1: bias-corrected samples k and k+1 (:class:`V3`).
             h: step [s], per element.
+            end: ``(Exp(φ_end), Jr(φ_end))`` when the caller has them (the mean step shares
+                the end rotation's half angle).
 
         Returns:
             :class:`jaximu._blocks.Blocks`.
@@ -199,10 +201,12 @@ class Scheme:
         pts, phi_end = self.points(omega0, f0, omega1, f1, h)
         # ops.barrier: values read by several products are computed once (SoA: XLA:CPU would
         # recompute them inside every consumer; docs/DESIGN.md "Kernel layout")
-        R0, E_end, J_end = ops.barrier((R0, *ops.exp_jr(phi_end)))
+        R0, E_end, J_end = ops.barrier((R0, *(ops.exp_jr(phi_end) if end is None else end)))
 
-        def dphi(tau):
-            return ops.lin(*self.dphi_db(omega0, omega1, h, tau))
+        def times_dphi(X, tau):  # X ∂φ(τ)/∂b_g = a X + X [c]x
+            a, c = self.dphi_db(omega0, omega1, h, tau)
+            out = ops.scale(a, X)
+            return out if c is None else out + ops.matmul(X, ops.skew(c))
 
         uv, up, Dv, Dp, Ev, Ep = [], [], [], [], [], []
         for pt in pts:
@@ -219,12 +223,12 @@ class Scheme:
             Ev.append(ops.scale(-pt.wv, R_s))
             Ep.append(ops.scale(-pt.wp, R_s))
             if J_s is not None:
-                D = ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), ops.matmul(J_s, dphi(pt.tau)))
+                D = ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), times_dphi(J_s, pt.tau))
                 Dv.append(ops.scale(-pt.wv, D))
                 Dp.append(ops.scale(-pt.wp, D))
         sum_v = functools.reduce(lambda a, b: a + b, uv)
         sum_p = functools.reduce(lambda a, b: a + b, up)
-        return Blocks(A=ops.transpose(E_end), B=ops.matmul(J_end, dphi(1.0)),
+        return Blocks(A=ops.transpose(E_end), B=times_dphi(J_end, 1.0),
                       Cp=-ops.matmul(ops.skew(sum_p), R0), Cv=-ops.matmul(ops.skew(sum_v), R0),
                       Dp=add(*Dp), Dv=add(*Dv), Ep=add(*Ep), Ev=add(*Ev), dt=h)
 
