@@ -10,6 +10,14 @@ form of Kalibr's ``scale-misalignment`` model). The reference (motion capture or
 dataset's ground truth) is time-stamped on its own clock: IMU time ``t`` is reference time
 ``t + time_offset``.
 
+The reference tracks its own body frame B; the IMU frame S may be rotated from it by
+``q_BS`` and sit at the lever arm ``p_BS`` (the extrinsics, :class:`jaximu.SensorPose`;
+``body_P_sensor`` in :func:`jaximu.preintegrate`). With ``extrinsics=True`` in
+:func:`calibration_problem` they join the model (and may be estimated: ``estimate=(...,
+"q_BS", "p_BS")``); the frame check then initialises ``q_BS`` in closed form instead of
+refusing a rotated IMU: the rotation vectors of the windows satisfy ``φ_B = R_BS φ_S``
+exactly, a least-squares rotation fit (Wahba's problem, with a constant for the bias).
+
 The loss compares the corrected IMU with the reference between keyframes a fixed number of
 samples apart: the 9-dim preintegration residual ``[r_θ, r_p, r_v]`` of
 :func:`jaximu.residual` (``model="preintegration"``), or the same quantities from
@@ -48,6 +56,7 @@ from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate, residual
 from jaximu.propagate import propagate_final
+from jaximu.sensor import SensorPose
 from jaximu.state import ImuBias, NavState
 
 __all__ = [
@@ -65,13 +74,17 @@ __all__ = [
 ]
 
 FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
-          "accel_misalignment", "gravity", "time_offset")
+          "accel_misalignment", "gravity", "time_offset", "q_BS", "p_BS")
 _SIZES = {"b_g": 3, "b_a": 3, "gyro_scale": 3, "gyro_misalignment": 3, "accel_scale": 3,
-          "accel_misalignment": 3, "gravity": 1, "time_offset": 1}
+          "accel_misalignment": 3, "gravity": 1, "time_offset": 1, "q_BS": 4, "p_BS": 3}
+_TANGENT = dict(_SIZES, q_BS=3)  # q_BS is estimated as a rotation vector: q̂ ⊗ Exp(δθ)
 SCALES = {"b_g": 1e-2, "b_a": 1e-1, "gyro_scale": 1e-2, "gyro_misalignment": 1e-2,
           "accel_scale": 1e-2, "accel_misalignment": 1e-2, "gravity": 1e-1,
-          "time_offset": 1e-2}
+          "time_offset": 1e-2, "q_BS": 1e-2, "p_BS": 1e-1}
 """Typical magnitude of each field [its units]: the unit of the normalised coordinates."""
+EXCITATION = {"q_BS": np.deg2rad(0.5), "p_BS": 0.02}
+"""σ [rad, m] above which :func:`calibrate` warns that the motion does not excite the
+extrinsics it estimates (turn the body faster, about more axes)."""
 _VELOCITY_SCALE = 0.1  # m/s, nuisance keyframe velocities
 MODELS = ("preintegration", "propagation")
 OPTIMIZERS = ("lbfgs", "adam")
@@ -92,6 +105,10 @@ class ImuCalibration:
         gyro_misalignment, accel_misalignment: ``(..., 3)`` ``[S_10, S_20, S_21]`` [-].
         gravity: ``(...)`` gravity magnitude [m/s²] (``g_W = [0, 0, -g]``).
         time_offset: ``(...)`` IMU time minus reference time of one instant [s].
+        q_BS: ``(..., 4)`` the IMU's rotation in the reference's body frame, ``[w, x, y, z]``
+            (default identity; used with ``extrinsics``). In :attr:`CalibrationResult.std`
+            it holds the ``(3,)`` σ of the rotation vector ``δθ`` of ``q̂ ⊗ Exp(δθ)`` [rad].
+        p_BS: ``(..., 3)`` the IMU's origin in the body frame, the lever arm [m].
     """
 
     b_g: jax.Array
@@ -102,6 +119,8 @@ class ImuCalibration:
     accel_misalignment: jax.Array
     gravity: jax.Array
     time_offset: jax.Array
+    q_BS: jax.Array
+    p_BS: jax.Array
 
     @classmethod
     def default(cls, gravity=9.81, dtype=None, **fields) -> "ImuCalibration":
@@ -110,6 +129,7 @@ class ImuCalibration:
         vals = {name: jnp.zeros((_SIZES[name],) if _SIZES[name] > 1 else (), dtype)
                 for name in FIELDS}
         vals["gravity"] = jnp.asarray(gravity, dtype)
+        vals["q_BS"] = jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)
         for name, x in fields.items():
             if name not in vals:
                 raise ValueError(f"unknown calibration field {name!r}; fields are {FIELDS}")
@@ -119,6 +139,11 @@ class ImuCalibration:
     @property
     def bias(self) -> ImuBias:
         return ImuBias(self.b_g, self.b_a)
+
+    @property
+    def body_P_sensor(self) -> SensorPose:
+        """The extrinsics as a :class:`jaximu.SensorPose`."""
+        return SensorPose(self.q_BS, self.p_BS)
 
     def gyro_matrix(self):
         """``(..., 3, 3)`` ``I + S_g``."""
@@ -190,7 +215,12 @@ class CalibrationProblem:
         velocities: ``(K + 1, 3)`` keyframe velocities (reference or finite differences).
         scheme, model, has_velocity: static settings.
         diagnostics: the consistency checks' numbers (``gyro_ratio``, ``gyro_frame_error``,
-            ``accel_ratio``, ``accel_frame_error``; NaN where the motion could not tell).
+            ``accel_ratio``, ``accel_frame_error``; NaN where the motion could not tell);
+            with ``extrinsics`` also the closed-form rotation ``q_BS0``, its angle
+            ``q_BS0_angle`` [rad], the likelihood ratio ``q_BS0_statistic`` against the
+            identity and ``q_BS0_from`` (``"gyro"``, ``"accel"`` or ``"none"``).
+        q_BS0: ``(4,)`` that closed-form ``q_BS`` (``None`` without ``extrinsics``).
+        extrinsics: the residuals use ``q_BS``, ``p_BS`` (static).
     """
 
     gyro: jax.Array
@@ -211,6 +241,8 @@ class CalibrationProblem:
     has_velocity: bool = dataclasses.field(metadata=dict(static=True), default=True)
     diagnostics: dict = dataclasses.field(default_factory=dict)
     n_windows: int = dataclasses.field(metadata=dict(static=True), default=0)
+    q_BS0: jax.Array | None = None
+    extrinsics: bool = dataclasses.field(metadata=dict(static=True), default=False)
 
     @property
     def n_samples(self) -> int:
@@ -244,12 +276,13 @@ def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, veloci
     zero = jnp.zeros_like(pi)
     state_i = NavState(qi, pi, vi, zero, zero)
     state_j = NavState(qj, pj, vj, zero, zero)
+    pose = calib.body_P_sensor if problem.extrinsics else None
     if problem.model == "preintegration":
-        pim = preintegrate(gyro_c, accel_c, dt, scheme=problem.scheme)
+        pim = preintegrate(gyro_c, accel_c, dt, scheme=problem.scheme, body_P_sensor=pose)
         r = residual(state_i, state_j, pim, gravity=calib.gravity)[..., :9]
     else:
         pred = propagate_final(state_i, gyro_c, accel_c, dt, problem.scheme,
-                               gravity=calib.gravity)
+                               gravity=calib.gravity, body_P_sensor=pose)
         qi_inv = so3.quat_conj(qi)
         r = jnp.concatenate([
             so3.log(so3.quat_mul(so3.quat_conj(pred.q), qj)),
@@ -337,7 +370,9 @@ def _check_frame(name, x_imu, x_ref, floor, diag):
             f"window fits ref ≈ R imu best with R a rotation of {np.degrees(angle):.0f}° about "
             f"{np.array2string(theta / angle, precision=2)} (likelihood ratio {stat:.3g} against "
             "R = I). Is the reference the pose of the IMU frame, and its quaternion "
-            "[w, x, y, z] of R_WB?")
+            "[w, x, y, z] of R_WB? If the IMU is mounted rotated on the reference's body, pass "
+            "extrinsics=True (jaximu calibrate: --estimate ...,q_BS): the rotation then "
+            "starts from this fit and is estimated (q_BS)")
 
 
 def _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt, reference_sigma=(1e-3, 1e-3, 1e-2)):
@@ -386,11 +421,34 @@ def _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt, reference_sigma=(1e
     return diag
 
 
+def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
+    """The closed-form ``R_BS``: the least-squares rotation (:func:`_rotation_fit`) of the
+    windows' rotation vectors (``φ_B = R_BS φ_S``), or, where the rotations do not
+    determine it, of their velocity changes (gravity always excites them); the identity
+    where neither does. Returns ``(θ, statistic, source)`` with ``R_BS = Exp(θ)``.
+
+    Determined: the second singular value of the centred inputs exceeds 10× the fit's
+    residual noise (two independent directions of motion)."""
+    s_th, _, s_v = (max(float(x), 0.0) for x in reference_sigma)
+    for source, x, y, floor in (("gyro", phi_imu, phi_ref, np.sqrt(2) * s_th),
+                                ("accel", dv_imu, dv_ref, np.sqrt(2) * s_v)):
+        if len(x) < 3:
+            continue
+        theta, stat = _rotation_fit(x, y, floor)
+        xc, yc = x - x.mean(0), y - y.mean(0)
+        R = np.asarray(so3.exp_matrix(jnp.asarray(theta)), np.float64)
+        sigma = np.sqrt(max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1),
+                            floor**2, 1e-300))
+        if np.linalg.svd(xc, compute_uv=False)[1] > 10 * sigma:
+            return theta, stat, source
+    return np.zeros(3), np.nan, "none"
+
+
 def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
                         keyframe_interval: float = 0.5, scheme: str = "euler",
                         model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
                         initial: ImuCalibration | None = None, windows_per_group: int = 64,
-                        check: bool = True) -> CalibrationProblem:
+                        check: bool = True, extrinsics: bool = False) -> CalibrationProblem:
     """Cut the IMU stream into keyframe windows and pair them with the reference.
 
     Args:
@@ -418,6 +476,14 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             ``reference_sigma``); a near-still segment passes the frame check, and a
             deg/s gyro is caught there by its mean rate (:data:`GYRO_BIAS_MAX`). Every 3 s
             excerpt of the bundled recordings passes (``tests/test_calibration_checks.py``).
+        extrinsics: the IMU frame may be rotated from the reference's body frame and sit at
+            a lever arm (``q_BS``, ``p_BS`` of :class:`ImuCalibration` join the model). The
+            frame check then becomes the initialiser: the least-squares rotation between the
+            windows' gyro and reference rotations (or velocity changes, where the rotations
+            do not determine it; :func:`_initial_rotation`) is ``q_BS0``, reported in
+            ``diagnostics``, and the other checks run on the rotated samples. A
+            ``RuntimeWarning`` says when the motion determines no rotation (``q_BS0`` is
+            then the identity).
 
     Returns:
         :class:`CalibrationProblem`.
@@ -523,17 +589,34 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     diagnostics = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
                                  "accel_frame_error"), np.nan)
-    if check:
+    q_BS0 = None
+    if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
         R_i = np.asarray(so3.quat_to_matrix(jnp.asarray(qk[:-1])))
         phi_ref = _rotation_vectors(so3.quat_mul(so3.quat_conj(jnp.asarray(qk[:-1])),
                                                  jnp.asarray(qk[1:])))
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
+        dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
-        diagnostics = _check_consistency(phi_imu, phi_ref,
-                                         np.asarray(pim.delta_v, np.float64), dv_ref, Dt,
-                                         reference_sigma)
+        extra = {}
+        if extrinsics:
+            theta, stat, source = _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref,
+                                                    reference_sigma)
+            if source == "none":
+                warnings.warn("the motion determines no rotation between the IMU and the "
+                              "reference's body frame (no two independent directions of "
+                              "rotation or of velocity change): q_BS starts at the identity",
+                              RuntimeWarning, stacklevel=2)
+            R0 = np.asarray(so3.exp_matrix(jnp.asarray(theta)), np.float64)
+            q_BS0 = np.asarray(so3.exp(jnp.asarray(theta)), np.float64)
+            extra = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
+                     "q_BS0_statistic": stat}
+            phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
+        if check:
+            diagnostics = _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt,
+                                             reference_sigma)
+        diagnostics.update(extra)
 
     C = max(1, min(int(windows_per_group), K))
     G = -(-K // C)
@@ -551,7 +634,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         sqrt_info=as_d(grp(sqrt_info)), ref_t=as_d(rt - t0), ref_q=as_d(rq), ref_p=as_d(rp),
         ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
         diagnostics={k: as_d(v) for k, v in diagnostics.items()},
-        n_windows=int(K))
+        n_windows=int(K), q_BS0=None if q_BS0 is None else as_d(q_BS0),
+        extrinsics=bool(extrinsics))
 
 
 # --------------------------------------------------------------------------- fitting
@@ -562,18 +646,13 @@ class _Layout(NamedTuple):
     n_velocity: int  # 0, or 3 (K + 1) nuisance velocities
 
 
-def _free_indices(free):
-    idx, off = [], 0
-    for name in FIELDS:
-        if name in free:
-            idx.extend(range(off, off + _SIZES[name]))
-        off += _SIZES[name]
-    return np.asarray(idx, np.int32)
+def _n_free(free):
+    return sum(_TANGENT[n] for n in free)
 
 
 def _scale_vector(free, dtype):
-    return jnp.asarray(np.concatenate([np.full(_SIZES[n], SCALES[n]) for n in FIELDS if n in free]),
-                       dtype)
+    return jnp.asarray(np.concatenate([np.full(_TANGENT[n], SCALES[n]) for n in FIELDS
+                                       if n in free]), dtype)
 
 
 def _flatten(calib: ImuCalibration):
@@ -590,11 +669,22 @@ def _unflatten(vec) -> ImuCalibration:
 
 
 def _unpack(z, init_vec, v0, layout: _Layout):
-    n = len(_free_indices(layout.free))
-    scale = _scale_vector(layout.free, z.dtype)
-    vec = init_vec.at[_free_indices(layout.free)].add(scale * z[:n])
-    v = v0 if layout.n_velocity == 0 else v0 + _VELOCITY_SCALE * z[n:].reshape(v0.shape)
-    return _unflatten(vec), v
+    """The calibration at normalised coordinates ``z``: additive fields ``θ₀ + scale·z``,
+    ``q_BS = q₀ ⊗ Exp(scale·z)``; then the nuisance velocities."""
+    init = _unflatten(init_vec)
+    fields, off = {f.name: getattr(init, f.name) for f in dataclasses.fields(init)}, 0
+    for name in FIELDS:
+        if name not in layout.free:
+            continue
+        k = _TANGENT[name]
+        step = SCALES[name] * (z[off:off + k] if _SIZES[name] > 1 else z[off])
+        if name == "q_BS":
+            fields[name] = so3.quat_mul(fields[name], so3.exp(step))
+        else:
+            fields[name] = fields[name] + step
+        off += k
+    v = v0 if layout.n_velocity == 0 else v0 + _VELOCITY_SCALE * z[off:].reshape(v0.shape)
+    return ImuCalibration(**fields), v
 
 
 def _objective(z, problem, init_vec, layout):
@@ -708,10 +798,17 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     free = tuple(n for n in FIELDS if n in estimate)
     if initial is None:
         initial = ImuCalibration.default(dtype=dtype)
+        if problem.q_BS0 is not None:  # the closed-form rotation of calibration_problem
+            initial = dataclasses.replace(initial, q_BS=jnp.asarray(problem.q_BS0, dtype))
+    if not problem.extrinsics and (
+            {"q_BS", "p_BS"} & set(free)
+            or np.any(np.asarray(initial.q_BS) != [1, 0, 0, 0])
+            or np.any(np.asarray(initial.p_BS) != 0)):
+        problem = dataclasses.replace(problem, extrinsics=True)
     init_vec = jnp.asarray(_flatten(initial), dtype)
     n_v = 0 if problem.has_velocity else problem.velocities.size
     layout = _Layout(free, n_v)
-    n = len(_free_indices(free))
+    n = _n_free(free)
     z = jnp.zeros(n + n_v, dtype)
     opt = _optimizer(optimizer, float(learning_rate))
     # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
@@ -746,8 +843,24 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     cov_all = cov_z * scale[:, None] * scale[None, :]
     cov = cov_all[:n, :n]
     calib, v = _unpack(z, init_vec, problem.velocities, layout)
-    std_vec = np.zeros(init_vec.shape[0])
-    std_vec[_free_indices(free)] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    std, off = {}, 0
+    for name in FIELDS:
+        k, shape = _TANGENT[name], (3,) if name == "q_BS" else np.shape(getattr(initial, name))
+        if name in free:
+            std[name] = jnp.asarray(sig[off:off + k].reshape(shape), dtype)
+            off += k
+        else:
+            std[name] = jnp.zeros(shape, dtype)
+        if name in EXCITATION and name in free and float(np.max(std[name])) > EXCITATION[name]:
+            what = "lever arm p_BS" if name == "p_BS" else "rotation q_BS"
+            unit = "m" if name == "p_BS" else "rad"
+            warnings.warn(
+                f"the motion does not excite the {what}: its 1σ is "
+                f"{np.array2string(np.asarray(std[name], np.float64), precision=3)} {unit} "
+                f"(> {EXCITATION[name]:.3g} {unit}); a lever arm shows in the specific force only "
+                "as ω×(ω×r) + α×r: turn the body faster, about more axes", RuntimeWarning,
+                stacklevel=2)
     dof = max(len(r) - n - n_v, 1)
     red = chi2 / dof
     if max_reduced_chi2 is not None and red > max_reduced_chi2:
@@ -756,6 +869,6 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
             " explain the reference (check the IMU-reference frame, units, the time offset, or"
             " the noise densities)", RuntimeWarning, stacklevel=2)
     return CalibrationResult(
-        calibration=calib, std=_unflatten(jnp.asarray(std_vec, dtype)), covariance=cov,
+        calibration=calib, std=ImuCalibration(**std), covariance=cov,
         free=free, velocities=np.asarray(v), loss_history=np.asarray(history), chi2=chi2,
         dof=dof, reduced_chi2=red, converged=converged)
