@@ -221,6 +221,8 @@ class CalibrationProblem:
             identity and ``q_BS0_from`` (``"gyro"``, ``"accel"`` or ``"none"``).
         q_BS0: ``(4,)`` that closed-form ``q_BS`` (``None`` without ``extrinsics``).
         extrinsics: the residuals use ``q_BS``, ``p_BS`` (static).
+        sample_density2: ``(2, 3)`` ``σ_g², σ_a²`` per axis; reference_var: ``(G, C, 9)``
+            the reference's part of each residual's variance (for re-whitening).
     """
 
     gyro: jax.Array
@@ -243,6 +245,8 @@ class CalibrationProblem:
     n_windows: int = dataclasses.field(metadata=dict(static=True), default=0)
     q_BS0: jax.Array | None = None
     extrinsics: bool = dataclasses.field(metadata=dict(static=True), default=False)
+    sample_density2: jax.Array | None = None
+    reference_var: jax.Array | None = None
 
     @property
     def n_samples(self) -> int:
@@ -262,7 +266,15 @@ def _interp(problem_t, ref_t, ref_q, ref_p, ref_v):
 
 def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocities, g_idx):
     """``(C, 9)`` whitened residuals of group ``g_idx`` (weights applied)."""
-    gyro, accel = problem.gyro[g_idx], problem.accel[g_idx]
+    r = _raw_residuals(problem, calib, velocities, g_idx, problem.gyro[g_idx],
+                       problem.accel[g_idx])
+    w = jnp.einsum("...ij,...j->...i", problem.sqrt_info[g_idx], r)
+    return w * problem.weight[g_idx][..., None]
+
+
+def _raw_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocities, g_idx, gyro,
+                   accel):
+    """``(C, 9)`` residuals ``[r_θ, r_p, r_v]`` of group ``g_idx`` from its raw samples."""
     dt = problem.dt[g_idx]
     td = calib.time_offset
     qi, pi, vi = _interp(problem.t_start[g_idx] + td, problem.ref_t, problem.ref_q,
@@ -289,8 +301,32 @@ def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, veloci
             so3.quat_rotate(qi_inv, pj - pred.p),
             so3.quat_rotate(qi_inv, vj - pred.v),
         ], axis=-1)
-    w = jnp.einsum("...ij,...j->...i", problem.sqrt_info[g_idx], r)
-    return w * problem.weight[g_idx][..., None]
+    return r
+
+
+@jax.jit
+def _sample_noise_covariance(problem: CalibrationProblem, calib: ImuCalibration, velocities):
+    """``(G, C, 9, 9)`` covariance of the residuals from white noise on every raw sample
+    (variance ``σ²/h``, ``h`` the sample's interval), ``J diag(σ²/h) Jᵀ`` with ``J`` by
+    ``jax.jacfwd`` of the residuals in the samples (one perturbation shared by the group's
+    windows, which are independent). Exact for the model the residual computes, the lever
+    arm's ``ω×(ω×r) + α×r`` included (``α`` differentiates noisy rates), which the
+    preintegration covariance does not hold."""
+    dens2 = problem.sample_density2  # (2, 3): σ_g², σ_a² per axis
+
+    def group(g):
+        gyro, accel = problem.gyro[g], problem.accel[g]
+
+        def f(d):
+            return _raw_residuals(problem, calib, velocities, g, gyro + d[0], accel + d[1])
+
+        J = jax.jacfwd(f)(jnp.zeros((2,) + gyro.shape[-2:], gyro.dtype))  # (C, 9, 2, W+1, 3)
+        h = problem.dt[g]
+        h = jnp.concatenate([h, h[:, -1:]], -1)  # the last sample: its window's last interval
+        var = dens2[None, :, None, :] / h[:, None, :, None]
+        return jnp.einsum("cixyz,cxyz,cjxyz->cij", J, var, J)
+
+    return jax.lax.map(group, jnp.arange(problem.gyro.shape[0]))
 
 
 def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
@@ -599,7 +635,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
-        extra = {}
+        found = {}
         if extrinsics:
             theta, stat, source = _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref,
                                                     reference_sigma)
@@ -610,13 +646,13 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                               RuntimeWarning, stacklevel=2)
             R0 = np.asarray(so3.exp_matrix(jnp.asarray(theta)), np.float64)
             q_BS0 = np.asarray(so3.exp(jnp.asarray(theta)), np.float64)
-            extra = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
+            found = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
                      "q_BS0_statistic": stat}
             phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
         if check:
             diagnostics = _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt,
                                              reference_sigma)
-        diagnostics.update(extra)
+        diagnostics.update(found)
 
     C = max(1, min(int(windows_per_group), K))
     G = -(-K // C)
@@ -635,7 +671,11 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
         diagnostics={k: as_d(v) for k, v in diagnostics.items()},
         n_windows=int(K), q_BS0=None if q_BS0 is None else as_d(q_BS0),
-        extrinsics=bool(extrinsics))
+        extrinsics=bool(extrinsics),
+        sample_density2=as_d(np.stack([np.broadcast_to(np.asarray(
+            getattr(noise, f"{s}_noise_density"), np.float64) ** 2, (3,))
+            for s in ("gyroscope", "accelerometer")])),
+        reference_var=as_d(grp(extra)))
 
 
 # --------------------------------------------------------------------------- fitting
@@ -753,6 +793,33 @@ class CalibrationResult:
     converged: bool
 
 
+def _optimise(z, problem, init_vec, layout, optimizer, learning_rate, steps, tol, history):
+    """The optax loop from ``z``: ``(z, history, converged)`` (``history`` extended)."""
+    opt = _optimizer(optimizer, float(learning_rate))
+    # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
+    # the same types as that of later steps, and the step compiles once.
+    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
+                                       opt.init(z))
+    history, quiet, converged, start = list(history), 0, False, len(history)
+    for _ in range(steps):
+        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
+                                               optimizer=optimizer,
+                                               learning_rate=float(learning_rate))
+        value = float(value)
+        if not np.isfinite(value):
+            raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")
+        if len(history) > start and abs(history[-1] - value) <= tol * (1 + abs(value)):
+            quiet += 1
+        else:
+            quiet = 0
+        history.append(value)
+        z = z_new
+        if quiet >= 5 or float(gnorm) == 0.0:
+            converged = True
+            break
+    return z, history, converged
+
+
 def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None,
               estimate=("b_g", "b_a"), *, optimizer: str = "lbfgs", steps: int | None = None,
               learning_rate: float = 0.05, tol: float = 1e-10,
@@ -810,29 +877,20 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     layout = _Layout(free, n_v)
     n = _n_free(free)
     z = jnp.zeros(n + n_v, dtype)
-    opt = _optimizer(optimizer, float(learning_rate))
-    # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
-    # the same types as that of later steps, and the step compiles once.
-    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
-                                       opt.init(z))
     steps = steps if steps is not None else (100 if optimizer == "lbfgs" else 1000)
-    history, quiet, converged = [], 0, False
-    for _ in range(steps):
-        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
-                                               optimizer=optimizer,
-                                               learning_rate=float(learning_rate))
-        value = float(value)
-        if not np.isfinite(value):
-            raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")
-        if history and abs(history[-1] - value) <= tol * (1 + abs(value)):
-            quiet += 1
-        else:
-            quiet = 0
-        history.append(value)
-        z = z_new
-        if quiet >= 5 or float(gnorm) == 0.0:
-            converged = True
-            break
+    z, history, converged = _optimise(z, problem, init_vec, layout, optimizer, learning_rate,
+                                      steps, tol, [])
+    if problem.extrinsics:
+        # Whiten again at the estimate with the samples' noise through the whole model (the
+        # lever arm's ω×(ω×r) + α×r carry gyro noise), then refine from there.
+        calib_now, v_now = _unpack(z, init_vec, problem.velocities, layout)
+        cov = _sample_noise_covariance(problem, calib_now, v_now)
+        cov = np.asarray(cov, np.float64) + np.asarray(problem.reference_var, np.float64)[
+            ..., None] * np.eye(9)
+        problem = dataclasses.replace(problem, sqrt_info=jnp.asarray(
+            np.linalg.inv(np.linalg.cholesky(cov)), dtype))
+        z, history, converged = _optimise(z, problem, init_vec, layout, optimizer,
+                                          learning_rate, steps, tol, history)
     r, J = _gauss_newton(z, problem, init_vec, layout=layout)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
     chi2 = float(r @ r)
