@@ -56,6 +56,7 @@ from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate, residual
 from jaximu.propagate import propagate_final
+from jaximu import world
 from jaximu.sensor import SensorPose
 from jaximu.state import ImuBias, NavState
 
@@ -223,6 +224,7 @@ class CalibrationProblem:
         extrinsics: the residuals use ``q_BS``, ``p_BS`` (static).
         sample_density2: ``(2, 3)`` ``σ_g², σ_a²`` per axis; reference_var: ``(G, C, 9)``
             the reference's part of each residual's variance (for re-whitening).
+        omega_coriolis: ``(3,)`` the world's rotation rate, or ``None``.
     """
 
     gyro: jax.Array
@@ -247,6 +249,7 @@ class CalibrationProblem:
     extrinsics: bool = dataclasses.field(metadata=dict(static=True), default=False)
     sample_density2: jax.Array | None = None
     reference_var: jax.Array | None = None
+    omega_coriolis: jax.Array | None = None
 
     @property
     def n_samples(self) -> int:
@@ -291,10 +294,12 @@ def _raw_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocitie
     pose = calib.body_P_sensor if problem.extrinsics else None
     if problem.model == "preintegration":
         pim = preintegrate(gyro_c, accel_c, dt, scheme=problem.scheme, body_P_sensor=pose)
-        r = residual(state_i, state_j, pim, gravity=calib.gravity)[..., :9]
+        r = residual(state_i, state_j, pim, gravity=calib.gravity,
+                     omega_coriolis=problem.omega_coriolis)[..., :9]
     else:
         pred = propagate_final(state_i, gyro_c, accel_c, dt, problem.scheme,
-                               gravity=calib.gravity, body_P_sensor=pose)
+                               gravity=calib.gravity, body_P_sensor=pose,
+                               omega_coriolis=problem.omega_coriolis)
         qi_inv = so3.quat_conj(qi)
         r = jnp.concatenate([
             so3.log(so3.quat_mul(so3.quat_conj(pred.q), qj)),
@@ -484,7 +489,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                         keyframe_interval: float = 0.5, scheme: str = "euler",
                         model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
                         initial: ImuCalibration | None = None, windows_per_group: int = 64,
-                        check: bool = True, extrinsics: bool = False) -> CalibrationProblem:
+                        check: bool = True, extrinsics: bool = False,
+                        omega_coriolis=None) -> CalibrationProblem:
     """Cut the IMU stream into keyframe windows and pair them with the reference.
 
     Args:
@@ -520,6 +526,9 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             ``diagnostics``, and the other checks run on the rotated samples. A
             ``RuntimeWarning`` says when the motion determines no rotation (``q_BS0`` is
             then the identity).
+        omega_coriolis: optional ``(3,)`` rotation rate of the reference's world [rad/s] in W
+            (:func:`jaximu.earth_rate`): the residuals then use the exact rotating-world
+            prediction (:func:`jaximu.residual`).
 
     Returns:
         :class:`CalibrationProblem`.
@@ -675,7 +684,9 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         sample_density2=as_d(np.stack([np.broadcast_to(np.asarray(
             getattr(noise, f"{s}_noise_density"), np.float64) ** 2, (3,))
             for s in ("gyroscope", "accelerometer")])),
-        reference_var=as_d(grp(extra)))
+        reference_var=as_d(grp(extra)),
+        omega_coriolis=None if omega_coriolis is None else world.check_omega(
+            omega_coriolis, dtype))
 
 
 # --------------------------------------------------------------------------- fitting

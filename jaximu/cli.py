@@ -649,10 +649,23 @@ def cmd_calibrate(args):
     ref = cal.Reference(gt.t, gt.q, gt.p, gt.v)
     inside = (data.t >= gt.t[0]) & (data.t <= gt.t[-1])
     d = data.select(np.flatnonzero(inside))
+    pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
+    extrinsics = pose is not None or bool({"q_BS", "p_BS"} & set(estimate))
+    initial = None
+    if pose is not None:
+        initial = cal.ImuCalibration.default(dtype=dtype, q_BS=np.asarray(pose.q),
+                                             p_BS=np.asarray(pose.p))
     problem = cal.calibration_problem(jnp.asarray(d.t, dtype), jnp.asarray(d.gyro, dtype),
-                                      jnp.asarray(d.accel, dtype), ref, _noise(args.noise),
+                                      jnp.asarray(d.accel, dtype), ref,
+                                      yaml_noise or _noise(args.noise),
                                       keyframe_interval=args.keyframe_interval,
-                                      scheme=args.scheme)
+                                      scheme=args.scheme, extrinsics=extrinsics,
+                                      omega_coriolis=omega)
+    if "q_BS0" in problem.diagnostics:
+        angle = float(np.degrees(np.asarray(problem.diagnostics["q_BS0_angle"])))
+        print(f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
+              f"form): {angle:.2f}°, q_BS0 = "
+              f"{np.array2string(np.asarray(problem.diagnostics['q_BS0']), precision=5)}")
     print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s "
           f"(keyframes every {args.keyframe_interval:g} s, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
@@ -661,7 +674,8 @@ def cmd_calibrate(args):
           + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
           + ")…", flush=True)
     tic = time.perf_counter()
-    res = cal.calibrate(problem, estimate=estimate, optimizer=args.optimizer, steps=args.steps)
+    res = cal.calibrate(problem, initial, estimate=estimate, optimizer=args.optimizer,
+                        steps=args.steps)
     print(f"done in {time.perf_counter() - tic:.2f} s ({len(res.loss_history) - 1} steps, "
           f"{'converged' if res.converged else 'not converged'}); χ²/dof = {res.reduced_chi2:.3g}")
     out = {}
@@ -831,7 +845,9 @@ def build_parser():
     _add_input_options(p)
     p.add_argument("--estimate", default="b_g,b_a",
                    help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
-                   "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, time_offset")
+                   "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, "
+                   "time_offset, q_BS (the IMU's rotation in the reference's body frame, "
+                   "initialised in closed form), p_BS (its lever arm)")
     p.add_argument("--keyframe-interval", type=float, default=0.5,
                    help="seconds between keyframes (> 0, at least one sample interval)")
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
@@ -843,6 +859,7 @@ def build_parser():
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
     p.add_argument("--float64", action="store_true", help="compute in float64")
+    _add_sensor_options(p)
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("allan", help="Allan deviation and noise densities of a static recording",
