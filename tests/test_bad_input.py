@@ -289,6 +289,14 @@ def test_discrete_process_noise_checks_dt():
     for dt in (0.0, -0.01, np.nan):
         with pytest.raises(ValueError, match=r"dt must be positive and finite"):
             jaximu.discrete_process_noise(G, ImuNoise.euroc(), dt)
+    for bad, message in ((G.T, r"G must have shape \(\.\.\., 15, 12\) .*got \(12, 15\)"),
+                         (G[:12], r"G must have shape \(\.\.\., 15, 12\)"),
+                         (np.zeros(12), r"G must have shape \(\.\.\., 15, 12\)"),
+                         (np.where(G > 0, np.nan, 0.0), r"G contains non-finite")):
+        with pytest.raises(ValueError, match=message):
+            jaximu.discrete_process_noise(bad, ImuNoise.euroc(), 0.01)
+    with pytest.raises(ValueError, match=r"noise must be a jaximu\.ImuNoise, got tuple"):
+        jaximu.discrete_process_noise(G, (1e-3, 1e-2, 1e-5, 1e-4), 0.01)
     n = ImuNoise.euroc()
     Q = np.asarray(jaximu.discrete_process_noise(G, n, 0.01))
     want = np.r_[[n.gyroscope_noise_density**2] * 3, [n.accelerometer_noise_density**2] * 3,
@@ -430,3 +438,13 @@ def test_run_demo_checks_before_the_work(tmp_path):
         run_demo(1.0, plot=str(tmp_path / "missing" / "demo.png"))
     with pytest.raises(ValueError, match=r"is a folder"):
         run_demo(1.0, plot=str(tmp_path))
+
+
+def test_so3_of_integer_lists_is_computed_in_floats():
+    """A ROS-style quaternion typed as integers is a rotation, not integer arithmetic."""
+    q = so3.quat_mul([1, 0, 0, 0], [0, 1, 0, 0])
+    assert jnp.issubdtype(q.dtype, jnp.floating)
+    np.testing.assert_allclose(q, [0, 1, 0, 0])
+    R = so3.quat_to_matrix([0, 0, 0, 1])  # 180° about z
+    np.testing.assert_allclose(R, Rotation.from_quat([0, 0, 1, 0]).as_matrix(), atol=1e-6)
+    np.testing.assert_allclose(so3.exp([0, 0, 0]), [1, 0, 0, 0])
