@@ -444,8 +444,10 @@ def cmd_calibrate(args):
     print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s "
           f"(keyframes every {args.keyframe_interval:g} s, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
-    print(f"compiling the {args.optimizer} step, then fitting (a first run compiles for about "
-          f"{40 if args.optimizer == 'lbfgs' else 10} s on 2 CPU cores"
+    what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step",
+            "adam": "Adam step"}[args.optimizer]
+    print(f"compiling the {what}, then fitting (a first run compiles for about "
+          f"{ {'lm': 10, 'lbfgs': 40, 'adam': 15}[args.optimizer]} s on 2 CPU cores"
           + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
           + ")…", flush=True)
     tic = time.perf_counter()
@@ -611,8 +613,8 @@ def build_parser():
     p.set_defaults(func=cmd_montecarlo)
 
     p = sub.add_parser("calibrate", help="fit IMU biases (or scale, misalignment, …) to ground truth",
-                       description="Fit IMU calibration parameters by gradient descent (optax "
-                       "L-BFGS) on preintegration residuals between ground-truth keyframes; "
+                       description="Fit IMU calibration parameters (Levenberg-Marquardt, or "
+                       "optax L-BFGS/Adam) on preintegration residuals between ground-truth keyframes; "
                        "print them with their Laplace 1σ.")
     _add_input_options(p)
     p.add_argument("--estimate", default="b_g,b_a",
@@ -621,11 +623,11 @@ def build_parser():
     p.add_argument("--keyframe-interval", type=float, default=0.5,
                    help="seconds between keyframes (> 0, at least one sample interval)")
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
-    p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"],
-                   help="optax L-BFGS (default; ~40 s to compile on 2 CPU cores) or Adam "
-                   "(compiles in ~10 s, needs more steps)")
+    p.add_argument("--optimizer", default="lm", choices=["lm", "lbfgs", "adam"],
+                   help="Levenberg-Marquardt on the residuals (default: compiles least, fewest "
+                   "steps), optax L-BFGS or Adam")
     p.add_argument("--steps", type=int, default=None,
-                   help="optimiser steps (≥ 1; default: 100 L-BFGS, 1000 Adam)")
+                   help="optimiser steps (≥ 1; default: 50 LM, 100 L-BFGS, 1000 Adam)")
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
     p.add_argument("--float64", action="store_true", help="compute in float64")
