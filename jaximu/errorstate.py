@@ -283,8 +283,6 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
                              save_all=save_all, lanes=lanes, fast=fast)
-    if kernel == "soa_cov":
-        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
                                           jacobians)
@@ -326,12 +324,11 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None,
-                               jacobians="analytic"):
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
-    gyro, accel, dt = kernel_samples(scheme or "euler", gyro, accel, dt)
+    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
@@ -345,8 +342,7 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
 
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           None if scheme is None else get_scheme(scheme),
-                                           jacobians)
+                                           get_scheme(scheme), jacobians)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
