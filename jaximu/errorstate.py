@@ -191,8 +191,26 @@ def _require_analytic(att: Attitude):
 
 
 def discrete_process_noise(G, noise: ImuNoise, dt):
-    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``. ``(..., 15, 15)``."""
-    qc = noise.discrete_variances(dt, G.dtype)
+    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``.
+
+    Args:
+        G: ``(..., 15, 12)`` noise Jacobian (error state ``[dθ, dp, dv, db_g, db_a]`` by
+            noise ``[n_g, n_a, n_wg, n_wa]``, as :func:`step_jacobians` returns), finite.
+        noise: :class:`jaximu.ImuNoise` (continuous densities, ``≥ 0``, finite).
+        dt: scalar or ``(...,)`` step [s], ``> 0`` and finite.
+
+    Returns:
+        ``(..., 15, 15)`` in ``G``'s dtype (float32 for integer or half-precision ``G``).
+        Shapes and types are checked always, values on eager calls.
+    """
+    dtype = val.float_dtype(G)
+    G = val.to_dtype("G", G, dtype)
+    if G.ndim < 2 or G.shape[-2:] != (15, 12):
+        raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
+                         f"{tuple(G.shape)}")
+    val.check_finite("G", G)
+    noise = val.check_noise(noise, dtype)
+    qc = noise.discrete_variances(dt, dtype)
     return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
 
 
