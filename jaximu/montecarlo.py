@@ -226,7 +226,10 @@ def _initial(run, c):
     ``δb = b - b̂ = -ε_b``."""
     dtype = c["dt"].dtype
     z = _rng.normals(c["keys"][_INIT:], run, _u32(0), 8, dtype)[:15]
-    eps = jnp.stack(z, -1) @ c["L0"].T  # (B, 15)
+    # ε = L0 z as an explicit per-lane sum (a matrix product's summation order depends on
+    # the number of lanes; this way a run regenerated alone is bit-identical)
+    L0 = c["L0"]
+    eps = jnp.stack([sum(L0[i, j] * z[j] for j in range(15)) for i in range(15)], -1)
     B = run.shape[0]
     x0 = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + x.shape), c["x0"])
     start = boxplus(x0.replace(b_g=jnp.zeros_like(x0.b_g), b_a=jnp.zeros_like(x0.b_a)), eps)
