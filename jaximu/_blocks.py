@@ -22,13 +22,18 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaximu import so3
+from jaximu._vec import V3
+
 
 class Layout(NamedTuple):
-    """How 3×3 blocks are stored: the products and transposes every function here uses.
+    """How 3×3 blocks are stored: the products, transposes and rotation functions every
+    block formula uses (here, and the closed-form Jacobians of
+    :meth:`jaximu.integrators.Scheme.blocks`).
 
     :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu._soa.SOA`:
     ``(3, 3, B)`` batch-minor blocks (the structure-of-arrays kernels). One copy of the
-    block algebra serves both.
+    block algebra serves both. Vectors are :class:`~jaximu._vec.V3` of per-element scalars.
     """
 
     matmul: object  # X @ Y
@@ -37,14 +42,20 @@ class Layout(NamedTuple):
     scale_cols: object  # X diag(s) for a per-element 3-vector s
     diag: object  # diag(s) for a per-element 3-vector s
     barrier: object = lambda tree: tree  # materialise a pytree of blocks (SoA: see _soa)
+    skew: object = None  # [v]x of a V3
+    matvec: object = None  # X v -> V3
+    exp_jr: object = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
 
 
 ARRAYS = Layout(
     matmul=jnp.matmul,
     transpose=lambda x: jnp.swapaxes(x, -1, -2),
-    scale=lambda s, X: s[..., None, None] * X,
+    scale=lambda s, X: jnp.asarray(s)[..., None, None] * X,
     scale_cols=lambda X, s: X * s[..., None, :],
     diag=lambda s: s[..., :, None] * jnp.eye(3, dtype=s.dtype),
+    skew=lambda v: so3.skew(v.stack()),
+    matvec=lambda X, v: V3.of(jnp.einsum("...ij,...j->...i", X, v.stack())),
+    exp_jr=lambda phi: (so3.exp_matrix(phi.stack()), so3.right_jacobian(phi.stack())),
 )
 
 

@@ -55,6 +55,9 @@ TABLE = (
         LONG_STEPS, "soa_mean_chunked", ("float64",)),
     # final covariance, Euler, closed-form Jacobians
     Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, 1, "soa_cov"),
+    # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
+    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
+        1, "soa_cov_analytic"),
     # final covariance, every scheme, blocks by autodiff of the SoA step
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
         1, "soa_cov_autodiff"),

@@ -9,12 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
-                         _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
-                         _quat_rotate, _skew3, _stack_last, _stage,
-                         _time_chunks, _vec3, mean_step, quat_matrix, run_blocked)
+from jaximu._soa import (_E3, _bmm, _bsym, _bt, _components, _diag_row, _lane, _quat_mul,
+                         _stack_last, _stage, _time_chunks, mean_step, quat_matrix, run_blocked)
 from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import SOA
+from jaximu._soa import SOA, _materialise, exp_jr, half_angle_jr
 from jaximu._vec import V3
 from jaximu.integrators import SCHEME_OBJECTS
 
@@ -22,60 +20,31 @@ EULER = SCHEME_OBJECTS["euler"]
 
 BLOCK_LANES = 1024  # lanes per batch block
 
-def _lane_scalars(big):
-    """Stage 1 (per lane): the mean update and the scalars of the Φ blocks."""
-
-    def f(q, p, v, omega, fsp, h, g):
-        uq = _quat_rotate(q, fsp)
-        phi = tuple(h * w for w in omega)
-        t2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-        if big:
-            c, k = _half_any(t2)
-            sm = t2 < _THR
-            b = jnp.where(sm, _jr_b_small(jnp.where(sm, t2, 0.0)),
-                          (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
-        else:
-            c, k = _half_small(t2)
-            b = _jr_b_small(t2)
-        omega, fsp, g = V3(*omega), V3(*fsp), V3(*g)
-        mean = mean_step(EULER, q, V3(*p), V3(*v), omega, fsp, omega, fsp, h, g, (c, k))
-        return mean, (uq, phi, t2, c, k, b)
-
-    return f
-
-
-def _phi_blocks(q, h, uq, phi, t2, c, k, b):
-    """Φ blocks (Euler, exact exp; errorstate.blocks_analytic) as ``(3, 3, B)`` arrays:
-    A = Exp(φ)ᵀ, Bm = -h Jr(φ), Cv = -h [R f]x R, Ev = -h R."""
-    dtype = q[0].dtype
-    I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    R = quat_matrix(q, dtype)
-    mh = _lane(-h) if jnp.ndim(h) else -h
-    Ev = mh * R
-    Cv = _bmm(_skew3(uq, dtype), Ev)
-    phi3 = _vec3(phi, dtype)
-    ppT = _outer(phi3, phi3)
-    K = _skew3(phi, dtype)
-    kk = k * k
-    A = _lane(c * c - kk * t2) * I3 + _lane(2.0 * kk) * ppT - _lane(2.0 * c * k) * K
-    Bm = mh * (I3 - _lane(2.0 * kk) * K + _lane(b) * (ppT - _lane(t2) * I3))
-    return A, Bm, Cv, Ev
-
-
 def cov_step(carry, omega, f, h, g, qc):
-    """Mean + covariance step. ``carry = (q, p, v, Pb)`` with ``Pb`` the tuple of the 15
-    upper 3×3 blocks of P in :data:`UPPER` order, each ``(3, 3, B)``. ``qc``: 12-tuple of
-    the diagonal of ``Q_c`` (scalars or ``(B,)``)."""
+    """Euler mean + covariance step, closed-form blocks (:meth:`Scheme.blocks` of
+    :data:`EULER`), with the block update specialised to Euler's structure: ``Cp = h/2 Cv``
+    and ``Ep = h/2 Ev``, so the p rows of ``Φ P`` reuse the v rows' products (half the p-row
+    products of :func:`jaximu._blocks.structured_update`, which it equals; tested).
+    ``carry = (q, p, v, Pb)`` with ``Pb`` the tuple of the 15 upper 3×3 blocks of P in
+    :data:`UPPER` order, each ``(3, 3, B)``. ``qc``: 12-tuple of the diagonal of ``Q_c``
+    (scalars or ``(B,)``)."""
     q, p, v, Pb = carry
     dtype = q[0].dtype
-    t2 = sum((h * w) * (h * w) for w in omega)
-    (q1, p1, v1), lane = jax.lax.cond(_any_big(t2), _lane_scalars(True), _lane_scalars(False),
-                                      q, p, v, omega, f, h, g)
     ok = jnp.all(jnp.isfinite(h))  # any runtime predicate (both branches are the same)
     # Materialised copies of h and qc: a dynamic-slice of the scan input inside the 3-D block
     # fusions (its index reloaded in the loop) stops LLVM from vectorising them.
     h, qc = _stage(ok, lambda h, qc: (h * 1, tuple(x * 1 for x in qc)), h, qc)
-    A, Bm, Cv, Ev = _stage(ok, _phi_blocks, q, h, *lane)
+    omega, f, g = V3(*omega), V3(*f), V3(*g)
+    phi = omega * h
+    half = half_angle_jr(phi.dot(phi))  # one half angle for the mean and Φ
+    q1, p1, v1 = mean_step(EULER, q, V3(*p), V3(*v), omega, f, omega, f, h, g, half[:2])
+
+    def phi_blocks(q, omega, f, h, half):
+        b = EULER.blocks(quat_matrix(q, dtype), omega, f, omega, f, h, SOA,
+                         end=exp_jr(omega * h, half))
+        return b.A, b.B, b.Cv, b.Ev
+
+    A, Bm, Cv, Ev = _stage(ok, phi_blocks, q, omega, f, h, half)
     Pd = dict(zip(UPPER, Pb))
     hb = _lane(h) if jnp.ndim(h) else h
 
@@ -223,17 +192,28 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     return (q1, p1, v1), b
 
 
-def cov_step_autodiff(scheme, carry, omega0, f0, omega1, f1, h, g, qc):
-    """Mean + covariance step of any scheme with autodiff blocks and the block update of
-    :func:`jaximu._blocks.structured_update` on the SoA layout. ``carry = (q, p, v, Pb)``."""
+def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc):
+    """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
+    form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
+    of the step (:func:`blocks_autodiff`), and the block update of
+    :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``."""
     q, p, v, Pb = carry
-    (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g)
+    if jacobians == "analytic":
+        phi_end = scheme.points(omega0, f0, omega1, f1, h)[1]
+        half = half_angle_jr(phi_end.dot(phi_end))  # one half angle for the mean and Φ
+        q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g,
+                               half[:2])
+        b = scheme.blocks(quat_matrix(q, q[0].dtype), omega0, f0, omega1, f1, h, SOA,
+                          end=exp_jr(phi_end, half))
+    else:
+        (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
+                                          h, g)
     new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA)
     return q1, p1, v1, tuple(new[k] for k in UPPER)
 
 
 def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
-                        scheme=None):
+                        scheme=None, jacobians="autodiff"):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
     ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
     ``scheme``: None for the Euler step with closed-form blocks (:func:`cov_step`), or a
@@ -259,7 +239,10 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
             bg, ba = V3(*bg), V3(*ba)
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
-            return cov_step_autodiff(scheme, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
+            # the step's inputs in memory: read through the scan's dynamic slice inside the
+            # 3-D block fusions they stop LLVM from vectorising them (as h, qc in cov_step)
+            omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
+            return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
                                         consts, None,

@@ -213,6 +213,50 @@ def _diag3(s3, dtype):
     return jnp.asarray(_E3, dtype)[:, :, None] * _diag_row(s3, dtype)
 
 
+def _dtype_of(v):
+    return jnp.result_type(*v)
+
+
+def half_angle_jr(t2):
+    """``(cos(θ/2), sin(θ/2)/θ, (θ - sin θ)/θ³)`` for per-lane ``θ² = t2``: polynomials in
+    θ² (the range-reduced half angle only when some lane needs it); finite values and
+    derivatives at θ = 0 (double ``where``)."""
+
+    def small(t2):
+        c, k = _half_small(t2)
+        return c, k, _jr_b_small(t2)
+
+    def big(t2):
+        c, k = _half_any(t2)
+        sm = t2 < _THR
+        # sin θ / θ = 2 k c, so (θ - sin θ)/θ³ = (1 - 2kc)/θ²
+        b = jnp.where(sm, _jr_b_small(jnp.where(sm, t2, 0.0)),
+                      (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
+        return c, k, b
+
+    return jax.lax.cond(_any_big(t2), big, small, t2)
+
+
+def exp_jr(phi: V3, half=None):
+    """``(Exp(φ), Jr(φ))`` as ``(3, 3, B)`` from the half-angle scalars (``half``: those of
+    :func:`half_angle_jr` when the caller has them):
+
+        Exp(φ) = (c² - k²θ²) I + 2k² φφᵀ + 2kc [φ]x,   Jr(φ) = I - 2k² [φ]x + b [φ]x²,
+
+    with ``c = cos(θ/2)``, ``k = sin(θ/2)/θ``, ``b = (θ - sin θ)/θ³``, ``[φ]x² = φφᵀ - θ² I``."""
+    dtype = _dtype_of(phi)
+    t2 = phi.dot(phi)
+    c, k, b = half_angle_jr(t2) if half is None else half
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    p3 = _vec3(phi, dtype)
+    ppT = _outer(p3, p3)
+    K = _skew3(phi, dtype)
+    kk = k * k
+    E = _lane(c * c - kk * t2) * I3 + _lane(2.0 * kk) * ppT + _lane(2.0 * k * c) * K
+    J = I3 - _lane(2.0 * kk) * K + _lane(b) * (ppT - _lane(t2) * I3)
+    return E, J
+
+
 SOA = Layout(
     matmul=lambda X, Y: _bmm(X, Y),
     transpose=lambda X: _bt(X),
@@ -220,6 +264,9 @@ SOA = Layout(
     scale_cols=lambda X, s: X * _diag_row(s, X.dtype),
     diag=lambda s: _diag3(s, jnp.result_type(*s)),
     barrier=lambda tree: _materialise(tree),
+    skew=lambda v: _skew3(v, _dtype_of(v)),
+    matvec=lambda X, v: V3(*(X[i, 0] * v.x + X[i, 1] * v.y + X[i, 2] * v.z for i in range(3))),
+    exp_jr=exp_jr,
 )
 """The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
 per lane are 3-tuples of ``(B,)`` arrays (or scalars)."""
@@ -280,6 +327,7 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
         c = jax.lax.dynamic_slice_in_dim(x, t0, L + int(next_sample), axis=1)  # (Bc, L(+1), 3)
         ct = jnp.transpose(c, (2, 1, 0))  # (3, L(+1), Bc)
         if next_sample:
+            ct = _materialise(ct)  # one transpose, read by both slices
             return tuple(ct[i, :L] for i in range(3)) + tuple(ct[i, 1:] for i in range(3))
         return tuple(ct[i] for i in range(ct.shape[0]))
 

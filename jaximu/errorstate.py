@@ -40,10 +40,9 @@ from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
-from jaximu import so3
-from jaximu.integrators import (Attitude, check_scheme, get_attitude, get_scheme, nav_step,
-                                stages)
-from jaximu._blocks import Blocks, add, mm
+from jaximu.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
+from jaximu._blocks import Blocks
+from jaximu._vec import V3
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, flatten_batch,
@@ -117,32 +116,16 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
 
 
 def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h) -> Blocks:
-    """Closed-form blocks of ``Φ`` for the exact-exponential forms (module docstring).
+    """Closed-form blocks of ``Φ`` for the exact-exponential forms (module docstring;
+    :meth:`jaximu.integrators.Scheme.blocks`, the one home of the formulas) on arrays.
 
     Args:
         R0: ``(..., 3, 3)`` attitude ``R̂`` at the start of the step.
         omega0, f0, omega1, f1: bias-corrected samples k and k+1, ``(..., 3)``.
         h: ``(...,)`` step [s].
     """
-    stage_list, phi_end, dphi_end = stages(scheme, omega0, f0, omega1, f1, h)
-    A = jnp.swapaxes(so3.exp_matrix(phi_end), -1, -2)
-    B = mm(so3.right_jacobian(phi_end), dphi_end)
-    uv, up, Dv, Dp, Ev, Ep = [], [], [], [], [], []
-    for s in stage_list:
-        R_s = R0 if s.phi is None else mm(R0, so3.exp_matrix(s.phi))
-        u = jnp.einsum("...ij,...j->...i", R_s, s.f)
-        wv, wp = s.wv[..., None, None], s.wp[..., None, None]
-        uv.append(s.wv[..., None] * u)
-        up.append(s.wp[..., None] * u)
-        Ev.append(-wv * R_s)
-        Ep.append(-wp * R_s)
-        if s.phi is not None:
-            D = -mm(mm(R_s, so3.skew(s.f)), mm(so3.right_jacobian(s.phi), s.dphi_dbg))
-            Dv.append(wv * D)
-            Dp.append(wp * D)
-    Cv = -mm(so3.skew(add(*uv)), R0)
-    Cp = -mm(so3.skew(add(*up)), R0)
-    return Blocks(A, B, Cp, Cv, add(*Dp), add(*Dv), add(*Ep), add(*Ev), h)
+    return get_scheme(scheme).blocks(R0, V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1),
+                                     h, blk.ARRAYS)
 
 
 def dense_from_blocks(b: Blocks):
@@ -286,8 +269,9 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
                              save_all=save_all, lanes=lanes, fast=fast)
     if kernel == "soa_cov":
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
-    if kernel == "soa_cov_autodiff":
-        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme)
+    if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
+        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
+                                          jacobians)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -326,7 +310,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None):
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None,
+                               jacobians="analytic"):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
@@ -344,7 +329,8 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
 
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           None if scheme is None else get_scheme(scheme))
+                                           None if scheme is None else get_scheme(scheme),
+                                           jacobians)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),

@@ -39,6 +39,7 @@ The attitude form decides what ``R ⊞ φ`` means:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -159,9 +160,10 @@ class Scheme:
     structure-of-arrays kernels (``(B,)`` lanes, :mod:`jaximu._soa`) run the same formulas.
 
     ``points(ω_k, f_k, ω_k+1, f_k+1, h) -> (list[Point], φ_end)`` with bias-corrected inputs
-    and ``h`` broadcasting against the components; ``dphi_db(ω_k, ω_k+1, h, τ)`` the
-    ``(..., 3, 3)`` derivative of the stage rotation vector at ``τ`` with respect to a
-    common gyro bias (the closed-form Jacobians of :mod:`jaximu.errorstate`).
+    and ``h`` broadcasting against the components; ``dphi_db(ω_k, ω_k+1, h, τ) -> (a, c)``
+    the derivative of the stage rotation vector at ``τ`` with respect to a common gyro bias,
+    ``a I + [c]x`` (``c`` is ``None`` when zero); :meth:`blocks` the closed-form blocks of
+    the step's ``Φ`` from them, in any block layout.
     """
 
     name: str
@@ -172,8 +174,63 @@ class Scheme:
         raise NotImplementedError
 
     def dphi_db(self, omega0, omega1, h, tau):
-        eye = jnp.eye(3, dtype=omega0.dtype)
-        return -h[..., None, None] * eye
+        return -h, None
+
+    def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None):
+        """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
+        ``ops`` (:data:`jaximu._blocks.ARRAYS` or :data:`jaximu._soa.SOA`). With the stages
+        ``R_s = R̂ Exp(φ_s)``, ``u_s = R_s f_s`` (OpenVINS / Solà; docs/DESIGN.md):
+
+            Φ_θθ = Exp(φ_end)ᵀ            Φ_θbg = Jr(φ_end) ∂φ_end/∂b_g
+            Φ_vθ = -[Σ wv_s u_s]x R̂       Φ_pθ = -[Σ wp_s u_s]x R̂      Φ_pv = dt I
+            Φ_vbg = -Σ wv_s R_s [f_s]x Jr(φ_s) ∂φ_s/∂b_g      (zero for Euler)
+            Φ_vba = -Σ wv_s R_s            (p rows: the same with wp_s)
+
+        Args:
+            R0: the attitude ``R̂`` at the start of the step, a block of ``ops``.
+            omega0, f0, omega1, f1: bias-corrected samples k and k+1 (:class:`V3`).
+            h: step [s], per element.
+            end: ``(Exp(φ_end), Jr(φ_end))`` when the caller has them (the mean step shares
+                the end rotation's half angle).
+
+        Returns:
+            :class:`jaximu._blocks.Blocks`.
+        """
+        from jaximu._blocks import Blocks, add
+
+        pts, phi_end = self.points(omega0, f0, omega1, f1, h)
+        # ops.barrier: values read by several products are computed once (SoA: XLA:CPU would
+        # recompute them inside every consumer; docs/DESIGN.md "Kernel layout")
+        R0, E_end, J_end = ops.barrier((R0, *(ops.exp_jr(phi_end) if end is None else end)))
+
+        def times_dphi(X, tau):  # X ∂φ(τ)/∂b_g = a X + X [c]x
+            a, c = self.dphi_db(omega0, omega1, h, tau)
+            out = ops.scale(a, X)
+            return out if c is None else out + ops.matmul(X, ops.skew(c))
+
+        uv, up, Dv, Dp, Ev, Ep = [], [], [], [], [], []
+        for pt in pts:
+            if pt.phi is None:
+                R_s, J_s = R0, None
+            elif pt.phi is END:
+                R_s, J_s = ops.barrier(ops.matmul(R0, E_end)), J_end
+            else:
+                E_s, J_s = ops.barrier(ops.exp_jr(pt.phi))
+                R_s = ops.barrier(ops.matmul(R0, E_s))
+            u = ops.matvec(R_s, pt.f)
+            uv.append(u * pt.wv)
+            up.append(u * pt.wp)
+            Ev.append(ops.scale(-pt.wv, R_s))
+            Ep.append(ops.scale(-pt.wp, R_s))
+            if J_s is not None:
+                D = ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), times_dphi(J_s, pt.tau))
+                Dv.append(ops.scale(-pt.wv, D))
+                Dp.append(ops.scale(-pt.wp, D))
+        sum_v = functools.reduce(lambda a, b: a + b, uv)
+        sum_p = functools.reduce(lambda a, b: a + b, up)
+        return Blocks(A=ops.transpose(E_end), B=times_dphi(J_end, 1.0),
+                      Cp=-ops.matmul(ops.skew(sum_p), R0), Cv=-ops.matmul(ops.skew(sum_v), R0),
+                      Dp=add(*Dp), Dv=add(*Dv), Ep=add(*Ep), Ev=add(*Ev), dt=h)
 
 
 class Euler(Scheme):
@@ -218,9 +275,7 @@ class RK4(Scheme):
 
     def dphi_db(self, omega0, omega1, h, tau):
         """``-τ I + τ³/(12h) [ω1 - ω0]x`` with ``τ = tau · h``."""
-        eye = jnp.eye(3, dtype=omega0.dtype)
-        return (-(tau * h)[..., None, None] * eye
-                + (tau**3 / 12 * h * h)[..., None, None] * so3.skew(omega1 - omega0))
+        return -(tau * h), (omega1 - omega0) * (tau**3 / 12 * h * h)
 
 
 SCHEME_OBJECTS = {s.name: s for s in (Euler(), Midpoint(), RK4())}
@@ -232,50 +287,6 @@ def get_scheme(name: str) -> Scheme:
         return SCHEME_OBJECTS[check_scheme(name)]
     except KeyError:  # pragma: no cover - check_scheme raised already
         raise
-
-
-class Stage(NamedTuple):
-    """A :class:`Point` on ``(..., 3)`` arrays, for the generic kernels.
-
-    ``phi`` is ``None`` at the start of the step (no rotation); ``dphi_dbg`` is the
-    derivative of ``phi`` with respect to the gyro bias (``None`` when zero).
-    """
-
-    phi: jax.Array | None
-    dphi_dbg: jax.Array | None
-    f: jax.Array
-    wv: jax.Array
-    wp: jax.Array
-
-
-def stages(scheme, omega0, f0, omega1, f1, h):
-    """The stages of ``scheme`` on ``(..., 3)`` arrays and the final rotation vector (and its
-    bias derivative): :meth:`Scheme.points`, stacked back.
-
-    Args:
-        omega0, f0: ``(..., 3)`` bias-corrected rate and specific force of sample k.
-        omega1, f1: the same for sample k+1 (unused by ``"euler"``).
-        h: ``(...,)`` step [s].
-
-    Returns:
-        ``(list[Stage], phi_end, dphi_end_dbg)``.
-    """
-    sch = get_scheme(scheme)
-    pts, phi_end = sch.points(V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1), h)
-    phi_end = phi_end.stack()
-    dphi_end = sch.dphi_db(omega0, omega1, h, 1.0)
-    out = []
-    for pt in pts:
-        shape = jnp.broadcast_shapes(jnp.shape(pt.wv), jnp.shape(h))
-        wv, wp = (jnp.broadcast_to(jnp.asarray(w, h.dtype), shape) for w in (pt.wv, pt.wp))
-        if pt.phi is None:
-            out.append(Stage(None, None, pt.f.stack(), wv, wp))
-        elif pt.phi is END:
-            out.append(Stage(phi_end, dphi_end, pt.f.stack(), wv, wp))
-        else:
-            out.append(Stage(pt.phi.stack(), sch.dphi_db(omega0, omega1, h, pt.tau),
-                             pt.f.stack(), wv, wp))
-    return out, phi_end, dphi_end
 
 
 def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):

@@ -150,11 +150,13 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
 
 
-@pytest.mark.parametrize("scheme,B,intervals", [("euler", 3, False), ("midpoint", 2, True),
-                                                ("rk4", 2, False)])
-def test_autodiff_covariance_kernel_equals_generic_closed_forms(scheme, B, intervals):
-    """soa_cov_autodiff (blocks by jax.linearize of the SoA step, 9 directions) against the
-    generic kernel with the closed-form blocks: same mean and covariance to rounding."""
+@pytest.mark.parametrize("scheme,B,intervals,jac", [
+    ("euler", 3, False, "autodiff"), ("midpoint", 2, True, "autodiff"), ("rk4", 2, False, "autodiff"),
+    ("midpoint", 3, False, "analytic"), ("rk4", 2, True, "analytic")])
+def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac):
+    """soa_cov_autodiff (blocks by jax.linearize of the SoA step, 9 directions) and
+    soa_cov_analytic (Scheme.blocks on the SoA layout) against the generic kernel with the
+    closed-form blocks on arrays: same mean and covariance to rounding."""
     T = 25
     state, gyro, accel = inputs(B, T, seed=10, big_angles=True)
     rng = np.random.default_rng(11)
@@ -168,9 +170,9 @@ def test_autodiff_covariance_kernel_equals_generic_closed_forms(scheme, B, inter
             s, P, w, a, h, G_W, noise, scheme=scheme, attitude="quaternion", jacobians=jac,
             save_all=False, fast=fast)[:2])(state, P0, gyro, accel, dt)
 
-    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians="autodiff",
-                            lanes=B) == "soa_cov_autodiff"
-    (s1, P1), (s2, P2) = run("autodiff", True), run("analytic", False)
+    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jac,
+                            lanes=B) == f"soa_cov_{jac}"
+    (s1, P1), (s2, P2) = run(jac, True), run("analytic", False)
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
     if scheme == "euler":  # float32 in, float32 out, close to float64
         f32 = lambda x: jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)  # noqa: E731
