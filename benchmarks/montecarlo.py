@@ -93,9 +93,12 @@ if dist != "-":
                                process_id=pid)
 times = np.arange(T + 1) * DT
 args = (sim.circle(5.0, 2.0), times, np.eye(15) * 1e-8, jaximu.ImuNoise.euroc())
-monte_carlo(*args, 2 * 2048, jax.random.key(1), record_every=T, n_keep=0)  # compile
+# compile (the same chunk shape as the timed run: min(n_runs, 2048) lanes)
+monte_carlo(*args, min(n_runs, 2048) * 2, jax.random.key(1), record_every=T, n_keep=0,
+            chunk_size=min(n_runs, 2048))
 t0 = time.perf_counter()
-r = monte_carlo(*args, n_runs, jax.random.key(0), record_every=T, n_keep=0)
+r = monte_carlo(*args, n_runs, jax.random.key(0), record_every=T, n_keep=0,
+                chunk_size=min(n_runs, 2048))
 secs = time.perf_counter() - t0
 print(json.dumps(dict(secs=secs, maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       nees=float(r.nees_mean[-1]), cov=r.error_cov[-1].ravel().tolist())))

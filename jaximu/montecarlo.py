@@ -277,8 +277,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
     lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
     """
-    from jaximu._fast import (blocks_to_dense, cov_step, cov_step_autodiff,
-                              dense_to_blocks)
+    from jaximu._fast import blocks_to_dense, cov_step, cov_step_blocks, dense_to_blocks
     from jaximu.errorstate import ekf_update, position_jacobian
 
     sch = SCHEME_OBJECTS[scheme]
@@ -322,9 +321,9 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
                                              carry["P"]), tuple(omega0), tuple(f0), h, tuple(g),
                                             qc)
         else:
-            q1, p1, v1, out["P"] = cov_step_autodiff(
-                sch, (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]), omega0, f0,
-                omega1, f1, h, g, qc)
+            q1, p1, v1, out["P"] = cov_step_blocks(
+                sch, "analytic", (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]),
+                omega0, f0, omega1, f1, h, g, qc)
         out["q"], out["p"], out["v"] = tuple(q1), V3(*p1), V3(*v1)
         return out, None
 
