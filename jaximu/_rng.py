@@ -127,11 +127,24 @@ def normals(keys, run, step, n_pairs: int, dtype, rounds: int = 20):
     Returns:
         a list of ``2 n_pairs`` arrays of shape ``S``: pair j's two normals at ``2j, 2j+1``.
     """
-    run, step = jnp.asarray(run, jnp.uint32), jnp.asarray(step, jnp.uint32)
-    S = jnp.broadcast_shapes(run.shape, step.shape)
+    return normals_at(keys, run, [step] * n_pairs, dtype, rounds)
+
+
+def normals_at(keys, run, steps, dtype, rounds: int = 20, stage=None):
+    """Like :func:`normals` with one counter per pair: pair ``j`` from stream ``keys[j]`` at
+    ``(run, steps[j])``. All pairs are hashed together, in one loop. ``stage``: applied to
+    the two ``(n_pairs,) + S`` arrays of first and second normals before they are split
+    (e.g. to materialise them)."""
+    run = jnp.asarray(run, jnp.uint32)
+    steps = [jnp.asarray(s, jnp.uint32) for s in steps]
+    n_pairs = len(steps)
+    S = jnp.broadcast_shapes(run.shape, *(s.shape for s in steps))
+    c1 = jnp.stack([jnp.broadcast_to(s, S) for s in steps])  # (n_pairs,) + S
     k = keys[:n_pairs].reshape((n_pairs, 2) + (1,) * len(S))
-    b0, b1 = threefry2x32(k[:, 0], k[:, 1], run, step, rounds)  # (n_pairs,) + S, all at once
+    b0, b1 = threefry2x32(k[:, 0], k[:, 1], run, c1, rounds)
     z0, z1 = box_muller(b0, b1, dtype)
+    if stage is not None:
+        z0, z1 = stage((z0, z1))
     return [z[j] for j in range(n_pairs) for z in (z0, z1)]
 
 

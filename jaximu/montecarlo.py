@@ -238,20 +238,25 @@ def _initial(run, c):
             -V3(*comps(start.b_a)))
 
 
-def _sample(run, j, w, a, sd, dbg, dba, c):
-    """Bias-corrected sample ``j`` of the runs: ``ω = ω_true + δb_g + σ_g/√dt n_g`` and
-    ``f = f_true + δb_a + σ_a/√dt n_a`` (``w``, ``a``, ``sd``: the sample's true signals and
-    its 6 white-noise standard deviations)."""
-    # materialised: XLA:CPU would otherwise recompute the hash in every fusion that reads
-    # one of its outputs (no multi-output fusion)
-    n = _materialise(_rng.normals(c["keys"][_WHITE:_WHITE + 3], run, j, 3, c["dt"].dtype))
+def _draw(run, j, k, c):
+    """The step's 12 normals, materialised: white noise of sample ``j`` (streams 0-2) and the
+    bias walk of step ``k`` (streams 3-5), hashed together. (Materialised: XLA:CPU would
+    otherwise recompute the hash in every fusion that reads one of its outputs.)"""
+    return _rng.normals_at(c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype,
+                           stage=_materialise)
+
+
+def _sample(n, w, a, sd, dbg, dba):
+    """Bias-corrected sample: ``ω = ω_true + δb_g + σ_g/√dt n_g`` and ``f = f_true + δb_a +
+    σ_a/√dt n_a`` (``w``, ``a``, ``sd``: the sample's true signals and its 6 white-noise
+    standard deviations; ``n``: its 6 white normals)."""
     omega = V3(*(w[i] + dbg[i] + sd[i] * n[i] for i in range(3)))
     f = V3(*(a[i] + dba[i] + sd[3 + i] * n[3 + i] for i in range(3)))
     return omega, f
 
 
-def _walk(run, k, sw, dbg, dba, c):
-    n = _materialise(_rng.normals(c["keys"][_WALK:_WALK + 3], run, k, 3, c["dt"].dtype))
+def _walk(n, sw, dbg, dba):
+    """Bias errors after a walk step (``n``: its 6 normals; ``sw``: their 6 std)."""
     return (V3(*(dbg[i] + sw[i] * n[i] for i in range(3))),
             V3(*(dba[i] + sw[3 + i] * n[3 + i] for i in range(3))))
 
@@ -289,29 +294,33 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     carry = dict(q=q, p=p, v=v, dbg=dbg, dba=dba)
     if nxt:
         w0, a0 = (tuple(x[i] for i in range(3)) for x in (c["w0"], c["a0"]))
-        carry["s"] = _sample(run, _u32(0), w0, a0, tuple(c["sd0"][i] for i in range(6)),
-                             dbg, dba, c)
+        n0 = _rng.normals(c["keys"][_WHITE:_WHITE + 3], run, _u32(0), 3, dtype)
+        carry["s"] = _sample(n0, w0, a0, tuple(c["sd0"][i] for i in range(6)), dbg, dba)
     if filt:
         carry["P"] = dense_to_blocks(jnp.broadcast_to(c["P0"], (B, 15, 15)))
     g = V3(*(c["g"][i] for i in range(3)))
 
     def step(carry, xs):
-        k, w, a, sd, sw, h, qc = xs
-        # materialised copies: a dynamic slice of the scan inputs inside the lane fusions
-        # stops LLVM from vectorising them (as in jaximu._fast.cov_step)
-        w, a, sd, sw, h, qc = _materialise((w, a, sd, sw, h, qc))
-        w, a, sd, sw, qc = (tuple(x[i] for i in range(x.shape[0])) for x in (w, a, sd, sw, qc))
+        k, row = xs
+        # a materialised copy: a dynamic slice of the scan inputs inside the lane fusions
+        # stops LLVM from vectorising them (as in jaximu._fast.cov_step); one row, one copy
+        row = _materialise(row)
+        w, a, sd, sw, qc = (tuple(row[i] for i in range(lo, hi)) for lo, hi in (
+            (0, 3), (3, 6), (6, 12), (12, 18), (19, row.shape[0])))
+        h = row[18]
         out = dict(carry)
         dbg, dba = carry["dbg"], carry["dba"]
-        if nxt:
+        if nxt:  # white noise of sample k+1 (the step's end), walk of step k
+            n = _draw(run, k + 1, k, c)
             omega0, f0 = carry["s"]
-            dbg1, dba1 = _walk(run, k, sw, dbg, dba, c)
-            omega1, f1 = _sample(run, k + 1, w, a, sd, dbg1, dba1, c)
+            dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
+            omega1, f1 = _sample(n[:6], w, a, sd, dbg1, dba1)
             out["s"] = (omega1, f1)
         else:
-            omega0, f0 = _sample(run, k, w, a, sd, dbg, dba, c)
+            n = _draw(run, k, k, c)
+            omega0, f0 = _sample(n[:6], w, a, sd, dbg, dba)
             omega1, f1 = omega0, f0
-            dbg1, dba1 = _walk(run, k, sw, dbg, dba, c)
+            dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
         out["dbg"], out["dba"] = dbg1, dba1
         if not filt:
             q1, p1, v1 = mean_step(sch, carry["q"], carry["p"], carry["v"], omega0, f0, omega1,
@@ -329,8 +338,10 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
 
     T = c["dt"].shape[0]
     qc_all = c["qc"] if filt else jnp.zeros((T, 0), dtype)
-    xs_all = (jnp.arange(T, dtype=jnp.uint32), c["w_in"], c["a_in"], c["sd_in"], c["sw"],
-              c["dt"], qc_all)
+    # the per-step inputs as one (T, 19 [+ 12]) table: ω, f, white std, walk std, h [, Q_c]
+    table = jnp.concatenate([c["w_in"], c["a_in"], c["sd_in"], c["sw"], c["dt"][:, None],
+                             qc_all], 1)
+    xs_all = (jnp.arange(T, dtype=jnp.uint32), table)
 
     def update(carry, i):
         """Position fix ``i`` (measurement noise: streams _MEAS, counter i)."""
