@@ -93,9 +93,8 @@ class MonteCarloResult(NamedTuple):
         times: ``(K,)`` recorded times [s].
         mean_error: ``(K, 15)`` mean of ``e_k`` over the runs.
         error_cov: ``(K, 15, 15)`` empirical covariance of ``e_k`` (N - 1 normalisation).
-        predicted_cov: ``(K, 15, 15)`` the linearised covariance (open loop; for a filter
-            study the filter's covariance of run 0, all runs' being the same without noise
-            in the gain... up to the linearisation point).
+        predicted_cov: ``(K, 15, 15)`` open loop: the linearised covariance; filter study:
+            the average over the runs of each run's own covariance after the update.
         nees: ``(N, K)`` NEES of every run at every recorded time with ``keep_nees=True``,
             else ``None`` (memory ``N·K``).
         nees_mean: ``(K,)`` average NEES over the runs.
@@ -739,14 +738,14 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     mean = acc.mean
     cov = acc.M2 / (acc.n - 1)
     lo, hi = chi2_interval(15 * n_runs, confidence)
-    keep = sample_errors(st, min(n_keep, n_runs)) if n_keep else np.zeros((0, K, 15))
+    keep = _sample_errors(st, min(n_keep, n_runs)) if n_keep else np.zeros((0, K, 15))
     predicted, nis_mean, nis_bounds = st.P_rec, None, None
     if st.filt:
         predicted = acc.P_sum / n_runs
         nis_mean = acc.nis_sum / n_runs
         nis_bounds = np.array(chi2_interval(3 * n_runs, confidence)) / n_runs
     settings = dict(trajectory=repr(trajectory), n_runs=n_runs, scheme=scheme,
-                    record_every=int(record_every), n_times=len(st.times) + 0,
+                    record_every=int(record_every), n_steps=len(st.consts["dt"]),
                     dtype=jnp.dtype(st.dtype).name, confidence=confidence,
                     key=np.asarray(st.consts["keys"][0]).tolist(), chunk_size=chunk,
                     processes=n_proc, update_every=update_every,
@@ -774,7 +773,7 @@ def _collect(item, chunk, n_runs, acc, nees_all, bar):
     bar.update(n_valid)
 
 
-def sample_errors(study, n):
+def _sample_errors(study, n):
     """``(n, K, 15)`` errors of runs ``0..n-1`` (regenerated; see :func:`sample_run`)."""
     run = jnp.arange(n, dtype=jnp.uint32)
     e = _chunk(run, jnp.ones(n, study.dtype), study.consts, scheme=study.scheme, seg=study.seg,
