@@ -100,7 +100,8 @@ t0 = time.perf_counter()
 r = monte_carlo(*args, n_runs, jax.random.key(0), record_every=T, n_keep=0,
                 chunk_size=min(n_runs, 2048))
 secs = time.perf_counter() - t0
-print(json.dumps(dict(secs=secs, maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps(dict(secs=secs, maxrss_mb=rss,
                       nees=float(r.nees_mean[-1]), cov=r.error_cov[-1].ravel().tolist())))
 """
 
@@ -215,7 +216,8 @@ def main(argv=None):
     rows.append(dict(case=f"2 jax.distributed processes (1 core each; cov rel. diff {rel:.1e})",
                      dtype="float32", run_s=secs2, compile_s=float("nan"),
                      rate=samples / secs2, maxrss_mb=max(t["maxrss_mb"] for t in two)))
-    rows.append(dict(case=f"1 process, {os.cpu_count()} devices (peak RSS {one['maxrss_mb']:.0f} MB)",
+    rows.append(dict(case=f"1 process, {os.cpu_count()} devices "
+                          f"(peak RSS {one['maxrss_mb']:.0f} MB)",
                      dtype="float32", run_s=one["secs"], compile_s=float("nan"),
                      rate=samples / one["secs"], maxrss_mb=one["maxrss_mb"]))
     print(f"2 processes: {secs2:.2f} s (stats rel. diff {rel:.1e}); 1 process: {one['secs']:.2f} s",

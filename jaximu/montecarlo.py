@@ -744,7 +744,8 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         predicted = acc.P_sum / n_runs
         nis_mean = acc.nis_sum / n_runs
         nis_bounds = np.array(chi2_interval(3 * n_runs, confidence)) / n_runs
-    settings = dict(trajectory=repr(trajectory), n_runs=n_runs, scheme=scheme,
+    settings = dict(trajectory=getattr(trajectory, "name", repr(trajectory)), n_runs=n_runs,
+                    scheme=scheme,
                     record_every=int(record_every), n_steps=len(st.consts["dt"]),
                     dtype=jnp.dtype(st.dtype).name, confidence=confidence,
                     key=np.asarray(st.consts["keys"][0]).tolist(), chunk_size=chunk,
