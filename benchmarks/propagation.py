@@ -82,7 +82,9 @@ CASE_ORDER = [
     "cov analytic euler final vmap",
     "cov autodiff euler final",
     "cov analytic midpoint final",
+    "cov autodiff midpoint final",
     "cov analytic rk4 final",
+    "cov autodiff rk4 final",
     "cov analytic euler all",
     "cov autodiff euler all",
 ]
@@ -149,8 +151,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     cases += [case("cov", "cov", "euler", "final", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
                 if extra:
-                    cases += [case("cov", "cov", s, "final", B, T, dtype, jac="analytic")
-                              for s in ("midpoint", "rk4")]
+                    cases += [case("cov", "cov", s, "final", B, T, dtype, jac=j)
+                              for s in ("midpoint", "rk4") for j in ("analytic", "autodiff")]
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", vmap=True))
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
@@ -579,6 +581,21 @@ def target_summary(results: list[dict]) -> tuple[str, dict]:
                        f"{fmt_rate(r['samples_per_s'])}samples/s, {ratio:.2f}× leading axes "
                        f"(target ≥ 0.8×)")
             summary.setdefault("vmap_ratio", {})[f"{c['name']} {c['dtype']}"] = ratio
+    # autodiff Jacobians against the closed forms, same scheme and size (target ≥ 0.5×)
+    for r in ok:
+        c = r["case"]
+        if c["kind"] != "cov" or c["jac"] != "autodiff" or c.get("vmap"):
+            continue
+        ana = [x for x in ok if x["case"]["name"] == c["name"].replace("autodiff", "analytic")
+               and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"])
+               == (c["B"], c["T"], c["dtype"])]
+        if ana:
+            ratio = r["samples_per_s"] / ana[0]["samples_per_s"]
+            out.append(f"- {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
+                       f"{fmt_rate(r['samples_per_s'])}samples/s, {ratio:.2f}× analytic "
+                       f"(target ≥ 0.5×)")
+            summary.setdefault("autodiff_ratio", {})[
+                f"{c['name']} {c['B']}x{c['T']} {c['dtype']}"] = ratio
     return "\n".join(out), summary
 
 

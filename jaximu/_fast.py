@@ -150,45 +150,55 @@ def blocks_to_dense(Pb):
 def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
-    ``jax.linearize`` of :func:`jaximu._soa.mean_step` gives the step and its linear map;
-    the map is evaluated on the 9 non-structural directions at once (``dθ``: the tangent
-    ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``; ``db_g``, ``db_a``: ``-e_j`` on both samples' rate
-    or specific force), a ``vmap`` whose direction axis is major and whose lanes stay minor.
-    The rotation rows are ``2 vec(q⁺* ⊗ δq⁺)`` (the tangent of ``Log(q̂⁺* q⁺)``). As
-    :func:`jaximu.errorstate.blocks_autodiff`, on this layout.
+    ``jax.jvp`` of :func:`jaximu._soa.mean_step` in the 9 non-structural directions, in
+    three groups that each perturb only their own inputs, so that JAX's symbolic zeros skip
+    what a direction cannot reach (a ``db_a`` tangent never enters the half angle): ``dθ``
+    (the tangent ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``), ``db_g`` and ``db_a`` (``-e_j`` on
+    both samples' rate or specific force). Each group is a ``vmap`` over its 3 directions,
+    direction axis major, lanes minor. The rotation rows are ``2 vec(q⁺* ⊗ δq⁺)`` (the
+    tangent of ``Log(q̂⁺* q⁺)``). As :func:`jaximu.errorstate.blocks_autodiff`, on this
+    layout.
 
     Returns:
         ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
     """
+    dtype = q[0].dtype
+    lanes = q[0].shape
+    E = np.eye(3)
+
+    def const(col):  # (3,) per direction, broadcast over the lanes
+        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (3,) + lanes)
+
     def step(q, omega0, omega1, f0, f1):
         return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
 
-    (q1, p1, v1), lin = jax.linearize(step, q, omega0, omega1, f0, f1)
-    dtype = q[0].dtype
-    lanes = q[0].shape
-    E = np.eye(9)
-
-    def const(col):  # (9,) per direction, broadcast over the lanes
-        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (9,) + lanes)
+    def directions(fn, primals, tangents):
+        return jax.vmap(lambda t: jax.jvp(fn, primals, t)[1])(tangents)
 
     # Python floats (weakly typed): the tangents keep the lanes' dtype
-    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j, :3]))) for j in range(3)]
-    tq = tuple(sum(const(E[j])[...] * half[j][c][None] for j in range(3)) for c in range(4))
-    tw = V3(*(const(-E[:, 3 + i]) for i in range(3)))
-    tf = V3(*(const(-E[:, 6 + i]) for i in range(3)))
-    tq1, tp1, tv1 = jax.vmap(lin)(tq, tw, tw, tf, tf)
-    conj = (q1[0], -q1[1], -q1[2], -q1[3])
-    rel = _quat_mul(tuple(x[None] for x in conj), tq1)
-    th = tuple(2.0 * rel[1 + i] for i in range(3))
-
+    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
+    tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
+    minus_e = V3(*(const(-E[:, i]) for i in range(3)))
+    q1, p1, v1 = step(q, omega0, omega1, f0, f1)
+    d_theta = directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
+    d_bg = directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
+                      (minus_e, minus_e))
+    d_ba = directions(lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1),
+                      (minus_e, minus_e))
+    conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
     E3 = jnp.asarray(_E3, dtype)
 
-    def block(rows, c0):  # rows: 3 components (9, B); columns c0..c0+2 -> (3, 3, B)
+    def block(rows):  # 3 row components, each (3 directions, B) -> (3, 3, B)
         # one-hot broadcasting, not jnp.stack (a concatenate is a scalar loop on XLA:CPU)
-        return sum(E3[:, i, None, None] * r[None, c0:c0 + 3] for i, r in enumerate(rows))
+        return sum(E3[:, i, None, None] * r[None] for i, r in enumerate(rows))
 
-    b = Blocks(A=block(th, 0), B=block(th, 3), Cp=block(tp1, 0), Cv=block(tv1, 0),
-               Dp=block(tp1, 3), Dv=block(tv1, 3), Ep=block(tp1, 6), Ev=block(tv1, 6), dt=h)
+    def rot(tq1):
+        rel = _quat_mul(conj, tq1)
+        return tuple(2.0 * rel[1 + i] for i in range(3))
+
+    (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
+    b = Blocks(A=block(rot(tq_t)), B=block(rot(tq_g)), Cp=block(tp_t), Cv=block(tv_t),
+               Dp=block(tp_g), Dv=block(tv_g), Ep=block(tp_a), Ev=block(tv_a), dt=h)
     return (q1, p1, v1), b
 
 

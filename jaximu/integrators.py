@@ -176,6 +176,15 @@ class Scheme:
     def dphi_db(self, omega0, omega1, h, tau):
         return -h, None
 
+    @property
+    def preintegration(self):
+        """Its :class:`jaximu.preintegration.PreintegrationStep` (generic step, noise
+        mapping, SoA kernel), or ``None`` where :func:`jaximu.preintegrate` has no such
+        scheme (RK4)."""
+        from jaximu.preintegration import PREINTEGRATION_STEPS
+
+        return PREINTEGRATION_STEPS.get(self.name)
+
     def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
         ``ops`` (:data:`jaximu._blocks.ARRAYS` or :data:`jaximu._soa.SOA`). With the stages

@@ -48,6 +48,7 @@ from jaximu import so3
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks, mm
 from jaximu.errorstate import blocks_analytic
+from jaximu.integrators import get_scheme
 from jaximu.noise import ImuNoise
 from jaximu.state import ImuBias, NavState
 
@@ -226,6 +227,56 @@ def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var):
     return dq, acc, F, Q9, (sbg, sba)
 
 
+def _euler_noise(n, w0, a0, w1, a1):
+    """Step noise ``[n_g, n_a, n_wg, n_wa]`` (12) as it enters the Euler step."""
+    return w0 + n[..., 0:3], a0 + n[..., 3:6], w1, a1, n[..., 6:9], n[..., 9:12]
+
+
+def _vins_noise(n, w0, a0, w1, a1):
+    """VINS-Mono's ``[n_a0, n_g0, n_a1, n_g1, n_ba, n_bg]`` (18)."""
+    return (w0 + n[..., 3:6], a0 + n[..., 0:3], w1 + n[..., 9:12], a1 + n[..., 6:9],
+            n[..., 15:18], n[..., 12:15])
+
+
+def _vins_variances(v):
+    """Discrete variances ``[σ_g², σ_a², σ_bg², σ_ba²]/dt`` → VINS-Mono's 18 (see
+    :func:`_vins_midpoint_step`)."""
+    sg, sa, sbg, sba = jnp.split(v, 4, axis=-1)
+    return jnp.concatenate([2 * sa, 2 * sg, 2 * sa, 2 * sg, sba, sbg], -1)
+
+
+@dataclasses.dataclass(frozen=True)
+class PreintegrationStep:
+    """What a scheme brings to preintegration (:attr:`jaximu.integrators.Scheme.preintegration`):
+
+    * ``step(dR, w0, a0, w1, a1, h, b_g, b_a, var) -> (dq, acc, F, Q9, (σ_bg², σ_ba²))``:
+      the generic step on ``(..., 3)`` arrays, with closed-form ``F`` and white-noise blocks;
+    * ``noise_dim``, ``perturb(n, w0, a0, w1, a1)`` and ``variances(σ²/dt)``: how its step
+      noise enters, for the autodiff Jacobians (:func:`_step_autodiff`);
+    * ``kernel``: its structure-of-arrays kernel (:mod:`jaximu._fast_preint`).
+    """
+
+    name: str
+    uses_next_sample: bool
+    step: object
+    noise_dim: int
+    perturb: object
+    variances: object
+    kernel: object
+
+
+PREINTEGRATION_STEPS = {
+    # Forster / GTSAM Manifold: the propagation Euler step from the identity, without gravity
+    "euler": PreintegrationStep("euler", False,
+                                lambda dR, w0, a0, w1, a1, h, *r: _euler_step(dR, w0, a0, h, *r),
+                                12, _euler_noise, lambda v: v, _fast_preint.preintegrate_euler),
+    # VINS-Mono's midpoint (first-order quaternion, its F and 18-dim noise), kept exactly so
+    # that results agree with VINS-Mono; the propagation midpoint uses the exact exponential
+    "midpoint": PreintegrationStep("midpoint", True, _vins_midpoint_step, 18, _vins_noise,
+                                   _vins_variances, _fast_preint.preintegrate_midpoint),
+}
+
+
 def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
     """One step of ``scheme`` at the preintegrated rotation ``dR`` (``(..., 4)``, unit)."""
     dtype = w0.dtype
@@ -233,10 +284,8 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
         var = [jnp.zeros(h.shape + (3,), dtype)] * 4
     else:
         var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
-    if scheme == "euler":
-        dq, acc, F, Q9, (sbg, sba) = _euler_step(dR, w0, a0, h, b_g, b_a, var)
-    else:
-        dq, acc, F, Q9, (sbg, sba) = _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var)
+    dq, acc, F, Q9, (sbg, sba) = get_scheme(scheme).preintegration.step(dR, w0, a0, w1, a1, h, b_g,
+                                                                  b_a, var)
     eye = jnp.eye(3, dtype=dtype)
     h2 = (h * h)[..., None, None]
     Q15 = dict(Q9)
@@ -248,19 +297,15 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
 def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
     """``F`` and the noise Jacobians by ``jax.jacfwd`` of the step's mean (exact derivatives)."""
     dtype = w0.dtype
+    pre = get_scheme(scheme).preintegration
     nominal = _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, None)
 
     def mean(delta, n):
         """Next (ΔR, Δp, Δv, b) from the perturbed current ones, relative to Δp = Δv = 0."""
         dRp = so3.quat_mul(dR, so3.exp(delta[..., 0:3]))
         bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
-        if scheme == "euler":
-            s = _step(scheme, dRp, w0 + n[..., 0:3], a0 + n[..., 3:6], w1, a1, h, bg, ba, None)
-            nbg, nba = n[..., 6:9], n[..., 9:12]
-        else:
-            s = _step(scheme, dRp, w0 + n[..., 3:6], a0 + n[..., 0:3], w1 + n[..., 9:12],
-                      a1 + n[..., 6:9], h, bg, ba, None)
-            nbg, nba = n[..., 15:18], n[..., 12:15]
+        w0n, a0n, w1n, a1n, nbg, nba = pre.perturb(n, w0, a0, w1, a1)
+        s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
         dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
         hv = h[..., None]
         dtheta = so3.log(so3.quat_mul(so3.quat_conj(
@@ -270,19 +315,14 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
         return jnp.concatenate([dtheta, p - 0.5 * nominal.acc * hv * hv, v - nominal.acc * hv,
                                 delta[..., 9:15] + jnp.concatenate([nbg, nba], -1) * hv], -1)
 
-    n_noise = 12 if scheme == "euler" else 18
+    n_noise = pre.noise_dim
     zero15, zero_n = jnp.zeros(15, dtype), jnp.zeros(n_noise, dtype)
     Phi = jax.jacfwd(lambda d: mean(d, zero_n))(zero15)
     G = jax.jacfwd(lambda n: mean(zero15, n))(zero_n)
     if noise is None:
         s = jnp.zeros(h.shape + (n_noise,), dtype)
     else:
-        v = noise.discrete_variances(h, dtype)  # [σ_g², σ_a², σ_bg², σ_ba²] / dt
-        if scheme == "euler":
-            s = v
-        else:
-            sg, sa, sbg, sba = jnp.split(v, 4, axis=-1)
-            s = jnp.concatenate([2 * sa, 2 * sg, 2 * sa, 2 * sg, sba, sbg], -1)
+        s = pre.variances(noise.discrete_variances(h, dtype))  # from [σ_g², σ_a², σ_bg², σ_ba²]/dt
     walk = n_noise - 6
     Q15 = blk.dense_to_blocks((G * s[..., None, :]) @ jnp.swapaxes(G, -1, -2))
     G9 = G[..., :9, :walk]
@@ -440,7 +480,8 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
     flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
-    if scheme == "midpoint":  # samples k and k+1 side by side (as _pairs)
+    pre = get_scheme(scheme).preintegration
+    if pre.uses_next_sample:  # samples k and k+1 side by side (as _pairs)
         def pair(x):
             x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
             return jnp.concatenate([x[..., :n, :], x1], -1)
@@ -458,9 +499,7 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
         var = noise.variances(dtype)
         var = var if var.ndim == 1 else flat(var, (12,))
     C = _fast_preint.num_chunks(B, n, method, dtype)
-    fn = _fast_preint.preintegrate_midpoint if scheme == "midpoint" else \
-        _fast_preint.preintegrate_euler
-    t, q, dv, dp, Phi, Q15, Q9 = fn(gyro_f, accel_f, dt_f, b_g, b_a, var, C)
+    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
         delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),
