@@ -170,8 +170,14 @@ def phi_compose(F: Blocks, P: Blocks) -> Blocks:
     )
 
 
-def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS):
-    """``Φ P Φᵀ`` on upper blocks (``None``/missing blocks of ``P`` are zero)."""
+def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
+    """``Φ P Φᵀ`` on upper blocks (``None``/missing blocks of ``P`` are zero).
+
+    ``p_over_v``: a per-element scalar ``s`` when the p rows of ``Φ`` beyond the structural
+    ``dt I`` are ``s`` times its v rows (``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev``; Euler
+    and midpoint, ``s = dt/2``: :attr:`jaximu.integrators.Scheme.p_over_v`). The p rows'
+    products are then those of the v rows, scaled: ``b.Cp``, ``b.Dp``, ``b.Ep`` are not read.
+    """
 
     def P(i, j):
         return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
@@ -186,26 +192,43 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS):
         return globals()["t"](x, ops)
 
     hh = b.dt
+    At, Bt, Cvt, Dvt, Evt = t(b.A), t(b.B), t(b.Cv), t(b.Dv), t(b.Ev)
     # M = Φ P, rows θ (0), p (1), v (2); rows b_g (3), b_a (4) are those of P.
     M = {3: {j: P(3, j) for j in range(5)}, 4: {j: P(4, j) for j in range(5)}}
     M[0] = {j: add(mm(b.A, P(0, j)), mm(b.B, P(3, j))) for j in range(5)}
-    M[1] = {j: add(P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)),
-                   mm(b.Ep, P(4, j))) for j in range(5)}
-    M[2] = {j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
-            for j in range(5)}
-    M[0], M[1], M[2] = ops.barrier((M[0], M[1], M[2]))  # each is read by several products
-    At, Bt, Cpt, Cvt = t(b.A), t(b.B), t(b.Cp), t(b.Cv)
-    Dpt, Dvt, Ept, Evt = t(b.Dp), t(b.Dv), t(b.Ep), t(b.Ev)
+    if p_over_v is None:
+        M[1] = {j: add(P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)),
+                       mm(b.Ep, P(4, j))) for j in range(5)}
+        M[2] = {j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
+                for j in range(5)}
+        M[0], M[1], M[2] = ops.barrier((M[0], M[1], M[2]))  # each is read by several products
+        Cpt, Dpt, Ept = t(b.Cp), t(b.Dp), t(b.Ep)
+
+        def K(Mi):  # the p and v columns' products of row block i
+            return (add(mm(Mi[0], Cpt), mm(Mi[3], Dpt), mm(Mi[4], Ept)),
+                    add(mm(Mi[0], Cvt), mm(Mi[3], Dvt), mm(Mi[4], Evt)))
+    else:
+        N = {j: add(mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j))) for j in range(5)}
+        M[0], N = ops.barrier((M[0], N))  # each is read by several products
+        M[2] = {j: add(P(2, j), N[j]) for j in range(5)}
+        M[1] = {j: add(P(1, j), scale(hh, P(2, j)), scale(p_over_v, N[j])) for j in range(5)}
+        M[1], M[2] = ops.barrier((M[1], M[2]))
+        Kv = ops.barrier([add(mm(M[i][0], Cvt), mm(M[i][3], Dvt), mm(M[i][4], Evt))
+                          for i in range(3)])
+
+        def K(i):
+            return scale(p_over_v, Kv[i]), Kv[i]
+
     out = {}
     for i in range(3):
         Mi = M[i]
         out[(i, 3)] = Mi[3]
         out[(i, 4)] = Mi[4]
+        kp, kv = K(i if p_over_v is not None else Mi)
         cols = {
             0: lambda: add(mm(Mi[0], At), mm(Mi[3], Bt)),
-            1: lambda: add(Mi[1], scale(hh, Mi[2]), mm(Mi[0], Cpt), mm(Mi[3], Dpt),
-                           mm(Mi[4], Ept)),
-            2: lambda: add(Mi[2], mm(Mi[0], Cvt), mm(Mi[3], Dvt), mm(Mi[4], Evt)),
+            1: lambda: add(Mi[1], scale(hh, Mi[2]), kp),
+            2: lambda: add(Mi[2], kv),
         }
         for j in range(i, 3):
             out[(i, j)] = cols[j]()
@@ -243,7 +266,7 @@ def noise_blocks(columns, variances, ops: Layout = ARRAYS):
     return out
 
 
-def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS):
+def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
     """``Φ P Φᵀ + G Q_c Gᵀ`` on the upper blocks of ``P``, using the structure of ``Φ``.
 
     Args:
@@ -252,13 +275,23 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS):
         qc: the diagonal of ``Q_c`` as four per-axis 3-vectors ``[σ_g², σ_a², σ_bg², σ_ba²]/dt``
             (``(..., 3)`` each, or as ``ops`` stores 3-vectors); a ``(..., 12)`` array is split.
         ops: the block layout (:data:`ARRAYS` or :data:`jaximu._soa.SOA`).
+        p_over_v: ``s`` with ``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev`` when the scheme has
+            that structure (:func:`phi_p_phit`), or ``None``.
     """
     if not isinstance(qc, (tuple, list)):
         qc = (qc[..., 0:3], qc[..., 3:6], qc[..., 6:9], qc[..., 9:12])
+    if p_over_v is not None:  # the p rows follow from the v rows: not formed at all
+        b = b._replace(Cp=None, Dp=None, Ep=None)
     b = ops.barrier(b)  # every block is read by several products
     h = b.dt
-    Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)
+    if p_over_v is None:
+        Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)
+    else:  # G's p rows are s times its v rows too
+        Q = noise_blocks([{0: b.B, 2: b.Dv}, {2: b.Ev}], [qc[0], qc[1]], ops)
+        Q[(0, 1)] = scale(p_over_v, Q.get((0, 2)), ops)
+        Q[(1, 2)] = scale(p_over_v, Q.get((2, 2)), ops)
+        Q[(1, 1)] = scale(p_over_v * p_over_v, Q.get((2, 2)), ops)
     hh = h * h
     Q[(3, 3)] = ops.scale(hh, ops.diag(qc[2]))
     Q[(4, 4)] = ops.scale(hh, ops.diag(qc[3]))
-    return symmetrize_diagonal(add_blocks(phi_p_phit(Pb, b, ops), Q), ops)
+    return symmetrize_diagonal(add_blocks(phi_p_phit(Pb, b, ops, p_over_v), Q), ops)

@@ -53,8 +53,6 @@ TABLE = (
     # specific force without gravity cancelling it, round 4x worse in float32
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
         LONG_STEPS, "soa_mean_chunked", ("float64",)),
-    # final covariance, Euler, closed-form Jacobians
-    Row("covariance", ("euler",), ("quaternion",), ("analytic",), (False,), 1, 1, "soa_cov"),
     # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
         1, "soa_cov_analytic"),

@@ -1,5 +1,5 @@
-"""Fast XLA-CPU kernels of propagation: the mean of every scheme (exact quaternion
-exponential) and the Euler final covariance with analytic Jacobians, on the
+"""Fast XLA-CPU kernels of propagation: the mean and the final covariance of every scheme
+(exact quaternion exponential; closed-form or autodiff Jacobian blocks), on the
 structure-of-arrays layout of :mod:`jaximu._soa` (why that layout: docs/DESIGN.md).
 """
 
@@ -9,92 +9,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu._soa import (_E3, _bmm, _bsym, _bt, _components, _diag_row, _lane, _quat_mul,
-                         _stack_last, _stage, _time_chunks, mean_step, quat_matrix, run_blocked)
 from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import SOA, _materialise, exp_jr, half_angle_jr
+from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul, _stack_last,
+                         _time_chunks, exp_jr, half_angle_jr, mean_step, quat_matrix,
+                         run_blocked)
 from jaximu._vec import V3
-from jaximu.integrators import SCHEME_OBJECTS
-
-EULER = SCHEME_OBJECTS["euler"]
 
 BLOCK_LANES = 1024  # lanes per batch block
-
-def cov_step(carry, omega, f, h, g, qc):
-    """Euler mean + covariance step, closed-form blocks (:meth:`Scheme.blocks` of
-    :data:`EULER`), with the block update specialised to Euler's structure: ``Cp = h/2 Cv``
-    and ``Ep = h/2 Ev``, so the p rows of ``Φ P`` reuse the v rows' products (half the p-row
-    products of :func:`jaximu._blocks.structured_update`, which it equals; tested).
-    ``carry = (q, p, v, Pb)`` with ``Pb`` the tuple of the 15 upper 3×3 blocks of P in
-    :data:`UPPER` order, each ``(3, 3, B)``. ``qc``: 12-tuple of the diagonal of ``Q_c``
-    (scalars or ``(B,)``)."""
-    q, p, v, Pb = carry
-    dtype = q[0].dtype
-    ok = jnp.all(jnp.isfinite(h))  # any runtime predicate (both branches are the same)
-    # Materialised copies of h and qc: a dynamic-slice of the scan input inside the 3-D block
-    # fusions (its index reloaded in the loop) stops LLVM from vectorising them.
-    h, qc = _stage(ok, lambda h, qc: (h * 1, tuple(x * 1 for x in qc)), h, qc)
-    omega, f, g = V3(*omega), V3(*f), V3(*g)
-    phi = omega * h
-    half = half_angle_jr(phi.dot(phi))  # one half angle for the mean and Φ
-    q1, p1, v1 = mean_step(EULER, q, V3(*p), V3(*v), omega, f, omega, f, h, g, half[:2])
-
-    def phi_blocks(q, omega, f, h, half):
-        b = EULER.blocks(quat_matrix(q, dtype), omega, f, omega, f, h, SOA,
-                         end=exp_jr(omega * h, half))
-        return b.A, b.B, b.Cv, b.Ev
-
-    A, Bm, Cv, Ev = _stage(ok, phi_blocks, q, omega, f, h, half)
-    Pd = dict(zip(UPPER, Pb))
-    hb = _lane(h) if jnp.ndim(h) else h
-
-    def P(i, j):
-        return Pd[(i, j)] if i <= j else _bt(Pd[(j, i)])
-
-    def stage_a(Pb, A, Bm, Cv, Ev):
-        Pd = dict(zip(UPPER, Pb))
-
-        def P(i, j):
-            return Pd[(i, j)] if i <= j else _bt(Pd[(j, i)])
-
-        # M = Φ P, θ rows; N_j = Cv P0j + Ev P4j gives the v rows (P2j + N_j) and, for Euler,
-        # the p rows (P1j + h P2j + h/2 N_j) since Cp = h/2 Cv and Ep = h/2 Ev.
-        M0 = tuple(_bmm(A, P(0, j)) + _bmm(Bm, P(3, j)) for j in range(5))
-        N = tuple(_bmm(Cv, P(0, j)) + _bmm(Ev, P(4, j)) for j in range(5))
-        return M0, N
-
-    M0, N = _stage(ok, stage_a, Pb, A, Bm, Cv, Ev)
-    M1 = [P(1, j) + hb * P(2, j) + (0.5 * hb) * N[j] for j in range(5)]
-    M2 = [P(2, j) + N[j] for j in range(5)]
-
-    def stage_b(M0, M1, M2, Bm, Cv, Ev, qc):
-        Cvt, Evt, Bt = _bt(Cv), _bt(Ev), _bt(Bm)
-        Kv = tuple(_bmm(M[0], Cvt) + _bmm(M[4], Evt) for M in (M0, M1, M2))  # (M Φᵀ)_v - M_v
-        Qth = _bmm(Bm * _diag_row(qc[0:3], dtype), Bt)
-        Qv = _bmm(Ev * _diag_row(qc[3:6], dtype), Evt)
-        return Kv, Qth, Qv
-
-    (K0, K1, K2), Qth, Qv = _stage(ok, stage_b, M0, M1, M2, Bm, Cv, Ev, qc)
-    I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    new = {
-        (0, 0): _bsym(_bmm(M0[0], _bt(A)) + _bmm(M0[3], _bt(Bm)) + Qth),
-        (0, 1): M0[1] + hb * M0[2] + (0.5 * hb) * K0,
-        (0, 2): M0[2] + K0,
-        (0, 3): M0[3],
-        (0, 4): M0[4],
-        (1, 1): _bsym(M1[1] + hb * M1[2] + (0.5 * hb) * K1 + (0.25 * hb * hb) * Qv),
-        (1, 2): M1[2] + K1 + (0.5 * hb) * Qv,
-        (1, 3): M1[3],
-        (1, 4): M1[4],
-        (2, 2): _bsym(M2[2] + K2 + Qv),
-        (2, 3): M2[3],
-        (2, 4): M2[4],
-        (3, 3): _bsym(Pd[(3, 3)] + (hb * hb) * (I3 * _diag_row(qc[6:9], dtype))),
-        (3, 4): Pd[(3, 4)],
-        (4, 4): _bsym(Pd[(4, 4)] + (hb * hb) * (I3 * _diag_row(qc[9:12], dtype))),
-    }
-    return q1, p1, v1, tuple(new[ij] for ij in UPPER)
-
 
 UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
@@ -218,17 +139,17 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc):
     else:
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
                                           h, g)
-    new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA)
+    new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA,
+                            scheme.p_over_v(h))
     return q1, p1, v1, tuple(new[k] for k in UPPER)
 
 
 def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
-                        scheme=None, jacobians="autodiff"):
+                        scheme, jacobians):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
     ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
-    ``scheme``: None for the Euler step with closed-form blocks (:func:`cov_step`), or a
-    scheme whose blocks come from autodiff (:func:`cov_step_autodiff`; inputs with ``T + 1``
-    samples when it uses sample k+1)."""
+    ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
+    uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -242,21 +163,17 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
             bg, ba, gv, ln = consts
             qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
             qc = tuple(qc[..., i] for i in range(12))
-            if scheme is None:
-                omega = tuple(w[i] - bg[i] for i in range(3))
-                f = tuple(a[i] - ba[i] for i in range(3))
-                return cov_step(c, omega, f, h, gv, qc)
             bg, ba = V3(*bg), V3(*ba)
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
             # the step's inputs in memory: read through the scan's dynamic slice inside the
-            # 3-D block fusions they stop LLVM from vectorising them (as h, qc in cov_step)
+            # 3-D block fusions they stop LLVM from vectorising them
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
             return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
                                         consts, None,
-                                        next_sample=scheme is not None and scheme.uses_next_sample)
+                                        next_sample=scheme.uses_next_sample)
         return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
 
     z = jnp.zeros((B, 1), gyro.dtype)

@@ -325,9 +325,8 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
 
     def comps(x, t0, L):
         c = jax.lax.dynamic_slice_in_dim(x, t0, L + int(next_sample), axis=1)  # (Bc, L(+1), 3)
-        ct = jnp.transpose(c, (2, 1, 0))  # (3, L(+1), Bc)
+        ct = _materialise(jnp.transpose(c, (2, 1, 0)))  # (3, L(+1), Bc), transposed once
         if next_sample:
-            ct = _materialise(ct)  # one transpose, read by both slices
             return tuple(ct[i, :L] for i in range(3)) + tuple(ct[i, 1:] for i in range(3))
         return tuple(ct[i] for i in range(ct.shape[0]))
 

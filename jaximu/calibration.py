@@ -28,6 +28,19 @@ Parameters are optimised in normalised coordinates ``z = (θ - θ₀) / scale`` 
 suits every field. The uncertainty is the Gauss-Newton / Laplace approximation
 ``cov = (JᵀJ)⁻¹`` of the whitened residuals at the optimum; it is right when the noise
 model is (check ``reduced_chi2`` ≈ 1).
+
+The fit (:func:`calibrate`) is Levenberg–Marquardt on the whitened residuals by default:
+one compiled function returns the residuals and their Jacobian (``jacfwd`` over the free
+coordinates; 6 tangents per window for nuisance velocities) and serves every iteration and
+the covariance. optax L-BFGS and Adam on the loss are there too.
+
+Adding an estimable field (an IMU–body extrinsic, say): a pytree field of
+:class:`ImuCalibration` with its default in :meth:`ImuCalibration.default`; its name in
+:data:`FIELDS`, its size in ``_SIZES``, its typical magnitude in :data:`SCALES` (the unit of
+its normalised coordinate); and its use in ``_group_residuals``, the one place the model
+meets the data. The optimisers, the Jacobian, the Laplace covariance and ``estimate=`` follow.
+Coordinates are additive (``θ = θ₀ + scale · z``), so a rotation is best estimated as a
+rotation vector ``δ`` applied as ``R₀ Exp(δ)`` inside the model (``δ₀ = 0``).
 """
 
 from __future__ import annotations
@@ -46,7 +59,8 @@ from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
 from jaximu import so3
 from jaximu.noise import ImuNoise
-from jaximu.preintegration import preintegrate, residual
+from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, preintegrate, residual
+from jaximu.preintegration import _step as _pim_step
 from jaximu.propagate import propagate_final
 from jaximu.state import ImuBias, NavState
 
@@ -74,7 +88,7 @@ SCALES = {"b_g": 1e-2, "b_a": 1e-1, "gyro_scale": 1e-2, "gyro_misalignment": 1e-
 """Typical magnitude of each field [its units]: the unit of the normalised coordinates."""
 _VELOCITY_SCALE = 0.1  # m/s, nuisance keyframe velocities
 MODELS = ("preintegration", "propagation")
-OPTIMIZERS = ("lbfgs", "adam")
+OPTIMIZERS = ("lm", "lbfgs", "adam")
 
 
 class CalibrationError(InputError):
@@ -230,22 +244,30 @@ def _interp(problem_t, ref_t, ref_q, ref_p, ref_v):
 
 def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocities, g_idx):
     """``(C, 9)`` whitened residuals of group ``g_idx`` (weights applied)."""
+    if problem.has_velocity:
+        return _group_residuals(problem, calib, g_idx)
+    k = problem.window[g_idx]
+    return _group_residuals(problem, calib, g_idx, velocities[k], velocities[k + 1])
+
+
+def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, vi=None,
+                     vj=None):
+    """``(C, 9)`` whitened residuals of group ``g_idx``; ``vi``, ``vj``: ``(C, 3)`` keyframe
+    velocities of each window's ends (default: the reference's)."""
     gyro, accel = problem.gyro[g_idx], problem.accel[g_idx]
     dt = problem.dt[g_idx]
     td = calib.time_offset
-    qi, pi, vi = _interp(problem.t_start[g_idx] + td, problem.ref_t, problem.ref_q,
-                         problem.ref_p, problem.ref_v)
-    qj, pj, vj = _interp(problem.t_end[g_idx] + td, problem.ref_t, problem.ref_q,
-                         problem.ref_p, problem.ref_v)
-    if not problem.has_velocity:
-        k = problem.window[g_idx]
-        vi, vj = velocities[k], velocities[k + 1]
+    ends = jnp.stack([problem.t_start[g_idx], problem.t_end[g_idx]]) + td  # one graph, both
+    (qi, qj), (pi, pj), (vi_ref, vj_ref) = _interp(ends, problem.ref_t, problem.ref_q,
+                                                   problem.ref_p, problem.ref_v)
+    if vi is None:
+        vi, vj = vi_ref, vj_ref
     gyro_c, accel_c = calib.apply(gyro, accel)
     zero = jnp.zeros_like(pi)
     state_i = NavState(qi, pi, vi, zero, zero)
     state_j = NavState(qj, pj, vj, zero, zero)
     if problem.model == "preintegration":
-        pim = preintegrate(gyro_c, accel_c, dt, scheme=problem.scheme)
+        pim = _preintegrate_mean(gyro_c, accel_c, dt, problem.scheme)
         r = residual(state_i, state_j, pim, gravity=calib.gravity)[..., :9]
     else:
         pred = propagate_final(state_i, gyro_c, accel_c, dt, problem.scheme,
@@ -258,6 +280,28 @@ def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, veloci
         ], axis=-1)
     w = jnp.einsum("...ij,...j->...i", problem.sqrt_info[g_idx], r)
     return w * problem.weight[g_idx][..., None]
+
+
+def _preintegrate_mean(gyro, accel, dt, scheme):
+    """The preintegrated mean of ``(C, W + 1, 3)`` windows, as :func:`jaximu.preintegrate`
+    computes it (its step and scan; zero bias: the samples are already corrected), without
+    the noise, the bias Jacobians or the covariance: the loss is differentiated (``jacfwd``,
+    ``grad``) through it, and a graph carrying the 15×15 blocks (or the structure-of-arrays
+    kernels the dispatch table picks for many windows) compiles for longer than a whole
+    calibration runs. The returned ``transition`` is zero (no bias correction is applied:
+    the states' biases are zero) and the covariances identity (unused: the whitening is
+    computed once, in :func:`calibration_problem`)."""
+    dtype = gyro.dtype
+    batch = gyro.shape[:-2]
+    w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
+    zero = jnp.zeros(batch + (3,), dtype)
+    final, _ = _chunk_scan(scheme, _pim_step, zero, zero, None, (None, w0, a0, w1, a1, h, None),
+                           batch, dtype, False)
+    dq, dv, dp, t, _ = final  # the accumulated blocks are dead code, dropped by XLA
+    eye = lambda n: jnp.broadcast_to(jnp.eye(n, dtype=dtype), batch + (n, n))  # noqa: E731
+    return Preintegrated(delta_t=t, delta_q=so3.quat_normalize(dq), delta_v=dv, delta_p=dp,
+                         transition=jnp.zeros(batch + (15, 15), dtype), cov15=eye(15),
+                         cov=eye(9), bias_hat=ImuBias(zero, zero))
 
 
 def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
@@ -624,13 +668,99 @@ def _step(z, opt_state, problem, init_vec, *, layout, optimizer, learning_rate):
 
 
 @functools.partial(jax.jit, static_argnames=("layout",))
-def _gauss_newton(z, problem, init_vec, *, layout):
-    def res(z_):
-        calib, v = _unpack(z_, init_vec, problem.velocities, layout)
-        return calibration_residuals(problem, calib, v).reshape(-1)
+def _residuals_jacobian(z, problem, init_vec, *, layout):
+    """``(r, J)``: the whitened residuals ``(9K,)`` at ``z`` and their Jacobian
+    ``(9K, n + n_v)`` in the normalised coordinates. One compiled function serves every
+    Levenberg–Marquardt iteration and the Laplace covariance.
 
-    J = jax.jacfwd(res)(z)
-    return res(z), J
+    The calibration columns are forward-mode (``n`` ≤ 20 tangents through every window).
+    A keyframe velocity enters only the two windows it bounds, so the velocity columns
+    take 6 tangents, not ``3(K + 1)``: the same direction of ``v_i`` (then ``v_j``) in every
+    window at once gives each window's ``9 × 6`` block, scattered to its two keyframes.
+    """
+    n = len(_free_indices(layout.free))
+    calib, v = _unpack(z, init_vec, problem.velocities, layout)
+
+    def res(zc):
+        c, _ = _unpack(jnp.concatenate([zc, z[n:]]), init_vec, problem.velocities, layout)
+        r = calibration_residuals(problem, c, v).reshape(-1)
+        return r, r
+
+    J, r = jax.jacfwd(res, has_aux=True)(z[:n])
+    if layout.n_velocity == 0:
+        return r, J
+    K = problem.n_windows
+    dtype = z.dtype
+    eye6 = jnp.eye(6, dtype=dtype)
+
+    def group_blocks(g):
+        k = problem.window[g]
+        vi, vj = v[k], v[k + 1]
+
+        def f(ti, tj):
+            return _group_residuals(problem, calib, g, vi + ti, vj + tj)
+
+        zero = jnp.zeros_like(vi)
+
+        def column(e):  # one of the 6 directions, in every window of the group
+            return jax.jvp(f, (zero, zero), (jnp.broadcast_to(e[:3], vi.shape),
+                                             jnp.broadcast_to(e[3:], vj.shape)))[1]
+
+        return jax.vmap(column, out_axes=-1)(eye6)  # (C, 9, 6)
+
+    B = jax.vmap(group_blocks)(jnp.arange(problem.gyro.shape[0]))
+    B = _VELOCITY_SCALE * B.reshape((-1, 9, 6))[:K]
+    kk = jnp.arange(K)
+    Jv = jnp.zeros((K, 9, K + 1, 3), dtype)
+    Jv = Jv.at[kk, :, kk, :].set(B[..., :3]).at[kk, :, kk + 1, :].set(B[..., 3:])
+    return r, jnp.concatenate([J, Jv.reshape(9 * K, 3 * (K + 1))], axis=1)
+
+
+def _levenberg_marquardt(evaluate, z, steps, threshold):
+    """Minimise ``½|r(z)|²`` (float64 numpy algebra on ``evaluate(z) -> (r, J)``).
+
+    Damped Gauss–Newton steps ``(JᵀJ + λI) δ = -Jᵀr`` (the coordinates are normalised, so
+    one ``λ`` suits all), accepted when the loss falls; ``λ`` follows the gain ratio
+    (Nielsen's rule). Stops when the decrease the local model predicts is below
+    ``threshold · (1 + loss)``. A trial point whose residuals are not finite is rejected
+    like one that raises the loss.
+
+    Returns:
+        ``(z, history, converged, r, J)``.
+    """
+    r, J = evaluate(z)
+    cost = 0.5 * float(r @ r)
+    if not (np.isfinite(cost) and np.all(np.isfinite(J))):
+        raise FloatingPointError(f"the calibration loss is {cost} at the initial values")
+    history, converged = [cost], False
+    lam, nu = None, 2.0
+    for _ in range(steps):
+        A, g = J.T @ J, J.T @ r
+        if not np.any(g):
+            converged = True
+            break
+        if lam is None:
+            lam = 1e-3 * max(float(np.max(np.diag(A))), 1e-300)
+        try:
+            delta = np.linalg.solve(A + lam * np.eye(len(z)), -g)
+        except np.linalg.LinAlgError:
+            delta = np.linalg.lstsq(A + lam * np.eye(len(z)), -g, rcond=None)[0]
+        predicted = -float(g @ delta + 0.5 * delta @ A @ delta)
+        if predicted <= threshold * (1 + cost):
+            converged = True
+            break
+        r_new, J_new = evaluate(z + delta)
+        cost_new = 0.5 * float(r_new @ r_new)
+        rho = (cost - cost_new) / predicted
+        if np.isfinite(cost_new) and np.all(np.isfinite(J_new)) and rho > 0:  # else: reject
+            z, r, J, cost = z + delta, r_new, J_new, cost_new
+            history.append(cost)
+            lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
+            nu = 2.0
+        else:
+            lam *= nu
+            nu *= 2
+    return z, history, converged, r, J
 
 
 @dataclasses.dataclass(frozen=True)
@@ -645,7 +775,8 @@ class CalibrationResult:
         free: names of the estimated fields.
         velocities: ``(K + 1, 3)`` keyframe velocities used (estimated if the reference
             had none).
-        loss_history: ``(steps + 1,)`` loss before each step and at the end.
+        loss_history: the loss at the start, after each (accepted, for ``"lm"``) step, and
+            at the estimate.
         chi2, dof, reduced_chi2: ``2·loss`` at the estimate, its degrees of freedom
             (9K - parameters) and their ratio (≈ 1 when the noise model is right).
         converged: whether the stopping rule was met before ``steps``.
@@ -663,8 +794,36 @@ class CalibrationResult:
     converged: bool
 
 
+def _optax_loop(z, problem, init_vec, layout, optimizer, learning_rate, steps, tol, dtype):
+    """The optax optimiser's steps (one compiled :func:`_step`); ``(z, history, converged)``."""
+    opt = _optimizer(optimizer, float(learning_rate))
+    # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
+    # the same types as that of later steps, and the step compiles once.
+    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
+                                       opt.init(z))
+    steps = steps if steps is not None else (100 if optimizer == "lbfgs" else 1000)
+    history, quiet, converged = [], 0, False
+    for _ in range(steps):
+        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
+                                               optimizer=optimizer,
+                                               learning_rate=float(learning_rate))
+        value = float(value)
+        if not np.isfinite(value):
+            raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")
+        if history and abs(history[-1] - value) <= tol * (1 + abs(value)):
+            quiet += 1
+        else:
+            quiet = 0
+        history.append(value)
+        z = z_new
+        if quiet >= 5 or float(gnorm) == 0.0:
+            converged = True
+            break
+    return z, history, converged
+
+
 def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None,
-              estimate=("b_g", "b_a"), *, optimizer: str = "lbfgs", steps: int | None = None,
+              estimate=("b_g", "b_a"), *, optimizer: str = "lm", steps: int | None = None,
               learning_rate: float = 0.05, tol: float = 1e-10,
               max_reduced_chi2: float | None = 100.0) -> CalibrationResult:
     """Fit the ``estimate``d fields of an :class:`ImuCalibration` by gradient descent.
@@ -674,10 +833,17 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         initial: starting values (default :meth:`ImuCalibration.default`); the other fields
             stay at these values.
         estimate: names from :data:`FIELDS` (at least one).
-        optimizer: ``"lbfgs"`` (optax L-BFGS with zoom line search; default 100 steps) or
-            ``"adam"`` (``learning_rate > 0`` in normalised units; default 1000 steps).
+        optimizer: ``"lm"`` (default: Levenberg–Marquardt on the whitened residuals, whose
+            one compiled residuals-and-Jacobian function also gives the Laplace covariance;
+            default 50 steps), ``"lbfgs"`` (optax L-BFGS with zoom line search; default 100
+            steps) or ``"adam"`` (``learning_rate > 0`` in normalised units; default 1000
+            steps). ``"lm"`` compiles the least and needs the fewest steps: the loss is a sum
+            of squares.
         steps: the most optimiser steps, an integer ≥ 1 (default: by optimizer).
-        tol: ``≥ 0``; stop when the loss changes by less than ``tol · (1 + loss)`` for 5 steps.
+        tol: ``≥ 0``; ``"lm"`` stops when the decrease its local model predicts is below
+            ``max(tol, 10 ε) · (1 + loss)`` (ε of the computation dtype: the loss's own
+            rounding); the optax optimisers when the loss changes by less than
+            ``tol · (1 + loss)`` for 5 steps.
         max_reduced_chi2: warn (``RuntimeWarning``) when ``χ²/dof`` at the estimate is above
             this: the model does not explain the data (frames, units, time offset, or a
             noise model far too optimistic); positive, or ``None`` to disable.
@@ -713,33 +879,24 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     layout = _Layout(free, n_v)
     n = len(_free_indices(free))
     z = jnp.zeros(n + n_v, dtype)
-    opt = _optimizer(optimizer, float(learning_rate))
-    # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
-    # the same types as that of later steps, and the step compiles once.
-    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
-                                       opt.init(z))
-    steps = steps if steps is not None else (100 if optimizer == "lbfgs" else 1000)
-    history, quiet, converged = [], 0, False
-    for _ in range(steps):
-        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
-                                               optimizer=optimizer,
-                                               learning_rate=float(learning_rate))
-        value = float(value)
-        if not np.isfinite(value):
-            raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")
-        if history and abs(history[-1] - value) <= tol * (1 + abs(value)):
-            quiet += 1
-        else:
-            quiet = 0
-        history.append(value)
-        z = z_new
-        if quiet >= 5 or float(gnorm) == 0.0:
-            converged = True
-            break
-    r, J = _gauss_newton(z, problem, init_vec, layout=layout)
+    if optimizer == "lm":
+        def evaluate(z_):
+            r_, J_ = _residuals_jacobian(jnp.asarray(z_, dtype), problem, init_vec,
+                                         layout=layout)
+            return np.asarray(r_, np.float64), np.asarray(J_, np.float64)
+
+        threshold = max(tol, 10 * float(jnp.finfo(dtype).eps))  # below: rounding of the loss
+        z_np, history, converged, r, J = _levenberg_marquardt(
+            evaluate, np.zeros(n + n_v), steps if steps is not None else 50, threshold)
+        z = jnp.asarray(z_np, dtype)
+    else:
+        z, history, converged = _optax_loop(z, problem, init_vec, layout, optimizer,
+                                            learning_rate, steps, tol, dtype)
+        r, J = _residuals_jacobian(z, problem, init_vec, layout=layout)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
     chi2 = float(r @ r)
-    history.append(0.5 * chi2)
+    if optimizer != "lm":  # the Levenberg–Marquardt history ends at this point already
+        history.append(0.5 * chi2)
     cov_z = np.linalg.pinv(J.T @ J)
     scale = np.concatenate([np.asarray(_scale_vector(free, dtype), np.float64),
                             np.full(n_v, _VELOCITY_SCALE)])

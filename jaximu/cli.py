@@ -14,7 +14,6 @@ exit code 2; ``jaximu COMMAND --help`` describes each command.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import pathlib
@@ -23,9 +22,15 @@ import time
 
 import numpy as np
 
-DEMO_SCHEMES = ("euler", "midpoint", "rk4")
+# the library code the command runs (re-exported: jaximu.cli.run_demo and
+# jaximu.cli.propagate_recording stay importable)
+from jaximu.recording import DEMO_SCHEMES, DEMO_SECONDS, NOISE_PRESETS  # noqa: F401
+from jaximu.recording import default_P0 as _default_P0
+from jaximu.recording import noise_preset as _noise
+from jaximu.recording import propagate_recording, run_demo  # noqa: F401
+from jaximu.recording import save_plot as _plot_or_say
+
 REPORT_AT = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600)
-NOISE_PRESETS = ("euroc", "tum-vi")
 
 
 class UsageError(ValueError):
@@ -33,19 +38,6 @@ class UsageError(ValueError):
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _progress(total, desc, enabled, unit="sample"):
-    """A tqdm bar on stderr (``pip install "jaximu[progress]"``), or None."""
-    if not enabled:
-        return None
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:
-        return None
-    # disable=None: no bar when stderr is not a terminal (logs, CI, subprocess pipes)
-    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, leave=False,
-                disable=None)
 
 
 def _dtype(args):
@@ -57,12 +49,6 @@ def _dtype(args):
             jax.config.update("jax_enable_x64", True)  # the user asked for it on the command line
         return jnp.float64
     return jnp.result_type(float)
-
-
-def _noise(name):
-    import jaximu
-
-    return {"euroc": jaximu.ImuNoise.euroc, "tum-vi": jaximu.ImuNoise.tum_vi}[name]()
 
 
 def _detect_format(path: pathlib.Path) -> str:
@@ -188,83 +174,7 @@ def _bias(text):
     return np.asarray(vals)
 
 
-def _save_plot(fig, path):
-    fig.savefig(path, dpi=110)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    print(f"plot written to {path}")
-
-
-def _plot_or_say(make, path):
-    if not path:
-        return
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-    except ImportError:
-        print("matplotlib is not installed: no plot (pip install \"jaximu[examples]\")")
-        return
-    _save_plot(make(), path)
-
-
 # --------------------------------------------------------------------------- propagation
-
-
-def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
-                        chunk=2000, progress=False):
-    """Propagate state and covariance through a whole recording, chunk by chunk (for the
-    progress bar), exactly as one call: consecutive chunks share their boundary sample, and
-    the intervals ``dt`` are the ends-of-interval form of :func:`jaximu.propagate`.
-
-    Returns:
-        ``(t, states, cov)`` with numpy float64 arrays, the initial state included
-        (``len(data)`` entries).
-    """
-    import jax
-    import jax.numpy as jnp
-
-    import jaximu
-
-    from jaximu import _validation as val
-    from jaximu.errorstate import _check_cov
-
-    # the checks the jit below skips (traced values): run them on the concrete inputs first
-    val.gravity_vector(gravity, dtype)
-    noise = val.check_noise(noise, dtype)
-    _check_cov(P0, dtype)
-    val.check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
-    step = jax.jit(lambda x, P, w, a, h: jaximu.propagate_covariance(
-        x, P, w, a, h, noise, scheme, gravity=gravity))
-    gyro = jnp.asarray(data.gyro, dtype)
-    accel = jnp.asarray(data.accel, dtype)
-    dt = jnp.asarray(data.dt, dtype)
-    x = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0)
-    P = jnp.asarray(P0, dtype)
-    n = len(data.dt)
-    parts_x, parts_P = [x], [P[None]]
-    bar = _progress(n, f"propagate ({scheme})", progress)
-    for lo in range(0, n, chunk):
-        hi = min(lo + chunk, n)
-        states, covs = step(x, P, gyro[lo:hi + 1], accel[lo:hi + 1], dt[lo:hi])
-        x = jax.tree_util.tree_map(lambda a: a[-1], states)
-        P = covs[-1]
-        parts_x.append(states)
-        parts_P.append(covs)
-        if bar is not None:
-            bar.update(hi - lo)
-    if bar is not None:
-        bar.close()
-    parts_x[0] = jax.tree_util.tree_map(lambda a: a[None], parts_x[0])
-    states = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(b, np.float64)
-                                                                for b in a]), *parts_x)
-    cov = np.concatenate([np.asarray(c, np.float64) for c in parts_P])
-    if not (np.isfinite(cov).all() and all(np.isfinite(np.asarray(f)).all()
-                                           for f in jax.tree_util.tree_leaves(states))):
-        raise ValueError("propagation produced non-finite values (overflow): check the units "
-                         "and the time stamps of the recording")
-    return data.t, states, cov
 
 
 def _check_gravity(g):
@@ -275,15 +185,6 @@ def _check_gravity(g):
     if not np.isfinite(g):
         raise UsageError(f"--gravity must be a finite magnitude ≥ 0 [m/s²], got {g}")
     val.gravity_vector(g, np.float64)  # a negative magnitude: an error whose fix is a flag
-
-
-def _default_P0(from_groundtruth):
-    """Initial uncertainty: the ground truth's own (~0.1°, 1 mm, 1 cm/s), or a gravity
-    alignment's (1° tilt, 10° yaw, position/velocity known: the origin and still), and the
-    biases' turn-on spread of a MEMS IMU."""
-    att = [np.deg2rad(0.1)] * 3 if from_groundtruth else [np.deg2rad(1.0)] * 2 + [np.deg2rad(10.0)]
-    sig = np.r_[att, [1e-3] * 3, [1e-2] * 3, [1e-3] * 3, [3e-2] * 3]
-    return np.diag(sig**2)
 
 
 def _report_drift(err, t_start, out=None):
@@ -365,72 +266,6 @@ def cmd_propagate(args):
 
 
 # --------------------------------------------------------------------------- demo
-
-
-def run_demo(seconds: float = 20.0, scheme: str = "midpoint", plot: str | None = "jaximu_demo.png",
-             out=None, progress: bool = False) -> dict:
-    """Dead reckoning on the bundled EuRoC excerpt with every scheme; returns the drift
-    table ``{scheme: {t: (pos_m, vel_mps, att_deg)}}`` (``out``: a text stream, default
-    ``sys.stdout``)."""
-    out = out if out is not None else sys.stdout
-    from importlib import resources
-
-    import jax
-    import jax.numpy as jnp
-
-    from jaximu import io
-
-    with resources.as_file(resources.files("jaximu") / "data" / "euroc_v1_02_medium") as folder:
-        data = io.read_euroc(folder)
-    gt = data.ground_truth
-    start = max(float(data.t[0]), gt.t[0] - io.CLOCK_TOLERANCE)  # where the truth starts
-    data = data.window(start, seconds + io.CLOCK_TOLERANCE)
-    dtype = jnp.result_type(float)  # float32 unless the user enabled x64
-    state0, _ = io.initial_state(data, from_groundtruth=True)
-    noise = _noise("euroc")
-    P0 = _default_P0(True)
-    print(f"jaximu demo: EuRoC MAV V1_02_medium, {len(data.dt)} samples over "
-          f"{data.duration:.2f} s at 200 Hz ({jnp.dtype(dtype).name}, {jax.default_backend()})",
-          file=out)
-    print("propagating from the ground-truth state with the ground-truth biases; "
-          "no corrections (pure dead reckoning)", file=out)
-    report_at = [s for s in (1, 2, 5, 10, 20, 30, 60) if s <= data.duration + 1e-9]
-    if not report_at:  # shorter than the first mark: report at the end
-        report_at = [round(float(seconds), 3)]
-    table, results = {}, {}
-    for sch in DEMO_SCHEMES:
-        tic = time.perf_counter()
-        t, states, cov = propagate_recording(data, state0, P0, noise, sch, dtype,
-                                             progress=progress)
-        results[sch] = (states, cov, time.perf_counter() - tic)
-        err = io.trajectory_errors(t, states, gt, cov)
-        table[sch] = {s: err.at(s, data.t[0]) for s in report_at}
-    print(f"\n{'scheme':<10}" + "".join(f"{f'{s} s':>22}" for s in report_at), file=out)
-    print(f"{'':<10}" + "".join(f"{'pos m / vel m/s / °':>22}" for _ in report_at), file=out)
-    for sch, rows in table.items():
-        cells = "".join(f"{f'{a:.3f} / {b:.3f} / {c:.2f}':>22}" for a, b, c in rows.values())
-        print(f"{sch:<10}{cells}", file=out)
-    horizon = report_at[-1]
-    pos = table[scheme][horizon][0]
-    print(f"\n{scheme}: position drift {pos:.2f} m after {horizon} s ({pos / horizon:.3f} m per "
-          f"second on average); propagation with covariance took {results[scheme][2]:.2f} s "
-          "including compilation", file=out)
-    if plot:
-        states, cov, _ = results[scheme]
-
-        def make():
-            from jaximu.plots import plot_trajectory
-
-            return plot_trajectory(
-                data.t, states, gt, cov, label=f"jaximu {scheme}",
-                title="jaximu: IMU dead reckoning on EuRoC MAV V1_02_medium "
-                      "(real ADIS16448 data)")
-        with contextlib.redirect_stdout(out):
-            _plot_or_say(make, plot)
-    return table
-
-
-DEMO_SECONDS = 20.0  # ground truth in the bundled excerpt
 
 
 def cmd_demo(args):
@@ -631,8 +466,10 @@ def cmd_calibrate(args):
     print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s "
           f"(keyframes every {args.keyframe_interval:g} s, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
-    print(f"compiling the {args.optimizer} step, then fitting (a first run compiles for about "
-          f"{40 if args.optimizer == 'lbfgs' else 10} s on 2 CPU cores"
+    what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step",
+            "adam": "Adam step"}[args.optimizer]
+    print(f"compiling the {what}, then fitting (a first run compiles for about "
+          f"{ {'lm': 10, 'lbfgs': 40, 'adam': 15}[args.optimizer]} s on 2 CPU cores"
           + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
           + ")…", flush=True)
     tic = time.perf_counter()
@@ -805,8 +642,8 @@ def build_parser():
     p.set_defaults(func=cmd_montecarlo)
 
     p = sub.add_parser("calibrate", help="fit IMU biases (or scale, misalignment, …) to ground truth",
-                       description="Fit IMU calibration parameters by gradient descent (optax "
-                       "L-BFGS) on preintegration residuals between ground-truth keyframes; "
+                       description="Fit IMU calibration parameters (Levenberg-Marquardt, or "
+                       "optax L-BFGS/Adam) on preintegration residuals between ground-truth keyframes; "
                        "print them with their Laplace 1σ.")
     _add_input_options(p)
     p.add_argument("--estimate", default="b_g,b_a",
@@ -815,11 +652,11 @@ def build_parser():
     p.add_argument("--keyframe-interval", type=float, default=0.5,
                    help="seconds between keyframes (> 0, at least one sample interval)")
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
-    p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"],
-                   help="optax L-BFGS (default; ~40 s to compile on 2 CPU cores) or Adam "
-                   "(compiles in ~10 s, needs more steps)")
+    p.add_argument("--optimizer", default="lm", choices=["lm", "lbfgs", "adam"],
+                   help="Levenberg-Marquardt on the residuals (default: compiles least, fewest "
+                   "steps), optax L-BFGS or Adam")
     p.add_argument("--steps", type=int, default=None,
-                   help="optimiser steps (≥ 1; default: 100 L-BFGS, 1000 Adam)")
+                   help="optimiser steps (≥ 1; default: 50 LM, 100 L-BFGS, 1000 Adam)")
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
     p.add_argument("--float64", action="store_true", help="compute in float64")
@@ -867,7 +704,7 @@ FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": 
          "sort": "--sort", "drop_duplicates": "--drop-duplicates",
          "drop_nonfinite": "--drop-nonfinite", "allow_gaps": "--allow-gaps",
          "max_gap": "--max-gap", "gravity": "--gravity",
-         "keyframe_interval": "--keyframe-interval"}
+         "keyframe_interval": "--keyframe-interval", "seconds": "--seconds"}
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
 API_ONLY_OPTIONS = frozenset()
 """Options the library's fixes may name that have no flag (rendered as keywords)."""

@@ -193,8 +193,26 @@ def _require_analytic(att: Attitude):
 
 
 def discrete_process_noise(G, noise: ImuNoise, dt):
-    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``. ``(..., 15, 15)``."""
-    qc = noise.discrete_variances(dt, G.dtype)
+    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``.
+
+    Args:
+        G: ``(..., 15, 12)`` noise Jacobian (error state ``[dθ, dp, dv, db_g, db_a]`` by
+            noise ``[n_g, n_a, n_wg, n_wa]``, as :func:`step_jacobians` returns), finite.
+        noise: :class:`jaximu.ImuNoise` (continuous densities, ``≥ 0``, finite).
+        dt: scalar or ``(...,)`` step [s], ``> 0`` and finite.
+
+    Returns:
+        ``(..., 15, 15)`` in ``G``'s dtype (float32 for integer or half-precision ``G``).
+        Shapes and types are checked always, values on eager calls.
+    """
+    dtype = val.float_dtype(G)
+    G = val.to_dtype("G", G, dtype)
+    if G.ndim < 2 or G.shape[-2:] != (15, 12):
+        raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
+                         f"{tuple(G.shape)}")
+    val.check_finite("G", G)
+    noise = val.check_noise(noise, dtype)
+    qc = noise.discrete_variances(dt, dtype)
     return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
 
 
@@ -267,8 +285,6 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
                              save_all=save_all, lanes=lanes, fast=fast)
-    if kernel == "soa_cov":
-        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
                                           jacobians)
@@ -310,12 +326,11 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, *, scheme, attit
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme=None,
-                               jacobians="analytic"):
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
-    gyro, accel, dt = kernel_samples(scheme or "euler", gyro, accel, dt)
+    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
@@ -329,8 +344,7 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
 
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           None if scheme is None else get_scheme(scheme),
-                                           jacobians)
+                                           get_scheme(scheme), jacobians)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),

@@ -176,6 +176,12 @@ class Scheme:
     def dphi_db(self, omega0, omega1, h, tau):
         return -h, None
 
+    def p_over_v(self, h):
+        """``s`` when every stage's ``wp = s wv`` (then ``Φ``'s p rows are ``s`` times its v
+        rows beyond ``dt I``, and so are ``G``'s: :func:`jaximu._blocks.structured_update`
+        forms them from the v rows), else ``None``. Euler and midpoint: ``h/2``."""
+        return 0.5 * h
+
     @property
     def preintegration(self):
         """Its :class:`jaximu.preintegration.PreintegrationStep` (generic step, noise
@@ -281,6 +287,9 @@ class RK4(Scheme):
         return [Point(None, 0.0, f0, h / 6, h * h / 6),
                 Point(phi_half, 0.5, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
                 Point(END, 1.0, f1, h / 6, 0.0 * h)], phi_end
+
+    def p_over_v(self, h):
+        return None  # Simpson weights: wp/wv is h, h/2 and 0 along the stages
 
     def dphi_db(self, omega0, omega1, h, tau):
         """``-τ I + τ³/(12h) [ω1 - ω0]x`` with ``τ = tau · h``."""

@@ -75,8 +75,11 @@ def _split(theta_sq):
 def _arg(fn: str, name: str, x, tail: tuple):
     """``x`` as an array (a Python list or tuple is fine: a ROS quaternion), checked to end
     in ``tail``; else a ``ValueError`` naming ``so3.fn``, the argument and the shape wanted.
-    A static check: it also runs inside ``jit``, at trace time only."""
+    A static check: it also runs inside ``jit``, at trace time only. Integers (``[1, 0, 0,
+    0]``) are computed in the default float dtype, not in integer arithmetic."""
     x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
     n = len(tail)
     if x.ndim < n or tuple(x.shape[x.ndim - n:]) != tuple(tail):
         want = ", ".join(str(d) for d in tail)

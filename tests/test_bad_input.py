@@ -289,6 +289,14 @@ def test_discrete_process_noise_checks_dt():
     for dt in (0.0, -0.01, np.nan):
         with pytest.raises(ValueError, match=r"dt must be positive and finite"):
             jaximu.discrete_process_noise(G, ImuNoise.euroc(), dt)
+    for bad, message in ((G.T, r"G must have shape \(\.\.\., 15, 12\) .*got \(12, 15\)"),
+                         (G[:12], r"G must have shape \(\.\.\., 15, 12\)"),
+                         (np.zeros(12), r"G must have shape \(\.\.\., 15, 12\)"),
+                         (np.where(G > 0, np.nan, 0.0), r"G contains non-finite")):
+        with pytest.raises(ValueError, match=message):
+            jaximu.discrete_process_noise(bad, ImuNoise.euroc(), 0.01)
+    with pytest.raises(ValueError, match=r"noise must be a jaximu\.ImuNoise, got tuple"):
+        jaximu.discrete_process_noise(G, (1e-3, 1e-2, 1e-5, 1e-4), 0.01)
     n = ImuNoise.euroc()
     Q = np.asarray(jaximu.discrete_process_noise(G, n, 0.01))
     want = np.r_[[n.gyroscope_noise_density**2] * 3, [n.accelerometer_noise_density**2] * 3,
@@ -386,3 +394,57 @@ def test_simulate_parameters_outside_their_domain(call, message):
 def test_io_and_simulate_helpers_name_their_arguments(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+# --------------------------------------------------------------------------- jaximu.recording
+
+
+def _recording_args(**kw):
+    data = jaximu.io.from_arrays(np.arange(5) * 0.01, np.zeros((5, 3)),
+                                 np.tile([0.0, 0.0, 9.81], (5, 1)))
+    args = dict(data=data, state0=NavState.identity(), P0=np.eye(15) * 1e-4,
+                noise=ImuNoise.euroc(), scheme="midpoint", dtype=jnp.float32)
+    args.update(kw)
+    return args
+
+
+@pytest.mark.parametrize("kw,message", [
+    ({"scheme": "rk5"}, r"unknown scheme 'rk5'"),
+    ({"chunk": 0}, r"chunk must be a positive integer, got 0"),
+    ({"dtype": np.float16}, r"dtype must be a floating dtype \(float32 or float64\)"),
+    ({"gravity": -9.81}, r"gravity = -9\.81 is a magnitude"),
+    ({"P0": -np.eye(15)}, r"P0"),
+])
+def test_propagate_recording_names_its_arguments(kw, message):
+    from jaximu.recording import propagate_recording
+
+    with pytest.raises(ValueError, match=message):
+        propagate_recording(**_recording_args(**kw))
+
+
+def test_run_demo_checks_before_the_work(tmp_path):
+    from jaximu.errors import Fix, InputError
+    from jaximu.recording import run_demo
+
+    with pytest.raises(InputError, match=r"seconds=100: the bundled excerpt holds 20 s") as err:
+        run_demo(100.0, plot=None)
+    assert err.value.fixes == (Fix("seconds", 20.0),)
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match=r"seconds must be positive and finite"):
+            run_demo(bad, plot=None)
+    with pytest.raises(ValueError, match=r"unknown scheme 'rk5'"):
+        run_demo(1.0, scheme="rk5", plot=None)
+    with pytest.raises(ValueError, match=r"the folder .*missing does not exist"):
+        run_demo(1.0, plot=str(tmp_path / "missing" / "demo.png"))
+    with pytest.raises(ValueError, match=r"is a folder"):
+        run_demo(1.0, plot=str(tmp_path))
+
+
+def test_so3_of_integer_lists_is_computed_in_floats():
+    """A ROS-style quaternion typed as integers is a rotation, not integer arithmetic."""
+    q = so3.quat_mul([1, 0, 0, 0], [0, 1, 0, 0])
+    assert jnp.issubdtype(q.dtype, jnp.floating)
+    np.testing.assert_allclose(q, [0, 1, 0, 0])
+    R = so3.quat_to_matrix([0, 0, 0, 1])  # 180° about z
+    np.testing.assert_allclose(R, Rotation.from_quat([0, 0, 1, 0]).as_matrix(), atol=1e-6)
+    np.testing.assert_allclose(so3.exp([0, 0, 0]), [1, 0, 0, 0])

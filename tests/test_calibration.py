@@ -1,5 +1,5 @@
 """Calibration and learning: recovery within the predicted uncertainty, exact gradients,
-one compilation for the optax loop, loud failures on wrong units and frames.
+one compilation for the fit, loud failures on wrong units and frames.
 
 References: the simulated truth (biases, scale, misalignment, gravity and time offset drawn
 into the samples by ``simulate.add_noise``), central finite differences, and two independent
@@ -57,15 +57,16 @@ def within(res, truth, n_sigma=3.0):
 def test_recovers_biases_within_predicted_uncertainty_and_compiles_once():
     """Three seeds; 6 components each within 3σ of the Laplace covariance (each check
     fails by chance with probability 0.27% when the covariance is right). The reduced χ²
-    at the estimate lies in its 99.9% interval, and the optax step compiles once."""
+    at the estimate lies in its 99.9% interval, and the residuals-and-Jacobian function of the
+    default optimiser (Levenberg–Marquardt) compiles once."""
     rng = np.random.default_rng(0)
     sizes = []
     for seed in range(3):
         b_g = rng.normal(0, 0.005, 3)
         b_a = rng.normal(0, 0.1, 3)
         prob = problem_for(*simulate_data(seed, b_g, b_a))
-        res = cal.calibrate(prob, optimizer="lbfgs")
-        sizes.append(cal._step._cache_size())
+        res = cal.calibrate(prob)
+        sizes.append(cal._residuals_jacobian._cache_size())
         assert res.converged
         within(res, {"b_g": b_g, "b_a": b_a})
         assert np.asarray(res.std.b_g).max() < 1e-4 and np.asarray(res.std.b_a).max() < 1e-3
@@ -102,14 +103,38 @@ def test_reference_without_velocities_estimates_them_as_nuisance():
     t_key = t[0] + np.arange(prob.n_windows + 1) * 0.5
     v_true = np.asarray(sim.true_states(TRAJ, jnp.asarray(t_key)).v)
     assert np.abs(res.velocities - v_true).max() < 0.01
+    # The velocity columns of the Jacobian (6 tangents per window, scattered to its two
+    # keyframes) against central differences of the residuals in three keyframe velocities.
+    layout = cal._Layout(("b_g", "b_a"), prob.velocities.size)
+    init_vec = cal._flatten(cal.ImuCalibration.default(dtype=jnp.float64))
+    z = jnp.asarray(np.random.default_rng(1).normal(0, 0.3, 6 + layout.n_velocity))
+    _, J = cal._residuals_jacobian(z, prob, init_vec, layout=layout)
+    res_of = jax.jit(lambda z_: cal.calibration_residuals(
+        prob, *cal._unpack(z_, init_vec, prob.velocities, layout)).reshape(-1))
+    for col in (6 + 0, 6 + 3 * 7 + 2, 6 + layout.n_velocity - 1):  # first, inner, last
+        e = np.zeros(len(z))
+        e[col] = 1e-4
+        fd = (np.asarray(res_of(z + e)) - np.asarray(res_of(z - e))) / 2e-4
+        np.testing.assert_allclose(np.asarray(J)[:, col], fd, rtol=1e-5,
+                                   atol=1e-7 * np.abs(fd).max())
+        assert np.count_nonzero(np.asarray(J)[:, col]) <= 18  # only the windows it bounds
     with_v = cal.calibrate(problem_for(t, gm, am, ref))
     assert np.all(np.asarray(res.std.b_a) > np.asarray(with_v.std.b_a))  # less information
 
 
-def test_adam_reaches_the_lbfgs_optimum():
+def test_adam_and_levenberg_marquardt_reach_the_lbfgs_optimum():
     b_g, b_a = np.array([0.002, 0.001, -0.003]), np.array([-0.05, 0.03, 0.07])
     prob = problem_for(*simulate_data(5, b_g, b_a))
     a = cal.calibrate(prob, optimizer="lbfgs")
+    lm = cal.calibrate(prob)  # the default
+    assert lm.converged and len(lm.loss_history) < 10
+    for name in ("b_g", "b_a"):
+        np.testing.assert_allclose(np.asarray(getattr(lm.calibration, name)),
+                                   np.asarray(getattr(a.calibration, name)),
+                                   atol=0.01 * float(np.asarray(getattr(a.std, name)).min()))
+        np.testing.assert_allclose(np.asarray(getattr(lm.std, name)),
+                                   np.asarray(getattr(a.std, name)), rtol=1e-3)
+    assert lm.chi2 <= a.chi2 * (1 + 1e-9)
     b = cal.calibrate(prob, optimizer="adam", learning_rate=0.05, steps=2000, tol=1e-12)
     np.testing.assert_allclose(np.asarray(b.calibration.b_g), np.asarray(a.calibration.b_g),
                                atol=0.05 * float(np.asarray(a.std.b_g).min()))

@@ -164,7 +164,7 @@ def test_reader_errors_carry_their_repair_as_data():
 def test_the_command_renders_every_fix_the_library_can_raise():
     """Every ``Fix(option, …)`` in the library's source has a flag (the command's parser
     knows it), or is declared as having none; ``_as_flags``' string rewriting is gone."""
-    src = "\n".join(p.read_text() for p in pathlib.Path(cli.__file__).parent.glob("*.py"))
+    src = "\n".join(p.read_text() for p in pathlib.Path(cli.__file__).parent.rglob("*.py"))
     options = set(re.findall(r"\bFix\(\s*\"(\w+)\"", src))
     assert {"gyro_unit", "accel_unit", "sort", "check_units"} <= options
     parser_flags = set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"",

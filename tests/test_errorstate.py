@@ -210,7 +210,9 @@ def test_covariance_is_symmetric_psd_and_final_matches():
     eig = np.linalg.eigvalsh(P)
     assert eig.min() > -1e-12 * eig.max()
     _, P_final = jaximu.propagate_covariance_final(state, P0, gyro, accel, 0.005, noise, "rk4")
-    np.testing.assert_allclose(P_final, P[-1], rtol=0, atol=1e-15 * np.abs(P).max())
+    # the final covariance runs on the SoA kernel (soa_cov_analytic), every covariance on the
+    # generic one: the same formulas in another order, equal to rounding (400 steps)
+    np.testing.assert_allclose(P_final, P[-1], rtol=0, atol=1e-13 * np.abs(P).max())
 
 
 def test_covariance_growth_of_still_imu_matches_closed_form():

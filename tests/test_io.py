@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
+import jaximu
 from jaximu import io
 from jaximu.state import NavState
 
@@ -45,7 +46,7 @@ def test_euroc_segment_keeps_nanoseconds_and_ground_truth():
     # the imu0/data.csv path and the mav0 folder give the same
     assert len(io.read_euroc(EUROC / "mav0/imu0/data.csv")) == len(data)
     # the bundled flat excerpt (imu.csv + groundtruth.csv)
-    assert len(io.read_euroc(pathlib.Path(io.__file__).parent / "data/euroc_v1_02_medium")) == 4002
+    assert len(io.read_euroc(pathlib.Path(jaximu.__file__).parent / "data/euroc_v1_02_medium")) == 4002
 
 
 def test_tumvi_segment_pose_only_ground_truth_with_dropouts():

@@ -1,0 +1,53 @@
+"""What the readers and writers share: units, plausibility limits, the error type and how
+rows are named in messages."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from jaximu.errors import InputError
+
+#: Standard gravity [m/s²], used to convert accelerometers that report in g.
+STANDARD_GRAVITY = 9.80665
+_TIME_UNITS = {"s": 10**9, "ms": 10**6, "us": 10**3, "ns": 1}
+_GYRO_UNITS = {"rad/s": 1.0, "deg/s": math.pi / 180.0}
+_ACCEL_UNITS = {"m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0, "g": STANDARD_GRAVITY}
+# Plausibility limits: the widest common MEMS gyro range is ±2000 °/s (34.9 rad/s), and no
+# recording turns at > 10 rad/s (1.6 rev/s) on median; a still or moving accelerometer reads
+# ~9.81 m/s² on median, ~1 if it reports in g.
+_GYRO_MAX = 35.0
+_GYRO_MEDIAN_MAX = 10.0
+_ACCEL_MEDIAN_RANGE = (3.0, 60.0)
+_DT_RANGE = (1e-5, 1.0)  # 1 Hz … 100 kHz
+GAP_FACTOR = 5.0  # default gap threshold: this many median intervals
+CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant
+
+
+class DataError(InputError):
+    """A recording that cannot be used as it is; the message names the rows, and
+    :attr:`fixes` holds the options that repair it (:class:`jaximu.errors.InputError`)."""
+
+
+def _rows(labels, idx, limit=5) -> str:
+    idx = np.asarray(idx).ravel()
+    shown = ", ".join(str(labels[i]) for i in idx[:limit])
+    more = f", … ({len(idx)} in all)" if len(idx) > limit else ""
+    return shown + more
+
+
+def _labels(n, lines=None):
+    if lines is None:
+        return [f"row {i}" for i in range(n)]
+    return [f"line {int(k)}" for k in lines]
+
+
+REPAIR_DOC = """sort, drop_duplicates, drop_nonfinite, max_gap, allow_gaps, check_units:
+            see :func:`jaximu.io.validate_imu` (the default raises :class:`DataError`)."""
+
+
+def with_repair_doc(f):
+    """Put :data:`REPAIR_DOC` into ``f``'s docstring (its ``{repair}``)."""
+    f.__doc__ = f.__doc__.replace("{repair}", REPAIR_DOC)
+    return f

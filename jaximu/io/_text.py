@@ -1,0 +1,133 @@
+"""Delimited text: tables, header columns, exact decimal stamps."""
+
+from __future__ import annotations
+
+import pathlib
+import re
+from decimal import Decimal, InvalidOperation
+
+import numpy as np
+
+from jaximu.errors import Fix
+from jaximu.io._common import _TIME_UNITS, DataError
+
+
+def _sniff_delimiter(line):
+    for d in (",", "\t", ";"):
+        if d in line:
+            return d
+    return None  # whitespace
+
+
+def _split(line, delimiter):
+    parts = line.split(delimiter) if delimiter else line.split()
+    return [p.strip() for p in parts]
+
+
+def _is_number(s):
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _read_table(path, delimiter=None, comment="#"):
+    """``(header, rows, lines)``: the header fields (or None), the text fields of each data
+    row and its 1-based line number.
+
+    The header is a first line none of whose fields is a number, or else the last comment
+    line before the data with as many fields as the data (ASL files: ``#timestamp [ns],…``).
+    Every other non-comment line is data: a text field there is reported when its column is
+    used, never dropped as a header.
+    """
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise DataError(f"{path} is a directory, not a file")
+    if not path.is_file():
+        raise DataError(f"no such file: {path}")
+    try:
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
+    except UnicodeDecodeError:
+        raise DataError(f"{path} is not a text file") from None
+    numbered = [(k, ln.strip()) for k, ln in enumerate(text.splitlines(), start=1) if ln.strip()]
+    if delimiter is None:  # sniffed from the first data line (a comment may hold anything)
+        first = next((ln for _, ln in numbered if not ln.startswith(comment)), "")
+        delimiter = _sniff_delimiter(first)
+    header, comments, rows, lines = None, [], [], []
+    for k, line in numbered:
+        if line.startswith(comment):
+            if not rows:
+                comments.append(_split(line.lstrip(comment), delimiter))
+            continue
+        fields = _split(line, delimiter)
+        if not rows and header is None and not any(_is_number(f) for f in fields if f):
+            header = fields
+            continue
+        rows.append(fields)
+        lines.append(k)
+    if not rows:
+        raise DataError(f"{path}: no data rows")
+    if header is None:
+        header = next((c for c in reversed(comments) if len(c) == len(rows[0])), None)
+    return header, rows, np.asarray(lines)
+
+
+def _column(header, spec, path):
+    if isinstance(spec, (int, np.integer)):
+        return int(spec)
+    if header is None:
+        raise DataError(f"{path} has no header line: give columns by index, not {spec!r}")
+    norm = lambda s: s.split("[")[0].strip().lower()  # noqa: E731  "w_RS_S_x [rad s^-1]"
+    for i, h in enumerate(header):
+        if h.strip().lower() == spec.lower() or norm(h) == norm(spec):
+            return i
+    raise DataError(f"{path}: no column named {spec!r}; the header has {header}")
+
+
+def _to_ns(text, unit_ns, label):
+    """Exact integer nanoseconds from a decimal string (no float rounding)."""
+    try:
+        exact = Decimal(text) * unit_ns
+        ns = int(exact.to_integral_value())
+    except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
+        raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
+    if unit_ns == 1 and exact != ns:
+        raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
+    if abs(ns) > np.iinfo(np.int64).max:
+        raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
+                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
+    return ns
+
+
+def _parse(rows, lines, time_col, value_cols, time_unit, path):
+    width = max([time_col, *value_cols]) + 1
+    unit_ns = _TIME_UNITS[time_unit]
+    stamps = np.empty(len(rows), np.int64)
+    values = np.empty((len(rows), len(value_cols)), np.float64)
+    for r, (fields, k) in enumerate(zip(rows, lines)):
+        if len(fields) < width:
+            raise DataError(f"{path}, line {k}: expected at least {width} columns, "
+                            f"got {len(fields)}")
+        stamps[r] = _to_ns(fields[time_col], unit_ns, f"{path}, line {k}")
+        try:
+            values[r] = [float(fields[c]) for c in value_cols]
+        except ValueError:
+            bad = next(fields[c] for c in value_cols if not _is_number(fields[c]))
+            raise DataError(f"{path}, line {k}: {bad!r} is not a number") from None
+    return stamps, values
+
+
+def _check_unit(kind, unit, table):
+    if unit not in table:
+        raise ValueError(f"unknown {kind} {unit!r}; choose one of {sorted(table)}")
+    return table[unit]
+
+
+def _header_time_unit(header, col):
+    """The unit a header states for the time column (``#timestamp [ns]``), or None."""
+    if header is None or col >= len(header):
+        return None
+    m = re.search(r"\[\s*(ns|us|µs|ms|s)\s*\]", str(header[col]))
+    return None if m is None else {"µs": "us"}.get(m.group(1), m.group(1))

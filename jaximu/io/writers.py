@@ -1,0 +1,154 @@
+"""Trajectories out and back: TUM pose files and states with covariances (CSV or NPZ)."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from jaximu.io._common import DataError
+from jaximu.io._text import _parse, _read_table
+
+
+def _stamps(t, t0_ns):
+    """Absolute int64 ns stamps from seconds since ``t0_ns`` (exact for ns-grid times)."""
+    return int(t0_ns) + np.round(np.asarray(t, np.float64) * 1e9).astype(np.int64)
+
+
+def _seconds_text(ns):
+    ns = int(ns)
+    sign = "-" if ns < 0 else ""
+    return f"{sign}{abs(ns) // 10**9}.{abs(ns) % 10**9:09d}"
+
+
+def _pose_arrays(states):
+    q = np.asarray(states.q, np.float64)
+    p = np.asarray(states.p, np.float64)
+    if q.ndim != 2 or p.ndim != 2:
+        raise ValueError(f"states must hold one trajectory: q (T, 4), p (T, 3); got "
+                         f"{q.shape}, {p.shape}")
+    return q, p
+
+
+def write_tum(path, t, states, *, t0_ns: int = 0) -> None:
+    """Write poses in the TUM trajectory format, one ``t tx ty tz qx qy qz qw`` per line.
+
+    This is what ``evo`` (``evo_ape tum gt.txt est.txt``) and the TUM RGB-D tools read.
+
+    Args:
+        path: output file.
+        t: ``(T,)`` times [s] since ``t0_ns``; written as absolute seconds with all nine
+            decimals, from integer nanoseconds (no float rounding of the epoch).
+        states: a :class:`jaximu.NavState` (or anything with ``q`` ``(T, 4)`` Hamilton
+            ``[w, x, y, z]`` of ``R_WB`` and ``p`` ``(T, 3)``); the file has ``[x, y, z, w]``.
+        t0_ns: the epoch of ``t = 0`` [ns] (:attr:`ImuData.t0_ns`).
+    """
+    q, p = _pose_arrays(states)
+    if len(t) != len(q):
+        raise ValueError(f"t has {len(t)} entries, states {len(q)}")
+    stamps = _stamps(t, t0_ns)
+    with open(path, "w") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw (jaximu: W z-up, q of R_WB)\n")
+        for s, pk, qk in zip(stamps, p, q):
+            f.write(f"{_seconds_text(s)} {pk[0]:.9f} {pk[1]:.9f} {pk[2]:.9f} "
+                    f"{qk[1]:.9f} {qk[2]:.9f} {qk[3]:.9f} {qk[0]:.9f}\n")
+
+
+def read_tum(path):
+    """Read a TUM trajectory file.
+
+    Returns:
+        ``(stamps_ns, p, q)``: ``(T,)`` int64 ns (exact from the decimal text), ``(T, 3)``,
+        ``(T, 4)`` Hamilton ``[w, x, y, z]`` (converted from the file's ``[x, y, z, w]``).
+    """
+    _, rows, lines = _read_table(path, None)
+    for fields, k in zip(rows, lines):
+        if len(fields) != 8:
+            raise DataError(f"{path}, line {k}: a TUM pose has 8 values, got {len(fields)}")
+    stamps, values = _parse(rows, lines, 0, range(1, 8), "s", path)
+    return stamps, values[:, 0:3], values[:, [6, 3, 4, 5]]
+
+
+_STATE_FIELDS = (("q", ("w", "x", "y", "z")), ("p", "xyz"), ("v", "xyz"), ("b_g", "xyz"),
+                 ("b_a", "xyz"))
+_ERROR_NAMES = [f"{b}_{c}" for b in ("theta", "p", "v", "b_g", "b_a") for c in "xyz"]
+
+
+def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: bool = True):
+    """Write states (and covariances) to CSV or NPZ, by the file's suffix.
+
+    CSV: a header line, then per state ``stamp_ns, t, q_w … q_z, p_x …, v_x …, b_g_x …,
+    b_a_x …``, then the standard deviations ``sigma_theta_x … sigma_b_a_z`` (error state
+    ``[dθ, dp, dv, db_g, db_a]``, rotation error on the right) and, with
+    ``full_covariance``, the upper triangle of ``P`` as ``P_i_j``. NPZ: arrays
+    ``stamps_ns, t, q, p, v, b_g, b_a`` and ``cov`` ``(T, 15, 15)``.
+
+    Args:
+        t: ``(T,)`` [s] since ``t0_ns``; states: a :class:`jaximu.NavState` with ``(T, ·)``
+        fields; cov: ``(T, 15, 15)`` or ``None``.
+    """
+    path = pathlib.Path(path)
+    arrays = {name: np.asarray(getattr(states, name), np.float64) for name, _ in _STATE_FIELDS}
+    T = len(arrays["q"])
+    if np.ndim(t) != 1 or len(t) != T or any(a.ndim != 2 or len(a) != T for a in arrays.values()):
+        raise ValueError(f"t (T,) and states with (T, ·) fields expected; got t {np.shape(t)}, "
+                         + ", ".join(f"{k} {a.shape}" for k, a in arrays.items()))
+    if cov is not None:
+        cov = np.asarray(cov, np.float64)
+        if cov.shape != (T, 15, 15):
+            raise ValueError(f"cov must have shape ({T}, 15, 15), got {cov.shape}")
+    stamps = _stamps(t, t0_ns)
+    if path.suffix == ".npz":
+        extra = {} if cov is None else {"cov": cov}
+        np.savez(path, stamps_ns=stamps, t=np.asarray(t, np.float64), t0_ns=np.int64(t0_ns),
+                 **arrays, **extra)
+        return
+    if path.suffix != ".csv":
+        raise ValueError(f"write_states writes .csv or .npz, not {path.suffix!r}")
+    cols = ["stamp_ns", "t"] + [f"{n}_{c}" for n, comps in _STATE_FIELDS for c in comps]
+    block = [np.asarray(t, np.float64)[:, None]] + [arrays[n] for n, _ in _STATE_FIELDS]
+    if cov is not None:
+        cols += [f"sigma_{n}" for n in _ERROR_NAMES]
+        block.append(np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None)))
+        if full_covariance:
+            iu = np.triu_indices(15)
+            cols += [f"P_{i}_{j}" for i, j in zip(*iu)]
+            block.append(cov[:, iu[0], iu[1]])
+    values = np.concatenate(block, axis=1)
+    with open(path, "w") as f:
+        f.write(",".join(cols) + "\n")
+        for s, row in zip(stamps, values):
+            f.write(f"{s}," + ",".join(repr(float(x)) for x in row) + "\n")
+
+
+def read_states(path):
+    """Read what :func:`write_states` wrote.
+
+    Returns:
+        ``(stamps_ns, states, cov)``: int64 ``(T,)``, a :class:`jaximu.NavState` of numpy
+        float64 arrays, and ``(T, 15, 15)`` (``None`` if not written; from a CSV without the
+        full covariance, diagonal from the standard deviations).
+    """
+    from jaximu.state import NavState  # noqa: PLC0415
+
+    path = pathlib.Path(path)
+    if path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            states = NavState(*(z[n] for n, _ in _STATE_FIELDS))
+            return z["stamps_ns"], states, (z["cov"] if "cov" in z.files else None)
+    header, rows, lines = _read_table(path, ",")
+    if header is None or header[0] != "stamp_ns":
+        raise DataError(f"{path}: not a jaximu states CSV (no 'stamp_ns' header)")
+    stamps, values = _parse(rows, lines, 0, range(1, len(header)), "ns", path)
+    col = {name: i - 1 for i, name in enumerate(header)}
+    take = lambda names: values[:, [col[n] for n in names]]  # noqa: E731
+    states = NavState(*(take([f"{n}_{c}" for c in comps]) for n, comps in _STATE_FIELDS))
+    cov = None
+    if "P_0_0" in col:
+        cov = np.zeros((len(stamps), 15, 15))
+        for i, j in zip(*np.triu_indices(15)):
+            cov[:, i, j] = cov[:, j, i] = values[:, col[f"P_{i}_{j}"]]
+    elif "sigma_theta_x" in col:
+        sig = take([f"sigma_{n}" for n in _ERROR_NAMES])
+        cov = sig[:, :, None] ** 2 * np.eye(15)
+    return stamps, states, cov
