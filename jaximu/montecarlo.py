@@ -281,7 +281,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
     lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
     """
-    from jaximu._fast import blocks_to_dense, cov_step, cov_step_blocks, dense_to_blocks
+    from jaximu._fast import blocks_to_dense, cov_step_blocks, dense_to_blocks
     from jaximu.errorstate import ekf_update, position_jacobian
 
     sch = SCHEME_OBJECTS[scheme]
@@ -302,7 +302,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     def step(carry, xs):
         k, row = xs
         # a materialised copy: a dynamic slice of the scan inputs inside the lane fusions
-        # stops LLVM from vectorising them (as in jaximu._fast.cov_step); one row, one copy
+        # stops LLVM from vectorising them (as in the SoA covariance kernels); one row, one copy
         row = _materialise(row)
         w, a, sd, sw, qc = (tuple(row[i] for i in range(lo, hi)) for lo, hi in (
             (0, 3), (3, 6), (6, 12), (12, 18), (19, row.shape[0])))
@@ -324,10 +324,6 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         if not filt:
             q1, p1, v1 = mean_step(sch, carry["q"], carry["p"], carry["v"], omega0, f0, omega1,
                                    f1, h, g)
-        elif scheme == "euler":
-            q1, p1, v1, out["P"] = cov_step((carry["q"], tuple(carry["p"]), tuple(carry["v"]),
-                                             carry["P"]), tuple(omega0), tuple(f0), h, tuple(g),
-                                            qc)
         else:
             q1, p1, v1, out["P"] = cov_step_blocks(
                 sch, "analytic", (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]),
@@ -474,7 +470,7 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     P0 = np.asarray(P0, np.float64)
     if P0.shape != (15, 15):
         raise ValueError(f"P0 must have shape (15, 15), got {P0.shape}")
-    _check_cov(P0, np.float64)
+    _check_cov(P0, dtype)
     lam, V = np.linalg.eigh(0.5 * (P0 + P0.T))
     L0 = V * np.sqrt(np.clip(lam, 0, None))  # L0 L0ᵀ = P0, also if singular
     model_noise = val.check_noise(model_noise, dtype)
