@@ -14,6 +14,7 @@ from jaximu import sensor as sensor
 from jaximu import so3 as so3
 from jaximu import world as world
 from jaximu.errorstate import discrete_process_noise as discrete_process_noise
+from jaximu.errorstate import ekf_update as ekf_update
 from jaximu.errorstate import propagate_covariance as propagate_covariance
 from jaximu.errorstate import propagate_covariance_final as propagate_covariance_final
 from jaximu.errorstate import step_jacobians as step_jacobians

@@ -188,7 +188,8 @@ def _add_output_options(p, plot_default=None):
 
 def _check_outputs(**paths):
     """Fail before the work, not after it: the output folders exist, the suffixes are known."""
-    suffixes = {"states": (".csv", ".npz"), "plot": (".png", ".pdf", ".svg", ".jpg")}
+    suffixes = {"states": (".csv", ".npz"), "plot": (".png", ".pdf", ".svg", ".jpg"),
+                "save": (".npz",)}
     for name, path in paths.items():
         if not path:
             continue
@@ -417,7 +418,7 @@ def cmd_montecarlo(args):
     if args.seconds * args.rate < 1:
         raise UsageError(f"--seconds {args.seconds:g} at --rate {args.rate:g} Hz holds no sample "
                          f"interval; pass --seconds ≥ {1 / args.rate:g} or a higher --rate")
-    _check_outputs(plot=args.plot)
+    _check_outputs(plot=args.plot, save=args.save)
     dtype = _dtype(args)
     traj = {"circle": simulate.circle, "figure-eight": simulate.figure_eight,
             "lissajous": simulate.lissajous, "helix": simulate.helix}[args.trajectory]()
@@ -425,26 +426,47 @@ def cmd_montecarlo(args):
     times = jnp.arange(n + 1, dtype=dtype) / args.rate
     sig = np.r_[[np.deg2rad(0.1)] * 3, [0.01] * 3, [0.01] * 3, [1e-4] * 3, [1e-3] * 3]
     P0 = jnp.asarray(np.diag(sig**2), dtype)
-    print(f"Monte Carlo: {args.runs} runs of {args.seconds:g} s of {args.trajectory} at "
-          f"{args.rate:g} Hz, noise {args.noise}, scheme {args.scheme} "
-          f"({np.dtype(dtype).name}, {jax.device_count()} {jax.default_backend()} device(s))")
+    if args.filter is not None and args.filter < 1:
+        raise UsageError(f"--filter must be a number of samples ≥ 1, got {args.filter}")
+    if not (args.fix_sigma > 0 and np.isfinite(args.fix_sigma)):
+        raise UsageError(f"--fix-sigma must be positive and finite, got {args.fix_sigma:g}")
+    say = print if jax.process_index() == 0 else (lambda *a, **k: None)  # one report
+    say(f"Monte Carlo: {args.runs} runs of {args.seconds:g} s of {args.trajectory} at "
+        f"{args.rate:g} Hz, noise {args.noise}, scheme {args.scheme} "
+        f"({np.dtype(dtype).name}, {jax.local_device_count()} {jax.default_backend()} device(s)"
+        f"{f' × {jax.process_count()} processes' if jax.process_count() > 1 else ''})"
+        + (f"; filter: position fix (σ {args.fix_sigma:g} m) every {args.filter} samples"
+           if args.filter else ""))
     tic = time.perf_counter()
     res = montecarlo.monte_carlo(traj, times, P0, _noise(args.noise), args.runs,
                                  jax.random.PRNGKey(args.seed), scheme=args.scheme,
-                                 record_every=max(1, n // 50), progress=not args.no_progress,
+                                 record_every=max(1, n // 50), update_every=args.filter,
+                                 measurement=montecarlo.PositionFix(args.fix_sigma),
+                                 progress=not args.no_progress and jax.process_index() == 0,
                                  dtype=dtype)
-    print(f"done in {time.perf_counter() - tic:.2f} s including compilation")
+    say(f"done in {time.perf_counter() - tic:.2f} s including compilation")
     lo, hi = res.nees_bounds
     inside = float(np.mean(res.consistent))
-    print(f"average NEES at the end {res.nees_mean[-1]:.2f} (expected 15, "
-          f"{100 * res.confidence:.0f}% interval [{lo:.2f}, {hi:.2f}]); inside the interval at "
-          f"{100 * inside:.0f}% of the recorded times")
+    say(f"average NEES at the end {res.nees_mean[-1]:.2f} (expected 15, "
+        f"{100 * res.confidence:.0f}% interval [{lo:.2f}, {hi:.2f}]); inside the interval at "
+        f"{100 * inside:.0f}% of the recorded times")
+    if res.nis_mean is not None:
+        ok = np.isfinite(res.nis_mean)
+        nlo, nhi = res.nis_bounds
+        say(f"average NIS at the last update {res.nis_mean[ok][-1]:.2f} (expected 3, "
+            f"interval [{nlo:.2f}, {nhi:.2f}]); inside at "
+            f"{100 * np.mean((res.nis_mean[ok] >= nlo) & (res.nis_mean[ok] <= nhi)):.0f}% of "
+            "the updates")
     names = ("attitude [°]", "position [m]", "velocity [m/s]")
+    what = "filter" if args.filter else "predicted"
     for name, i0, scale in zip(names, (0, 3, 6), (np.rad2deg(1.0), 1.0, 1.0)):
         pred = np.sqrt(np.diag(res.predicted_cov[-1])[i0:i0 + 3]) * scale
         emp = np.sqrt(np.diag(res.error_cov[-1])[i0:i0 + 3]) * scale
-        print(f"final 1σ {name:<15} predicted {np.array2string(pred, precision=4)}"
-              f"  Monte Carlo {np.array2string(emp, precision=4)}")
+        say(f"final 1σ {name:<15} {what} {np.array2string(pred, precision=4)}"
+            f"  Monte Carlo {np.array2string(emp, precision=4)}")
+    if args.save and jax.process_index() == 0:
+        res.save(args.save)
+        say(f"wrote {args.save}")
 
     def make():
         from jaximu.plots import plot_monte_carlo
@@ -668,6 +690,13 @@ def build_parser():
     p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
     p.add_argument("--scheme", default="euler", choices=DEMO_SCHEMES)
     p.add_argument("--seed", type=int, default=0, help="PRNG seed (any integer)")
+    p.add_argument("--filter", type=int, metavar="N", default=None,
+                   help="filter study: every run propagates its own covariance and takes a "
+                   "position fix every N samples (error-state EKF, Joseph form); NEES and NIS")
+    p.add_argument("--fix-sigma", type=float, default=0.05,
+                   help="position fix standard deviation [m] (> 0) for --filter")
+    p.add_argument("--save", metavar="NPZ",
+                   help="write the result with its settings (jaximu.montecarlo.load_result)")
     _add_output_options(p)
     p.set_defaults(func=cmd_montecarlo)
 

@@ -56,6 +56,8 @@ __all__ = [
     "discrete_process_noise",
     "propagate_covariance",
     "propagate_covariance_final",
+    "ekf_update",
+    "position_jacobian",
     "JACOBIANS",
 ]
 
@@ -474,3 +476,63 @@ def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuN
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
                              jacobians, False, body_P_sensor, tangential, omega_coriolis,
                              coriolis_mode(coriolis_exact, coriolis_second_order))
+
+
+# --------------------------------------------------------------------------- EKF update
+
+
+def position_jacobian(dtype=None):
+    """``H = [0, I, 0, 0, 0]``, ``(3, 15)``: a position fix ``z = p + ν`` in the error state
+    (the residual is ``z - p̂``)."""
+    H = np.zeros((3, 15))
+    H[:, 3:6] = np.eye(3)
+    return jnp.asarray(H, dtype or jnp.result_type(float))
+
+
+def ekf_update(state: NavState, P, residual, H, R):
+    """Error-state EKF update, Joseph form (batched over leading axes, differentiable).
+
+    With the innovation covariance ``S = H P Hᵀ + R`` and gain ``K = P Hᵀ S⁻¹``::
+
+        δx = K ν,   x⁺ = x ⊞ δx,   P⁺ = (I - K H) P (I - K H)ᵀ + K R Kᵀ,   NIS = νᵀ S⁻¹ ν.
+
+    The Joseph form keeps ``P⁺`` symmetric positive semi-definite under rounding and for any
+    gain. ``S`` is factored by Cholesky (no explicit inverse). The error state is not reset
+    through ``∂(x ⊞ δx)``'s rotation Jacobian (first order, as OpenVINS).
+
+    Args:
+        state: the estimate :class:`NavState` (fields ``batch + (·)``).
+        P: ``batch + (15, 15)`` its error covariance ``[dθ, dp, dv, db_g, db_a]``.
+        residual: ``batch + (m,)`` ``ν = z - h(x̂)`` (e.g. ``z - p̂`` for a position fix).
+        H: ``(m, 15)`` or ``batch + (m, 15)`` measurement Jacobian ``∂h/∂δ``
+            (:func:`position_jacobian`).
+        R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
+            positive definite.
+
+    Returns:
+        ``(state⁺, P⁺, nis)`` with ``nis`` of shape ``batch``.
+    """
+    P, residual, H, R = (jnp.asarray(x) for x in (P, residual, H, R))
+    if P.shape[-2:] != (15, 15):
+        raise ValueError(f"P must have shape (..., 15, 15), got {tuple(P.shape)}")
+    if H.ndim < 2 or H.shape[-1] != 15:
+        raise ValueError(f"H must have shape (..., m, 15), got {tuple(H.shape)}")
+    m = H.shape[-2]
+    if residual.shape[-1:] != (m,):
+        raise ValueError(f"residual must have shape (..., {m}) to match H {tuple(H.shape)}, got "
+                         f"{tuple(residual.shape)}")
+    if R.shape[-2:] != (m, m):
+        raise ValueError(f"R must have shape (..., {m}, {m}) to match H, got {tuple(R.shape)}")
+    mT = lambda X: jnp.swapaxes(X, -1, -2)  # noqa: E731
+    PHt = P @ mT(H)  # (..., 15, m)
+    S = H @ PHt + R
+    S = 0.5 * (S + mT(S))
+    Lc = jnp.linalg.cholesky(S)
+    solve = lambda B: jax.scipy.linalg.cho_solve((Lc, True), B)  # noqa: E731
+    K = mT(solve(mT(PHt)))  # P Hᵀ S⁻¹, (..., 15, m)
+    white = jax.scipy.linalg.solve_triangular(Lc, residual[..., None], lower=True)[..., 0]
+    nis = jnp.sum(white * white, -1)
+    dx = (K @ residual[..., None])[..., 0]
+    A = jnp.eye(15, dtype=P.dtype) - K @ H
+    P_new = A @ P @ mT(A) + K @ R @ mT(K)
+    return boxplus(state, dx), 0.5 * (P_new + mT(P_new)), nis
