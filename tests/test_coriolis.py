@@ -12,6 +12,8 @@ from jaximu import _dispatch
 from jaximu import simulate as sim
 from jaximu.datasets import euroc_v1_02_segment
 
+from _shared import central_difference_phi
+
 try:
     import gtsam
 except ImportError:
@@ -197,15 +199,7 @@ def test_covariance_in_a_rotating_world_is_phi_phi_t_by_finite_differences(exact
     zero = jaximu.ImuNoise(0.0, 0.0, 0.0, 0.0)
     _, P = jaximu.propagate_covariance_final(x0, jnp.eye(15), gyro, accel, dt, zero, **kw)
     run = jax.jit(lambda x: jaximu.propagate_final(x, gyro, accel, dt, **kw))
-    nominal = run(x0)
-    eps = 1e-6
-    cols = []
-    for i in range(15):
-        d = np.zeros(15)
-        d[i] = eps
-        cols.append((jaximu.boxminus(run(jaximu.boxplus(x0, d)), nominal)
-                     - jaximu.boxminus(run(jaximu.boxplus(x0, -d)), nominal)) / (2 * eps))
-    Phi = np.stack(cols, -1)
+    Phi = central_difference_phi(run, x0)
     ref = Phi @ Phi.T
     np.testing.assert_allclose(P, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
     # and the world's terms are in it: without them Φ differs

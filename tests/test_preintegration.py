@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import so3
-from jaximu.datasets import euroc_v1_02_segment
+
+from _shared import SEG, euroc_window
 
 try:
     import gtsam
@@ -20,16 +21,11 @@ except ImportError:  # the test extra installs it; without it only the GTSAM com
 needs_gtsam = pytest.mark.skipif(gtsam is None, reason="gtsam is not installed")
 
 NOISE = jaximu.ImuNoise.euroc()
-SEG = euroc_v1_02_segment()
 
 
 def window(start_s, length_s):
     """Raw EuRoC samples of a window (flight part of the bundled excerpt) and GT biases."""
-    k0 = int(round(start_s / 0.005))
-    n = int(round(length_s / 0.005))
-    dt = np.diff(SEG.t[k0:k0 + n + 1])
-    bias = jaximu.ImuBias(jnp.asarray(SEG.b_g_gt[k0]), jnp.asarray(SEG.b_a_gt[k0]))
-    return SEG.gyro[k0:k0 + n], SEG.accel[k0:k0 + n], dt, bias
+    return euroc_window(start_s, length_s)[1:]
 
 
 def gtsam_params(combined=False, g=9.81):

@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import simulate as sim
-from jaximu.datasets import euroc_v1_02_segment
 from jaximu.sensor import SensorPose
+
+from _shared import SEG, central_difference_phi, euroc_window
 
 try:
     import gtsam
@@ -117,15 +118,7 @@ def test_lever_arm_correction_converges_at_the_schemes_order(scheme, order, sens
 
 # --------------------------------------------------------------------------- GTSAM
 
-SEG = euroc_v1_02_segment()
-
-
-def window(start_s, length_s):
-    k0 = int(round(start_s / 0.005))
-    n = int(round(length_s / 0.005))
-    dt = np.diff(SEG.t[k0:k0 + n + 1])
-    bias = jaximu.ImuBias(jnp.asarray(SEG.b_g_gt[k0]), jnp.asarray(SEG.b_a_gt[k0]))
-    return k0, SEG.gyro[k0:k0 + n], SEG.accel[k0:k0 + n], dt, bias
+window = euroc_window
 
 
 def gtsam_pim(gyro, accel, dt, bias, pose=None):
@@ -235,15 +228,7 @@ def test_propagate_covariance_bias_blocks_refer_to_the_sensor_frame():
                                              body_P_sensor=pose)
     run = jax.jit(lambda x: jaximu.propagate_final(x, gyro, accel, dt, "midpoint",
                                                    body_P_sensor=pose))
-    nominal = run(x0)
-    eps = 1e-6
-    cols = []
-    for i in range(15):
-        d = np.zeros(15)
-        d[i] = eps
-        plus, minus = run(jaximu.boxplus(x0, d)), run(jaximu.boxplus(x0, -d))
-        cols.append((jaximu.boxminus(plus, nominal) - jaximu.boxminus(minus, nominal)) / (2 * eps))
-    Phi = np.stack(cols, -1)
+    Phi = central_difference_phi(run, x0)
     ref = Phi @ Phi.T
     np.testing.assert_allclose(P, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
 
