@@ -412,8 +412,27 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
     return total
 
 
+# The one-shot computations of calibration_problem and its checks, each compiled as one
+# graph: run op by op, JAX compiles every primitive apart (about 0.1 s each on 2 cores, which
+# added up to 12 s of a cold `jaximu calibrate`; benchmarks/calibration.py --command).
+_interp_once = jax.jit(_interp)
+_log_once = jax.jit(so3.log)
+_log_matrix_once = jax.jit(so3.log_matrix)
+_exp_matrix_once = jax.jit(so3.exp_matrix)
+_exp_once = jax.jit(so3.exp)
+_apply_once = jax.jit(lambda calib, gyro, accel: calib.apply(gyro, accel))
+
+
+@jax.jit
+def _keyframe_rotations(q):
+    """``R_i`` ``(K, 3, 3)`` of keyframes ``0..K-1`` and the rotation vectors ``(K, 3)`` of
+    ``q_i⁻¹ q_{i+1}``, from ``(K + 1, 4)`` keyframe attitudes."""
+    return (so3.quat_to_matrix(q[:-1]),
+            so3.log(so3.quat_mul(so3.quat_conj(q[:-1]), q[1:])))
+
+
 def _rotation_vectors(dq):
-    return np.asarray(so3.log(dq), np.float64)
+    return np.asarray(_log_once(dq), np.float64)
 
 
 GYRO_BIAS_MAX = 0.5
@@ -437,7 +456,7 @@ def _rotation_fit(x, y, floor):
     U, _, Vt = np.linalg.svd(x.T @ y)
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    theta = np.asarray(so3.log_matrix(jnp.asarray(R)), np.float64)
+    theta = np.asarray(_log_matrix_once(jnp.asarray(R)), np.float64)
     rss_r = float(np.sum((y - x @ R.T) ** 2))
     rss_i = float(np.sum((y - x) ** 2))
     dof = max(3 * len(x) - 6, 1)
@@ -525,7 +544,7 @@ def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
             continue
         theta, stat = _rotation_fit(x, y, floor)
         xc, yc = x - x.mean(0), y - y.mean(0)
-        R = np.asarray(so3.exp_matrix(jnp.asarray(theta)), np.float64)
+        R = np.asarray(_exp_matrix_once(jnp.asarray(theta)), np.float64)
         sigma = np.sqrt(max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1),
                             floor**2, 1e-300))
         if np.linalg.svd(xc, compute_uv=False)[1] > 10 * sigma:
@@ -658,17 +677,21 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     # Keyframe velocities where the reference has none: central differences of positions.
     t0 = t[idx[0]]  # common time origin: keeps float32 times (and absolute stamps) precise
-    qk, pk, vk = (np.asarray(x, np.float64) for x in _interp(
+    qk, pk, vk = (np.asarray(x, np.float64) for x in _interp_once(
         jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
         jnp.asarray(rp), jnp.asarray(rv)))
     if not has_v:
         vk = np.gradient(pk, t[idx], axis=0)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
-    g_c, a_c = (np.asarray(x) for x in init.apply(jnp.asarray(win_gyro, dtype),
-                                                 jnp.asarray(win_accel, dtype)))
+    g_c, a_c = (np.asarray(x) for x in _apply_once(init, jnp.asarray(win_gyro, dtype),
+                                                      jnp.asarray(win_accel, dtype)))
+    # Called once per problem, so its compile time is what the user waits for: the plain
+    # scan compiles in a fraction of the time of the side-by-side chunks "auto" picks for a
+    # few dozen windows (benchmarks/calibration.py --command), and runs in milliseconds.
     pim = preintegrate(jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype),
-                       jnp.asarray(win_dt, dtype), noise=noise, scheme=scheme)
+                       jnp.asarray(win_dt, dtype), noise=noise, scheme=scheme,
+                       method="sequential")
     cov = np.asarray(pim.cov, np.float64)
     Dt = win_dt.sum(-1)
     s_th, s_p, s_v = (float(x) for x in reference_sigma)
@@ -686,9 +709,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
-        R_i = np.asarray(so3.quat_to_matrix(jnp.asarray(qk[:-1])))
-        phi_ref = _rotation_vectors(so3.quat_mul(so3.quat_conj(jnp.asarray(qk[:-1])),
-                                                 jnp.asarray(qk[1:])))
+        R_i, phi_ref = (np.asarray(x, np.float64) for x in _keyframe_rotations(jnp.asarray(qk)))
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
@@ -701,8 +722,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                               "reference's body frame (no two independent directions of "
                               "rotation or of velocity change): q_BS starts at the identity",
                               RuntimeWarning, stacklevel=2)
-            R0 = np.asarray(so3.exp_matrix(jnp.asarray(theta)), np.float64)
-            q_BS0 = np.asarray(so3.exp(jnp.asarray(theta)), np.float64)
+            R0 = np.asarray(_exp_matrix_once(jnp.asarray(theta)), np.float64)
+            q_BS0 = np.asarray(_exp_once(jnp.asarray(theta)), np.float64)
             found = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
                      "q_BS0_statistic": stat}
             phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
