@@ -17,6 +17,19 @@ def run(*args, cwd=None):
                           cwd=cwd, timeout=300)
 
 
+def run_here(capsys, *args):
+    """The command in this process (``jaximu.cli.main``, what ``python -m jaximu`` calls),
+    with :func:`run`'s result fields: no interpreter and JAX start-up (~2.5 s a call)."""
+    from jaximu import cli
+
+    try:
+        code = cli.main([str(a) for a in args])
+    except SystemExit as e:  # argparse: --help, invalid choices
+        code = e.code
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["jaximu", *args], code, out, err)
+
+
 def test_bundled_segment_is_intact():
     """The excerpt keeps EuRoC's exact int64 nanosecond stamps and 200 Hz grid."""
     seg = euroc_v1_02_segment()
@@ -59,31 +72,38 @@ def one_line_error(res, *fragments):
         assert f in errors[0], errors[0]
 
 
-def test_user_mistakes_exit_non_zero_without_traceback(tmp_path):
-    one_line_error(run("demo", "--seconds", "-1", "--no-plot"), "--seconds must be positive")
+def test_user_mistakes_exit_non_zero_without_traceback(tmp_path, capsys):
+    """As processes: one mistake caught by the argument parser, one by a reader (exit status
+    and stderr of ``python -m jaximu`` itself); the others through the same ``cli.main`` in
+    this process (each subprocess costs a JAX start-up)."""
     one_line_error(run("frobnicate"), "invalid choice")
-    one_line_error(run("propagate", str(tmp_path / "missing.csv")), "no such file",
-                   "missing.csv")
     bad = tmp_path / "bad.csv"
     bad.write_text("t,wx,wy,wz,ax,ay,az\n0.000,0,0,0,0,0,9.8\n0.005,0,0\n")
     one_line_error(run("propagate", str(bad)), "line 3", "expected at least 7 columns")
-    one_line_error(run("calibrate", str(bad)), "line 3")
-    one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"), "--bias needs 6")
-    one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--duration", "0"),
+    here = lambda *a: run_here(capsys, *a)  # noqa: E731
+    one_line_error(here("demo", "--seconds", "-1", "--no-plot"), "--seconds must be positive")
+    one_line_error(here("propagate", str(tmp_path / "missing.csv")), "no such file",
+                   "missing.csv")
+    one_line_error(here("calibrate", str(bad)), "line 3")
+    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"),
+                   "--bias needs 6")
+    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--duration", "0"),
                    "--duration must be positive")
-    one_line_error(run("propagate", str(DATA / "tumvi_room4"), "--out",
-                       str(tmp_path / "no" / "x.tum")), "does not exist")
+    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--out",
+                        str(tmp_path / "no" / "x.tum")), "does not exist")
     in_g = tmp_path / "g.csv"  # an accelerometer in g: the advice names the command's flag
     in_g.write_text("".join(f"{0.005 * k:.3f},0,0,0,0,0,1.0\n" for k in range(50)))
-    one_line_error(run("propagate", str(in_g)), "in g? pass --accel-unit g")
+    one_line_error(here("propagate", str(in_g)), "in g? pass --accel-unit g")
 
 
-def test_help_of_every_command():
+def test_help_of_every_command(capsys):
+    """The top-level help as a process; each command's help from the same parser in this
+    process (argparse prints it and exits 0)."""
     res = run("--help")
     assert res.returncode == 0
     for cmd in ("demo", "propagate", "preintegrate", "montecarlo", "calibrate", "allan"):
         assert cmd in res.stdout
-        sub = run(cmd, "--help")
+        sub = run_here(capsys, cmd, "--help")
         assert sub.returncode == 0 and f"usage: jaximu {cmd}" in sub.stdout, sub.stderr
 
 

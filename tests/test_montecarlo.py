@@ -99,8 +99,14 @@ def test_generator_correlation_between_steps_runs_and_streams(draws):
 # --------------------------------------------------------------------------- studies
 
 
-@pytest.fixture(scope="module")
-def setup():
+# The study the tests below share: 56 runs in chunks of 16, the last chunk padded (8 runs).
+N_RUNS = 56
+STUDY = dict(chunk_size=16, record_every=25, n_keep=4, scheme="midpoint")
+
+
+def study_setup():
+    """(trajectory, times, P0, noise) of the shared study (also built by the processes of
+    test_two_processes_give_the_statistics_of_one)."""
     traj = sim.helix()
     times = np.arange(0, 0.5 + 1e-9, 0.005)  # 100 steps
     P0 = np.diag([1e-6] * 3 + [1e-6] * 3 + [1e-6] * 3 + [1e-8] * 3 + [1e-6] * 3)
@@ -109,17 +115,21 @@ def setup():
 
 
 @pytest.fixture(scope="module")
+def setup():
+    return study_setup()
+
+
+@pytest.fixture(scope="module")
 def study(setup):
     traj, times, P0, noise = setup
-    return monte_carlo(traj, times, P0, noise, 48, jax.random.key(5), chunk_size=16,
-                       record_every=25, n_keep=4, keep_nees=True, scheme="midpoint")
+    return monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), keep_nees=True,
+                       **STUDY)
 
 
 def test_chunk_size_and_devices_do_not_change_the_statistics(setup, study):
     traj, times, P0, noise = setup
-    other = monte_carlo(traj, times, P0, noise, 48, jax.random.key(5), chunk_size=48,
-                        record_every=25, n_keep=4, keep_nees=True, scheme="midpoint",
-                        shard=False)
+    other = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5),
+                        keep_nees=True, shard=False, **dict(STUDY, chunk_size=N_RUNS))
     scale = np.abs(study.error_cov).max(axis=(1, 2), keepdims=True)
     np.testing.assert_allclose(other.error_cov / scale, study.error_cov / scale, rtol=0,
                                atol=1e-12)
@@ -158,7 +168,7 @@ def test_run_regenerated_alone_reproduces_the_study_and_its_samples(setup, study
 
 def test_nees_histogram_and_streaming_sums(study):
     h = study.nees_hist
-    assert h.shape == (1, 200) and h.sum() == 48
+    assert h.shape == (1, 200) and h.sum() == N_RUNS
     edges = study.nees_hist_edges
     expected = np.histogram(np.clip(study.nees[:, -1], 0, edges[-1] - 1e-9), edges)[0]
     np.testing.assert_array_equal(h[0], expected)
@@ -175,7 +185,7 @@ def test_result_saves_and_loads(study, tmp_path):
     for k in ("times", "mean_error", "error_cov", "predicted_cov", "nees", "nees_mean",
               "sample_errors", "nees_hist"):
         np.testing.assert_array_equal(getattr(back, k), getattr(study, k))
-    assert back.n_runs == 48 and back.settings["scheme"] == "midpoint"
+    assert back.n_runs == N_RUNS and back.settings["scheme"] == "midpoint"
     assert back.nis_mean is None
 
 
@@ -184,8 +194,8 @@ def test_float32_study_agrees_with_float64(setup, study):
     numbers to rounding): the average NEES agrees to 1e-3 relative, so a float32 study is
     as consistent as a float64 one (issue 13, item 5)."""
     traj, times, P0, noise = setup
-    f32 = monte_carlo(traj, times, P0, noise, 48, jax.random.key(5), chunk_size=16,
-                      record_every=25, n_keep=4, scheme="midpoint", dtype=jnp.float32)
+    f32 = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), dtype=jnp.float32,
+                      **STUDY)
     np.testing.assert_allclose(f32.nees_mean, study.nees_mean, rtol=1e-3)
     np.testing.assert_allclose(f32.error_cov, study.error_cov,
                                rtol=0, atol=1e-3 * np.abs(study.error_cov).max())
@@ -249,7 +259,9 @@ def test_ekf_update_gradient_wrt_noise_parameters_matches_finite_differences():
         return jnp.trace(P1) * 1e3 + nis
 
     x = jnp.array([2e-3, 2e-2, 0.05])
-    g = jax.grad(f)(x)
+    # compiled whole (op by op, the update's ~170 small operations each compile on their own)
+    g = jax.jit(jax.grad(f))(x)
+    f = jax.jit(f)
     for i in range(3):
         h = 1e-6 * x[i]
         e = jnp.zeros(3).at[i].set(h)
@@ -289,21 +301,22 @@ def _free_port():
 _STUDY = """
 import jax
 jax.config.update("jax_enable_x64", True)
-import numpy as np, jaximu
-from jaximu import simulate as sim
+sys.path.insert(0, {tests!r})
+from test_montecarlo import N_RUNS, STUDY, study_setup
 from jaximu.montecarlo import monte_carlo
-times = np.arange(0, 0.1 + 1e-9, 0.005)
-r = monte_carlo(sim.circle(), times, np.eye(15) * 1e-6, jaximu.ImuNoise.euroc(), 100,
-                jax.random.key(7), chunk_size=16, record_every=10, n_keep=2)
+traj, times, P0, noise = study_setup()
+r = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), **STUDY)
 print(json.dumps(dict(cov=r.error_cov.tolist(), mean=r.mean_error.tolist(),
                       nees=r.nees_mean.tolist(), hist=r.nees_hist.tolist(),
                       keep=r.sample_errors.tolist())))
 """
 
 
-def test_two_processes_give_the_statistics_of_one():
+def test_two_processes_give_the_statistics_of_one(study):
     """jax.distributed on 127.0.0.1 with the CPU backend (gloo collectives): two processes,
-    each drawing its share of the chunks, return the single-process statistics."""
+    each drawing its share of the chunks (two each, one of them the padded last chunk),
+    return the single-process statistics (the shared study: the same settings, but
+    keep_nees, which needs one process)."""
     port = _free_port()
     dist = textwrap.dedent("""
         import json, sys
@@ -311,15 +324,12 @@ def test_two_processes_give_the_statistics_of_one():
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(coordinator_address="127.0.0.1:{port}", num_processes=2,
                                    process_id=int(sys.argv[1]))
-    """).format(port=port) + _STUDY
+    """).format(port=port) + _STUDY.format(tests=os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ)  # the parent's XLA flags: the same compiled arithmetic
     procs = [subprocess.Popen([sys.executable, "-c", dist, str(i)], stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True, env=env) for i in range(2)]
-    r = monte_carlo(sim.circle(), np.arange(0, 0.1 + 1e-9, 0.005), np.eye(15) * 1e-6,
-                    jaximu.ImuNoise.euroc(), 100, jax.random.key(7), chunk_size=16,
-                    record_every=10, n_keep=2)
-    ref = dict(cov=r.error_cov, mean=r.mean_error, nees=r.nees_mean, hist=r.nees_hist,
-               keep=r.sample_errors)
+    ref = dict(cov=study.error_cov, mean=study.mean_error, nees=study.nees_mean,
+               hist=study.nees_hist, keep=study.sample_errors)
     outs = [p.communicate(timeout=300) for p in procs]
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err

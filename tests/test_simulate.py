@@ -183,7 +183,10 @@ def test_sharded_and_single_device_runs_agree(tmp_path):
             out[str(shard)] = [r.nees.tolist(), r.error_cov.tolist()]
         print(json.dumps(out))
     """)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    # four host devices, on top of the parent's XLA flags (conftest.py: the fast-compile
+    # options; without them the child's two compilations take ~1.6x longer)
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
+    env = dict(os.environ, XLA_FLAGS=flags.strip())
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
                          timeout=300)
     assert res.returncode == 0, res.stderr
