@@ -152,17 +152,6 @@ def test_monte_carlo_nees_is_consistent_and_a_wrong_model_is_detected(mc_setup):
     assert np.abs(res.discretization_error[-1][3:6]).max() < 1e-2
 
 
-def test_monte_carlo_chunking_and_sample_errors(mc_setup):
-    traj, times, P0, noise = mc_setup
-    res = monte_carlo(traj, times[:41], P0, noise, 50, jax.random.key(1), chunk_size=16,
-                      n_keep=5, record_every=40, keep_nees=True)
-    assert res.nees.shape == (50, 1) and res.sample_errors.shape == (5, 1, 15)
-    assert np.all(np.isfinite(res.nees))
-    np.testing.assert_allclose(res.nees[:5, 0], np.einsum(
-        "ni,ij,nj->n", res.sample_errors[:, 0], np.linalg.inv(res.predicted_cov[0]),
-        res.sample_errors[:, 0]), rtol=1e-4)
-
-
 def test_sharded_and_single_device_runs_agree(tmp_path):
     """Four (forced host) devices vs one, same key: the same statistics."""
     script = textwrap.dedent("""
