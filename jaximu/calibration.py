@@ -67,7 +67,7 @@ from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
 from jaximu import so3
 from jaximu.noise import ImuNoise
-from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, preintegrate, residual
+from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, _preintegrate, residual
 from jaximu.preintegration import _step as _pim_step
 from jaximu.propagate import propagate_final
 from jaximu import world
@@ -330,7 +330,6 @@ def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, 
     return w * problem.weight[g_idx][..., None]
 
 
-@jax.jit
 def _sample_noise_covariance(problem: CalibrationProblem, calib: ImuCalibration, velocities):
     """``(G, C, 9, 9)`` covariance of the residuals from white noise on every raw sample
     (variance ``σ²/h``, ``h`` the sample's interval), ``J diag(σ²/h) Jᵀ`` with ``J`` by
@@ -374,8 +373,8 @@ def _preintegrate_mean(gyro, accel, dt, scheme):
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     zero = jnp.zeros(batch + (3,), dtype)
     final, _ = _chunk_scan(scheme, _pim_step, zero, zero, None, (None, w0, a0, w1, a1, h, None),
-                           batch, dtype, False)
-    dq, dv, dp, t, _ = final  # the accumulated blocks are dead code, dropped by XLA
+                           batch, dtype, False, blocks=False)
+    dq, dv, dp, t, _ = final
     eye = lambda n: jnp.broadcast_to(jnp.eye(n, dtype=dtype), batch + (n, n))  # noqa: E731
     return Preintegrated(delta_t=t, delta_q=so3.quat_normalize(dq), delta_v=dv, delta_p=dp,
                          transition=jnp.zeros(batch + (15, 15), dtype), cov15=eye(15),
@@ -412,18 +411,31 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
     return total
 
 
-# The one-shot computations of calibration_problem and its checks, each compiled as one
-# graph: run op by op, JAX compiles every primitive apart (about 0.1 s each on 2 cores, which
-# added up to 12 s of a cold `jaximu calibrate`; benchmarks/calibration.py --command).
-_interp_once = jax.jit(_interp)
-_log_once = jax.jit(so3.log)
-_log_matrix_once = jax.jit(so3.log_matrix)
-_exp_matrix_once = jax.jit(so3.exp_matrix)
-_exp_once = jax.jit(so3.exp)
-_apply_once = jax.jit(lambda calib, gyro, accel: calib.apply(gyro, accel))
+QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+"""XLA options for graphs that run once or a few times on little data: about half the
+compile time, several times the run time (benchmarks/calibration.py --command: a cold
+`jaximu calibrate` on 30 s at 200 Hz is mostly compilation)."""
+QUICK_COMPILE_SAMPLES = 30_000
+"""Problems of at most this many samples (150 s at 200 Hz) compile their fit with
+:data:`QUICK_COMPILE`: one evaluation of the residuals and their Jacobian then takes about
+0.1 s per 6,000 samples instead of 0.015 s, less than the compile time it saves over the
+ten-odd evaluations of a Levenberg–Marquardt fit."""
 
 
-@jax.jit
+@functools.lru_cache(maxsize=None)
+def _compiled(fn, quick: bool, static_argnames=()):
+    """``jax.jit(fn)``, with :data:`QUICK_COMPILE` when ``quick``."""
+    return jax.jit(fn, static_argnames=static_argnames,
+                   compiler_options=QUICK_COMPILE if quick else None)
+
+
+def _once(fn):
+    """``fn`` jitted with :data:`QUICK_COMPILE`, for the one-shot computations of
+    :func:`calibration_problem` and its checks: run op by op, JAX would compile every
+    primitive apart (about 0.1 s each on 2 cores, 12 s of a cold `jaximu calibrate`)."""
+    return _compiled(fn, True)
+
+
 def _keyframe_rotations(q):
     """``R_i`` ``(K, 3, 3)`` of keyframes ``0..K-1`` and the rotation vectors ``(K, 3)`` of
     ``q_i⁻¹ q_{i+1}``, from ``(K + 1, 4)`` keyframe attitudes."""
@@ -431,8 +443,17 @@ def _keyframe_rotations(q):
             so3.log(so3.quat_mul(so3.quat_conj(q[:-1]), q[1:])))
 
 
+def _apply(calib, gyro, accel):
+    return calib.apply(gyro, accel)
+
+
+def _preintegrate_sequential(gyro, accel, dt, bias, noise, *, scheme, fast):
+    return _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method="sequential",
+                         jacobians="analytic", prefixes=False, fast=fast)
+
+
 def _rotation_vectors(dq):
-    return np.asarray(_log_once(dq), np.float64)
+    return np.asarray(_once(so3.log)(dq), np.float64)
 
 
 GYRO_BIAS_MAX = 0.5
@@ -456,7 +477,7 @@ def _rotation_fit(x, y, floor):
     U, _, Vt = np.linalg.svd(x.T @ y)
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    theta = np.asarray(_log_matrix_once(jnp.asarray(R)), np.float64)
+    theta = np.asarray(_once(so3.log_matrix)(jnp.asarray(R)), np.float64)
     rss_r = float(np.sum((y - x @ R.T) ** 2))
     rss_i = float(np.sum((y - x) ** 2))
     dof = max(3 * len(x) - 6, 1)
@@ -544,7 +565,7 @@ def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
             continue
         theta, stat = _rotation_fit(x, y, floor)
         xc, yc = x - x.mean(0), y - y.mean(0)
-        R = np.asarray(_exp_matrix_once(jnp.asarray(theta)), np.float64)
+        R = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
         sigma = np.sqrt(max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1),
                             floor**2, 1e-300))
         if np.linalg.svd(xc, compute_uv=False)[1] > 10 * sigma:
@@ -677,21 +698,25 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     # Keyframe velocities where the reference has none: central differences of positions.
     t0 = t[idx[0]]  # common time origin: keeps float32 times (and absolute stamps) precise
-    qk, pk, vk = (np.asarray(x, np.float64) for x in _interp_once(
+    qk, pk, vk = (np.asarray(x, np.float64) for x in _once(_interp)(
         jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
         jnp.asarray(rp), jnp.asarray(rv)))
     if not has_v:
         vk = np.gradient(pk, t[idx], axis=0)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
-    g_c, a_c = (np.asarray(x) for x in _apply_once(init, jnp.asarray(win_gyro, dtype),
+    g_c, a_c = (np.asarray(x) for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype),
                                                       jnp.asarray(win_accel, dtype)))
-    # Called once per problem, so its compile time is what the user waits for: the plain
-    # scan compiles in a fraction of the time of the side-by-side chunks "auto" picks for a
-    # few dozen windows (benchmarks/calibration.py --command), and runs in milliseconds.
-    pim = preintegrate(jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype),
-                       jnp.asarray(win_dt, dtype), noise=noise, scheme=scheme,
-                       method="sequential")
+    # Run once per problem, so its compile time is what the user waits for: the plain scan
+    # (it compiles in a fraction of the time of the side-by-side chunks "auto" picks for a few
+    # dozen windows), quick-compiled on small problems (the inputs are checked above).
+    # On small problems, also the generic kernel: it compiles faster than the
+    # structure-of-arrays one at that level.
+    zero3 = jnp.zeros(3, dtype)
+    quick = K * W <= QUICK_COMPILE_SAMPLES
+    pim = _compiled(_preintegrate_sequential, quick, ("scheme", "fast"))(
+        jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype), jnp.asarray(win_dt, dtype),
+        ImuBias(zero3, zero3), noise, scheme=scheme, fast=not quick)
     cov = np.asarray(pim.cov, np.float64)
     Dt = win_dt.sum(-1)
     s_th, s_p, s_v = (float(x) for x in reference_sigma)
@@ -709,7 +734,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
-        R_i, phi_ref = (np.asarray(x, np.float64) for x in _keyframe_rotations(jnp.asarray(qk)))
+        R_i, phi_ref = (np.asarray(x, np.float64) for x in _once(_keyframe_rotations)(jnp.asarray(qk)))
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
@@ -722,8 +747,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                               "reference's body frame (no two independent directions of "
                               "rotation or of velocity change): q_BS starts at the identity",
                               RuntimeWarning, stacklevel=2)
-            R0 = np.asarray(_exp_matrix_once(jnp.asarray(theta)), np.float64)
-            q_BS0 = np.asarray(_exp_once(jnp.asarray(theta)), np.float64)
+            R0 = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
+            q_BS0 = np.asarray(_once(so3.exp)(jnp.asarray(theta)), np.float64)
             found = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
                      "q_BS0_statistic": stat}
             phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
@@ -833,8 +858,20 @@ def _step(z, opt_state, problem, init_vec, *, layout, optimizer, learning_rate):
     return optax.apply_updates(z, updates), opt_state, value, jnp.linalg.norm(grad)
 
 
-@functools.partial(jax.jit, static_argnames=("layout",))
+def _quick(problem: CalibrationProblem) -> bool:
+    return problem.n_samples <= QUICK_COMPILE_SAMPLES
+
+
+def _residuals_jacobian_compiled(problem: CalibrationProblem):
+    """:func:`_residuals_jacobian_graph` jitted for the problem's size (:data:`QUICK_COMPILE`)."""
+    return _compiled(_residuals_jacobian_graph, _quick(problem), ("layout",))
+
+
 def _residuals_jacobian(z, problem, init_vec, *, layout):
+    return _residuals_jacobian_compiled(problem)(z, problem, init_vec, layout=layout)
+
+
+def _residuals_jacobian_graph(z, problem, init_vec, *, layout):
     """``(r, J)``: the whitened residuals ``(9K,)`` at ``z`` and their Jacobian
     ``(9K, n + n_v)`` in the normalised coordinates. One compiled function serves every
     Levenberg–Marquardt iteration and the Laplace covariance.
@@ -1074,7 +1111,7 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         # Whiten again at the estimate with the samples' noise through the whole model (the
         # lever arm's ω×(ω×r) + α×r carry gyro noise), then refine from there.
         calib_now, v_now = _unpack(z, init_vec, problem.velocities, layout)
-        cov = _sample_noise_covariance(problem, calib_now, v_now)
+        cov = _compiled(_sample_noise_covariance, _quick(problem))(problem, calib_now, v_now)
         cov = np.asarray(cov, np.float64) + np.asarray(problem.reference_var, np.float64)[
             ..., None] * np.eye(9)
         problem = dataclasses.replace(problem, sqrt_info=jnp.asarray(

@@ -525,7 +525,7 @@ def cmd_calibrate(args):
     what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step",
             "adam": "Adam step"}[args.optimizer]
     print(f"compiling the {what}, then fitting (a first run compiles for about "
-          f"{ {'lm': 10, 'lbfgs': 40, 'adam': 15}[args.optimizer]} s on 2 CPU cores"
+          f"{ {'lm': 5, 'lbfgs': 40, 'adam': 15}[args.optimizer]} s on 2 CPU cores"
           + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
           + ")…", flush=True)
     tic = time.perf_counter()

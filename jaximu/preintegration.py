@@ -385,16 +385,18 @@ def _pairs(gyro, accel, dt, scheme):
     return w[:n], a[:n], w1, a1, h
 
 
-def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes):
+def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, blocks=True):
     """``lax.scan`` of the preintegration recursion over the leading (time) axis of ``xs``.
 
     ``xs = (dR, w0, a0, w1, a1, h, mask)``: with ``dR`` None the rotation is carried (the
     sequential recursion); otherwise it is given per step (already known in frame ``B_i``).
-    Steps whose ``mask`` is False (padding) are identities.
+    Steps whose ``mask`` is False (padding) are identities. With ``blocks=False`` only the
+    mean is carried (the accumulated blocks are ``None``): a graph that is differentiated
+    then never traces the Jacobian and covariance blocks at all.
     """
     dR_given, w0, a0, w1, a1, h, mask = xs
     q_id = so3.quat_identity(batch, dtype)
-    ident = _identity_acc(batch, dtype)
+    ident = _identity_acc(batch, dtype) if blocks else None
 
     def body(carry, x):
         dq, dv, dp, t, acc = carry
@@ -405,12 +407,12 @@ def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes):
             hk_safe = hk
         s = step_fn(scheme, dq if dR is None else dR, w0k, a0k, w1k, a1k, hk_safe, b_g, b_a,
                     noise)
-        step = _Acc(s.F, s.Q15, s.Q9)
+        step = _Acc(s.F, s.Q15, s.Q9) if blocks else None
         a_k = s.acc
         if mk is not None:
             step = jax.tree_util.tree_map(
                 lambda x_, i_: jnp.where(mk.reshape(mk.shape + (1,) * (x_.ndim - mk.ndim)), x_, i_),
-                step, ident)
+                step, ident if blocks else None)
             a_k = jnp.where(mk[..., None], a_k, 0.0)
             hk = jnp.where(mk, hk, 0.0)
         hv = hk[..., None]
@@ -418,7 +420,7 @@ def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes):
         dv = dv + a_k * hv
         if dR is None:
             dq = so3.quat_normalize(so3.quat_mul(dq, s.dq))
-        acc = _combine(acc, step)
+        acc = _combine(acc, step) if blocks else None
         carry = (dq, dv, dp, t + hk, acc)
         return carry, (carry if prefixes else None)
 

@@ -66,7 +66,7 @@ def test_recovers_biases_within_predicted_uncertainty_and_compiles_once():
         b_a = rng.normal(0, 0.1, 3)
         prob = problem_for(*simulate_data(seed, b_g, b_a))
         res = cal.calibrate(prob)
-        sizes.append(cal._residuals_jacobian._cache_size())
+        sizes.append(cal._residuals_jacobian_compiled(prob)._cache_size())
         assert res.converged
         within(res, {"b_g": b_g, "b_a": b_a})
         assert np.asarray(res.std.b_g).max() < 1e-4 and np.asarray(res.std.b_a).max() < 1e-3
