@@ -80,7 +80,7 @@ def test_user_mistakes_exit_non_zero_without_traceback(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
     bad.write_text("t,wx,wy,wz,ax,ay,az\n0.000,0,0,0,0,0,9.8\n0.005,0,0\n")
     one_line_error(run("propagate", str(bad)), "line 3", "expected at least 7 columns")
-    here = lambda *a: run_here(capsys, *a)  # noqa: E731
+    here = lambda *a: run_here(capsys, *a)
     one_line_error(here("demo", "--seconds", "-1", "--no-plot"), "--seconds must be positive")
     one_line_error(here("propagate", str(tmp_path / "missing.csv")), "no such file",
                    "missing.csv")

@@ -101,7 +101,7 @@ def test_generator_correlation_between_steps_runs_and_streams(draws):
 
 # The study the tests below share: 56 runs in chunks of 16, the last chunk padded (8 runs).
 N_RUNS = 56
-STUDY = dict(chunk_size=16, record_every=25, n_keep=4, scheme="midpoint")
+STUDY = {"chunk_size": 16, "record_every": 25, "n_keep": 4, "scheme": "midpoint"}
 
 
 def study_setup():
