@@ -35,7 +35,8 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
-                            dt.shape[:-1], g.shape[:-1])
+                            dt.shape[:-1], g.shape[:-1],
+                            names=("state", "gyro", "accel", "dt", "gravity"))
     return state, gyro, accel, dt, g, batch
 
 
@@ -200,7 +201,9 @@ CORIOLIS = ("exact", "first_order", "second_order")
 
 def coriolis_mode(exact, second_order) -> str:
     """The rotating world's model (:mod:`jaximu.world`): ``"exact"`` or GTSAM ≤ 4.2's
-    classic ``"first_order"`` / ``"second_order"`` terms."""
+    classic ``"first_order"`` / ``"second_order"`` terms. Both options must be bools."""
+    exact = val.check_bool("coriolis_exact", exact)
+    second_order = val.check_bool("coriolis_second_order", second_order)
     return "exact" if exact else ("second_order" if second_order else "first_order")
 
 
@@ -348,10 +351,14 @@ def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_cori
     from jaximu import sensor
 
     dtype = state.q.dtype
+    tangential = val.check_bool("tangential", tangential)
+    batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2])
     omega = None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
+    if omega is not None:
+        val.batch_shape(batch, omega.shape[:-1], names=("state and samples", "omega_coriolis"))
     if body_P_sensor is None:
         return state, gyro, accel, omega
-    pose = sensor.check_pose(body_P_sensor, dtype)
+    pose = sensor.check_pose(body_P_sensor, dtype, batch=batch, batch_name="state and samples")
     gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
     state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
                      sensor.bias_to_body(pose, state.b_a))

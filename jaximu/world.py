@@ -54,12 +54,21 @@ def earth_rate(latitude_deg, dtype=None):
     """Earth's rotation rate in the local east-north-up world (z up) at ``latitude_deg``.
 
     ``ω_W = Ω [0, cos φ, sin φ]`` with ``Ω =`` :data:`EARTH_RATE`; ``latitude_deg`` in
-    ``[-90, 90]`` (scalar or ``(...,)``). Returns ``(..., 3)`` [rad/s], for ``omega_coriolis=``.
+    degrees, ``[-90, 90]``, finite (scalar or ``(...,)``; checked on eager calls, not inside
+    a caller's ``jit``). ``dtype``: float32, float64 (needs ``jax_enable_x64``) or ``None``
+    (JAX's default float). Returns ``(..., 3)`` [rad/s], for ``omega_coriolis=``.
     """
-    lat = np.asarray(latitude_deg, float) if val.is_concrete(latitude_deg) else None
-    if lat is not None and (not np.all(np.isfinite(lat)) or np.any(np.abs(lat) > 90)):
-        raise ValueError(f"latitude_deg must be in [-90, 90] degrees, got {latitude_deg!r}")
-    phi = jnp.deg2rad(jnp.asarray(latitude_deg, dtype))
+    dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
+    lat_in = latitude_deg
+    latitude_deg = val.to_dtype("latitude_deg", latitude_deg, dtype)
+    if val.is_concrete(lat_in):
+        lat = np.asarray(lat_in, np.float64)
+        bad = ~np.isfinite(lat) | (np.abs(lat) > 90)
+        if bad.any():
+            where = val._first_bad(bad) if lat.ndim else ""
+            raise ValueError(f"latitude_deg must be in [-90, 90] degrees and finite, got "
+                             f"latitude_deg{where} = {lat[tuple(np.argwhere(bad)[0])]:g}")
+    phi = jnp.deg2rad(latitude_deg)
     return EARTH_RATE * jnp.stack([jnp.zeros_like(phi), jnp.cos(phi), jnp.sin(phi)], -1)
 
 
