@@ -794,8 +794,10 @@ FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": 
          "keyframe_interval": "--keyframe-interval", "seconds": "--seconds",
          "update_every": "--filter"}
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
-API_ONLY_OPTIONS = frozenset()
-"""Options the library's fixes may name that have no flag (rendered as keywords)."""
+API_ONLY_OPTIONS = frozenset({"measurement", "path"})
+"""Options the library's fixes may name that have no flag (rendered as keywords):
+``monte_carlo``'s ``measurement`` (the command builds it from ``--fix-sigma``) and
+``MonteCarloResult.save``'s ``path`` (``--save`` is checked by the command first)."""
 
 
 def flag_of(fix) -> str:
