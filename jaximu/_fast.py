@@ -9,8 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import so3, world
 from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul, _stack_last,
+from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul,
+                         _quat_normalize, _stack_last,
                          _time_chunks, exp_jr, half_angle_jr, mean_step, quat_matrix,
                          run_blocked)
 from jaximu._vec import V3
@@ -21,24 +23,55 @@ UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
 
 
-def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
+def _rotate_left(q, dth):
+    """``Exp(dθ) ⊗ q`` (normalised) for a rotation vector ``dθ`` ``(..., 3)``."""
+    e = so3.exp(dth)
+    return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
+
+
+def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3, omega: V3,
+                       coriolis):
+    """:func:`jaximu.propagate.rotating_step` on lanes: the still-world step in the inertial
+    frame of the step's start (``coriolis="exact"``) or followed by GTSAM ≤ 4.2's increments
+    (:mod:`jaximu.world` holds both)."""
+    if coriolis == "exact":
+        v = world.to_inertial_v3(omega, p, v)
+        q, p, v = mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
+        dth, Q, dp, dv = world.leave_inertial_terms(omega.stack(), h, g.stack())
+        p, v = world.leave_inertial_v3(omega, Q, V3.of(dp), V3.of(dv), V3(*p), V3(*v))
+        return _rotate_left(q, dth), tuple(p), tuple(v)
+    q, p, v = mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
+    dth, dp, dv = world.coriolis_increments_v3(omega, V3(*p), V3(*v), h,
+                                               coriolis == "second_order")
+    return _rotate_left(q, dth.stack()), tuple(V3(*p) + dp), tuple(V3(*v) + dv)
+
+
+def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
+                   coriolis="exact"):
     """Flat batch: q ``(B, 4)``, p/v/b_g/b_a ``(B, 3)``, gyro/accel ``(B, T, 3)`` (``T + 1``
     samples for a scheme that uses sample k+1: the last one ends the last step), dt ``(T,)``
-    or ``(B, T)``, g ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with
-    save_all, the ``(B, T, ·)`` trajectories."""
+    or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating world, :mod:`jaximu.world`)
+    ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with save_all,
+    the ``(B, T, ·)`` trajectories."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
+    rotating = omega is not None
+    shared_w = not rotating or omega.ndim == 1
 
-    def block(q, p, v, b_g, b_a, gyro, accel, dt_b, g_b):
-        consts = (_components(b_g), _components(b_a), _components(g_b if not shared_g else g))
+    def block(q, p, v, b_g, b_a, gyro, accel, dt_b, g_b, w_b):
+        consts = (_components(b_g), _components(b_a), _components(g_b if not shared_g else g),
+                  _components(omega if shared_w else w_b) if rotating else ())
         carry = (_components(q), _components(p), _components(v))
 
         def step(c, w, a, h, consts):
-            bg, ba, gv = (V3(*x) for x in consts)
+            bg, ba, gv = (V3(*x) for x in consts[:3])
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
             q, p, v = c
+            if rotating:
+                return rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
+                                          h, gv, V3(*consts[3]), coriolis)
             return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
@@ -50,7 +83,9 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
 
     dt_arg = jnp.zeros((B, 1), gyro.dtype) if shared_dt else dt
     g_arg = jnp.zeros((B, 1), gyro.dtype) if shared_g else g
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt_arg, g_arg)
+    w_arg = jnp.zeros((B, 1), gyro.dtype) if shared_w else omega
+    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt_arg, g_arg,
+                       w_arg)
 
 
 def dense_to_blocks(P):

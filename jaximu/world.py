@@ -42,6 +42,7 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu._vec import V3
 
 __all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
            "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
@@ -96,10 +97,26 @@ def _mv(M, x):
     return jnp.einsum("...ij,...j->...i", M, x)
 
 
+# The per-element formulas below are written once on V3 (components: ``(...,)`` arrays or the
+# ``(B,)`` lanes of the structure-of-arrays kernels, docs/DESIGN.md "kernel layout"); the
+# public functions take and return ``(..., 3)`` arrays and call them.
+
+
+def matvec(M, x: V3) -> V3:
+    """``M x`` for ``(..., 3, 3)`` ``M`` (or ``(3, 3)``, shared) and a :class:`V3`."""
+    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z
+                for i in range(3)))
+
+
+def to_inertial_v3(omega: V3, p: V3, v: V3) -> V3:
+    """:func:`to_inertial` on components."""
+    return v + omega.cross(p)
+
+
 def to_inertial(omega, p, v):
     """The transported velocity ``v̄ = v + ω × p`` (velocity in the inertial frame that
     coincides with W now)."""
-    return v + jnp.cross(omega, p)
+    return to_inertial_v3(V3.of(omega), V3.of(p), V3.of(v)).stack()
 
 
 def gravity_excess(omega, dt, g):
@@ -113,15 +130,28 @@ def gravity_excess(omega, dt, g):
     return dp, dv
 
 
+def leave_inertial_terms(omega, dt, g):
+    """What :func:`leave_inertial` needs of ``(ω, dt, g)`` alone (per step, not per state):
+    ``(dθ, Q, dp, dv)`` with ``dθ = -ω dt`` ``(..., 3)``, ``Q = Exp(dθ)`` ``(..., 3, 3)`` and
+    the turning gravity's ``(dp, dv)`` (:func:`gravity_excess`)."""
+    dp, dv = gravity_excess(omega, dt, g)
+    dth = -jnp.asarray(dt)[..., None] * omega
+    return dth, so3.exp_matrix(dth), dp, dv
+
+
+def leave_inertial_v3(omega: V3, Q, dp: V3, dv: V3, p: V3, v: V3):
+    """:func:`leave_inertial` on components, from :func:`leave_inertial_terms`:
+    ``p⁺ = Q (p' + dp)``, ``v⁺ = Q (v̄' + dv) - ω × p⁺``."""
+    p1 = matvec(Q, p + dp)
+    return p1, matvec(Q, v + dv) - omega.cross(p1)
+
+
 def leave_inertial(omega, dt, g, p, v):
     """From the inertial frame of the start back to W after ``dt``, the turning gravity
     added: returns ``(dθ, p⁺, v⁺)`` with ``R⁺ = Exp(dθ) R'``, ``dθ = -ω dt``."""
-    dp, dv = gravity_excess(omega, dt, g)
-    dth = -jnp.asarray(dt)[..., None] * omega
-    Q = so3.exp_matrix(dth)
-    p1 = _mv(Q, p + dp)
-    v1 = _mv(Q, v + dv) - jnp.cross(omega, p1)
-    return dth, p1, v1
+    dth, Q, dp, dv = leave_inertial_terms(omega, dt, g)
+    p1, v1 = leave_inertial_v3(V3.of(omega), Q, V3.of(dp), V3.of(dv), V3.of(p), V3.of(v))
+    return dth, p1.stack(), v1.stack()
 
 
 def enter_inertial(omega, dt, g, p, v):
@@ -164,16 +194,23 @@ def coriolis_increments(omega, p, v, dt, second_order: bool = False):
         ``(dθ, dp, dv)`` in W, each ``(..., 3)``: ``dθ = -ω Δt`` (the attitude becomes
         ``Exp(dθ) R``), ``dp = -Δt² ω×v [- ½Δt² ω×(ω×p)]``, ``dv = -2Δt ω×v [- Δt ω×(ω×p)]``.
     """
-    h = jnp.asarray(dt)[..., None]
-    wxv = jnp.cross(omega, v)
-    dth = -h * omega
-    dp = -(h * h) * wxv
-    dv = -2.0 * h * wxv
+    dth, dp, dv = coriolis_increments_v3(V3.of(omega), V3.of(p), V3.of(v), jnp.asarray(dt),
+                                         second_order)
+    dp, dv = dp.stack(), dv.stack()
+    dth = dth.stack()
+    return jnp.broadcast_to(dth, jnp.broadcast_shapes(dth.shape, dp.shape)), dp, dv
+
+
+def coriolis_increments_v3(omega: V3, p: V3, v: V3, h, second_order: bool = False):
+    """:func:`coriolis_increments` on components; ``h`` the step, ``(...,)`` or a scalar."""
+    wxv = omega.cross(v)
+    dth = omega * (-h)
+    dp = wxv * (-(h * h))
+    dv = wxv * (-2.0 * h)
     if second_order:
-        wwp = jnp.cross(omega, jnp.cross(omega, p))
-        dp = dp - 0.5 * h * h * wwp
-        dv = dv - h * wwp
-    dth = jnp.broadcast_to(dth, jnp.broadcast_shapes(dth.shape, dp.shape))
+        wwp = omega.cross(omega.cross(p))
+        dp = dp - wwp * (0.5 * h * h)
+        dv = dv - wwp * h
     return dth, dp, dv
 
 
