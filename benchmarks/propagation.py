@@ -68,6 +68,8 @@ NOISE = jaximu.ImuNoise.euroc()
 P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4 ** 2] * 3,
                 [1e-3 ** 2] * 3]
 
+EARTH_48 = np.asarray(jaximu.earth_rate(48.0))  # rad/s, east-north-up
+
 # Display order of the cases in the table.
 CASE_ORDER = [
     "mean euler final",
@@ -77,6 +79,7 @@ CASE_ORDER = [
     "mean midpoint final",
     "mean midpoint final vmap",
     "mean rk4 final",
+    "mean euler final rotating",
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
@@ -116,16 +119,16 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
             f"{cov_all_size[0]}×{cov_all_size[1]} instead."
         )
 
-    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False):
+    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False):
         if kind == "mean":
-            name = f"mean {scheme} {save}"
+            name = f"mean {scheme} {save}" + (" rotating" if rotating else "")
         elif kind == "cov":
             name = f"cov {jac} {scheme} {save}"
         else:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
         return dict(section=section, name=name, kind=kind, scheme=scheme, jac=jac, save=save,
-                    B=B, T=T, dtype=dtype, vmap=vmap)
+                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating)
 
     all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size]))
     cases = []
@@ -144,6 +147,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                               for s in ("final", "all")]
                     cases.append(case("mean", "mean", "midpoint", "final", B, T, dtype,
                                       vmap=True))
+                    # a rotating world (Earth's rate at 48°, the exact transition)
+                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
+                                      rotating=True))
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):
@@ -255,9 +261,10 @@ def build(case: dict, T: int | None = None):
     scheme, jac = case["scheme"], case["jac"]
     if case["kind"] == "mean":
         f = jaximu.propagate if case["save"] == "all" else jaximu.propagate_final
+        kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
 
         def fn(s, g, a, h):
-            return f(s, g, a, h, scheme)
+            return f(s, g, a, h, scheme, **kw)
 
         if case.get("vmap"):  # one trajectory per call, mapped; dt shared
             fn = jax.vmap(fn, in_axes=(0, 0, 0, None))

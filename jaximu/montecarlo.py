@@ -45,8 +45,8 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import json
-import os
 import math
+import os
 import sys
 import time
 from typing import NamedTuple
