@@ -83,6 +83,7 @@ CASE_ORDER = [
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
+    "cov analytic euler final rotating",
     "cov autodiff euler final",
     "cov analytic midpoint final",
     "cov autodiff midpoint final",
@@ -123,7 +124,7 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
         if kind == "mean":
             name = f"mean {scheme} {save}" + (" rotating" if rotating else "")
         elif kind == "cov":
-            name = f"cov {jac} {scheme} {save}"
+            name = f"cov {jac} {scheme} {save}" + (" rotating" if rotating else "")
         else:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
@@ -161,6 +162,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                               for s in ("midpoint", "rk4") for j in ("analytic", "autodiff")]
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", vmap=True))
+                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
+                                      jac="analytic", rotating=True))
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
@@ -275,8 +278,10 @@ def build(case: dict, T: int | None = None):
         else:
             f = jaximu.propagate_covariance_final
 
+        kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
+
         def fn(s, P, g, a, h):
-            return f(s, P, g, a, h, NOISE, scheme, jacobians=jac)
+            return f(s, P, g, a, h, NOISE, scheme, jacobians=jac, **kw)
 
         if case.get("vmap"):
             fn = jax.vmap(fn, in_axes=(0, None, 0, 0, None))

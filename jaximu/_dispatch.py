@@ -56,10 +56,10 @@ TABLE = (
         LONG_STEPS, "soa_mean_chunked", ("float64",)),
     # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
-        1, "soa_cov_analytic"),
+        1, "soa_cov_analytic", rotating=(False, True)),
     # final covariance, every scheme, blocks by autodiff of the SoA step
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
-        1, "soa_cov_autodiff"),
+        1, "soa_cov_autodiff", rotating=(False, True)),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
     Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler"),
     Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,
