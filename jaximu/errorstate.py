@@ -295,7 +295,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
                              rotating=omega is not None)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians)
+                                          jacobians, omega, coriolis)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -315,7 +315,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
         if omega is None:
             Pn = structured_update(Pc, b, qc)
         else:
-            Pn = _rotating_update(Pc, b, qc, omega, h, coriolis)
+            Pn = world.covariance_step(Pc, b, qc, omega, h, coriolis)
         (x, p, v, locked), _ = mean((x, p, v, locked), xs)
         out = None
         if save_all:
@@ -338,30 +338,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _rotating_update(Pb, b, qc, omega, h, coriolis):
-    """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
-    ``Pb``. Exact transition: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the error maps
-    into and out of the step's inertial frame (:func:`jaximu.world.exact_error_maps`; the
-    still-world step's ``Φ`` in between). Classic terms: ``M (Φ P Φᵀ + G Q Gᵀ) Mᵀ`` with
-    ``M`` the identity but for its ``[p, v]`` block, :func:`jaximu.world.coriolis_transition`
-    (the increments are linear in ``p``, ``v``; ``Exp(dθ_W)`` multiplies ``R`` on the left,
-    which leaves the right rotation error alone)."""
-    def congruence(M, P):
-        return M @ P @ jnp.swapaxes(M, -1, -2)
-
-    P = blk.blocks_to_dense(Pb)
-    if coriolis == "exact":
-        pre, post = world.exact_error_maps(omega, h)
-        Pn = structured_update(blk.dense_to_blocks(congruence(pre.astype(P.dtype), P)), b, qc)
-        return blk.dense_to_blocks(congruence(post.astype(P.dtype), blk.blocks_to_dense(Pn)))
-    Pn = blk.blocks_to_dense(structured_update(Pb, b, qc))
-    M6 = world.coriolis_transition(omega, h, coriolis == "second_order").astype(P.dtype)
-    M = jnp.broadcast_to(jnp.eye(15, dtype=P.dtype), M6.shape[:-2] + (15, 15))
-    M = M.at[..., 3:9, 3:9].set(M6)
-    return blk.dense_to_blocks(congruence(M, Pn))
-
-
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians):
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
+                               omega=None, coriolis="exact"):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
@@ -377,9 +355,11 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
         v_ = var if shared else lane_var
         return v_ / (h[..., None] if jnp.ndim(h) else h)
 
+    if omega is not None and omega.ndim > 1:  # a world rate per batch element
+        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           get_scheme(scheme), jacobians)
+                                           get_scheme(scheme), jacobians, omega, coriolis)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),

@@ -42,9 +42,11 @@ NIS (``νᵀ S⁻¹ ν``, dof ``m``) is reported too.
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import json
 import math
+import os
 import pathlib
 import sys
 import time
@@ -712,8 +714,8 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
             first ``min(n_keep, n_runs)``).
         confidence: the NEES interval's probability, in ``(0, 1)`` (0.95, not 95).
         progress: bool, show progress (runs/s and ETA; a ``tqdm`` bar when installed).
-        shard: bool, spread the chunks over all local JAX devices (one in flight per
-            device).
+        shard: bool, spread the chunks over all local JAX devices (one in flight per device;
+            on a CPU device, one per core the process may use, each from its own thread).
         dtype: computation dtype, float32 or float64 (float64 needs ``jax_enable_x64``;
             default: float64 if enabled, else float32).
         keep_nees: bool, also return every run's NEES (``(N, K)``, memory ``8 N K`` bytes; one
@@ -781,20 +783,32 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     bar = _Progress(n_runs if n_proc == 1 else len(mine) * chunk, progress)
     kw = dict(scheme=st.scheme, seg=st.seg, mode="stats", filt=st.filt)
 
-    def launch(j, i):
+    def inputs(j, i):
         d = j % len(devices)
         run = np.arange(i * chunk, (i + 1) * chunk, dtype=np.uint64)
         wt = (run < n_runs).astype(st.dtype)
         run = jax.device_put((run % 2**32).astype(np.uint32), devices[d])
-        return i, _chunk(run, jax.device_put(wt, devices[d]), consts[d], **kw)
+        return run, jax.device_put(wt, devices[d]), consts[d]
 
-    pending = []
-    for j, i in enumerate(mine):
-        pending.append(launch(j, i))
-        if len(pending) > len(devices):
-            _collect(pending.pop(0), chunk, n_runs, acc, nees_all, bar)
-    for p in pending:
-        _collect(p, chunk, n_runs, acc, nees_all, bar)
+    def launch(j, i):
+        return i, jax.block_until_ready(_chunk(*inputs(j, i), **kw))
+
+    # One scan runs on one core (XLA:CPU runs a while loop's body on the calling thread), so
+    # a CPU device gets as many chunks in flight as the process has cores, each from its own
+    # thread; other devices one each. Chunks are combined in index order whatever finishes
+    # first, so the statistics do not depend on the number of workers.
+    workers = sum(_in_flight(d) for d in devices) if len(mine) > 1 else 1
+    if workers > 1:  # compile once, before the threads ask for it
+        for d in {j % len(devices): None for j in range(min(len(mine), len(devices)))}:
+            _chunk.lower(*inputs(d, mine[0]), **kw).compile()
+    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+        pending = []
+        for j, i in enumerate(mine):
+            pending.append(pool.submit(launch, j, i))
+            if len(pending) > workers:
+                _collect(pending.pop(0).result(), chunk, n_runs, acc, nees_all, bar)
+        for p in pending:
+            _collect(p.result(), chunk, n_runs, acc, nees_all, bar)
     bar.close()
 
     if n_proc > 1:  # combine the processes' sums in process order (the same on every one)
@@ -825,6 +839,19 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         sample_errors=keep, discretization_error=st.disc, n_runs=n_runs, confidence=confidence,
         nees_hist=acc.hist, nees_hist_edges=edges, nees_hist_index=hist_index,
         nis_mean=nis_mean, nis_bounds=nis_bounds, settings=settings)
+
+
+def _in_flight(device) -> int:
+    """Chunks run at once on ``device``: the cores this process may use on a CPU device
+    (``os.sched_getaffinity``: honours ``taskset`` and a scheduler's CPU set), else one."""
+    if device.platform != "cpu":
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    # Several CPU devices (--xla_force_host_platform_device_count) share the cores.
+    return max(1, cores // max(1, len(jax.local_devices(backend="cpu"))))
 
 
 def _collect(item, chunk, n_runs, acc, nees_all, bar):

@@ -108,11 +108,14 @@ def kernel_samples(scheme, gyro, accel, dt):
     return gyro[..., :n, :], accel[..., :n, :], dt
 
 
-def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
+def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
+                    coriolis="exact"):
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
+    if omega is not None and omega.ndim > 1:  # a world rate per batch element
+        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((-1, 3))
     out = _fast.propagate_mean(get_scheme(scheme), q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f,
-                               save_all)
+                               save_all, omega, coriolis)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q, p, v = (unflat(x) for x in out)
     if save_all:
@@ -264,7 +267,8 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
     if kernel == "soa_mean":
-        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
+        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
+                               coriolis)
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
