@@ -380,3 +380,35 @@ def test_the_command_names_the_flag_before_the_work(argv, msg, capsys):
 def test_the_library_fix_for_update_every_renders_as_the_filter_flag():
     e = InputError("update_every too large", [Fix("update_every", 5)], lead="pass at most")
     assert e.render(cli.flag_of).endswith("pass at most --filter 5")
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("q_BS", [1.0, 0.1, 0.0, 0.0], r"initial\.q_BS must be a unit quaternion"),
+    ("b_g", [0.0, np.nan, 0.0], r"initial\.b_g"),
+    ("gravity", -9.81, r"initial\.gravity is a magnitude"),
+    ("p_BS", [[0.0, 0.0, 0.1]] * 2, r"initial\.p_BS must have shape \(3,\)"),
+])
+@pytest.mark.parametrize("entry", ["calibration_problem", "calibrate"])
+def test_calibration_initial_outside_its_domain_is_named_before_any_work(entry, field, value,
+                                                                        message):
+    """A non-unit q_BS (the fit would start from a scaled rotation), NaN, a negative gravity
+    magnitude or a batched field are refused naming initial.<field>, before anything
+    compiles (calibrate is given a placeholder problem: the check comes first)."""
+    from jaximu import calibration as cal
+
+    bad = cal.ImuCalibration.default(**{field: value})
+    with pytest.raises(ValueError, match=message):
+        if entry == "calibration_problem":
+            t = np.arange(10) * 0.01
+            ref = cal.Reference(t, np.tile([1.0, 0, 0, 0], (10, 1)), np.zeros((10, 3)))
+            cal.calibration_problem(t, np.zeros((10, 3)), np.zeros((10, 3)), ref,
+                                    ImuNoise.euroc(), initial=bad)
+        else:
+            cal.calibrate(_placeholder_problem(), bad)
+
+
+def _placeholder_problem():
+    from jaximu import calibration as cal
+
+    fields = {f.name: None for f in cal.dataclasses.fields(cal.CalibrationProblem)}
+    return cal.CalibrationProblem(**fields)
