@@ -68,6 +68,8 @@ NOISE = jaximu.ImuNoise.euroc()
 P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4 ** 2] * 3,
                 [1e-3 ** 2] * 3]
 
+EARTH_48 = np.asarray(jaximu.earth_rate(48.0))  # rad/s, east-north-up
+
 # Display order of the cases in the table.
 CASE_ORDER = [
     "mean euler final",
@@ -77,9 +79,11 @@ CASE_ORDER = [
     "mean midpoint final",
     "mean midpoint final vmap",
     "mean rk4 final",
+    "mean euler final rotating",
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
+    "cov analytic euler final rotating",
     "cov autodiff euler final",
     "cov analytic midpoint final",
     "cov autodiff midpoint final",
@@ -116,16 +120,16 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
             f"{cov_all_size[0]}×{cov_all_size[1]} instead."
         )
 
-    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False):
+    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False):
         if kind == "mean":
-            name = f"mean {scheme} {save}"
+            name = f"mean {scheme} {save}" + (" rotating" if rotating else "")
         elif kind == "cov":
-            name = f"cov {jac} {scheme} {save}"
+            name = f"cov {jac} {scheme} {save}" + (" rotating" if rotating else "")
         else:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
         return dict(section=section, name=name, kind=kind, scheme=scheme, jac=jac, save=save,
-                    B=B, T=T, dtype=dtype, vmap=vmap)
+                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating)
 
     all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size]))
     cases = []
@@ -144,6 +148,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                               for s in ("final", "all")]
                     cases.append(case("mean", "mean", "midpoint", "final", B, T, dtype,
                                       vmap=True))
+                    # a rotating world (Earth's rate at 48°, the exact transition)
+                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
+                                      rotating=True))
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):
@@ -155,6 +162,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                               for s in ("midpoint", "rk4") for j in ("analytic", "autodiff")]
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", vmap=True))
+                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
+                                      jac="analytic", rotating=True))
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
@@ -255,9 +264,10 @@ def build(case: dict, T: int | None = None):
     scheme, jac = case["scheme"], case["jac"]
     if case["kind"] == "mean":
         f = jaximu.propagate if case["save"] == "all" else jaximu.propagate_final
+        kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
 
         def fn(s, g, a, h):
-            return f(s, g, a, h, scheme)
+            return f(s, g, a, h, scheme, **kw)
 
         if case.get("vmap"):  # one trajectory per call, mapped; dt shared
             fn = jax.vmap(fn, in_axes=(0, 0, 0, None))
@@ -268,8 +278,10 @@ def build(case: dict, T: int | None = None):
         else:
             f = jaximu.propagate_covariance_final
 
+        kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
+
         def fn(s, P, g, a, h):
-            return f(s, P, g, a, h, NOISE, scheme, jacobians=jac)
+            return f(s, P, g, a, h, NOISE, scheme, jacobians=jac, **kw)
 
         if case.get("vmap"):
             fn = jax.vmap(fn, in_axes=(0, None, 0, 0, None))

@@ -45,6 +45,7 @@ class Layout(NamedTuple):
     skew: object = None  # [v]x of a V3
     matvec: object = None  # X v -> V3
     exp_jr: object = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
+    from_arrays: object = None  # a (3, 3) or (..., 3, 3) array as a block of this layout
 
 
 ARRAYS = Layout(
@@ -56,6 +57,7 @@ ARRAYS = Layout(
     skew=lambda v: so3.skew(v.stack()),
     matvec=lambda X, v: V3.of(jnp.einsum("...ij,...j->...i", X, v.stack())),
     exp_jr=lambda phi: (so3.exp_matrix(phi.stack()), so3.right_jacobian(phi.stack())),
+    from_arrays=lambda X: X,
 )
 
 
@@ -233,6 +235,37 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
         for j in range(i, 3):
             out[(i, j)] = cols[j]()
     out[(3, 3)], out[(3, 4)], out[(4, 4)] = P(3, 3), P(3, 4), P(4, 4)
+    return out
+
+
+def congruence(Pb, rows, ops: Layout = ARRAYS):
+    """``M P Mᵀ`` on upper blocks, for an ``M`` that is the identity but for the block rows
+    in ``rows``: ``{i: {k: M_ik}}`` (missing blocks zero, the string ``"I"`` an identity
+    block), as :func:`jaximu.world.error_map_rows` gives them. Rows of ``M`` that are
+    identity rows cost nothing."""
+    def P(i, j):
+        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+
+    def times(Mik, X):  # M_ik X
+        return X if isinstance(Mik, str) else mm(Mik, X, ops)
+
+    def times_t(X, Mjl):  # X M_jlᵀ
+        return X if isinstance(Mjl, str) else mm(X, t(Mjl, ops), ops)
+
+    # N = M P (all columns of the changed rows), then N Mᵀ (the changed columns)
+    N = {i: {j: add(*(times(Mik, P(k, j)) for k, Mik in rows[i].items())) for j in range(5)}
+         for i in rows}
+    N = ops.barrier(N)  # each block is read by several products
+
+    def Nrow(i, j):
+        return N[i][j] if i in N else P(i, j)
+
+    out = {}
+    for i, j in UPPER:
+        if j in rows:
+            out[(i, j)] = add(*(times_t(Nrow(i, l), Mjl) for l, Mjl in rows[j].items()))
+        else:
+            out[(i, j)] = Nrow(i, j)
     return out
 
 

@@ -47,7 +47,7 @@ TABLE = (
     # mean of every scheme with the exact quaternion exponential; below 32 lanes XLA's
     # generic scan (one fused kernel per step) is as fast
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
-        "soa_mean"),
+        "soa_mean", rotating=(False, True)),
     # a few long sequences in float64: time chunks side by side as lanes (mean_chunks),
     # composed. float32 keeps the plain scan: it is fast there (XLA:CPU keeps a float32
     # loop body under its small-loop limit), and the chunk deltas, which carry the
@@ -56,10 +56,10 @@ TABLE = (
         LONG_STEPS, "soa_mean_chunked", ("float64",)),
     # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
-        1, "soa_cov_analytic"),
+        1, "soa_cov_analytic", rotating=(False, True)),
     # final covariance, every scheme, blocks by autodiff of the SoA step
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
-        1, "soa_cov_autodiff"),
+        1, "soa_cov_autodiff", rotating=(False, True)),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
     Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler"),
     Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,
@@ -76,7 +76,7 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
            dtype="float64", fast=True, rotating=False) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
     and ``steps`` time steps; ``rotating``: a world rotation rate (``omega_coriolis``) is
-    given, which only the generic kernels implement."""
+    given (the rows that implement it say so in their ``rotating`` column)."""
     if not fast:
         return GENERIC
     for row in TABLE:

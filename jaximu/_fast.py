@@ -9,8 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import so3, world
 from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul, _stack_last,
+from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul,
+                         _quat_normalize, _stack_last,
                          _time_chunks, exp_jr, half_angle_jr, mean_step, quat_matrix,
                          run_blocked)
 from jaximu._vec import V3
@@ -21,24 +23,65 @@ UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
 
 
-def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
+def _rotate_left(q, dth):
+    """``Exp(dθ) ⊗ q`` (normalised) for a rotation vector ``dθ`` ``(..., 3)``."""
+    e = so3.exp(dth)
+    return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
+
+
+def _enter_world(omega: V3, p: V3, v: V3, coriolis) -> V3:
+    """The velocity the still-world step starts from (the transported one for "exact")."""
+    return world.to_inertial_v3(omega, p, v) if coriolis == "exact" else v
+
+
+def _leave_world(q, p, v, h, g: V3, omega: V3, coriolis):
+    """The still-world step's end ``(q, p, v)`` (tuples of lanes) back in the turning world:
+    out of the step's inertial frame ("exact"), or GTSAM ≤ 4.2's increments at the end."""
+    if coriolis == "exact":
+        dth, Q, dp, dv = world.leave_inertial_terms(omega.stack(), h, g.stack())
+        p, v = world.leave_inertial_v3(omega, Q, V3.of(dp), V3.of(dv), V3(*p), V3(*v))
+        return _rotate_left(q, dth), tuple(p), tuple(v)
+    dth, dp, dv = world.coriolis_increments_v3(omega, V3(*p), V3(*v), h,
+                                               coriolis == "second_order")
+    return _rotate_left(q, dth.stack()), tuple(V3(*p) + dp), tuple(V3(*v) + dv)
+
+
+def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3, omega: V3,
+                       coriolis):
+    """:func:`jaximu.propagate.rotating_step` on lanes: the still-world step in the inertial
+    frame of the step's start (``coriolis="exact"``) or followed by GTSAM ≤ 4.2's increments
+    (:mod:`jaximu.world` holds both)."""
+    v = _enter_world(omega, p, v, coriolis)
+    q, p, v = mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
+    return _leave_world(q, p, v, h, g, omega, coriolis)
+
+
+def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
+                   coriolis="exact"):
     """Flat batch: q ``(B, 4)``, p/v/b_g/b_a ``(B, 3)``, gyro/accel ``(B, T, 3)`` (``T + 1``
     samples for a scheme that uses sample k+1: the last one ends the last step), dt ``(T,)``
-    or ``(B, T)``, g ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with
-    save_all, the ``(B, T, ·)`` trajectories."""
+    or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating world, :mod:`jaximu.world`)
+    ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with save_all,
+    the ``(B, T, ·)`` trajectories."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
+    rotating = omega is not None
+    shared_w = not rotating or omega.ndim == 1
 
-    def block(q, p, v, b_g, b_a, gyro, accel, dt_b, g_b):
-        consts = (_components(b_g), _components(b_a), _components(g_b if not shared_g else g))
+    def block(q, p, v, b_g, b_a, gyro, accel, dt_b, g_b, w_b):
+        consts = (_components(b_g), _components(b_a), _components(g_b if not shared_g else g),
+                  _components(omega if shared_w else w_b) if rotating else ())
         carry = (_components(q), _components(p), _components(v))
 
         def step(c, w, a, h, consts):
-            bg, ba, gv = (V3(*x) for x in consts)
+            bg, ba, gv = (V3(*x) for x in consts[:3])
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
             q, p, v = c
+            if rotating:
+                return rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
+                                          h, gv, V3(*consts[3]), coriolis)
             return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
@@ -50,7 +93,9 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all):
 
     dt_arg = jnp.zeros((B, 1), gyro.dtype) if shared_dt else dt
     g_arg = jnp.zeros((B, 1), gyro.dtype) if shared_g else g
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt_arg, g_arg)
+    w_arg = jnp.zeros((B, 1), gyro.dtype) if shared_w else omega
+    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt_arg, g_arg,
+                       w_arg)
 
 
 def dense_to_blocks(P):
@@ -123,12 +168,17 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     return (q1, p1, v1), b
 
 
-def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc):
+def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
+                    coriolis="exact"):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
-    :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``."""
+    :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``. ``omega`` (a
+    :class:`V3`, or ``None``): the world turns, and the step runs between the world's maps
+    (:func:`jaximu.world.covariance_step`)."""
     q, p, v, Pb = carry
+    if omega is not None:
+        v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
     if jacobians == "analytic":
         phi_end = scheme.points(omega0, f0, omega1, f1, h)[1]
         half = half_angle_jr(phi_end.dot(phi_end))  # one half angle for the mean and Φ
@@ -139,28 +189,37 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc):
     else:
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
                                           h, g)
-    new = structured_update(dict(zip(UPPER, Pb)), b, (qc[0:3], qc[3:6], qc[6:9], qc[9:12]), SOA,
-                            scheme.p_over_v(h))
+    qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
+    if omega is None:
+        new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, scheme.p_over_v(h))
+    else:
+        new = world.covariance_step(dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis,
+                                    SOA, scheme.p_over_v(h))
+        q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis)
     return q1, p1, v1, tuple(new[k] for k in UPPER)
 
 
 def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
-                        scheme, jacobians):
+                        scheme, jacobians, omega=None, coriolis="exact"):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
     ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
     ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
-    uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`)."""
+    uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
+    ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
+    rotating = omega is not None
+    shared_w = not rotating or omega.ndim == 1
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt_b, g_b, lane_noise):
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt_b, g_b, lane_noise, w_b):
         consts = (_components(b_g), _components(b_a), _components(g if shared_g else g_b),
-                  None if qc_per_lane is None else lane_noise)
+                  None if qc_per_lane is None else lane_noise,
+                  (_components(omega if shared_w else w_b) if rotating else None))
         carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
 
         def step(c, w, a, h, consts):
-            bg, ba, gv, ln = consts
+            bg, ba, gv, ln, wv = consts
             qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
             qc = tuple(qc[..., i] for i in range(12))
             bg, ba = V3(*bg), V3(*ba)
@@ -169,7 +228,8 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
             # the step's inputs in memory: read through the scan's dynamic slice inside the
             # 3-D block fusions they stop LLVM from vectorising them
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
-            return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc)
+            return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc,
+                                   None if wv is None else V3(*wv), coriolis)
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
                                         consts, None,
@@ -179,5 +239,5 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
     z = jnp.zeros((B, 1), gyro.dtype)
     return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, P0, gyro, accel,
                        z if shared_dt else dt, z if shared_g else g,
-                       z if qc_per_lane is None else qc_per_lane)
+                       z if qc_per_lane is None else qc_per_lane, z if shared_w else omega)
 

@@ -267,6 +267,9 @@ SOA = Layout(
     skew=lambda v: _skew3(v, _dtype_of(v)),
     matvec=lambda X, v: V3(*(X[i, 0] * v.x + X[i, 1] * v.y + X[i, 2] * v.z for i in range(3))),
     exp_jr=exp_jr,
+    # a shared (3, 3) block broadcasts over the lanes; a per-lane (B, 3, 3) one moves its
+    # batch axis last
+    from_arrays=lambda X: X[..., None] if X.ndim == 2 else jnp.moveaxis(X, 0, -1),
 )
 """The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
 per lane are 3-tuples of ``(B,)`` arrays (or scalars)."""

@@ -30,17 +30,30 @@ def _first_bad(mask: np.ndarray) -> str:
     return "[" + ", ".join(str(int(i)) for i in idx) + "]"
 
 
-def _cast(x, dtype):
-    """``jnp.asarray(x, dtype)`` without numpy's overflow warning (the callers report it)."""
-    with np.errstate(over="ignore"):
-        return jnp.asarray(x, dtype)
+def _cast(x, dtype, name: str | None = None):
+    """``jnp.asarray(x, dtype)`` without numpy's overflow warning (the callers report it).
+    With ``name``, an input that is not numbers (``None``, a string, a ragged list) raises a
+    ``ValueError`` naming it instead of JAX's own ``TypeError``."""
+    try:
+        if name is not None and (isinstance(x, (str, bytes)) or getattr(
+                getattr(x, "dtype", None), "kind", "f") in "USOV"):
+            raise TypeError("not numbers")  # "0.01" is text, not a step: never parsed for you
+        with np.errstate(over="ignore"):
+            return jnp.asarray(x, dtype)
+    except (TypeError, ValueError):
+        if name is None or isinstance(x, jax.core.Tracer):
+            raise
+        shown = repr(x)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
+        raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} "
+                         f"{shown}") from None
 
 
 def to_dtype(name: str, x, dtype):
     """``x`` as a ``dtype`` array; a concrete finite value that ``dtype`` cannot hold (1e300
     in float32) raises ``ValueError`` naming it instead of becoming inf. NaN and inf inputs
     pass through (:func:`check_finite` reports them)."""
-    y = _cast(x, dtype)
+    y = _cast(x, dtype, name)
     if is_concrete(x) and getattr(x, "dtype", None) != y.dtype:
         src = np.asarray(x)
         if src.dtype.kind in "fiu":
@@ -88,7 +101,15 @@ def float_dtype(*xs):
     float32. Integer inputs and half precision (float16, bfloat16: 3 significant digits,
     which lose every position increment below 1/1000 of the position) are computed in
     float32; the outputs are then float32. The inputs themselves are not changed."""
-    dt = jnp.result_type(*(x if hasattr(x, "dtype") else np.asarray(x) for x in xs))
+    def numeric(x):  # text, None, ragged lists: left to to_dtype, which names the argument
+        try:
+            a = x if hasattr(x, "dtype") else np.asarray(x)
+        except (TypeError, ValueError):
+            return None
+        return a if getattr(a.dtype, "kind", "f") in "biufc" else None
+
+    arrays = [a for a in map(numeric, xs) if a is not None]
+    dt = jnp.result_type(*arrays) if arrays else jnp.result_type(jnp.float32)
     if not jnp.issubdtype(dt, jnp.floating) or jnp.dtype(dt).itemsize < 4:
         dt = jnp.result_type(jnp.float32)
     return dt
@@ -134,7 +155,7 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
     if T < 1:
         raise ValueError("gyro and accel hold no samples (T = 0)")
     dt_in = dt
-    dt = _cast(dt, dtype)
+    dt = _cast(dt, dtype, "dt")
     ok = (T, T - 1) if (allow_intervals and T > 1) else (T,)
     if dt.ndim > 0 and dt.shape[-1] not in ok:
         want = "(..., T) or (..., T-1)" if allow_intervals else "(..., T)"
@@ -219,12 +240,17 @@ def gravity_vector(gravity, dtype):
     return g
 
 
-def batch_shape(*shapes):
+def batch_shape(*shapes, names=None):
+    """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
+    each after its argument's name) when they do not broadcast."""
     try:
         return jnp.broadcast_shapes(*shapes)
     except ValueError:
+        listed = [str(tuple(s)) for s in shapes] if names is None else \
+            [f"{n} {tuple(s)}" for n, s in zip(names, shapes)]
         raise ValueError(
-            "batch shapes of the inputs do not broadcast: " + ", ".join(str(tuple(s)) for s in shapes)
+            "batch shapes of the inputs do not broadcast: " + ", ".join(listed)
+            + ("; give them equal leading axes or axes of size 1" if names else "")
         ) from None
 
 
@@ -291,6 +317,24 @@ def check_fraction(name: str, x) -> float:
     return v
 
 
+_WORDS = {"true": True, "yes": True, "on": True, "1": True,
+          "false": False, "no": False, "off": False, "0": False, "none": False}
+
+
+def check_bool(name: str, x) -> bool:
+    """``x`` if it is a ``bool`` (or numpy bool). Anything else is refused, since its truth
+    value would silently decide the option (``"no"`` is true): a word that says yes or no
+    raises :class:`InputError` with the repair, other values a ``ValueError``."""
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, str) and x.strip().lower() in _WORDS:
+        v = _WORDS[x.strip().lower()]
+        raise InputError(f"{name} must be True or False, got the string {x!r}", [Fix(name, v)])
+    if isinstance(x, (int, np.integer)) and x in (0, 1):
+        raise InputError(f"{name} must be True or False, got {x!r}", [Fix(name, bool(x))])
+    raise ValueError(f"{name} must be True or False, got {type(x).__name__} {x!r}")
+
+
 def check_choice(name: str, x, choices, what: str | None = None):
     if x not in choices:
         raise ValueError(f"unknown {what or name} {x!r}; choose one of {tuple(choices)}")
@@ -312,9 +356,24 @@ def compute_dtype(name: str, dtype):
     return d
 
 
+def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
+    """``x`` as a numpy array of ``dtype``; text, ``None`` or a ragged list raise a
+    ``ValueError`` naming ``name`` (never parsed or guessed for the user)."""
+    kind = getattr(getattr(x, "dtype", None), "kind", "f")
+    try:
+        if x is None or isinstance(x, (str, bytes)) or kind in "USOV":
+            raise TypeError
+        return np.asarray(x, dtype)
+    except (TypeError, ValueError):
+        shown = repr(x)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
+        raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} "
+                         f"{shown}") from None
+
+
 def check_array(name: str, x, shape: tuple) -> np.ndarray:
     """A concrete numpy array of exactly ``shape``, finite; named in the error."""
-    arr = np.asarray(x)
+    arr = as_numbers(name, x, None)
     if arr.shape != tuple(shape) or arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must have shape {tuple(shape)}, got {arr.shape}"
                          if arr.shape != tuple(shape) else f"{name} must be numeric, got {arr.dtype}")

@@ -573,6 +573,29 @@ def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
     return np.zeros(3), np.nan, "none"
 
 
+def _check_initial(initial):
+    """``initial``: ``None`` or an :class:`ImuCalibration` of single (unbatched) fields of
+    their documented shapes, finite, with a unit ``q_BS`` (relative 1e-3, as
+    :class:`Reference`'s quaternions) and ``gravity ≥ 0`` (a magnitude)."""
+    if initial is None:
+        return
+    if not isinstance(initial, ImuCalibration):
+        raise ValueError(f"initial must be an ImuCalibration or None, got {type(initial).__name__}")
+    for name in FIELDS:
+        x = np.asarray(getattr(initial, name), np.float64)
+        shape = (_SIZES[name],) if _SIZES[name] > 1 else ()
+        if x.shape != shape:
+            raise ValueError(f"initial.{name} must have shape {shape}, got {x.shape}")
+        val.check_finite(f"initial.{name}", x)
+    q = np.asarray(initial.q_BS, np.float64)
+    if abs(np.linalg.norm(q) - 1) > 1e-3:
+        raise ValueError(f"initial.q_BS must be a unit quaternion [w, x, y, z]; |q| = "
+                         f"{np.linalg.norm(q):.6g} (normalise it: q / |q|)")
+    if float(np.asarray(initial.gravity)) < 0:
+        raise ValueError(f"initial.gravity is a magnitude [m/s²] and must be ≥ 0, got "
+                         f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])")
+
+
 def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
                         keyframe_interval: float = 0.5, scheme: str = "euler",
                         model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
@@ -634,8 +657,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if not isinstance(reference, Reference):
         raise ValueError(f"reference must be a jaximu.calibration.Reference, got "
                          f"{type(reference).__name__}")
-    if initial is not None and not isinstance(initial, ImuCalibration):
-        raise ValueError(f"initial must be an ImuCalibration or None, got {type(initial).__name__}")
+    _check_initial(initial)
     dtype = val.float_dtype(gyro, accel)
     t = np.asarray(t, np.float64)
     gyro_np, accel_np = np.asarray(gyro), np.asarray(accel)
@@ -1065,8 +1087,7 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     if not isinstance(problem, CalibrationProblem):
         raise ValueError("problem must be a CalibrationProblem (from calibration_problem), got "
                          f"{type(problem).__name__}")
-    if initial is not None and not isinstance(initial, ImuCalibration):
-        raise ValueError(f"initial must be an ImuCalibration or None, got {type(initial).__name__}")
+    _check_initial(initial)
     if steps is not None:
         steps = val.check_int("steps", steps, 1)
     learning_rate = val.check_positive("learning_rate", learning_rate)

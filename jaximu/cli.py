@@ -77,6 +77,14 @@ def _sensor_and_world(args, rate_hz=None):
     return pose, omega, noise
 
 
+def _check_earth_rate(args):
+    """``--earth-rate``: a latitude in [-90, 90] degrees, checked before the work (reading
+    the data) and named by its flag."""
+    lat = getattr(args, "earth_rate", None)
+    if lat is not None and not (np.isfinite(lat) and abs(lat) <= 90):
+        raise UsageError(f"--earth-rate is a latitude in degrees, in [-90, 90]; got {lat:g}")
+
+
 def _add_sensor_options(p):
     g = p.add_argument_group("sensor pose and rotating world")
     g.add_argument("--body-P-sensor", metavar="QW,QX,QY,QZ,PX,PY,PZ|YAML",
@@ -407,14 +415,21 @@ def cmd_preintegrate(args):
 # --------------------------------------------------------------------------- Monte Carlo
 
 
+FIX_SIGMA = 0.05
+"""``--fix-sigma``'s default [m]."""
+
+
 def cmd_montecarlo(args):
     import jax
     import jax.numpy as jnp
 
     from jaximu import montecarlo, simulate
 
-    if args.runs < 2 or not (0 < args.seconds < 1e6 and 0 < args.rate < 1e6):
-        raise UsageError("--runs must be ≥ 2, --seconds and --rate positive and finite")
+    if args.runs < 2:
+        raise UsageError(f"--runs must be ≥ 2, got {args.runs}")
+    for flag, x in (("--seconds", args.seconds), ("--rate", args.rate)):
+        if not 0 < x < 1e6:
+            raise UsageError(f"{flag} must be positive and finite (below 1e6), got {x:g}")
     if args.seconds * args.rate < 1:
         raise UsageError(f"--seconds {args.seconds:g} at --rate {args.rate:g} Hz holds no sample "
                          f"interval; pass --seconds ≥ {1 / args.rate:g} or a higher --rate")
@@ -428,20 +443,29 @@ def cmd_montecarlo(args):
     P0 = jnp.asarray(np.diag(sig**2), dtype)
     if args.filter is not None and args.filter < 1:
         raise UsageError(f"--filter must be a number of samples ≥ 1, got {args.filter}")
-    if not (args.fix_sigma > 0 and np.isfinite(args.fix_sigma)):
-        raise UsageError(f"--fix-sigma must be positive and finite, got {args.fix_sigma:g}")
+    if args.filter is not None and args.filter > n:
+        raise UsageError(f"--filter {args.filter} is more than the {n} samples of --seconds "
+                         f"{args.seconds:g} at --rate {args.rate:g} Hz: no fix would happen; "
+                         f"pass at most --filter {n}")
+    if args.fix_sigma is not None and args.filter is None:
+        raise UsageError("--fix-sigma is the position fix of the filter study; pass --filter N "
+                         "too (a fix every N samples), or drop --fix-sigma")
+    fix_sigma = FIX_SIGMA if args.fix_sigma is None else args.fix_sigma
+    if not (fix_sigma > 0 and np.isfinite(fix_sigma)):
+        raise UsageError(f"--fix-sigma must be positive and finite, got {fix_sigma:g}")
     say = print if jax.process_index() == 0 else (lambda *a, **k: None)  # one report
     say(f"Monte Carlo: {args.runs} runs of {args.seconds:g} s of {args.trajectory} at "
         f"{args.rate:g} Hz, noise {args.noise}, scheme {args.scheme} "
         f"({np.dtype(dtype).name}, {jax.local_device_count()} {jax.default_backend()} device(s)"
         f"{f' × {jax.process_count()} processes' if jax.process_count() > 1 else ''})"
-        + (f"; filter: position fix (σ {args.fix_sigma:g} m) every {args.filter} samples"
+        + (f"; filter: position fix (σ {fix_sigma:g} m) every {args.filter} samples"
            if args.filter else ""))
     tic = time.perf_counter()
     res = montecarlo.monte_carlo(traj, times, P0, _noise(args.noise), args.runs,
                                  jax.random.PRNGKey(args.seed), scheme=args.scheme,
                                  record_every=max(1, n // 50), update_every=args.filter,
-                                 measurement=montecarlo.PositionFix(args.fix_sigma),
+                                 measurement=montecarlo.PositionFix(fix_sigma)
+                                 if args.filter else None,
                                  progress=not args.no_progress and jax.process_index() == 0,
                                  dtype=dtype)
     say(f"done in {time.perf_counter() - tic:.2f} s including compilation")
@@ -693,8 +717,9 @@ def build_parser():
     p.add_argument("--filter", type=int, metavar="N", default=None,
                    help="filter study: every run propagates its own covariance and takes a "
                    "position fix every N samples (error-state EKF, Joseph form); NEES and NIS")
-    p.add_argument("--fix-sigma", type=float, default=0.05,
-                   help="position fix standard deviation [m] (> 0) for --filter")
+    p.add_argument("--fix-sigma", type=float, default=None,
+                   help=f"position fix standard deviation [m] (> 0; default {FIX_SIGMA}); "
+                   "only with --filter")
     p.add_argument("--save", metavar="NPZ",
                    help="write the result with its settings (jaximu.montecarlo.load_result)")
     _add_output_options(p)
@@ -766,10 +791,13 @@ FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": 
          "sort": "--sort", "drop_duplicates": "--drop-duplicates",
          "drop_nonfinite": "--drop-nonfinite", "allow_gaps": "--allow-gaps",
          "max_gap": "--max-gap", "gravity": "--gravity",
-         "keyframe_interval": "--keyframe-interval", "seconds": "--seconds"}
+         "keyframe_interval": "--keyframe-interval", "seconds": "--seconds",
+         "update_every": "--filter"}
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
-API_ONLY_OPTIONS = frozenset()
-"""Options the library's fixes may name that have no flag (rendered as keywords)."""
+API_ONLY_OPTIONS = frozenset({"measurement", "path"})
+"""Options the library's fixes may name that have no flag (rendered as keywords):
+``monte_carlo``'s ``measurement`` (the command builds it from ``--fix-sigma``) and
+``MonteCarloResult.save``'s ``path`` (``--save`` is checked by the command first)."""
 
 
 def flag_of(fix) -> str:
@@ -839,6 +867,7 @@ def main(argv=None, *, cache: bool | None = None) -> int:
 
     args.cache_dir = None
     try:
+        _check_earth_rate(args)
         if cache if cache is not None else argv is None:
             args.cache_dir = enable_compilation_cache()
         return args.func(args)

@@ -224,16 +224,17 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
 structured_update = blk.structured_update
 
 
-def _check_cov(P0, dtype):
+def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
     """Shape, finiteness, symmetry and semi-definiteness of ``P0``, judged relative to the
     matrix's own scale (its largest entry): a covariance of 1e-6 m² is held to the same
     relative rounding tolerance (``60 ε`` of the computation dtype, ``4 n ε`` with n = 15)
     as one of 1e6, so a one-sided cross term or a negative variance is caught at any scale,
-    while the rounding of ``A Aᵀ`` computed in the dtype passes."""
-    P0 = val.to_dtype("P0", P0, dtype)
-    if P0.ndim < 2 or P0.shape[-2:] != (15, 15):
-        raise ValueError(f"P0 must have shape (..., 15, 15), got {tuple(P0.shape)}")
-    val.check_finite("P0", P0)
+    while the rounding of ``A Aᵀ`` computed in the dtype passes. ``name``: the argument in
+    the messages; ``n``: the matrix size (15 for the error state)."""
+    P0 = val.to_dtype(name, P0, dtype)
+    if P0.ndim < 2 or P0.shape[-2:] != (n, n):
+        raise ValueError(f"{name} must have shape (..., {n}, {n}), got {tuple(P0.shape)}")
+    val.check_finite(name, P0)
     if val.is_concrete(P0):
         arr = np.asarray(P0, np.float64)
         scale = float(np.abs(arr).max(initial=0.0))
@@ -246,21 +247,23 @@ def _check_cov(P0, dtype):
             i = np.unravel_index(int(np.argmax(asym)), asym.shape)
             j = i[:-2] + (i[-1], i[-2])
             raise ValueError(
-                f"P0 is not symmetric: P0[{', '.join(map(str, i))}] = {arr[i] * scale:.6g} but "
-                f"P0[{', '.join(map(str, j))}] = {arr[j] * scale:.6g} (max |P - Pᵀ| = "
+                f"{name} is not symmetric: {name}[{', '.join(map(str, i))}] = "
+                f"{arr[i] * scale:.6g} but "
+                f"{name}[{', '.join(map(str, j))}] = {arr[j] * scale:.6g} "
+                f"(max |{name} - {name}ᵀ| = "
                 f"{asym.max() * scale:.3g}, {asym.max():.2g} of the largest entry {scale:.3g}); "
-                "set both, e.g. P0 = (P0 + P0ᵀ) / 2")
+                f"set both, e.g. {name} = ({name} + {name}ᵀ) / 2")
         diag = np.diagonal(arr, axis1=-2, axis2=-1)
         if diag.min(initial=0.0) < -tol:
             i = np.unravel_index(int(np.argmin(diag)), diag.shape)
             where = ", ".join(map(str, i[:-1] + (i[-1], i[-1])))
             raise ValueError(
-                f"P0 is not positive semi-definite: the variance P0[{where}] = "
+                f"{name} is not positive semi-definite: the variance {name}[{where}] = "
                 f"{diag[i] * scale:.3g} is negative; variances are σ² ≥ 0")
         min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min(initial=0.0)
         if min_eig < -tol:
             raise ValueError(
-                f"P0 is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g}, "
+                f"{name} is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g}, "
                 f"{-min_eig:.2g} of the largest entry {scale:.3g}): the cross terms exceed what "
                 "the variances allow")
     return P0
@@ -292,7 +295,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
                              rotating=omega is not None)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians)
+                                          jacobians, omega, coriolis)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -312,7 +315,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
         if omega is None:
             Pn = structured_update(Pc, b, qc)
         else:
-            Pn = _rotating_update(Pc, b, qc, omega, h, coriolis)
+            Pn = world.covariance_step(Pc, b, qc, omega, h, coriolis)
         (x, p, v, locked), _ = mean((x, p, v, locked), xs)
         out = None
         if save_all:
@@ -335,30 +338,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _rotating_update(Pb, b, qc, omega, h, coriolis):
-    """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
-    ``Pb``. Exact transition: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the error maps
-    into and out of the step's inertial frame (:func:`jaximu.world.exact_error_maps`; the
-    still-world step's ``Φ`` in between). Classic terms: ``M (Φ P Φᵀ + G Q Gᵀ) Mᵀ`` with
-    ``M`` the identity but for its ``[p, v]`` block, :func:`jaximu.world.coriolis_transition`
-    (the increments are linear in ``p``, ``v``; ``Exp(dθ_W)`` multiplies ``R`` on the left,
-    which leaves the right rotation error alone)."""
-    def congruence(M, P):
-        return M @ P @ jnp.swapaxes(M, -1, -2)
-
-    P = blk.blocks_to_dense(Pb)
-    if coriolis == "exact":
-        pre, post = world.exact_error_maps(omega, h)
-        Pn = structured_update(blk.dense_to_blocks(congruence(pre.astype(P.dtype), P)), b, qc)
-        return blk.dense_to_blocks(congruence(post.astype(P.dtype), blk.blocks_to_dense(Pn)))
-    Pn = blk.blocks_to_dense(structured_update(Pb, b, qc))
-    M6 = world.coriolis_transition(omega, h, coriolis == "second_order").astype(P.dtype)
-    M = jnp.broadcast_to(jnp.eye(15, dtype=P.dtype), M6.shape[:-2] + (15, 15))
-    M = M.at[..., 3:9, 3:9].set(M6)
-    return blk.dense_to_blocks(congruence(M, Pn))
-
-
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians):
+def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
+                               omega=None, coriolis="exact"):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
@@ -374,9 +355,11 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
         v_ = var if shared else lane_var
         return v_ / (h[..., None] if jnp.ndim(h) else h)
 
+    if omega is not None and omega.ndim > 1:  # a world rate per batch element
+        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           get_scheme(scheme), jacobians)
+                                           get_scheme(scheme), jacobians, omega, coriolis)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
@@ -483,10 +466,30 @@ def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuN
 
 def position_jacobian(dtype=None):
     """``H = [0, I, 0, 0, 0]``, ``(3, 15)``: a position fix ``z = p + ν`` in the error state
-    (the residual is ``z - p̂``)."""
+    (the residual is ``z - p̂``). ``dtype``: float32, float64 (needs ``jax_enable_x64``) or
+    ``None`` (JAX's default float)."""
+    dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
     H = np.zeros((3, 15))
     H[:, 3:6] = np.eye(3)
-    return jnp.asarray(H, dtype or jnp.result_type(float))
+    return jnp.asarray(H, dtype)
+
+
+def _check_innovation(S, dtype):
+    """``S = H P Hᵀ + R`` must be positive definite (its Cholesky factor is the update's);
+    judged relative to its largest entry (eager calls)."""
+    if not val.is_concrete(S):
+        return
+    arr = np.asarray(S, np.float64)
+    scale = np.abs(arr).max(axis=(-2, -1), keepdims=True)
+    rel = np.linalg.eigvalsh(arr / np.where(scale > 0, scale, 1.0)).min(-1)
+    tol = 60 * float(jnp.finfo(dtype).eps)
+    bad = (rel <= tol) | (scale[..., 0, 0] == 0)
+    if bad.any():
+        where = f" at batch index {val._first_bad(bad)}" if bad.ndim else ""
+        raise ValueError(
+            f"the innovation covariance S = H P Hᵀ + R is singular{where} (smallest eigenvalue "
+            f"{rel.min():.3g} of its largest entry): R must be positive definite (a measurement "
+            "noise variance σ² > 0 on every row), or P positive in the measured directions")
 
 
 def ekf_update(state: NavState, P, residual, H, R):
@@ -501,32 +504,61 @@ def ekf_update(state: NavState, P, residual, H, R):
     through ``∂(x ⊞ δx)``'s rotation Jacobian (first order, as OpenVINS).
 
     Args:
-        state: the estimate :class:`NavState` (fields ``batch + (·)``).
-        P: ``batch + (15, 15)`` its error covariance ``[dθ, dp, dv, db_g, db_a]``.
-        residual: ``batch + (m,)`` ``ν = z - h(x̂)`` (e.g. ``z - p̂`` for a position fix).
+        state: the estimate :class:`NavState` (fields ``batch + (·)``; ``q`` unit, never
+            normalised for you; finite).
+        P: ``batch + (15, 15)`` its error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
+            positive semi-definite (relative to its largest entry, as
+            :func:`propagate_covariance`'s ``P0``), finite.
+        residual: ``batch + (m,)`` ``ν = z - h(x̂)`` (e.g. ``z - p̂`` for a position fix),
+            finite.
         H: ``(m, 15)`` or ``batch + (m, 15)`` measurement Jacobian ``∂h/∂δ``
-            (:func:`position_jacobian`).
+            (:func:`position_jacobian`), finite.
         R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
-            positive definite.
+            positive definite, finite (with ``P``, ``S = H P Hᵀ + R`` must be positive
+            definite).
+
+    The computation dtype is the promotion of the inputs' (at least float32: integer and
+    half-precision inputs are computed in float32). Shapes and batch shapes are checked
+    always; values (finiteness, symmetry, definiteness, unit ``q``) on eager calls only,
+    not inside a caller's ``jit``/``vmap``/``grad``, where a singular ``S`` gives NaN.
 
     Returns:
         ``(state⁺, P⁺, nis)`` with ``nis`` of shape ``batch``.
+
+    Raises:
+        ValueError: naming the argument, for any of them outside the domain above.
     """
-    P, residual, H, R = (jnp.asarray(x) for x in (P, residual, H, R))
-    if P.shape[-2:] != (15, 15):
-        raise ValueError(f"P must have shape (..., 15, 15), got {tuple(P.shape)}")
+    val.require_navstate(state)
+    dtype = val.float_dtype(state.q, *(x if hasattr(x, "dtype") else val._cast(x, None, n)
+                                       for n, x in (("P", P), ("residual", residual),
+                                                    ("H", H), ("R", R))))
+    state = val.check_state(state, dtype)
+    P = _check_cov(P, dtype, "P")
+    residual, H, R = (val.to_dtype(n, x, dtype) for n, x in
+                      (("residual", residual), ("H", H), ("R", R)))
     if H.ndim < 2 or H.shape[-1] != 15:
         raise ValueError(f"H must have shape (..., m, 15), got {tuple(H.shape)}")
     m = H.shape[-2]
-    if residual.shape[-1:] != (m,):
+    if m < 1:
+        raise ValueError("H has no rows (m = 0): a measurement needs at least one")
+    if residual.ndim < 1 or residual.shape[-1:] != (m,):
         raise ValueError(f"residual must have shape (..., {m}) to match H {tuple(H.shape)}, got "
                          f"{tuple(residual.shape)}")
-    if R.shape[-2:] != (m, m):
-        raise ValueError(f"R must have shape (..., {m}, {m}) to match H, got {tuple(R.shape)}")
+    R = _check_cov(R, dtype, "R", m)
+    val.check_finite("residual", residual)
+    val.check_finite("H", H)
+    val.batch_shape(state.batch_shape, P.shape[:-2], residual.shape[:-1], H.shape[:-2],
+                    R.shape[:-2], names=("state", "P", "residual", "H", "R"))
+    out = _ekf_update(state, P, residual, H, R)
+    return val.check_output("ekf_update", out, "the inputs are too large")
+
+
+def _ekf_update(state, P, residual, H, R):
     mT = lambda X: jnp.swapaxes(X, -1, -2)  # noqa: E731
     PHt = P @ mT(H)  # (..., 15, m)
     S = H @ PHt + R
     S = 0.5 * (S + mT(S))
+    _check_innovation(S, S.dtype)
     Lc = jnp.linalg.cholesky(S)
     solve = lambda B: jax.scipy.linalg.cho_solve((Lc, True), B)  # noqa: E731
     K = mT(solve(mT(PHt)))  # P Hᵀ S⁻¹, (..., 15, m)

@@ -51,7 +51,17 @@ def _load_yaml(path):
     except ImportError:
         raise ImportError("reading a sensor YAML file needs PyYAML: pip install pyyaml "
                           "(or jaximu[kalibr])") from None
-    text = pathlib.Path(path).read_text(encoding="utf-8")
+    p = pathlib.Path(path)
+    if p.is_dir():
+        raise ValueError(f"{path}: is a folder; name the sensor YAML file in it (EuRoC "
+                         "mav0/imu0/sensor.yaml, Kalibr camchain-imucam.yaml or imu.yaml)")
+    if not p.is_file():
+        raise FileNotFoundError(f"{path}: no such file (a sensor YAML file)")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text (YAML) file; expected an EuRoC sensor.yaml or a "
+                         "Kalibr camchain/imu file") from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -62,13 +72,16 @@ def _load_yaml(path):
     return doc
 
 
-def _number(path, key, x):
+def _number(path, key, x, positive=False):
     try:
+        if isinstance(x, bool):  # YAML's yes/no; text such as 1e-3 (YAML 1.1 reads it as a
+            raise TypeError      # string) is a number
         v = float(x)
     except (TypeError, ValueError):
         raise ValueError(f"{path}: {key} must be a number, got {x!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{path}: {key} must be finite and ≥ 0, got {x!r}")
+    if not np.isfinite(v) or v < 0 or (positive and v == 0):
+        raise ValueError(f"{path}: {key} must be finite and {'> 0' if positive else '≥ 0'}, "
+                         f"got {x!r}")
     return v
 
 
@@ -122,7 +135,7 @@ def read_sensor_yaml(path, camera: str = "cam0") -> SensorConfig:
                          "missing (Kalibr names, continuous-time densities)")
     noise = ImuNoise(*(_number(path, k, imu[k]) for k in DENSITIES)) if present else None
     rate_key = "rate_hz" if "rate_hz" in imu else ("update_rate" if "update_rate" in imu else None)
-    rate = _number(path, rate_key, imu[rate_key]) if rate_key else None
+    rate = _number(path, rate_key, imu[rate_key], positive=True) if rate_key else None
     if pose is None and noise is None:
         raise ValueError(f"{path}: neither a pose (T_BS, or cam0.T_cam_imu) nor noise densities "
                          "found; expected an EuRoC sensor.yaml or a Kalibr camchain/imu file")
@@ -134,7 +147,13 @@ def parse_body_P_sensor(text: str, camera: str = "cam0") -> SensorConfig:
     the path of a YAML file (:func:`read_sensor_yaml`). A quaternion typed with a few digits
     (``|q|`` within 1e-3 of 1) is normalised and said so in ``source``; beyond that it is an
     error."""
+    if not isinstance(text, str):
+        raise ValueError(f"--body-P-sensor must be text (seven numbers or a YAML file), got "
+                         f"{type(text).__name__}")
     p = pathlib.Path(text)
+    if p.is_dir():
+        raise ValueError(f"--body-P-sensor {text}: is a folder; name the sensor YAML file in "
+                         "it (EuRoC mav0/imu0/sensor.yaml, Kalibr camchain-imucam.yaml)")
     if p.suffix.lower() in (".yaml", ".yml") or p.is_file():
         if not p.is_file():
             raise ValueError(f"--body-P-sensor {text}: no such file")

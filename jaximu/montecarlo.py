@@ -45,8 +45,9 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import json
-import os
 import math
+import os
+import pathlib
 import sys
 import time
 from typing import NamedTuple
@@ -59,6 +60,7 @@ from jaximu import _rng
 from jaximu import _validation as val
 from jaximu._soa import _materialise, mean_step
 from jaximu._vec import V3
+from jaximu.errors import Fix, InputError
 from jaximu.errorstate import propagate_covariance
 from jaximu.integrators import SCHEME_OBJECTS
 from jaximu.noise import ImuNoise
@@ -138,27 +140,75 @@ class MonteCarloResult(NamedTuple):
         return (self.nees_mean >= self.nees_bounds[0]) & (self.nees_mean <= self.nees_bounds[1])
 
     def save(self, path) -> None:
-        """Write the result (and its settings, as JSON) to an ``.npz`` file
-        (:func:`load_result` reads it back)."""
+        """Write the result (and its settings, as JSON) to ``path``, an ``.npz`` file in an
+        existing folder (:func:`load_result` reads it back). A path without the ``.npz``
+        suffix is refused (numpy would silently write ``path + ".npz"``)."""
+        p = _result_path(path)
+        if p.suffix.lower() != ".npz":
+            raise InputError(f"path {str(p)!r} must end in .npz (numpy would write "
+                             f"{str(p) + '.npz'!r} instead)", [Fix("path", str(p) + ".npz")])
+        if p.is_dir():
+            raise ValueError(f"path {str(p)!r} is a folder; name an .npz file in it")
+        if not p.parent.is_dir():
+            raise ValueError(f"path {str(p)!r}: the folder {str(p.parent)!r} does not exist")
         arrays = {k: np.asarray(v) for k, v in self._asdict().items()
                   if v is not None and k not in ("settings", "n_runs", "confidence")}
         meta = dict(settings=self.settings or {}, n_runs=self.n_runs, confidence=self.confidence,
-                    format="jaximu.montecarlo/1")
-        np.savez(path, __meta__=np.asarray(json.dumps(meta)), **arrays)
+                    format=_FORMAT)
+        np.savez(p, __meta__=np.asarray(json.dumps(meta)), **arrays)
+
+
+_FORMAT = "jaximu.montecarlo/1"
+_REQUIRED = ("times", "mean_error", "error_cov", "predicted_cov", "nees_mean", "nees_bounds",
+             "sample_errors", "discretization_error")
+
+
+def _result_path(path) -> pathlib.Path:
+    try:
+        return pathlib.Path(path)
+    except TypeError:
+        raise ValueError(f"path must be a file name (str or os.PathLike), got "
+                         f"{type(path).__name__}") from None
 
 
 def load_result(path) -> MonteCarloResult:
-    """Read a result written by :meth:`MonteCarloResult.save`."""
-    with np.load(path, allow_pickle=False) as f:
-        meta = json.loads(str(f["__meta__"]))
-        if meta.get("format") != "jaximu.montecarlo/1":
-            raise ValueError(f"{path} is not a jaximu Monte Carlo result (no format tag); write "
-                             "one with MonteCarloResult.save")
+    """Read a result written by :meth:`MonteCarloResult.save`. ``path``: that ``.npz`` file;
+    a missing file, a folder, another kind of file, another ``.npz`` or a damaged result
+    raise an error naming the file (``FileNotFoundError`` or ``ValueError``)."""
+    import zipfile
+
+    p = _result_path(path)
+    if p.is_dir():
+        raise ValueError(f"path {str(p)!r} is a folder, not a result file (.npz)")
+    if not p.is_file():
+        raise FileNotFoundError(f"path {str(p)!r}: no such file (a result written by "
+                                "MonteCarloResult.save)")
+    not_ours = (f"{str(p)!r} is not a jaximu Monte Carlo result (written by "
+                "MonteCarloResult.save)")
+    if not zipfile.is_zipfile(p):
+        raise ValueError(f"{not_ours}: not an .npz archive")
+    with np.load(p, allow_pickle=False) as f:
+        if "__meta__" not in f.files:
+            raise ValueError(f"{not_ours}: it holds the arrays {sorted(f.files)[:8]} and no "
+                             "format tag")
+        try:
+            meta = json.loads(str(f["__meta__"]))
+            fmt = meta.get("format")
+        except (ValueError, AttributeError):
+            raise ValueError(f"{not_ours}: its __meta__ is not the JSON settings") from None
+        if fmt != _FORMAT:
+            raise ValueError(f"{not_ours}: its format tag is {fmt!r}, this version reads "
+                             f"{_FORMAT!r}")
         fields = {k: f[k] for k in f.files if k != "__meta__"}
+    missing = [k for k in _REQUIRED if k not in fields]
+    absent = [k for k in ("n_runs", "confidence") if k not in meta]
+    if missing or absent:
+        raise ValueError(f"{str(p)!r} is a damaged Monte Carlo result: "
+                         f"{', '.join(missing + absent)} missing")
     return MonteCarloResult(**{k: fields.get(k) for k in MonteCarloResult._fields
                                if k not in ("settings", "n_runs", "confidence")},
                             n_runs=int(meta["n_runs"]), confidence=float(meta["confidence"]),
-                            settings=meta["settings"])
+                            settings=meta.get("settings"))
 
 
 def chi2_interval(dof, confidence: float = 0.95):
@@ -450,17 +500,23 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     filt = update_every is not None
     if filt:
         record_every = val.check_int("update_every", update_every, 1)
+        measurement = PositionFix() if measurement is None else measurement
         if not isinstance(measurement, PositionFix):
             raise ValueError("measurement must be a jaximu.montecarlo.PositionFix, got "
                              f"{type(measurement).__name__}")
-        meas_sd = np.broadcast_to(np.asarray(measurement.sigma, np.float64), (3,)) \
-            if np.ndim(measurement.sigma) == 0 else np.asarray(measurement.sigma, np.float64)
+        sigma = val.as_numbers("measurement.sigma", measurement.sigma)
+        meas_sd = np.broadcast_to(sigma, (3,)) if sigma.ndim == 0 else sigma
         if meas_sd.shape != (3,) or not np.all(np.isfinite(meas_sd) & (meas_sd > 0)):
             raise ValueError(f"measurement.sigma must be positive and finite, a scalar or (3,), "
                              f"got {measurement.sigma!r}")
+    elif measurement is not None:
+        raise InputError("measurement is used only by the filter study, and update_every is "
+                         "None (open loop): it would be ignored",
+                         [Fix("update_every", phrase="{}=N (a measurement every N steps)"),
+                          Fix("measurement", None)])
     val.check_choice("scheme", scheme, SCHEMES)
     dtype = val.compute_dtype("dtype", dtype) if dtype is not None else jnp.result_type(float)
-    times = np.asarray(times, np.float64)
+    times = val.as_numbers("times", times)
     if times.ndim != 1 or len(times) < 2:
         raise ValueError(f"times must be a 1-D array of at least 2 sample times, got shape "
                          f"{times.shape}")
@@ -469,7 +525,12 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         i = int(np.argmax(np.diff(times) <= 0))
         raise ValueError(f"times must increase strictly; times[{i + 1}] = {times[i + 1]:g} ≤ "
                          f"times[{i}] = {times[i]:g}")
-    P0 = np.asarray(P0, np.float64)
+    if filt and record_every > len(times) - 1:
+        raise InputError(f"update_every = {record_every} is more than the {len(times) - 1} "
+                         "steps of times: no update would happen", [
+                             Fix("update_every", len(times) - 1, "")],
+                         lead="pass at most")
+    P0 = val.as_numbers("P0", P0)
     if P0.shape != (15, 15):
         raise ValueError(f"P0 must have shape (15, 15), got {P0.shape}")
     _check_cov(P0, dtype)
@@ -625,7 +686,7 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                 confidence: float = 0.95, progress: bool = False, shard: bool = True,
                 dtype=None, keep_nees: bool = False, nees_hist_times=(-1,),
                 nees_bins=None, update_every: int | None = None,
-                measurement: PositionFix = PositionFix()) -> MonteCarloResult:
+                measurement: PositionFix | None = None) -> MonteCarloResult:
     """Monte Carlo covariance study of ``n_runs`` noisy copies of one trajectory.
 
     Args:
@@ -649,26 +710,28 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         chunk_size: runs per device call (the lanes of one scan), an integer ≥ 1; memory
             ``O(chunk · K)``, independent of ``n_runs``. The statistics do not depend on it
             (to the rounding of the sums).
-        n_keep: runs whose errors are returned in ``sample_errors``, an integer ≥ 0.
+        n_keep: runs whose errors are returned in ``sample_errors``, an integer ≥ 0 (the
+            first ``min(n_keep, n_runs)``).
         confidence: the NEES interval's probability, in ``(0, 1)`` (0.95, not 95).
-        progress: show progress (runs/s and ETA; a ``tqdm`` bar when installed).
-        shard: spread the chunks over all local JAX devices (one in flight per device;
+        progress: bool, show progress (runs/s and ETA; a ``tqdm`` bar when installed).
+        shard: bool, spread the chunks over all local JAX devices (one in flight per device;
             on a CPU device, one per core the process may use, each from its own thread).
         dtype: computation dtype, float32 or float64 (float64 needs ``jax_enable_x64``;
             default: float64 if enabled, else float32).
-        keep_nees: also return every run's NEES (``(N, K)``, memory ``8 N K`` bytes; one
+        keep_nees: bool, also return every run's NEES (``(N, K)``, memory ``8 N K`` bytes; one
             process only).
         nees_hist_times: indices into the recorded times (negative from the end) at which
             the per-run NEES is histogrammed.
         nees_bins: increasing histogram edges (default 200 bins on ``[0, 6·15]``; larger
             values land in the last bin).
         update_every: a filter study: every run propagates its own covariance and takes a
-            ``measurement`` every this many steps (an integer ≥ 1), updating with
+            ``measurement`` every this many steps (an integer from 1 to T), updating with
             :func:`jaximu.errorstate.ekf_update`; the errors are recorded after each update
             (``record_every`` is then ignored), the NEES is against each run's own covariance
             and the NIS is reported. ``None``: open-loop propagation.
         measurement: the filter's measurement, a :class:`PositionFix` (its noise is drawn
-            with the same ``sigma`` the filter assumes).
+            with the same ``sigma`` the filter assumes); ``None``: ``PositionFix()`` with
+            ``update_every``. Refused without ``update_every`` (it would be ignored).
 
     Returns:
         :class:`MonteCarloResult`. Under ``jax.distributed`` every process runs its share of
@@ -684,6 +747,17 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     chunk_size = val.check_int("chunk_size", chunk_size, 1)
     n_keep = val.check_int("n_keep", n_keep, 0)
     confidence = val.check_fraction("confidence", confidence)
+    progress = val.check_bool("progress", progress)
+    shard = val.check_bool("shard", shard)
+    keep_nees = val.check_bool("keep_nees", keep_nees)
+    if update_every is not None and measurement is None:
+        measurement = PositionFix()
+    edges = np.linspace(0.0, 90.0, 201) if nees_bins is None else \
+        val.as_numbers("nees_bins", nees_bins)
+    if edges.ndim != 1 or len(edges) < 2 or not np.all(np.isfinite(edges)) \
+            or np.any(np.diff(edges) <= 0):
+        raise ValueError("nees_bins must be a 1-D array of at least 2 finite, strictly "
+                         f"increasing edges, got {nees_bins!r}")
     st = _prepare(trajectory, times, P0, noise, key, scheme=scheme, gravity=gravity, b_g0=b_g0,
                   b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
                   measurement=measurement)
@@ -693,10 +767,6 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         raise ValueError(f"nees_hist_times must be indices into the {K} recorded times "
                          f"(-{K} to {K - 1}), got {nees_hist_times!r}")
     hist_index = hist_index % K
-    edges = np.linspace(0.0, 90.0, 201) if nees_bins is None else np.asarray(nees_bins, float)
-    if edges.ndim != 1 or len(edges) < 2 or np.any(np.diff(edges) <= 0):
-        raise ValueError("nees_bins must be a 1-D array of at least 2 increasing edges, got "
-                         f"{nees_bins!r}")
     n_proc, proc = jax.process_count(), jax.process_index()
     if keep_nees and n_proc > 1:
         raise ValueError("keep_nees=True needs one process (the per-run NEES stays on the "
@@ -829,7 +899,7 @@ class Run(NamedTuple):
 def sample_run(trajectory: Trajectory, times, P0, noise: ImuNoise, key, i: int, *,
                scheme: str = "euler", gravity=9.81, b_g0=None, b_a0=None,
                record_every: int = 1, dtype=None, update_every=None,
-               measurement: PositionFix = PositionFix()) -> Run:
+               measurement: PositionFix | None = None) -> Run:
     """Regenerate run ``i`` of :func:`monte_carlo` (same arguments) alone: its errors, which
     equal the study's (``sample_errors[i]``), and its measured IMU samples, true biases and
     initial estimate, for inspection and plotting. ``i``: an integer in ``[0, 2³²)``."""

@@ -684,7 +684,10 @@ def _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
     quantities back in the sensor frame (``Φ_S = Tᵀ Φ_B T``, ``C_S = Tᵀ C_B T``)."""
     from jaximu import sensor
 
-    pose = sensor.check_pose(body_P_sensor, gyro.dtype)
+    tangential = val.check_bool("tangential", tangential)
+    pose = sensor.check_pose(body_P_sensor, gyro.dtype,
+                             batch=jnp.broadcast_shapes(gyro.shape[:-2], bias.b_g.shape[:-1]),
+                             batch_name="samples and bias")
     gyro_b, accel_b = sensor.to_body(pose, gyro, accel, dt, bias.b_g, tangential=tangential)
     bias_b = ImuBias(sensor.bias_to_body(pose, bias.b_g), sensor.bias_to_body(pose, bias.b_a))
     noise_b = None if noise is None else sensor.noise_to_body(pose, noise)
@@ -864,8 +867,15 @@ def _gravity(gravity, dtype):
     return val.gravity_vector(gravity, dtype)
 
 
-def _world(omega_coriolis, dtype):
-    return None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
+def _world(omega_coriolis, dtype, batch, coriolis_exact, coriolis_second_order):
+    """``omega_coriolis`` checked (and its batch against ``batch``), and the two bools."""
+    val.check_bool("coriolis_exact", coriolis_exact)
+    val.check_bool("coriolis_second_order", coriolis_second_order)
+    if omega_coriolis is None:
+        return None
+    omega = world.check_omega(omega_coriolis, dtype)
+    val.batch_shape(batch, omega.shape[:-1], names=("states and pim", "omega_coriolis"))
+    return omega
 
 
 def _coriolis_terms(state_i, pim, omega, second_order):
@@ -900,8 +910,9 @@ def predict(state_i: NavState, pim: Preintegrated, gravity=9.81, *, omega_coriol
     {coriolis}"""
     batch = (_check_state_arg("state_i", state_i), _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    val.batch_shape(*batch, g.shape[:-1])
-    omega = _world(omega_coriolis, pim.delta_v.dtype)
+    batch = val.batch_shape(*batch, g.shape[:-1])
+    omega = _world(omega_coriolis, pim.delta_v.dtype, batch, coriolis_exact,
+                   coriolis_second_order)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
     v_i = state_i.v
@@ -938,8 +949,9 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
     batch = (_check_state_arg("state_i", state_i), _check_state_arg("state_j", state_j),
              _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    val.batch_shape(*batch, g.shape[:-1])
-    omega = _world(omega_coriolis, pim.delta_v.dtype)
+    batch = val.batch_shape(*batch, g.shape[:-1])
+    omega = _world(omega_coriolis, pim.delta_v.dtype, batch, coriolis_exact,
+                   coriolis_second_order)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
     dt = pim.delta_t[..., None]
     qi_inv = so3.quat_conj(state_i.q)

@@ -35,7 +35,8 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude):
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
-                            dt.shape[:-1], g.shape[:-1])
+                            dt.shape[:-1], g.shape[:-1],
+                            names=("state", "gyro", "accel", "dt", "gravity"))
     return state, gyro, accel, dt, g, batch
 
 
@@ -107,11 +108,14 @@ def kernel_samples(scheme, gyro, accel, dt):
     return gyro[..., :n, :], accel[..., :n, :], dt
 
 
-def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all):
+def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
+                    coriolis="exact"):
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
+    if omega is not None and omega.ndim > 1:  # a world rate per batch element
+        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((-1, 3))
     out = _fast.propagate_mean(get_scheme(scheme), q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f,
-                               save_all)
+                               save_all, omega, coriolis)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q, p, v = (unflat(x) for x in out)
     if save_all:
@@ -200,7 +204,9 @@ CORIOLIS = ("exact", "first_order", "second_order")
 
 def coriolis_mode(exact, second_order) -> str:
     """The rotating world's model (:mod:`jaximu.world`): ``"exact"`` or GTSAM ≤ 4.2's
-    classic ``"first_order"`` / ``"second_order"`` terms."""
+    classic ``"first_order"`` / ``"second_order"`` terms. Both options must be bools."""
+    exact = val.check_bool("coriolis_exact", exact)
+    second_order = val.check_bool("coriolis_second_order", second_order)
     return "exact" if exact else ("second_order" if second_order else "first_order")
 
 
@@ -261,7 +267,8 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
     if kernel == "soa_mean":
-        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all)
+        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
+                               coriolis)
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
@@ -348,10 +355,14 @@ def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_cori
     from jaximu import sensor
 
     dtype = state.q.dtype
+    tangential = val.check_bool("tangential", tangential)
+    batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2])
     omega = None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
+    if omega is not None:
+        val.batch_shape(batch, omega.shape[:-1], names=("state and samples", "omega_coriolis"))
     if body_P_sensor is None:
         return state, gyro, accel, omega
-    pose = sensor.check_pose(body_P_sensor, dtype)
+    pose = sensor.check_pose(body_P_sensor, dtype, batch=batch, batch_name="state and samples")
     gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
     state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
                      sensor.bias_to_body(pose, state.b_a))

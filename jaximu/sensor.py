@@ -70,7 +70,9 @@ class SensorPose:
         return so3.quat_to_matrix(self.q)
 
     @classmethod
-    def identity(cls, dtype=jnp.float64) -> SensorPose:
+    def identity(cls, dtype=None) -> SensorPose:
+        """The IMU at the body's origin, unrotated (``dtype``: default JAX's float)."""
+        dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
         return cls(jnp.array([1.0, 0, 0, 0], dtype), jnp.zeros(3, dtype))
 
     @classmethod
@@ -78,7 +80,7 @@ class SensorPose:
         """From a ``(4, 4)`` homogeneous ``T_BS`` (Kalibr's ``T_BS``; a camera's
         ``T_cam_imu`` is ``T_CS``: pass it when the camera is the body). Its rotation must be
         orthonormal with determinant +1 (to 1e-6): it is checked, never re-orthonormalised."""
-        T = np.asarray(T_BS, float)
+        T = _numbers(f"{NAME} (T_BS)", T_BS)
         if T.shape != (4, 4):
             raise ValueError(f"{NAME} must be a (4, 4) homogeneous transform T_BS, got shape "
                              f"{T.shape}")
@@ -91,8 +93,8 @@ class SensorPose:
     @classmethod
     def from_rotation(cls, R_BS, p_BS) -> SensorPose:
         """From a ``(3, 3)`` rotation matrix ``R_BS`` (orthonormal, det +1, to 1e-6) and the
-        lever arm ``p_BS`` ``(3,)`` [m]."""
-        R = np.asarray(R_BS, float)
+        lever arm ``p_BS`` ``(3,)`` [m], finite."""
+        R = _numbers(f"{NAME}: R_BS", R_BS)
         if R.shape != (3, 3):
             raise ValueError(f"{NAME}: R_BS must have shape (3, 3), got {R.shape}")
         err = np.max(np.abs(R.T @ R - np.eye(3)))
@@ -101,16 +103,23 @@ class SensorPose:
                 f"{NAME}: R_BS is not a rotation matrix (max |RᵀR - I| = {err:.3g}, det = "
                 f"{np.linalg.det(R):.6g}); pass an orthonormal matrix with determinant +1 "
                 "(re-orthonormalise it, e.g. with scipy's Rotation.from_matrix)")
-        p = np.asarray(p_BS, float)
+        p = _numbers(f"{NAME}: the lever arm p_BS", p_BS)
         if p.shape != (3,):
             raise ValueError(f"{NAME}: the lever arm p_BS must have shape (3,) [m], got {p.shape}")
+        val.check_finite(f"{NAME}: the lever arm p_BS", p)
         q = np.asarray(so3.matrix_to_quat(jnp.asarray(R)))
         return cls(jnp.asarray(q), jnp.asarray(p))
 
 
-def check_pose(pose, dtype, name: str = NAME) -> SensorPose:
+def _numbers(name, x) -> np.ndarray:
+    return val.as_numbers(name, x)
+
+
+def check_pose(pose, dtype, name: str = NAME, batch=None, batch_name: str = "the samples"
+               ) -> SensorPose:
     """Type, shapes, finiteness and unit ``q`` of a :class:`SensorPose` (``ValueError``
-    naming ``body_P_sensor``); returns it as ``dtype`` arrays, never normalised."""
+    naming ``body_P_sensor``); returns it as ``dtype`` arrays, never normalised. With
+    ``batch``, the pose's batch shape must broadcast with it (``batch_name`` says whose)."""
     if not isinstance(pose, SensorPose):
         raise ValueError(f"{name} must be a jaximu.SensorPose(q, p) (q_BS [w, x, y, z], p_BS "
                          f"[m]) or None, got {type(pose).__name__}")
@@ -122,6 +131,8 @@ def check_pose(pose, dtype, name: str = NAME) -> SensorPose:
     if p.ndim < 1 or p.shape[-1] != 3:
         raise ValueError(f"{name}.p must be the lever arm p_BS of shape (..., 3) [m], got "
                          f"shape {tuple(p.shape)}")
+    val.batch_shape(q.shape[:-1], p.shape[:-1], *(() if batch is None else (batch,)),
+                    names=(f"{name}.q", f"{name}.p") + (() if batch is None else (batch_name,)))
     val.check_finite(f"{name}.q", q)
     val.check_finite(f"{name}.p", p)
     if val.is_concrete(q):

@@ -40,8 +40,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import _blocks as blk
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu._vec import V3
 
 __all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
            "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
@@ -54,12 +56,21 @@ def earth_rate(latitude_deg, dtype=None):
     """Earth's rotation rate in the local east-north-up world (z up) at ``latitude_deg``.
 
     ``ω_W = Ω [0, cos φ, sin φ]`` with ``Ω =`` :data:`EARTH_RATE`; ``latitude_deg`` in
-    ``[-90, 90]`` (scalar or ``(...,)``). Returns ``(..., 3)`` [rad/s], for ``omega_coriolis=``.
+    degrees, ``[-90, 90]``, finite (scalar or ``(...,)``; checked on eager calls, not inside
+    a caller's ``jit``). ``dtype``: float32, float64 (needs ``jax_enable_x64``) or ``None``
+    (JAX's default float). Returns ``(..., 3)`` [rad/s], for ``omega_coriolis=``.
     """
-    lat = np.asarray(latitude_deg, float) if val.is_concrete(latitude_deg) else None
-    if lat is not None and (not np.all(np.isfinite(lat)) or np.any(np.abs(lat) > 90)):
-        raise ValueError(f"latitude_deg must be in [-90, 90] degrees, got {latitude_deg!r}")
-    phi = jnp.deg2rad(jnp.asarray(latitude_deg, dtype))
+    dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
+    lat_in = latitude_deg
+    latitude_deg = val.to_dtype("latitude_deg", latitude_deg, dtype)
+    if val.is_concrete(lat_in):
+        lat = np.asarray(lat_in, np.float64)
+        bad = ~np.isfinite(lat) | (np.abs(lat) > 90)
+        if bad.any():
+            where = val._first_bad(bad) if lat.ndim else ""
+            raise ValueError(f"latitude_deg must be in [-90, 90] degrees and finite, got "
+                             f"latitude_deg{where} = {lat[tuple(np.argwhere(bad)[0])]:g}")
+    phi = jnp.deg2rad(latitude_deg)
     return EARTH_RATE * jnp.stack([jnp.zeros_like(phi), jnp.cos(phi), jnp.sin(phi)], -1)
 
 
@@ -96,10 +107,26 @@ def _mv(M, x):
     return jnp.einsum("...ij,...j->...i", M, x)
 
 
+# The per-element formulas below are written once on V3 (components: ``(...,)`` arrays or the
+# ``(B,)`` lanes of the structure-of-arrays kernels, docs/DESIGN.md "kernel layout"); the
+# public functions take and return ``(..., 3)`` arrays and call them.
+
+
+def matvec(M, x: V3) -> V3:
+    """``M x`` for ``(..., 3, 3)`` ``M`` (or ``(3, 3)``, shared) and a :class:`V3`."""
+    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z
+                for i in range(3)))
+
+
+def to_inertial_v3(omega: V3, p: V3, v: V3) -> V3:
+    """:func:`to_inertial` on components."""
+    return v + omega.cross(p)
+
+
 def to_inertial(omega, p, v):
     """The transported velocity ``v̄ = v + ω × p`` (velocity in the inertial frame that
     coincides with W now)."""
-    return v + jnp.cross(omega, p)
+    return to_inertial_v3(V3.of(omega), V3.of(p), V3.of(v)).stack()
 
 
 def gravity_excess(omega, dt, g):
@@ -113,15 +140,28 @@ def gravity_excess(omega, dt, g):
     return dp, dv
 
 
+def leave_inertial_terms(omega, dt, g):
+    """What :func:`leave_inertial` needs of ``(ω, dt, g)`` alone (per step, not per state):
+    ``(dθ, Q, dp, dv)`` with ``dθ = -ω dt`` ``(..., 3)``, ``Q = Exp(dθ)`` ``(..., 3, 3)`` and
+    the turning gravity's ``(dp, dv)`` (:func:`gravity_excess`)."""
+    dp, dv = gravity_excess(omega, dt, g)
+    dth = -jnp.asarray(dt)[..., None] * omega
+    return dth, so3.exp_matrix(dth), dp, dv
+
+
+def leave_inertial_v3(omega: V3, Q, dp: V3, dv: V3, p: V3, v: V3):
+    """:func:`leave_inertial` on components, from :func:`leave_inertial_terms`:
+    ``p⁺ = Q (p' + dp)``, ``v⁺ = Q (v̄' + dv) - ω × p⁺``."""
+    p1 = matvec(Q, p + dp)
+    return p1, matvec(Q, v + dv) - omega.cross(p1)
+
+
 def leave_inertial(omega, dt, g, p, v):
     """From the inertial frame of the start back to W after ``dt``, the turning gravity
     added: returns ``(dθ, p⁺, v⁺)`` with ``R⁺ = Exp(dθ) R'``, ``dθ = -ω dt``."""
-    dp, dv = gravity_excess(omega, dt, g)
-    dth = -jnp.asarray(dt)[..., None] * omega
-    Q = so3.exp_matrix(dth)
-    p1 = _mv(Q, p + dp)
-    v1 = _mv(Q, v + dv) - jnp.cross(omega, p1)
-    return dth, p1, v1
+    dth, Q, dp, dv = leave_inertial_terms(omega, dt, g)
+    p1, v1 = leave_inertial_v3(V3.of(omega), Q, V3.of(dp), V3.of(dv), V3.of(p), V3.of(v))
+    return dth, p1.stack(), v1.stack()
 
 
 def enter_inertial(omega, dt, g, p, v):
@@ -132,20 +172,53 @@ def enter_inertial(omega, dt, g, p, v):
     return dth, _mv(Qt, p) - dp, _mv(Qt, v + jnp.cross(omega, p)) - dv
 
 
-def exact_error_maps(omega, dt):
-    """Error-state maps of :func:`to_inertial` (``Pre``) and of :func:`leave_inertial`
-    (``Post``), ``(..., 15, 15)``, order ``[θ, p, v, b_g, b_a]`` (rotation error on the right:
-    a rotation on the left leaves it unchanged): ``δv̄ = δv + [ω]x δp``;
-    ``δp⁺ = Q δp'``, ``δv⁺ = Q δv̄' - [ω]x Q δp'`` with ``Q = Exp(-ω dt)``."""
+def error_map_rows(omega, dt, coriolis):
+    """The error-state maps of a step in the turning world, as the 3×3 blocks of the rows
+    that differ from the identity (order ``[θ, p, v, b_g, b_a]``, blocks 0–4): ``{row:
+    {column: (..., 3, 3)}}``, the string ``"I"`` for an identity block, for
+    :func:`jaximu._blocks.congruence`. Returns ``(Pre, Post)``, the maps before and after the
+    still-world step's ``Φ`` (``Pre`` ``None`` when there is none).
+
+    * ``coriolis="exact"``: ``Pre`` of :func:`to_inertial`, ``δv̄ = δv + [ω]x δp``; ``Post``
+      of :func:`leave_inertial`, ``δp⁺ = Q δp'``, ``δv⁺ = Q δv̄' - [ω]x Q δp'`` with
+      ``Q = Exp(-ω dt)``.
+    * ``"first_order"`` / ``"second_order"``: ``Post`` is ``∂(p⁺, v⁺)/∂(p, v)`` of
+      ``(p + dp, v + dv)`` with :func:`coriolis_increments` (linear in ``p``, ``v``).
+
+    The rotation error is on the right, so the rotations on the left (``Exp(-ω dt) R``)
+    leave its rows alone.
+    """
     W = so3.skew(omega)
-    Q = so3.exp_matrix(-jnp.asarray(dt)[..., None] * omega)
-    shape = jnp.broadcast_shapes(W.shape, Q.shape)
-    eye = jnp.broadcast_to(jnp.eye(15, dtype=Q.dtype), shape[:-2] + (15, 15))
-    pre = eye.at[..., 6:9, 3:6].set(jnp.broadcast_to(W, shape))
-    post = (eye.at[..., 3:6, 3:6].set(jnp.broadcast_to(Q, shape))
-            .at[..., 6:9, 6:9].set(jnp.broadcast_to(Q, shape))
-            .at[..., 6:9, 3:6].set(-(W @ Q)))
-    return pre, post
+    h = jnp.asarray(dt)[..., None, None]
+    if coriolis == "exact":
+        Q = so3.exp_matrix(-jnp.asarray(dt)[..., None] * omega)
+        return {2: {1: W, 2: "I"}}, {1: {1: Q}, 2: {1: -(W @ Q), 2: Q}}
+    eye = jnp.eye(3, dtype=W.dtype)
+    cross = -(h * h) * W
+    if coriolis == "second_order":
+        W2 = W @ W
+        return None, {1: {1: eye - 0.5 * h * h * W2, 2: cross},
+                      2: {1: -h * W2, 2: eye - 2.0 * h * W}}
+    return None, {1: {1: "I", 2: cross}, 2: {2: eye - 2.0 * h * W}}
+
+
+def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None):
+    """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
+    ``Pb``: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the still-world step's ``Φ``
+    between the error maps of :func:`error_map_rows` (exact transition: into
+    and out of the step's inertial frame; classic terms: no ``Pre``, ``Post`` the increments'
+    ``[p, v]`` Jacobian), each applied as a block congruence (:func:`jaximu._blocks.congruence`).
+    ``ops``: the block layout (the maps' blocks are made as arrays from ``omega``
+    ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``); ``p_over_v``: as
+    :func:`jaximu._blocks.structured_update`."""
+    pre, post = error_map_rows(omega, h, coriolis)
+    if ops is not blk.ARRAYS:
+        pre, post = (None if m is None else {i: {k: (x if isinstance(x, str) else
+                                                     ops.from_arrays(x)) for k, x in r.items()}
+                                             for i, r in m.items()} for m in (pre, post))
+    if pre is not None:
+        Pb = blk.congruence(Pb, pre, ops)
+    return blk.congruence(blk.structured_update(Pb, b, qc, ops, p_over_v), post, ops)
 
 
 # --------------------------------------------------------------------------- classic
@@ -164,27 +237,21 @@ def coriolis_increments(omega, p, v, dt, second_order: bool = False):
         ``(dθ, dp, dv)`` in W, each ``(..., 3)``: ``dθ = -ω Δt`` (the attitude becomes
         ``Exp(dθ) R``), ``dp = -Δt² ω×v [- ½Δt² ω×(ω×p)]``, ``dv = -2Δt ω×v [- Δt ω×(ω×p)]``.
     """
-    h = jnp.asarray(dt)[..., None]
-    wxv = jnp.cross(omega, v)
-    dth = -h * omega
-    dp = -(h * h) * wxv
-    dv = -2.0 * h * wxv
+    dth, dp, dv = coriolis_increments_v3(V3.of(omega), V3.of(p), V3.of(v), jnp.asarray(dt),
+                                         second_order)
+    dp, dv = dp.stack(), dv.stack()
+    dth = dth.stack()
+    return jnp.broadcast_to(dth, jnp.broadcast_shapes(dth.shape, dp.shape)), dp, dv
+
+
+def coriolis_increments_v3(omega: V3, p: V3, v: V3, h, second_order: bool = False):
+    """:func:`coriolis_increments` on components; ``h`` the step, ``(...,)`` or a scalar."""
+    wxv = omega.cross(v)
+    dth = omega * (-h)
+    dp = wxv * (-(h * h))
+    dv = wxv * (-2.0 * h)
     if second_order:
-        wwp = jnp.cross(omega, jnp.cross(omega, p))
-        dp = dp - 0.5 * h * h * wwp
-        dv = dv - h * wwp
-    dth = jnp.broadcast_to(dth, jnp.broadcast_shapes(dth.shape, dp.shape))
+        wwp = omega.cross(omega.cross(p))
+        dp = dp - wwp * (0.5 * h * h)
+        dv = dv - wwp * h
     return dth, dp, dv
-
-
-def coriolis_transition(omega, dt, second_order: bool = False):
-    """``∂(p⁺, v⁺)/∂(p, v)`` of ``(p + dp, v + dv)`` with :func:`coriolis_increments`:
-    ``(..., 6, 6)``, rows and columns ``[p, v]`` (the increments are linear in ``p``, ``v``)."""
-    h = jnp.asarray(dt)[..., None, None]
-    W = so3.skew(omega)
-    eye = jnp.eye(3, dtype=W.dtype)
-    s = 1.0 if second_order else 0.0
-    W2 = W @ W
-    top = jnp.concatenate(jnp.broadcast_arrays(eye - 0.5 * s * h * h * W2, -(h * h) * W), -1)
-    bot = jnp.concatenate(jnp.broadcast_arrays(-s * h * W2, eye - 2.0 * h * W), -1)
-    return jnp.concatenate([top, bot], -2)

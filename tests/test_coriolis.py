@@ -207,22 +207,83 @@ def test_covariance_in_a_rotating_world_is_phi_phi_t_by_finite_differences(exact
     assert np.abs(np.asarray(P_still) - ref).max() > 1e-4 * np.abs(ref).max()
 
 
-def test_rotating_world_runs_the_generic_kernels_and_equals_them_batched():
-    """The dispatch table's column: a rotating world never takes an SoA row; a batch of 40
-    lanes (which would otherwise take soa_mean) equals its lanes run one by one."""
-    for entry, jac in (("mean", None), ("covariance", "analytic")):
-        assert _dispatch.kernel(entry, "euler", attitude="quaternion", jacobians=jac,
-                                lanes=64, rotating=True) == "generic"
-        assert _dispatch.kernel(entry, "euler", attitude="quaternion", jacobians=jac,
-                                lanes=64) != "generic"
-    rng = np.random.default_rng(0)
-    gyro = rng.normal(size=(40, 30, 3))
-    accel = rng.normal(size=(40, 30, 3)) + [0, 0, 9.81]
-    x0 = jaximu.NavState.identity(dtype=jnp.float64)
-    x0 = jaximu.NavState(x0.q, x0.p, jnp.array([3.0, -1.0, 0.5]), x0.b_g, x0.b_a)
-    out = jaximu.propagate_final(x0, gyro, accel, 0.01, "rk4", omega_coriolis=W_FAST)
-    one = jaximu.propagate_final(x0, gyro[7], accel[7], 0.01, "rk4", omega_coriolis=W_FAST)
-    np.testing.assert_allclose(out.p[7], one.p, rtol=0, atol=1e-12)
+# Each case pairs a scheme with a Coriolis model and a batching of dt and ω, so that every
+# scheme, every model and both layouts (shared and per-lane) of dt and ω are covered once.
+ROTATING_SOA_CASES = [("euler", "exact", False, False), ("midpoint", "first_order", True, False),
+                      ("rk4", "second_order", False, True), ("midpoint", "exact", True, True)]
+
+
+@pytest.mark.parametrize("scheme,coriolis,lane_dt,lane_omega", ROTATING_SOA_CASES)
+def test_rotating_world_mean_on_the_soa_kernel_equals_the_generic_kernel(
+        scheme, coriolis, lane_dt, lane_omega):
+    """The dispatch table's column: the mean in a rotating world takes the structure-of-arrays
+    row, and equals the generic scan of
+    jaximu.propagate.rotating_step at every state (float64, relative 1e-12)."""
+    from jaximu.propagate import _propagate
+
+    assert _dispatch.kernel("mean", scheme, attitude="quaternion", lanes=64,
+                            rotating=True) == "soa_mean"
+    rng = np.random.default_rng(1)
+    B, T = 32, 25  # 32 lanes: the SoA row's minimum
+    gyro = jnp.asarray(rng.normal(0, 0.5, (B, T, 3)))
+    accel = jnp.asarray(rng.normal(0, 1, (B, T, 3)) + [0, 0, 9.81])
+    dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
+    omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
+    q0 = rng.normal(size=(B, 4))
+    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
+                         jnp.asarray(rng.normal(0, 50, (B, 3))), jnp.asarray(rng.normal(0, 3, (B, 3))),
+                         jnp.zeros((B, 3)), jnp.zeros((B, 3)))
+    g = jnp.array([0.0, 0.0, -9.81])
+    fast, generic = (_propagate(x0, gyro, accel, dt, g, omega, scheme=scheme,
+                                attitude="quaternion", save_all=True, fast=f,
+                                coriolis=coriolis)[0] for f in (True, False))
+    for a, b in ((fast.q, generic.q), (fast.p, generic.p), (fast.v, generic.v)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(np.asarray(b)).max())
+    # and the world's terms are in it: the still world's states differ
+    still = _propagate(x0, gyro, accel, dt, g, None, scheme=scheme, attitude="quaternion",
+                       save_all=False, fast=True)[0]
+    assert np.abs(np.asarray(still.p) - np.asarray(fast.p[:, -1])).max() > 1e-3
+
+
+@pytest.mark.parametrize("scheme,coriolis,jacobians,lane_dt,lane_omega", [
+    ("midpoint", "exact", "analytic", True, False),
+    ("rk4", "second_order", "autodiff", False, True),
+    ("euler", "first_order", "analytic", False, False)])
+def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
+        scheme, coriolis, jacobians, lane_dt, lane_omega):
+    """The covariance in a rotating world takes the structure-of-arrays rows (the world's
+    error maps as block congruences, jaximu.world.covariance_step, on either layout) and
+    equals the generic kernel (float64, relative 1e-12), whose covariance the
+    finite-difference test above checks; the cases cover every scheme and model once and
+    both Jacobian options."""
+    from jaximu.errorstate import _propagate_covariance
+
+    row = "soa_cov_" + jacobians
+    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
+                            lanes=4, rotating=True) == row
+    rng = np.random.default_rng(2)
+    B, T = 4, 15
+    gyro = jnp.asarray(rng.normal(0, 0.5, (B, T, 3)))
+    accel = jnp.asarray(rng.normal(0, 1, (B, T, 3)) + [0, 0, 9.81])
+    dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
+    omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
+    q0 = rng.normal(size=(B, 4))
+    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
+                         jnp.asarray(rng.normal(0, 50, (B, 3))), jnp.asarray(rng.normal(0, 3, (B, 3))),
+                         jnp.zeros((B, 3)), jnp.zeros((B, 3)))
+    A = rng.normal(size=(B, 15, 15))
+    P0 = jnp.asarray(A @ np.swapaxes(A, -1, -2) * 1e-3)
+    g = jnp.array([0.0, 0.0, -9.81])
+    (s_f, P_f, _), (s_g, P_g, _) = (
+        _propagate_covariance(x0, P0, gyro, accel, dt, g, NOISE, omega, scheme=scheme,
+                              attitude="quaternion", jacobians=jacobians, save_all=False,
+                              fast=f, coriolis=coriolis) for f in (True, False))
+    np.testing.assert_allclose(P_f, P_g, rtol=0, atol=1e-12 * np.abs(np.asarray(P_g)).max())
+    np.testing.assert_allclose(s_f.p, s_g.p, rtol=0, atol=1e-12 * np.abs(np.asarray(s_g.p)).max())
+    P_still = _propagate_covariance(x0, P0, gyro, accel, dt, g, NOISE, None, scheme=scheme,
+                                    attitude="quaternion", jacobians=jacobians, save_all=False,
+                                    fast=True)[1]
+    assert np.abs(np.asarray(P_still) - np.asarray(P_g)).max() > 1e-6 * np.abs(np.asarray(P_g)).max()
 
 
 def test_bad_omega_coriolis_is_refused():
