@@ -731,9 +731,9 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                                                       jnp.asarray(win_accel, dtype)))
     # Run once per problem, so its compile time is what the user waits for: the plain scan
     # (it compiles in a fraction of the time of the side-by-side chunks "auto" picks for a few
-    # dozen windows), quick-compiled on small problems (the inputs are checked above).
-    # On small problems, also the generic kernel: it compiles faster than the
-    # structure-of-arrays one at that level.
+    # dozen windows; the inputs are checked above). Small problems compile it at the quick
+    # level and on the generic kernel, which compiles faster than the structure-of-arrays
+    # one there.
     zero3 = jnp.zeros(3, dtype)
     quick = K * W <= QUICK_COMPILE_SAMPLES
     pim = _compiled(_preintegrate_sequential, quick, ("scheme", "fast"))(
@@ -756,7 +756,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
-        R_i, phi_ref = (np.asarray(x, np.float64) for x in _once(_keyframe_rotations)(jnp.asarray(qk)))
+        R_i, phi_ref = (np.asarray(x, np.float64)
+                        for x in _once(_keyframe_rotations)(jnp.asarray(qk)))
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
