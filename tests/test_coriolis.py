@@ -207,6 +207,21 @@ def test_covariance_in_a_rotating_world_is_phi_phi_t_by_finite_differences(exact
     assert np.abs(np.asarray(P_still) - ref).max() > 1e-4 * np.abs(ref).max()
 
 
+def _rotating_inputs(rng, B, T, lane_dt, lane_omega):
+    """Random states far from the origin (large centrifugal terms), samples, steps and a
+    world rate, shared by all lanes or one per lane."""
+    gyro = jnp.asarray(rng.normal(0, 0.5, (B, T, 3)))
+    accel = jnp.asarray(rng.normal(0, 1, (B, T, 3)) + [0, 0, 9.81])
+    dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
+    omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
+    q0 = rng.normal(size=(B, 4))
+    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
+                         jnp.asarray(rng.normal(0, 50, (B, 3))),
+                         jnp.asarray(rng.normal(0, 3, (B, 3))), jnp.zeros((B, 3)),
+                         jnp.zeros((B, 3)))
+    return x0, gyro, accel, dt, omega, jnp.array([0.0, 0.0, -9.81])
+
+
 # Each case pairs a scheme with a Coriolis model and a batching of dt and ω, so that every
 # scheme, every model and both layouts (shared and per-lane) of dt and ω are covered once.
 ROTATING_SOA_CASES = [("euler", "exact", False, False), ("midpoint", "first_order", True, False),
@@ -224,16 +239,8 @@ def test_rotating_world_mean_on_the_soa_kernel_equals_the_generic_kernel(
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", lanes=64,
                             rotating=True) == "soa_mean"
     rng = np.random.default_rng(1)
-    B, T = 32, 25  # 32 lanes: the SoA row's minimum
-    gyro = jnp.asarray(rng.normal(0, 0.5, (B, T, 3)))
-    accel = jnp.asarray(rng.normal(0, 1, (B, T, 3)) + [0, 0, 9.81])
-    dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
-    omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
-    q0 = rng.normal(size=(B, 4))
-    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
-                         jnp.asarray(rng.normal(0, 50, (B, 3))), jnp.asarray(rng.normal(0, 3, (B, 3))),
-                         jnp.zeros((B, 3)), jnp.zeros((B, 3)))
-    g = jnp.array([0.0, 0.0, -9.81])
+    # 32 lanes: the SoA row's minimum
+    x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 32, 25, lane_dt, lane_omega)
     fast, generic = (_propagate(x0, gyro, accel, dt, g, omega, scheme=scheme,
                                 attitude="quaternion", save_all=True, fast=f,
                                 coriolis=coriolis)[0] for f in (True, False))
@@ -262,18 +269,9 @@ def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
     assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
                             lanes=4, rotating=True) == row
     rng = np.random.default_rng(2)
-    B, T = 4, 15
-    gyro = jnp.asarray(rng.normal(0, 0.5, (B, T, 3)))
-    accel = jnp.asarray(rng.normal(0, 1, (B, T, 3)) + [0, 0, 9.81])
-    dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
-    omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
-    q0 = rng.normal(size=(B, 4))
-    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
-                         jnp.asarray(rng.normal(0, 50, (B, 3))), jnp.asarray(rng.normal(0, 3, (B, 3))),
-                         jnp.zeros((B, 3)), jnp.zeros((B, 3)))
-    A = rng.normal(size=(B, 15, 15))
+    x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 4, 15, lane_dt, lane_omega)
+    A = rng.normal(size=(4, 15, 15))
     P0 = jnp.asarray(A @ np.swapaxes(A, -1, -2) * 1e-3)
-    g = jnp.array([0.0, 0.0, -9.81])
     (s_f, P_f, _), (s_g, P_g, _) = (
         _propagate_covariance(x0, P0, gyro, accel, dt, g, NOISE, omega, scheme=scheme,
                               attitude="quaternion", jacobians=jacobians, save_all=False,
