@@ -2,6 +2,8 @@
 float32 behaviour is checked with explicitly float32 inputs."""
 
 import os
+import shutil
+import tempfile
 
 # The suite is bound by XLA compilation, not by run time: ask XLA:CPU for less LLVM
 # optimisation (about 1.6x faster compiles). Only code generation changes, not the IEEE
@@ -14,6 +16,27 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+# JAX's persistent compilation cache, private to this process (each xdist worker has its own:
+# JAX writes entries without locking) in a temporary folder removed when pytest ends. After a
+# module's jax.clear_caches() the next modules load the executables they share with it (the
+# same kernels at the same shapes, and the many small eager-op executables) instead of
+# compiling them again. The `jaximu` commands the tests run as subprocesses get the same folder
+# (JAXIMU_CACHE_DIR), so they never write into the user's ~/.cache.
+# JAXIMU_TEST_XLA_CACHE=off runs the suite without it.
+_XLA_CACHE = None
+if os.environ.get("JAXIMU_TEST_XLA_CACHE", "").lower() != "off":
+    _XLA_CACHE = tempfile.mkdtemp(prefix="jaximu-tests-xla-")
+    jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    os.environ["JAXIMU_CACHE_DIR"] = _XLA_CACHE
+else:
+    os.environ["JAXIMU_CACHE_DIR"] = "off"
+
+
+def pytest_unconfigure(config):
+    if _XLA_CACHE is not None:
+        shutil.rmtree(_XLA_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")

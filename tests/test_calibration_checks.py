@@ -20,6 +20,7 @@ from jaximu import calibration as cal
 
 DATA = pathlib.Path(__file__).parent / "data"
 LENGTH, STRIDE = 3.0, 1.0
+SAMPLES = 600  # LENGTH at 200 Hz
 RZ90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
@@ -45,7 +46,11 @@ def excerpts():
     for name, t, gyro, accel, ref, noise in recordings():
         start, end = max(t[0], ref.t[0]), min(t[-1], ref.t[-1])
         for s in np.arange(start, end - LENGTH + 1e-9, STRIDE):
-            sel = (t >= s) & (t <= s + LENGTH)
+            # SAMPLES samples from the first at or after s: one array shape for every excerpt
+            # of every recording (all ~200 Hz), so calibration_problem compiles once
+            sel = slice(k := int(np.searchsorted(t, s)), k + SAMPLES)
+            if len(t[sel]) < SAMPLES or t[sel][-1] > end:
+                continue
             out.append((f"{name} {s - start:.0f}–{s - start + LENGTH:.0f} s", t[sel], gyro[sel],
                         accel[sel], ref, noise))
     assert len(out) >= 40

@@ -1,4 +1,7 @@
-"""The `jaximu` command end to end, in a subprocess, on the bundled real EuRoC excerpt."""
+"""The `jaximu` command end to end, in a subprocess, on the bundled real EuRoC excerpt.
+
+The subprocesses keep their compilations in the suite's temporary folder (conftest.py sets
+JAXIMU_CACHE_DIR), never in the user's ~/.cache."""
 
 import pathlib
 import subprocess
@@ -58,7 +61,9 @@ def test_demo_runs_and_reports_drift(tmp_path):
 
 
 def test_demo_without_plot():
-    res = run("demo", "--seconds", "1", "--no-plot")
+    # the length of test_demo_runs_and_reports_drift: its compilations, from the suite's
+    # compilation cache (conftest.py: JAXIMU_CACHE_DIR), are reused
+    res = run("demo", "--seconds", "2", "--no-plot")
     assert res.returncode == 0, res.stderr
     assert "plot written" not in res.stdout
 

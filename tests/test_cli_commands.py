@@ -1,5 +1,6 @@
 """`jaximu preintegrate`, `montecarlo`, `calibrate` and `allan` end to end in a subprocess
-(a file of their own so that pytest-xdist runs it beside tests/test_cli.py)."""
+(a file of their own so that pytest-xdist runs it beside tests/test_cli.py). The subprocesses
+keep their compilations in the suite's temporary folder (conftest.py: JAXIMU_CACHE_DIR)."""
 
 import json
 import pathlib
