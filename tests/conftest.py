@@ -19,16 +19,17 @@ jax.config.update("jax_enable_x64", True)
 
 # JAX's persistent compilation cache, private to this process (each xdist worker has its own:
 # JAX writes entries without locking) in a temporary folder removed when pytest ends. After a
-# module's jax.clear_caches() the next modules load the executables they share with it (the
-# same kernels at the same shapes, and the many small eager-op executables) instead of
-# compiling them again. The `jaximu` commands the tests run as subprocesses get the same folder
+# module's jax.clear_caches() (and where a test builds a graph another test compiled already)
+# the executables are loaded instead of compiled again. Only compilations of at least 1 s are
+# written: writing each of the thousands of small ones costs more than compiling it again
+# (measured: ~5% on tests/test_sensor.py with everything written, few hits). The `jaximu` commands the tests run as subprocesses get the same folder
 # (JAXIMU_CACHE_DIR), so they never write into the user's ~/.cache.
 # JAXIMU_TEST_XLA_CACHE=off runs the suite without it.
 _XLA_CACHE = None
 if os.environ.get("JAXIMU_TEST_XLA_CACHE", "").lower() != "off":
     _XLA_CACHE = tempfile.mkdtemp(prefix="jaximu-tests-xla-")
     jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     os.environ["JAXIMU_CACHE_DIR"] = _XLA_CACHE
 else:
     os.environ["JAXIMU_CACHE_DIR"] = "off"
