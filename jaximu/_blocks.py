@@ -352,7 +352,6 @@ class KalmanUpdate(NamedTuple):
     dx: list  # the 5 blocks (3 × 1) of δx = K ν
     P: dict  # upper blocks of P⁺
     nis: jax.Array  # (1 × 1) νᵀ S⁻¹ ν
-    S: jax.Array  # (m × m) innovation covariance
 
 
 def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
@@ -400,7 +399,7 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
     Z = [add(mm(K[i], R, ops), *(-_times_t(M(i, k), H[k], ops) for k in cols))
          for i in range(5)]  # K R - M Hᵀ
     new = {(i, j): add(M(i, j), mm(Z[i], Kt[j], ops)) for i, j in UPPER}
-    return KalmanUpdate(dx, symmetrize_diagonal(new, ops), nis, S)
+    return KalmanUpdate(dx, symmetrize_diagonal(new, ops), nis)
 
 
 def whiten(Pb, e, ops: Layout = ARRAYS):

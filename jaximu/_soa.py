@@ -178,10 +178,10 @@ def _rows(rows, dtype):
 
 
 def _cholesky(S):
-    """Lower Cholesky factor of a symmetric positive definite ``(m, m, B)`` on lanes, as
-    nested lists ``L[i][j]`` (``j ≤ i``) of ``(B,)`` entries (and the reciprocals of the
-    diagonal, ``L[i][i]`` replaced by ``1 / L_ii``), unrolled: ``m`` is small (a
-    measurement's rows, a 3×3 block). The factor of :data:`SOA`'s ``cholesky``."""
+    """Lower Cholesky factor ``L`` of a symmetric positive definite ``(m, m, B)`` on lanes
+    (:data:`SOA`'s ``cholesky``), unrolled (``m`` is small: a measurement's rows, a 3×3
+    block): nested lists of ``(B,)`` entries, ``F[i][j] = L_ij`` below the diagonal and
+    ``F[i][i] = 1 / L_ii`` (what :func:`_tri_solve` multiplies by)."""
     m = S.shape[0]
     L = [[None] * m for _ in range(m)]
     for j in range(m):
