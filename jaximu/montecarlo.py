@@ -480,7 +480,7 @@ class _Study(NamedTuple):
     seg: tuple
     rec: np.ndarray  # recorded step indices
     times: np.ndarray
-    P_rec: np.ndarray
+    P_rec: np.ndarray | None  # open loop: the linearised covariance at the recorded times
     disc: np.ndarray
     dtype: object
     filt: bool
@@ -566,17 +566,21 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     rec_j = jnp.asarray(rec)
 
     # The reference: noise-free propagation of the exact signals (with the true biases added
-    # to the samples and to the state, which cancel), and the linearised covariance.
+    # to the samples and to the state, which cancel), and (open loop) the linearised
+    # covariance; the filter study's runs carry their own.
     clean = _propagate(x0, gyro + b_g0, accel + b_a0, dt, g, scheme=scheme,
                        attitude="quaternion", save_all=True)[0]
-    _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
-                                model_noise, scheme)
-    P_rec = np.asarray(P, np.float64)[rec]
+    P_rec = W = None
+    if not filt:
+        _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
+                                    model_noise, scheme)
+        P_rec = np.asarray(P, np.float64)[rec]
+        # NEES = |W e|², W = L⁻¹, P = L Lᵀ
+        W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
     disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
                       np.float64)
-    W = np.linalg.inv(np.linalg.cholesky(P_rec))  # NEES = |W e|², P = L Lᵀ, W = L⁻¹
 
     # per-sample white-noise std (sample j held over dt_j; the last sample over dt_{T-1}) and
     # per-step bias-walk std, in float64 then rounded once
@@ -599,7 +603,7 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                   dt=dt, g=g, w_in=gyro[sl], a_in=accel[sl], sd_in=jnp.asarray(sd[sl], dtype),
                   w0=gyro[0], a0=accel[0], sd0=jnp.asarray(sd[0], dtype),
                   sw=jnp.asarray(sw, dtype), ref=(clean_rec.q, clean_rec.p, clean_rec.v),
-                  W=jnp.asarray(W, dtype), gyro=gyro, accel=accel, sd=jnp.asarray(sd, dtype),
+                  W=W, gyro=gyro, accel=accel, sd=jnp.asarray(sd, dtype),
                   b0=jnp.concatenate([b_g0, b_a0]))
     if filt:
         consts.update(qc=model_noise.discrete_variances(dt), P0=jnp.asarray(P0, dtype),
