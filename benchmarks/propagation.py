@@ -69,6 +69,10 @@ P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4 ** 2] 
                 [1e-3 ** 2] * 3]
 
 EARTH_48 = np.asarray(jaximu.earth_rate(48.0))  # rad/s, east-north-up
+# an IMU rotated 40° and 0.39 m from the body's origin (its covariance couples the gyro into
+# the specific force through ω×(ω×r): jaximu/sensor.py)
+LEVER_POSE = jaximu.SensorPose.from_rotation(
+    np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15]))
 
 # Display order of the cases in the table.
 CASE_ORDER = [
@@ -84,6 +88,7 @@ CASE_ORDER = [
     "cov analytic euler final",
     "cov analytic euler final vmap",
     "cov analytic euler final rotating",
+    "cov analytic euler final lever",
     "cov autodiff euler final",
     "cov analytic midpoint final",
     "cov autodiff midpoint final",
@@ -120,16 +125,18 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
             f"{cov_all_size[0]}×{cov_all_size[1]} instead."
         )
 
-    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False):
+    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False,
+             lever=False):
+        world = (" rotating" if rotating else "") + (" lever" if lever else "")
         if kind == "mean":
-            name = f"mean {scheme} {save}" + (" rotating" if rotating else "")
+            name = f"mean {scheme} {save}" + world
         elif kind == "cov":
-            name = f"cov {jac} {scheme} {save}" + (" rotating" if rotating else "")
+            name = f"cov {jac} {scheme} {save}" + world
         else:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
         return dict(section=section, name=name, kind=kind, scheme=scheme, jac=jac, save=save,
-                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating)
+                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating, lever=lever)
 
     all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size]))
     cases = []
@@ -164,6 +171,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                                       jac="analytic", vmap=True))
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", rotating=True))
+                    # a sensor at a lever arm (body_P_sensor)
+                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
+                                      jac="analytic", lever=True))
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
@@ -279,6 +289,8 @@ def build(case: dict, T: int | None = None):
             f = jaximu.propagate_covariance_final
 
         kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
+        if case.get("lever"):
+            kw["body_P_sensor"] = LEVER_POSE
 
         def fn(s, P, g, a, h):
             return f(s, P, g, a, h, NOISE, scheme, jacobians=jac, **kw)

@@ -127,7 +127,7 @@ def blocks_to_dense(Pb, batch=None, dtype=None):
     zero = jnp.zeros(tuple(batch) + (3, 3), dtype)
 
     def get(i, j):
-        x = Pb.get((i, j)) if i <= j else t(Pb.get((j, i)))
+        x = block(Pb, i, j)
         return zero if x is None else jnp.broadcast_to(x, tuple(batch) + (3, 3))
 
     return jnp.concatenate(
@@ -178,6 +178,12 @@ def phi_compose(F: Blocks, P: Blocks) -> Blocks:
     )
 
 
+def block(Pb, i, j, ops: Layout = ARRAYS):
+    """``P_ij`` of a symmetric ``P`` stored as upper blocks: ``P_jiᵀ`` below the diagonal,
+    ``None`` where zero."""
+    return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+
+
 def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     """``Φ P Φᵀ`` on upper blocks (``None``/missing blocks of ``P`` are zero).
 
@@ -188,7 +194,7 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     """
 
     def P(i, j):
-        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+        return block(Pb, i, j, ops)
 
     def mm(X, Y):
         return globals()["mm"](X, Y, ops)
@@ -250,7 +256,7 @@ def congruence(Pb, rows, ops: Layout = ARRAYS):
     block), as :func:`jaximu.world.error_map_rows` gives them. Rows of ``M`` that are
     identity rows cost nothing."""
     def P(i, j):
-        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+        return block(Pb, i, j, ops)
 
     def times(Mik, X):  # M_ik X
         return X if isinstance(Mik, str) else mm(Mik, X, ops)

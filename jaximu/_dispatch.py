@@ -41,29 +41,31 @@ class Row(NamedTuple):
     kernel: str
     dtypes: tuple = ("float32", "float64")
     rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
+    lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
 
 
 TABLE = (
     # mean of every scheme with the exact quaternion exponential; below 32 lanes XLA's
     # generic scan (one fused kernel per step) is as fast
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
-        "soa_mean", rotating=(False, True)),
+        "soa_mean", rotating=(False, True), lever=None),
     # a few long sequences in float64: time chunks side by side as lanes (mean_chunks),
     # composed. float32 keeps the plain scan: it is fast there (XLA:CPU keeps a float32
     # loop body under its small-loop limit), and the chunk deltas, which carry the
     # specific force without gravity cancelling it, round 4x worse in float32
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
-        LONG_STEPS, "soa_mean_chunked", ("float64",)),
+        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None),
     # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
-        1, "soa_cov_analytic", rotating=(False, True)),
+        1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
     # final covariance, every scheme, blocks by autodiff of the SoA step
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
-        1, "soa_cov_autodiff", rotating=(False, True)),
+        1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
-    Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler"),
+    Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler",
+        lever=(False, True)),
     Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,
-        "soa_preint_midpoint"),
+        "soa_preint_midpoint", lever=(False, True)),
 )
 
 GENERIC = "generic"
@@ -73,10 +75,12 @@ PREINT_MIN_LANES_SEQUENTIAL = 8
 
 
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
-           dtype="float64", fast=True, rotating=False) -> str:
+           dtype="float64", fast=True, rotating=False, lever=False) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
     and ``steps`` time steps; ``rotating``: a world rotation rate (``omega_coriolis``) is
-    given (the rows that implement it say so in their ``rotating`` column)."""
+    given (the rows that implement it say so in their ``rotating`` column); ``lever``: the
+    samples are a sensor's at a lever arm, whose Jacobians couple the gyro into the specific
+    force (column ``lever``)."""
     if not fast:
         return GENERIC
     for row in TABLE:
@@ -85,7 +89,7 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
                 and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
-                and rotating in row.rotating):
+                and rotating in row.rotating and (row.lever is None or lever in row.lever)):
             return row.kernel
     return GENERIC
 
@@ -118,9 +122,11 @@ def preint_method(method, lanes, steps, dtype) -> str:
     return "sequential"
 
 
-def preintegrate_kernel(scheme, *, jacobians, prefixes, method, lanes, fast=True) -> str:
+def preintegrate_kernel(scheme, *, jacobians, prefixes, method, lanes, fast=True,
+                        lever=False) -> str:
     if prefixes:
         return GENERIC
     if method == "sequential" and lanes < PREINT_MIN_LANES_SEQUENTIAL:
         return GENERIC
-    return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast)
+    return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast,
+                  lever=lever)

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import so3, world
-from jaximu._blocks import Blocks, structured_update
-from jaximu._soa import (SOA, _E3, _bt, _components, _materialise, _quat_mul,
+from jaximu._blocks import Blocks, block, structured_update
+from jaximu._soa import (SOA, _E3, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
                          _time_chunks, exp_jr, half_angle_jr, mean_step, quat_matrix,
                          run_blocked)
@@ -105,15 +105,12 @@ def dense_to_blocks(P):
 
 def blocks_to_dense(Pb):
     d = dict(zip(UPPER, Pb))
-
-    def get(i, j):
-        return d[(i, j)] if i <= j else _bt(d[(j, i)])
-
-    D = jnp.concatenate([jnp.concatenate([get(i, j) for j in range(5)], 1) for i in range(5)], 0)
+    D = jnp.concatenate([jnp.concatenate([block(d, i, j, SOA) for j in range(5)], 1)
+                         for i in range(5)], 0)
     return jnp.moveaxis(D, -1, 0)
 
 
-def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
+def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
     ``jax.jvp`` of :func:`jaximu._soa.mean_step` in the 9 non-structural directions, in
@@ -123,7 +120,9 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     both samples' rate or specific force). Each group is a ``vmap`` over its 3 directions,
     direction axis major, lanes minor. The rotation rows are ``2 vec(q⁺* ⊗ δq⁺)`` (the
     tangent of ``Log(q̂⁺* q⁺)``). As :func:`jaximu.errorstate.blocks_autodiff`, on this
-    layout.
+    layout. ``lever`` (a :class:`V3`, or ``None``): samples moved from a sensor at that lever
+    arm, whose specific force moves by ``K δb_g`` (:func:`jaximu.sensor.centripetal_jacobian`):
+    the ``db_g`` tangents then perturb the specific force too.
 
     Returns:
         ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
@@ -147,8 +146,19 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
     minus_e = V3(*(const(-E[:, i]) for i in range(3)))
     q1, p1, v1 = step(q, omega0, omega1, f0, f1)
     d_theta = directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
-    d_bg = directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
-                      (minus_e, minus_e))
+    if lever is None:
+        d_bg = directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
+                          (minus_e, minus_e))
+    else:  # direction j moves f by the column K e_j: component i is K[i, j] per lane
+        from jaximu.sensor import centripetal_jacobian
+
+        def k_cols(omega):
+            K = jnp.broadcast_to(centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
+            return V3(K[0], K[1], K[2])
+
+        d_bg = directions(lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
+                          (omega0, omega1, f0, f1),
+                          (minus_e, minus_e, k_cols(omega0), k_cols(omega1)))
     d_ba = directions(lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1),
                       (minus_e, minus_e))
     conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
@@ -169,13 +179,14 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g):
 
 
 def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
-                    coriolis="exact"):
+                    coriolis="exact", lever=None):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
     :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``. ``omega`` (a
     :class:`V3`, or ``None``): the world turns, and the step runs between the world's maps
-    (:func:`jaximu.world.covariance_step`)."""
+    (:func:`jaximu.world.covariance_step`). ``lever`` (a :class:`V3`, or ``None``): the
+    samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`)."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -185,10 +196,10 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
         q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g,
                                half[:2])
         b = scheme.blocks(quat_matrix(q, q[0].dtype), omega0, f0, omega1, f1, h, SOA,
-                          end=exp_jr(phi_end, half))
+                          end=exp_jr(phi_end, half), lever=lever)
     else:
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, g)
+                                          h, g, lever)
     qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
     if omega is None:
         new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, scheme.p_over_v(h))
@@ -200,26 +211,30 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
 
 
 def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per_lane,
-                        scheme, jacobians, omega=None, coriolis="exact"):
+                        scheme, jacobians, omega=None, coriolis="exact", lever=None):
     """Final mean and covariance. ``qc_fn(h, lane_params) -> (…, 12)`` discrete variances;
     ``qc_per_lane``: ``(B, m)`` per-lane noise parameters (or None for shared noise).
     ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
     uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
-    ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`)."""
+    ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
+    ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of a sensor's samples
+    (:func:`cov_step_blocks`)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
+    shared_r = lever is None or lever.ndim == 1
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt_b, g_b, lane_noise, w_b):
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt_b, g_b, lane_noise, w_b, r_b):
         consts = (_components(b_g), _components(b_a), _components(g if shared_g else g_b),
                   None if qc_per_lane is None else lane_noise,
-                  (_components(omega if shared_w else w_b) if rotating else None))
+                  (_components(omega if shared_w else w_b) if rotating else None),
+                  (None if lever is None else _components(lever if shared_r else r_b)))
         carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
 
         def step(c, w, a, h, consts):
-            bg, ba, gv, ln, wv = consts
+            bg, ba, gv, ln, wv, rv = consts
             qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
             qc = tuple(qc[..., i] for i in range(12))
             bg, ba = V3(*bg), V3(*ba)
@@ -229,7 +244,8 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
             # 3-D block fusions they stop LLVM from vectorising them
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
             return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc,
-                                   None if wv is None else V3(*wv), coriolis)
+                                   None if wv is None else V3(*wv), coriolis,
+                                   None if rv is None else V3(*rv))
 
         (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt if shared_dt else dt_b,
                                         consts, None,
@@ -239,5 +255,6 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_per
     z = jnp.zeros((B, 1), gyro.dtype)
     return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, P0, gyro, accel,
                        z if shared_dt else dt, z if shared_g else g,
-                       z if qc_per_lane is None else qc_per_lane, z if shared_w else omega)
+                       z if qc_per_lane is None else qc_per_lane, z if shared_w else omega,
+                       z if shared_r else lever)
 

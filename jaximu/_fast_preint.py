@@ -133,9 +133,23 @@ def _cov9_b(M10, M20, S00, Cv):
     return _bmm(S00, Cvt), _bmm(M10, Cvt), _bmm(M20, Cvt)
 
 
-def step(carry, omega, fsp, h, s, guard):
+def _lever_rk(R, omega, lever):
+    """``R K(ω)`` (``(3, 3, B)``) for samples moved from a sensor at the lever arm ``lever``
+    (a 3-tuple): the specific force moves by ``K δω``
+    (:func:`jaximu.sensor.centripetal_jacobian`)."""
+    from jaximu._soa import SOA
+    from jaximu._vec import V3
+    from jaximu.sensor import centripetal_jacobian
+
+    return _bmm(R, centripetal_jacobian(V3(*omega), V3(*lever), SOA))
+
+
+def step(carry, omega, fsp, h, s, guard, lever=None):
     """One Euler step in the rotated coordinates. ``s``: 12-tuple of ``σ²`` per axis
-    (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities."""
+    (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities.
+    ``lever`` (a 3-tuple, or ``None``): samples moved from a sensor at that lever arm; the
+    gyro bias and noise then reach v (and p) through ``Dk = h R K`` (:func:`_lever_rk`),
+    F''s b_g column and the gyro noise's (they enter alike)."""
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
     (q1, dv1, dp1, t1), lane = jax.lax.cond(
@@ -151,15 +165,24 @@ def step(carry, omega, fsp, h, s, guard):
     Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
     hb = _lane(h)
     half = 0.5 * hb
+    Dk = Qtv = None
+    if lever is not None:  # F'_vbg = Dk; the gyro noise column is [Bk, h/2 Dk, Dk]
+        Dk = _stage(ok, lambda R, h: _lever_rk(R, omega, lever) * _lane(h), R, h)
+        sg = _diag_row(var[0:3], q[0].dtype)
+        Qv = Qv + _bmm(Dk * sg, _bt(Dk))
+        Qtv = _bmm(Bk * sg, _bt(Dk))
 
     # transition (Φ' = F' Φ'): Cv Φ'_θbg is the only product
-    X = _bmm(Cv, Bacc)
+    X = _bmm(Cv, Bacc) if Dk is None else _bmm(Cv, Bacc) + Dk
     Phi1 = (Bacc + Bk, (Dp + hb * Dv) + half * X, Dv + X, (Ep + hb * Ev_acc) + half * Ev,
             Ev_acc + Ev)
 
     # 15×15 covariance
     Pd = dict(zip(P15_KEYS, P))
     (M00, M01, M02, M03), (N0, N1, N2, N3, N4) = _stage(ok, _cov15_a, P, d3, d4, Bk, Cv, Ev)
+    if Dk is not None:  # the v-row increments gain Dk P_3j
+        N0, N1, N2 = (N + _bmm(Dk, _bt(Pd[j, 3])) for N, j in ((N0, 0), (N1, 1), (N2, 2)))
+        N3 = N3 + Dk * d3[None]
     M04 = Pd[0, 4]
     M10 = (_bt(Pd[0, 1]) + hb * _bt(Pd[0, 2])) + half * N0
     M11 = (Pd[1, 1] + hb * _bt(Pd[1, 2])) + half * N1
@@ -173,6 +196,9 @@ def step(carry, omega, fsp, h, s, guard):
     M10, M11, M12, M13, M14 = _stage(ok, lambda *a: tuple(x * 1 for x in a),
                                      M10, M11, M12, M13, M14)
     K0, K1, K2 = _stage(ok, _cov15_b, M10, M14, M20, M24, M00, M04, Cv, Ev)
+    if Dk is not None:  # and the v columns M_i3 Dkᵀ
+        Dkt = _bt(Dk)
+        K0, K1, K2 = K0 + _bmm(M03, Dkt), K1 + _bmm(M13, Dkt), K2 + _bmm(M23, Dkt)
     new = {
         (0, 0): _bsym((M00 + _bmm(M03, _bt(Bk))) + Qth),
         (0, 1): (M01 + hb * M02) + half * K0,
@@ -187,6 +213,9 @@ def step(carry, omega, fsp, h, s, guard):
         (2, 3): M23,
         (2, 4): M24,
     }
+    if Qtv is not None:
+        new[0, 1] = new[0, 1] + half * Qtv
+        new[0, 2] = new[0, 2] + Qtv
     h2 = h * h
     d3n = d3 + _diag_row(tuple(h2 * x for x in var[6:9]), q[0].dtype)[0]
     d4n = d4 + _diag_row(tuple(h2 * x for x in var[9:12]), q[0].dtype)[0]
@@ -209,6 +238,8 @@ def step(carry, omega, fsp, h, s, guard):
         (L12 + K91) + half * Qv,
         _bsym((L22 + K92) + Qv),
     )
+    if Qtv is not None:
+        S1 = (S1[0], S1[1] + half * Qtv, S1[2] + Qtv) + S1[3:]
     return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
 
 
@@ -253,19 +284,29 @@ def _mid_blocks(q, q1u, omega, f0, f1, h):
     return A, R0, R1, R0a0, R1a1
 
 
-def _mid_blocks2(A, R0, R1, R0a0, R1a1, h, sg, sa):
+def _mid_blocks2(A, R0, R1, R0a0, R1a1, h, sg, sa, RK=None):
+    """Cv, Dv, Ev of F and the white-noise blocks Qv, Qθv. ``RK = (R0 K0, R1 K1)`` for samples
+    moved from a sensor at a lever arm (:func:`_lever_rk`): f_i moves with the gyro bias
+    and noise of sample i, ``K_i δω_i``."""
     dtype = A.dtype
     hb = _lane(h)
     Cv = -0.5 * (R0a0 + _bmm(R1a1, A)) * hb
     Dv = 0.5 * R1a1 * (hb * hb)
     Ev = -0.5 * (R0 + R1) * hb
-    W = -0.25 * R1a1 * (hb * hb)
+    W = -0.25 * R1a1 * (hb * hb)  # v row of either gyro noise (p row: h/2 of it)
     sa2 = _diag_row(tuple(2.0 * x for x in sa), dtype)
     sg2 = _diag_row(tuple(2.0 * x for x in sg), dtype)
     G = 0.25 * (hb * hb)
-    Qv = (G * (_bmm(R0 * sa2, _bt(R0)) + _bmm(R1 * sa2, _bt(R1)))
-          + 2.0 * _bmm(W * sg2, _bt(W)))
-    Qtv = _bt(hb * W * sg2)  # 2 × (h/2 I) diag(2σ_g²/h) Wᵀ (Vg appears twice)
+    Qa = G * (_bmm(R0 * sa2, _bt(R0)) + _bmm(R1 * sa2, _bt(R1)))
+    if RK is None:
+        Qv = Qa + 2.0 * _bmm(W * sg2, _bt(W))
+        Qtv = _bt(hb * W * sg2)  # 2 × (h/2 I) diag(2σ_g²/h) Wᵀ (Vg appears twice)
+        return Cv, Dv, Ev, Qv, Qtv
+    RK0, RK1 = RK
+    Dv = Dv + 0.5 * (RK0 + RK1) * hb
+    W0, W1 = W - 0.5 * RK0 * hb, W - 0.5 * RK1 * hb
+    Qv = Qa + _bmm(W0 * sg2, _bt(W0)) + _bmm(W1 * sg2, _bt(W1))
+    Qtv = _bt(0.5 * hb * (W0 + W1) * sg2)
     return Cv, Dv, Ev, Qv, Qtv
 
 
@@ -303,9 +344,10 @@ def _mid_cov9(S, A, Cv, h):
     return M0, N, K, _bmm(M0[0], _bt(A))
 
 
-def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False):
+def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None):
     """One VINS-Mono midpoint step; with ``q_given`` the rotation at the step is an input (the
-    parallel method's chunks, frame ``B_i``) instead of the carried one."""
+    parallel method's chunks, frame ``B_i``) instead of the carried one. ``lever``: as
+    :func:`step`."""
     q, dv, dp, t, (Ac, Bc, Cpc, Cvc, Dpc, Dvc, Epc, Evc), P, d3, d4, S = carry
     omega = tuple(0.5 * (w0[i] + w1[i]) for i in range(3))  # bias removed by the caller
     ok = jnp.all(jnp.isfinite(h))
@@ -316,8 +358,12 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False):
     var = tuple(x / hd for x in s)
     h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
     A, R0, R1, R0a0, R1a1 = _stage(ok, _mid_blocks, q, q1u, omega, a0, a1, h)
+    RK = None
+    if lever is not None:
+        RK = _stage(ok, lambda R0, R1: (_lever_rk(R0, w0, lever), _lever_rk(R1, w1, lever)),
+                    R0, R1)
     Cv, Dv, Ev, Qv, Qtv = _stage(ok, _mid_blocks2, A, R0, R1, R0a0, R1a1, h, var[0:3],
-                                 var[3:6])
+                                 var[3:6], RK)
     dtype = q[0].dtype
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
     hb = _lane(h)
@@ -373,7 +419,7 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False):
     return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
 
 
-def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
+def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
     """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
     samples k and k+1 side by side. Returns the generic code's outputs.
 
@@ -408,22 +454,24 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
         b_g = b_g if b_g.ndim == 1 else rep(b_g)
         b_a = b_a if b_a.ndim == 1 else rep(b_a)
         var = var if var.ndim == 1 else rep(var)
+        lever = lever if lever is None or lever.ndim == 1 else rep(lever)
     n = gyro.shape[0]
     shared_dt = dt.ndim == 1
-    per_lane = [x.ndim == 2 for x in (b_g, b_a, var)]
+    per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b):
         Bc = gyro.shape[0]
         bg = _components(bg_b if per_lane[0] else b_g)
         ba = _components(ba_b if per_lane[1] else b_a)
         s = _components(var_b if per_lane[2] else var)
+        r = None if lever is None else _components(r_b if per_lane[3] else lever)
 
         def st(c, w, a, h, consts):
             w0 = tuple(w[i] - bg[i] for i in range(3))
             w1 = tuple(w[3 + i] - bg[i] for i in range(3))
             a0 = tuple(a[i] - ba[i] for i in range(3))
             a1 = tuple(a[3 + i] - ba[i] for i in range(3))
-            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard)
+            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r)
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
             st, _zero_carry_mid(Bc, dtype), gyro, accel, dt if shared_dt else dt_b, None,
@@ -446,7 +494,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1):
 
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
-            b_a if per_lane[1] else z, var if per_lane[2] else z)
+            b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
     out = run_blocked(block, n, block_lanes(dtype), *args)
     if C > 1:
         out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
@@ -612,9 +660,11 @@ def num_chunks(B, T, method, dtype):
     return C
 
 
-def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C):
+def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
     """Flat batch: gyro, accel ``(B, T, 3)``; dt ``(T,)`` or ``(B, T)``; b_g, b_a ``(3,)`` or
-    ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence.
+    ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence;
+    ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of samples moved from a sensor
+    (:func:`step`).
 
     Returns ``(t, q, dv, dp, Φ, Q15, Q9)`` with leading axis B, as the generic code."""
     B, T, _ = gyro.shape
@@ -634,20 +684,22 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C):
         b_g = b_g if b_g.ndim == 1 else rep(b_g)
         b_a = b_a if b_a.ndim == 1 else rep(b_a)
         var = var if var.ndim == 1 else rep(var)
+        lever = lever if lever is None or lever.ndim == 1 else rep(lever)
     n = gyro.shape[0]
     shared_dt = dt.ndim == 1
-    per_lane = [x.ndim == 2 for x in (b_g, b_a, var)]
+    per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b):
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b):
         Bc = gyro.shape[0]
         bg = _components(bg_b if per_lane[0] else b_g)
         ba = _components(ba_b if per_lane[1] else b_a)
         s = _components(var_b if per_lane[2] else var)
+        r = None if lever is None else _components(r_b if per_lane[3] else lever)
 
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
             f = tuple(a[i] - ba[i] for i in range(3))
-            return step(c, omega, f, h, s, guard)
+            return step(c, omega, f, h, s, guard, r)
 
         carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
                                       dt if shared_dt else dt_b, None, None)
@@ -655,7 +707,7 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C):
 
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
-            b_a if per_lane[1] else z, var if per_lane[2] else z)
+            b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
     summ = run_blocked(block, n, block_lanes(dtype), *args)
     if C > 1:
         summ = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), summ)

@@ -335,8 +335,8 @@ def _sample_noise_covariance(problem: CalibrationProblem, calib: ImuCalibration,
     (variance ``σ²/h``, ``h`` the sample's interval), ``J diag(σ²/h) Jᵀ`` with ``J`` by
     ``jax.jacfwd`` of the residuals in the samples (one perturbation shared by the group's
     windows, which are independent). Exact for the model the residual computes, the lever
-    arm's ``ω×(ω×r) + α×r`` included (``α`` differentiates noisy rates), which the
-    preintegration covariance does not hold."""
+    arm's ``ω×(ω×r) + α×r`` included (``α`` differentiates noisy rates), of which the
+    preintegration covariance holds the first only (:mod:`jaximu.sensor`)."""
     dens2 = problem.sample_density2  # (2, 3): σ_g², σ_a² per axis
 
     def group(g):

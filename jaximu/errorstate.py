@@ -87,7 +87,8 @@ def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h
     return Phi, G
 
 
-def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g) -> Blocks:
+def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g,
+                    lever=None) -> Blocks:
     """The blocks of ``Φ`` by ``jax.jacfwd`` of the step, in the 9 directions that are not
     structural: ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form).
 
@@ -98,6 +99,11 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
     :func:`structured_update` serves both Jacobian options. 9 tangents instead of 27, and
     no dense 15×15 products; tested equal to :func:`jacobians_autodiff` (dense) and to the
     closed forms.
+
+    ``lever``: the lever arm ``r`` (``(..., 3)`` [m]) of samples moved from a sensor to the
+    body (:mod:`jaximu.sensor`): their specific force carries ``-ω×(ω×r)``, so it moves with
+    the gyro bias, and the derivative sees it (the moved samples gain
+    ``c(ω̂) - c(ω)``, zero at the nominal point).
     """
     nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
     dtype = state.q.dtype
@@ -105,7 +111,14 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
 
     def rows(d9):
         delta = jnp.concatenate([d9[0:3], z6, d9[3:9]])
-        moved = nav_step(scheme, att, boxplus(state, delta), w0, a0, w1, a1, h, g)
+        at = boxplus(state, delta)
+        a0_, a1_ = a0, a1
+        if lever is not None:
+            from jaximu.sensor import lever_arm_acceleration as c
+
+            a0_ = a0 + c(w0 - state.b_g, None, lever) - c(w0 - at.b_g, None, lever)
+            a1_ = a1 + c(w1 - state.b_g, None, lever) - c(w1 - at.b_g, None, lever)
+        moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
         return boxminus(moved, nominal)[..., :9]
 
     J = jax.jacfwd(rows)(jnp.zeros(9, dtype))  # (..., 9 rows θ p v, 9 cols θ b_g b_a)
@@ -117,7 +130,7 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
                   Dv=blk_(2, 1), Ep=blk_(1, 2), Ev=blk_(2, 2), dt=h)
 
 
-def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h) -> Blocks:
+def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h, lever=None) -> Blocks:
     """Closed-form blocks of ``Φ`` for the exact-exponential forms (module docstring;
     :meth:`jaximu.integrators.Scheme.blocks`, the one home of the formulas) on arrays.
 
@@ -125,9 +138,11 @@ def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h) -> Blocks:
         R0: ``(..., 3, 3)`` attitude ``R̂`` at the start of the step.
         omega0, f0, omega1, f1: bias-corrected samples k and k+1, ``(..., 3)``.
         h: ``(...,)`` step [s].
+        lever: optional ``(..., 3)`` lever arm of samples moved to the body
+            (:meth:`jaximu.integrators.Scheme.blocks`).
     """
     return get_scheme(scheme).blocks(R0, V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1),
-                                     h, blk.ARRAYS)
+                                     h, blk.ARRAYS, lever=None if lever is None else V3.of(lever))
 
 
 def dense_from_blocks(b: Blocks):
@@ -281,21 +296,22 @@ def _resolve_jacobians(jacobians, att):
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
                                              "coriolis"))
-def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, scheme, attitude,
-                          jacobians, save_all, fast=True, coriolis="exact"):
+def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, lever=None, *,
+                          scheme, attitude, jacobians, save_all, fast=True, coriolis="exact"):
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
-        *(() if omega is None else (omega.shape[:-1],)))
+        *(() if omega is None else (omega.shape[:-1],)),
+        *(() if lever is None else (lever.shape[:-1],)))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
                              save_all=save_all, lanes=lanes, fast=fast,
-                             rotating=omega is not None)
+                             rotating=omega is not None, lever=lever is not None)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians, omega, coriolis)
+                                          jacobians, omega, coriolis, lever)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -307,11 +323,12 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
         w0, a0, w1, a1, h = xs
         qc = noise.discrete_variances(h, x.dtype)
         if jacobians == "analytic":
-            b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h)
+            b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h,
+                                lever)
         else:
             v_lin = v if omega is None or coriolis != "exact" else world.to_inertial(omega, p, v)
             lin = NavState(att.to_quat(x), p, v_lin, b_g, b_a)
-            b = blocks_autodiff(scheme, att, lin, w0, a0, w1, a1, h, g)
+            b = blocks_autodiff(scheme, att, lin, w0, a0, w1, a1, h, g, lever)
         if omega is None:
             Pn = structured_update(Pc, b, qc)
         else:
@@ -339,7 +356,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, *, s
 
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
-                               omega=None, coriolis="exact"):
+                               omega=None, coriolis="exact", lever=None):
     """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
     Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
     (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
@@ -357,9 +374,11 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
 
     if omega is not None and omega.ndim > 1:  # a world rate per batch element
         omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
+    if lever is not None and lever.ndim > 1:  # a lever arm per batch element
+        lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                            qc_fn, var_f,
-                                           get_scheme(scheme), jacobians, omega, coriolis)
+                                           get_scheme(scheme), jacobians, omega, coriolis, lever)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
@@ -377,10 +396,12 @@ def _steps_of(args, batched):
 
 def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact"):
     """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels;
-    arguments ``(state, P0, gyro, accel, dt, g, noise, omega)`` (``omega`` may be ``None``)."""
+    arguments ``(state, P0, gyro, accel, dt, g, noise, omega, lever)`` (``omega`` and
+    ``lever`` may be ``None``)."""
     return leading_axes(
         _propagate_covariance,
-        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR),
+        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR,
+         VECTOR),
         (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
          ("scheme", scheme), ("coriolis", coriolis)))
 
@@ -400,13 +421,15 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
                                                omega_coriolis)
+    lever = None
     if body_P_sensor is not None:  # bias errors in S outside, in B inside (jaximu/sensor.py)
         pose = sensor.check_pose(body_P_sensor, dtype)
         T = sensor.bias_transform(pose)
         P0 = sensor.congruence(T, P0)
         noise = sensor.noise_to_body(pose, noise)
+        lever = sensor.lever_of(pose)
     states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis)(
-        inner, P0, gyro, accel, dt, g, noise, omega)
+        inner, P0, gyro, accel, dt, g, noise, omega, lever)
     if body_P_sensor is not None:
         states = sensor_biases(states, state, save_all)
         P = sensor.congruence(T[..., None, :, :] if save_all else T, P, inverse=True)

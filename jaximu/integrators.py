@@ -191,7 +191,7 @@ class Scheme:
 
         return PREINTEGRATION_STEPS.get(self.name)
 
-    def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None):
+    def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None, lever=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
         ``ops`` (:data:`jaximu._blocks.ARRAYS` or :data:`jaximu._soa.SOA`). With the stages
         ``R_s = R̂ Exp(φ_s)``, ``u_s = R_s f_s`` (OpenVINS / Solà; docs/DESIGN.md):
@@ -207,6 +207,11 @@ class Scheme:
             h: step [s], per element.
             end: ``(Exp(φ_end), Jr(φ_end))`` when the caller has them (the mean step shares
                 the end rotation's half angle).
+            lever: the lever arm ``r`` (:class:`V3`, body frame [m]) when the samples are a
+                sensor's moved to the body (:mod:`jaximu.sensor`): ``f_s`` then carries
+                ``-ω×(ω×r)`` of the samples it interpolates, and the b_g column gains
+                ``Σ w_s R_s K_s`` with ``K_s = (1-τ_s) K(ω_k) + τ_s K(ω_k+1)``
+                (:func:`jaximu.sensor.centripetal_jacobian`), exact for every scheme.
 
         Returns:
             :class:`jaximu._blocks.Blocks`.
@@ -223,6 +228,13 @@ class Scheme:
             out = ops.scale(a, X)
             return out if c is None else out + ops.matmul(X, ops.skew(c))
 
+        if lever is not None:
+            from jaximu.sensor import centripetal_jacobian
+
+            K0 = centripetal_jacobian(omega0, lever, ops)
+            K1 = centripetal_jacobian(omega1, lever, ops) if self.uses_next_sample else K0
+            K0, K1 = ops.barrier((K0, K1))
+
         uv, up, Dv, Dp, Ev, Ep = [], [], [], [], [], []
         for pt in pts:
             if pt.phi is None:
@@ -237,10 +249,16 @@ class Scheme:
             up.append(u * pt.wp)
             Ev.append(ops.scale(-pt.wv, R_s))
             Ep.append(ops.scale(-pt.wp, R_s))
+            D = None
             if J_s is not None:
-                D = ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), times_dphi(J_s, pt.tau))
-                Dv.append(ops.scale(-pt.wv, D))
-                Dp.append(ops.scale(-pt.wp, D))
+                D = -ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), times_dphi(J_s, pt.tau))
+            if lever is not None:  # f_s moves by +K_s δb_g (the rate falls by δb_g)
+                K_s = (K0 if pt.tau == 0.0 else K1 if pt.tau == 1.0
+                       else (1.0 - pt.tau) * K0 + pt.tau * K1)
+                D = add(D, ops.matmul(R_s, K_s))
+            if D is not None:
+                Dv.append(ops.scale(pt.wv, D))
+                Dp.append(ops.scale(pt.wp, D))
         sum_v = functools.reduce(lambda a, b: a + b, uv)
         sum_p = functools.reduce(lambda a, b: a + b, up)
         return Blocks(A=ops.transpose(E_end), B=times_dphi(J_end, 1.0),

@@ -48,6 +48,7 @@ from jaximu import so3
 from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks, mm
+from jaximu._vec import V3
 from jaximu.errorstate import blocks_analytic
 from jaximu.integrators import get_scheme
 from jaximu.noise import ImuNoise
@@ -175,17 +176,19 @@ def _zeros_like_blocks(b: Blocks):
     return Blocks(*(z if x is None else x for x in b[:-1]), b.dt)
 
 
-def _euler_step(dR, w0, a0, h, b_g, b_a, var):
-    """Forster / GTSAM Manifold: zero-order hold on sample k."""
+def _euler_step(dR, w0, a0, h, b_g, b_a, var, lever=None):
+    """Forster / GTSAM Manifold: zero-order hold on sample k. The gyro noise enters as the
+    gyro bias does (``F``'s b_g column: with a ``lever`` arm it reaches p and v too, as in
+    GTSAM's ``D_correctedAcc_measuredOmega``)."""
     omega, f = w0 - b_g, a0 - b_a
     R0 = so3.quat_to_matrix(dR)
-    F = blocks_analytic("euler", R0, omega, f, omega, f, h)
+    F = blocks_analytic("euler", R0, omega, f, omega, f, h, lever)
     sg, sa, sbg, sba = var
-    Q9 = blk.noise_blocks([{0: F.B}, {1: F.Ep, 2: F.Ev}], [sg, sa])
+    Q9 = blk.noise_blocks([{0: F.B, 1: F.Dp, 2: F.Dv}, {1: F.Ep, 2: F.Ev}], [sg, sa])
     return so3.exp(h[..., None] * omega), so3.quat_rotate(dR, f), F, Q9, (sbg, sba)
 
 
-def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var):
+def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever=None):
     """VINS-Mono's ``midPointIntegration``, rearranged to our error order [θ, p, v, b_g, b_a].
 
     Like VINS-Mono, the second acceleration and ``F`` use the *unnormalised* product
@@ -194,7 +197,9 @@ def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var):
     Its noise is 18-dim ``[n_a0, n_g0, n_a1, n_g1, n_ba, n_bg]`` with variances
     ``acc_n² = 2σ_a²/dt``, ``gyr_n² = 2σ_g²/dt``, ``acc_w² = σ_ba²/dt``, ``gyr_w² = σ_bg²/dt``:
     the mapping that gives the continuous densities their meaning (``σ_g² dt`` on δθ per
-    step, etc.).
+    step, etc.). With a ``lever`` arm (samples moved from a sensor, :mod:`jaximu.sensor`)
+    ``f_i`` carries ``-ω_i×(ω_i×r)``: the gyro bias and noise of sample i also move it, by
+    ``K_i`` (:func:`jaximu.sensor.centripetal_jacobian`).
     """
     omega = 0.5 * (w0 + w1) - b_g
     f0, f1 = a0 - b_a, a1 - b_a
@@ -221,10 +226,19 @@ def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var):
     )
     sg, sa, sbg, sba = var
     Vg = {0: 0.5 * eye * h1, 1: -0.125 * R1a1 * h3, 2: -0.25 * R1a1 * h2}
-    Q9 = blk.noise_blocks(
-        [{1: 0.25 * R0 * h2, 2: 0.5 * R0 * h1}, Vg, {1: 0.25 * R1 * h2, 2: 0.5 * R1 * h1}, Vg],
-        [2 * sa, 2 * sg, 2 * sa, 2 * sg],
-    )
+    Va0 = {1: 0.25 * R0 * h2, 2: 0.5 * R0 * h1}  # ∂(p, v)/∂f0; f1's: R1 for R0
+    Va1 = {1: 0.25 * R1 * h2, 2: 0.5 * R1 * h1}
+    Vg0 = Vg1 = Vg
+    if lever is not None:
+        from jaximu.sensor import centripetal_jacobian
+
+        r = V3.of(lever)
+        RK0 = mm(R0, centripetal_jacobian(V3.of(w0 - b_g), r, blk.ARRAYS))
+        RK1 = mm(R1, centripetal_jacobian(V3.of(w1 - b_g), r, blk.ARRAYS))
+        F = F._replace(Dp=F.Dp + 0.25 * (RK0 + RK1) * h2, Dv=F.Dv + 0.5 * (RK0 + RK1) * h1)
+        Vg0 = {0: Vg[0], 1: Vg[1] - 0.25 * RK0 * h2, 2: Vg[2] - 0.5 * RK0 * h1}
+        Vg1 = {0: Vg[0], 1: Vg[1] - 0.25 * RK1 * h2, 2: Vg[2] - 0.5 * RK1 * h1}
+    Q9 = blk.noise_blocks([Va0, Vg0, Va1, Vg1], [2 * sa, 2 * sg, 2 * sa, 2 * sg])
     return dq, acc, F, Q9, (sbg, sba)
 
 
@@ -278,15 +292,15 @@ PREINTEGRATION_STEPS = {
 }
 
 
-def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
+def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
     """One step of ``scheme`` at the preintegrated rotation ``dR`` (``(..., 4)``, unit)."""
     dtype = w0.dtype
     if noise is None:
         var = [jnp.zeros(h.shape + (3,), dtype)] * 4
     else:
         var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
-    dq, acc, F, Q9, (sbg, sba) = get_scheme(scheme).preintegration.step(dR, w0, a0, w1, a1, h, b_g,
-                                                                  b_a, var)
+    dq, acc, F, Q9, (sbg, sba) = get_scheme(scheme).preintegration.step(
+        dR, w0, a0, w1, a1, h, b_g, b_a, var, lever)
     eye = jnp.eye(3, dtype=dtype)
     h2 = (h * h)[..., None, None]
     Q15 = dict(Q9)
@@ -295,8 +309,10 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
     return _Step(dq, acc, _zeros_like_blocks(F), _fill(Q15, blk.UPPER, dq), _fill(Q9, _UPPER9, dq))
 
 
-def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
-    """``F`` and the noise Jacobians by ``jax.jacfwd`` of the step's mean (exact derivatives)."""
+def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
+    """``F`` and the noise Jacobians by ``jax.jacfwd`` of the step's mean (exact derivatives).
+    With a ``lever`` arm the specific force carries ``-ω×(ω×r)`` of the perturbed rate
+    (:mod:`jaximu.sensor`), so gyro bias and noise reach it."""
     dtype = w0.dtype
     pre = get_scheme(scheme).preintegration
     nominal = _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, None)
@@ -306,6 +322,11 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise) -> _Step:
         dRp = so3.quat_mul(dR, so3.exp(delta[..., 0:3]))
         bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
         w0n, a0n, w1n, a1n, nbg, nba = pre.perturb(n, w0, a0, w1, a1)
+        if lever is not None:  # the samples' -ω×(ω×r), moved with the perturbed rate
+            from jaximu.sensor import lever_arm_acceleration as c
+
+            a0n = a0n + c(w0 - b_g, None, lever) - c(w0n - bg, None, lever)
+            a1n = a1n + c(w1 - b_g, None, lever) - c(w1n - bg, None, lever)
         s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
         dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
         hv = h[..., None]
@@ -385,7 +406,8 @@ def _pairs(gyro, accel, dt, scheme):
     return w[:n], a[:n], w1, a1, h
 
 
-def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, blocks=True):
+def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, blocks=True,
+                lever=None):
     """``lax.scan`` of the preintegration recursion over the leading (time) axis of ``xs``.
 
     ``xs = (dR, w0, a0, w1, a1, h, mask)``: with ``dR`` None the rotation is carried (the
@@ -406,7 +428,7 @@ def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, bl
         else:
             hk_safe = hk
         s = step_fn(scheme, dq if dR is None else dR, w0k, a0k, w1k, a1k, hk_safe, b_g, b_a,
-                    noise)
+                    noise, lever)
         step = _Acc(s.F, s.Q15, s.Q9) if blocks else None
         a_k = s.acc
         if mk is not None:
@@ -477,7 +499,7 @@ def _time_major_batch(x, batch, tail):
     return jnp.broadcast_to(x, x.shape[:1] + tuple(batch) + tuple(tail))
 
 
-def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
+def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever=None):
     T = gyro.shape[-2]
     n = dt.shape[-1] if dt.ndim else T  # dt of length T-1: Euler leaves the last sample unused
     dtype = gyro.dtype
@@ -501,8 +523,10 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
     else:
         var = noise.variances(dtype)
         var = var if var.ndim == 1 else flat(var, (12,))
+    if lever is not None and lever.ndim > 1:
+        lever = flat(lever, (3,))
     C = _fast_preint.num_chunks(B, n, method, dtype)
-    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C)
+    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
         delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),
@@ -512,19 +536,21 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes", "fast"))
-def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, prefixes,
-                  fast=True):
+def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, jacobians,
+                  prefixes, fast=True):
     step_fn = _step if jacobians == "analytic" else _step_autodiff
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = tuple(jnp.broadcast_shapes(
         gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
         bias.b_a.shape[:-1],
-        *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise))))
+        *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
+        *(() if lever is None else (lever.shape[:-1],))))
     lanes = int(np.prod(batch, dtype=np.int64))
     method = dispatch.preint_method(method, lanes, gyro.shape[-2], gyro.dtype)
     if dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
-                                    method=method, lanes=lanes, fast=fast) != dispatch.GENERIC:
-        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme)
+                                    method=method, lanes=lanes, fast=fast,
+                                    lever=lever is not None) != dispatch.GENERIC:
+        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever)
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
     b_g, b_a = bias.b_g, bias.b_a
@@ -533,7 +559,7 @@ def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, pr
     w0, a0, w1, a1 = (_time_major_batch(x, batch, (3,)) for x in (w0, a0, w1, a1))
     if method == "sequential":
         final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, (None, w0, a0, w1, a1, h, None),
-                                 batch, dtype, prefixes)
+                                 batch, dtype, prefixes, lever=lever)
         dq, dv, dp, t, acc = out if prefixes else final
         pim = _finish(t, dq, dv, dp, acc, ImuBias(b_g, b_a))
     else:
@@ -556,7 +582,7 @@ def _preintegrate(gyro, accel, dt, bias, noise, *, scheme, method, jacobians, pr
         mask = chunked(jnp.ones((T,) + batch, bool)) if pad else None
         xs = tuple(chunked(x) for x in (dR, w0, a0, w1, a1, h)) + (mask,)
         final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, (C,) + batch, dtype,
-                                 prefixes)
+                                 prefixes, lever=lever)
         # 3. an associative scan across the chunk summaries (dense: few, cheap to compile)
         _, dv, dp, t, acc = final
         chunk_prefix = jax.lax.associative_scan(_combine_dense, _to_dense(t, dv, dp, acc), axis=0)
@@ -594,8 +620,10 @@ _VEC = ArgSpec(1, lambda args, batched: 3)  # bias fields (..., 3); densities sc
 
 
 def routed_preintegrate(scheme, method, jacobians, prefixes):
-    """:func:`_preintegrate` whose ``jax.vmap`` lands on the batched kernels."""
-    return leading_axes(_preintegrate, (_SAMPLES, _SAMPLES, ArgSpec(1, _steps_of), _VEC, _VEC),
+    """:func:`_preintegrate` whose ``jax.vmap`` lands on the batched kernels; arguments
+    ``(gyro, accel, dt, bias, noise, lever)`` (``noise`` and ``lever`` may be ``None``)."""
+    return leading_axes(_preintegrate,
+                        (_SAMPLES, _SAMPLES, ArgSpec(1, _steps_of), _VEC, _VEC, _VEC),
                         (("jacobians", jacobians), ("method", method), ("prefixes", prefixes),
                          ("scheme", scheme)))
 
@@ -692,7 +720,7 @@ def _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
     bias_b = ImuBias(sensor.bias_to_body(pose, bias.b_g), sensor.bias_to_body(pose, bias.b_a))
     noise_b = None if noise is None else sensor.noise_to_body(pose, noise)
     pim = routed_preintegrate(scheme, method, jacobians, prefixes)(gyro_b, accel_b, dt, bias_b,
-                                                                   noise_b)
+                                                                   noise_b, sensor.lever_of(pose))
     T = sensor.bias_transform(pose)
     if prefixes:
         T = T[..., None, :, :]

@@ -20,7 +20,7 @@ def documented_table():
     rows = []
     for line in section.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 10 and cells[0] in ("mean", "covariance", "preintegrate"):
+        if len(cells) == 11 and cells[0] in ("mean", "covariance", "preintegrate"):
             rows.append(cells)
     return rows
 
@@ -33,7 +33,7 @@ def test_design_notes_table_is_the_code_table():
     assert len(doc) == len(_dispatch.TABLE)
     stored = {"final": False, "all": True}
     for cells, row in zip(doc, _dispatch.TABLE):
-        entry, schemes, attitude, jac, save, lanes, steps, dtypes, rotating, kernel = cells
+        entry, schemes, attitude, jac, save, lanes, steps, dtypes, rotating, lever, kernel = cells
         assert entry == row.entry
         assert words(schemes) == row.schemes
         assert words(attitude) == (row.attitudes or ())
@@ -43,6 +43,7 @@ def test_design_notes_table_is_the_code_table():
         assert int(steps) == row.min_steps
         assert words(dtypes) == row.dtypes
         assert tuple({"no": False, "yes": True}[w] for w in words(rotating)) == row.rotating
+        assert tuple({"no": False, "yes": True}[w] for w in words(lever)) == (row.lever or ())
         assert kernel == row.kernel
 
 
