@@ -381,7 +381,7 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
         check: ``check(S)`` called before ``S`` is factored (e.g. a definiteness check).
     """
     def P(i, j):
-        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+        return block(Pb, i, j, ops)
 
     cols = [k for k in range(5) if H[k] is not None]
     U = [add(*(_times_t(P(i, k), H[k], ops) for k in cols)) for i in range(5)]  # P Hᵀ rows
@@ -413,7 +413,7 @@ def whiten(Pb, e, ops: Layout = ARRAYS):
     blocks ``3 × 1`` of an error): ``|L⁻¹ e|² = eᵀ P⁻¹ e``, the NEES. Returns the 5 blocks
     of ``L⁻¹ e``."""
     def P(i, j):
-        return Pb.get((i, j)) if i <= j else t(Pb.get((j, i)), ops)
+        return block(Pb, i, j, ops)
 
     F, Lo, y = [None] * 5, {}, [None] * 5  # Lo[(i, j)] = L_ijᵀ (i > j)
     for j in range(5):
