@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 
 from jaximu import so3
 from jaximu._vec import V3
@@ -46,6 +47,8 @@ class Layout(NamedTuple):
     matvec: object = None  # X v -> V3
     exp_jr: object = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
     from_arrays: object = None  # a (3, 3) or (..., 3, 3) array as a block of this layout
+    cholesky: object = None  # factor of a symmetric positive definite (m, m) block
+    tri_solve: object = None  # (factor, X, trans=False) -> L⁻¹ X (trans: L⁻ᵀ X)
 
 
 ARRAYS = Layout(
@@ -58,6 +61,9 @@ ARRAYS = Layout(
     matvec=lambda X, v: V3.of(jnp.einsum("...ij,...j->...i", X, v.stack())),
     exp_jr=lambda phi: (so3.exp_matrix(phi.stack()), so3.right_jacobian(phi.stack())),
     from_arrays=lambda X: X,
+    cholesky=lambda S: jnp.linalg.cholesky(S),
+    tri_solve=lambda L, X, trans=False: jax.scipy.linalg.solve_triangular(
+        L, X, lower=True, trans=1 if trans else 0),
 )
 
 
@@ -334,3 +340,91 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
     Q[(3, 3)] = ops.scale(hh, ops.diag(qc[2]))
     Q[(4, 4)] = ops.scale(hh, ops.diag(qc[3]))
     return symmetrize_diagonal(add_blocks(phi_p_phit(Pb, b, ops, p_over_v), Q), ops)
+
+
+def _times(Hk, X, ops):
+    """``H_k X`` for a measurement column block ``H_k`` (``"I"``: the identity)."""
+    return X if isinstance(Hk, str) else mm(Hk, X, ops)
+
+
+def _times_t(X, Hk, ops):
+    """``X H_kᵀ``."""
+    return X if isinstance(Hk, str) else mm(X, t(Hk, ops), ops)
+
+
+class KalmanUpdate(NamedTuple):
+    """The result of :func:`kalman_update` (blocks of its layout)."""
+
+    dx: list  # the 5 blocks (3 × 1) of δx = K ν
+    P: dict  # upper blocks of P⁺
+    nis: jax.Array  # (1 × 1) νᵀ S⁻¹ ν
+
+
+def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
+    """Kalman update of the error state, Joseph form, on upper blocks: the mathematics of
+    :func:`jaximu.errorstate.ekf_update` (its one home; the Monte Carlo filter study runs
+    it on SoA lanes).
+
+    With ``U = P Hᵀ``, ``S = H U + R`` (factored by Cholesky, ``ops.cholesky``) and
+    ``K = U S⁻¹``::
+
+        δx = K ν,   P⁺ = (I - K H) P (I - K H)ᵀ + K R Kᵀ = M + (K R - M Hᵀ) Kᵀ,
+        M = (I - K H) P = P - K Uᵀ,   NIS = νᵀ S⁻¹ ν.
+
+    Args:
+        Pb: upper blocks of ``P`` (:func:`dense_to_blocks`).
+        H: the 5 column blocks ``H_k`` (``m × 3``) of the ``(m, 15)`` Jacobian; ``None``
+            where zero, the string ``"I"`` for an identity block (``m = 3``): a position fix
+            is ``(None, "I", None, None, None)``, which costs no product.
+        R: ``m × m`` measurement noise covariance; nu: ``m × 1`` residual ``ν = z - h(x̂)``.
+        ops: the layout (:data:`ARRAYS`, or :data:`jaximu._soa.SOA`: ``(m, n, B)`` lanes).
+        check: ``check(S)`` called before ``S`` is factored (e.g. a definiteness check).
+    """
+    def P(i, j):
+        return block(Pb, i, j, ops)
+
+    cols = [k for k in range(5) if H[k] is not None]
+    U = [add(*(_times_t(P(i, k), H[k], ops) for k in cols)) for i in range(5)]  # P Hᵀ rows
+    S = add(*(_times(H[k], U[k], ops) for k in cols), R)
+    S = sym(S, ops)
+    if check is not None:
+        check(S)
+    F = ops.cholesky(S)
+    Kt = [None if u is None else ops.tri_solve(F, ops.tri_solve(F, t(u, ops)), trans=True)
+          for u in U]  # Kᵢᵀ = S⁻¹ Uᵢᵀ
+    K = [t(x, ops) for x in Kt]
+    white = ops.tri_solve(F, nu)
+    nis = mm(t(white, ops), white, ops)
+    dx = [mm(k, nu, ops) for k in K]
+    K, Kt, dx = ops.barrier((K, Kt, dx))  # each is read by several products
+
+    def M(i, j):  # ((I - K H) P)_ij
+        ku = mm(K[i], t(U[j], ops), ops)
+        return add(P(i, j), None if ku is None else -ku)
+
+    Z = [add(mm(K[i], R, ops), *(-_times_t(M(i, k), H[k], ops) for k in cols))
+         for i in range(5)]  # K R - M Hᵀ
+    new = {(i, j): add(M(i, j), mm(Z[i], Kt[j], ops)) for i, j in UPPER}
+    return KalmanUpdate(dx, symmetrize_diagonal(new, ops), nis)
+
+
+def whiten(Pb, e, ops: Layout = ARRAYS):
+    """``L⁻¹ e`` for ``P = L Lᵀ`` (block Cholesky on the upper blocks ``Pb``; ``e``: the 5
+    blocks ``3 × 1`` of an error): ``|L⁻¹ e|² = eᵀ P⁻¹ e``, the NEES. Returns the 5 blocks
+    of ``L⁻¹ e``."""
+    def P(i, j):
+        return block(Pb, i, j, ops)
+
+    F, Lo, y = [None] * 5, {}, [None] * 5  # Lo[(i, j)] = L_ijᵀ (i > j)
+    for j in range(5):
+        F[j] = ops.cholesky(add(P(j, j), *(-mm(t(Lo[(j, k)], ops), Lo[(j, k)], ops)
+                                           for k in range(j))))
+        col = {}
+        for i in range(j + 1, 5):  # L_ij = (P_ij - Σ L_ik L_jkᵀ) L_jj⁻ᵀ
+            X = add(P(j, i), *(-mm(t(Lo[(j, k)], ops), Lo[(i, k)], ops) for k in range(j)))
+            col[(i, j)] = ops.tri_solve(F[j], X)
+        yj = ops.tri_solve(F[j], add(e[j], *(-mm(t(Lo[(j, k)], ops), y[k], ops)
+                                             for k in range(j))))
+        col, y[j] = ops.barrier((col, yj))  # each is read by the later columns
+        Lo.update(col)
+    return y

@@ -163,8 +163,53 @@ _S3 = np.stack([np.stack([np.cross(_E3[i], _E3[c]) for c in range(3)], axis=1) f
 
 
 def _bmm(X, Y):
-    """Blockwise ``X @ Y`` of ``(3, 3, B)`` arrays (batch minor): one vectorised loop."""
-    return X[:, 0:1] * Y[0:1, :] + X[:, 1:2] * Y[1:2, :] + X[:, 2:3] * Y[2:3, :]
+    """Blockwise ``X @ Y`` of ``(n, k, B)`` and ``(k, m, B)`` arrays (batch minor; 3×3
+    blocks, or the ``m``-row blocks of a measurement): one vectorised loop."""
+    out = X[:, 0:1] * Y[0:1, :]
+    for i in range(1, X.shape[1]):
+        out = out + X[:, i:i + 1] * Y[i:i + 1, :]
+    return out
+
+
+def _rows(rows, dtype):
+    """A list of ``m`` rows ``(n, B)`` -> ``(m, n, B)`` by broadcasting (no concatenate)."""
+    E = np.eye(len(rows))
+    return sum(jnp.asarray(E[:, i], dtype)[:, None, None] * r[None] for i, r in enumerate(rows))
+
+
+def _cholesky(S):
+    """Lower Cholesky factor ``L`` of a symmetric positive definite ``(m, m, B)`` on lanes
+    (:data:`SOA`'s ``cholesky``), unrolled (``m`` is small: a measurement's rows, a 3×3
+    block): nested lists of ``(B,)`` entries, ``F[i][j] = L_ij`` below the diagonal and
+    ``F[i][i] = 1 / L_ii`` (what :func:`_tri_solve` multiplies by)."""
+    m = S.shape[0]
+    L = [[None] * m for _ in range(m)]
+    for j in range(m):
+        d = S[j, j]
+        for k in range(j):
+            d = d - L[j][k] * L[j][k]
+        inv = 1.0 / jnp.sqrt(d)
+        L[j][j] = inv
+        for i in range(j + 1, m):
+            x = S[i, j]
+            for k in range(j):
+                x = x - L[i][k] * L[j][k]
+            L[i][j] = x * inv
+    return _materialise(L)
+
+
+def _tri_solve(L, X, trans=False):
+    """``L⁻¹ X`` (``trans``: ``L⁻ᵀ X``) for a factor of :func:`_cholesky` and ``X`` of shape
+    ``(m, n, B)``: substitution row by row."""
+    m = len(L)
+    Y = [None] * m
+    order = range(m - 1, -1, -1) if trans else range(m)
+    for i in order:
+        y = X[i]
+        for k in (range(i + 1, m) if trans else range(i)):
+            y = y - (L[k][i] if trans else L[i][k])[None] * Y[k]
+        Y[i] = y * L[i][i][None]
+    return _rows(Y, X.dtype)
 
 
 def _bt(X):
@@ -270,6 +315,8 @@ SOA = Layout(
     # a shared (3, 3) block broadcasts over the lanes; a per-lane (B, 3, 3) one moves its
     # batch axis last
     from_arrays=lambda X: X[..., None] if X.ndim == 2 else jnp.moveaxis(X, 0, -1),
+    cholesky=_cholesky,
+    tri_solve=_tri_solve,
 )
 """The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
 per lane are 3-tuples of ``(B,)`` arrays (or scalars)."""

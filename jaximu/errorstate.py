@@ -577,17 +577,14 @@ def ekf_update(state: NavState, P, residual, H, R):
 
 
 def _ekf_update(state, P, residual, H, R):
-    mT = lambda X: jnp.swapaxes(X, -1, -2)  # noqa: E731
-    PHt = P @ mT(H)  # (..., 15, m)
-    S = H @ PHt + R
-    S = 0.5 * (S + mT(S))
-    _check_innovation(S, S.dtype)
-    Lc = jnp.linalg.cholesky(S)
-    solve = lambda B: jax.scipy.linalg.cho_solve((Lc, True), B)  # noqa: E731
-    K = mT(solve(mT(PHt)))  # P Hᵀ S⁻¹, (..., 15, m)
-    white = jax.scipy.linalg.solve_triangular(Lc, residual[..., None], lower=True)[..., 0]
-    nis = jnp.sum(white * white, -1)
-    dx = (K @ residual[..., None])[..., 0]
-    A = jnp.eye(15, dtype=P.dtype) - K @ H
-    P_new = A @ P @ mT(A) + K @ R @ mT(K)
-    return boxplus(state, dx), 0.5 * (P_new + mT(P_new)), nis
+    """The update on dense arrays: :func:`jaximu._blocks.kalman_update` (the one home of
+    the Joseph form) on ``P``'s blocks and ``H``'s column blocks."""
+    batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2],
+                                 R.shape[:-2])
+    out = blk.kalman_update(blk.dense_to_blocks(P),
+                            [H[..., :, 3 * k:3 * k + 3] for k in range(5)], R,
+                            residual[..., None], blk.ARRAYS,
+                            check=lambda S: _check_innovation(S, S.dtype))
+    dx = jnp.concatenate([jnp.broadcast_to(d, batch + (3, 1)) for d in out.dx], -2)[..., 0]
+    P_new = blk.blocks_to_dense(out.P, batch=batch)
+    return boxplus(state, dx), P_new, jnp.broadcast_to(out.nis[..., 0, 0], batch)

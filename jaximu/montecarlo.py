@@ -58,7 +58,8 @@ import numpy as np
 
 from jaximu import _rng
 from jaximu import _validation as val
-from jaximu._soa import _materialise, mean_step
+from jaximu._blocks import UPPER, blocks_to_dense, kalman_update, whiten
+from jaximu._soa import SOA, _materialise, _rows, mean_step
 from jaximu._vec import V3
 from jaximu.errors import Fix, InputError
 from jaximu.errorstate import propagate_covariance
@@ -78,6 +79,7 @@ __all__ = ["MonteCarloResult", "PositionFix", "monte_carlo", "sample_run", "chi2
 # pairs 14-15 the measurement noise of update u (counter u).
 _WHITE, _WALK, _INIT, _MEAS = 0, 3, 6, 14
 _N_STREAMS = 16
+_POSITION_H = (None, "I", None, None, None)  # H = [0, I, 0, 0, 0] by column blocks
 
 
 class PositionFix(NamedTuple):
@@ -333,8 +335,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
     lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
     """
-    from jaximu._fast import blocks_to_dense, cov_step_blocks, dense_to_blocks
-    from jaximu.errorstate import ekf_update, position_jacobian
+    from jaximu._fast import cov_step_blocks, dense_to_blocks
 
     sch = SCHEME_OBJECTS[scheme]
     nxt = sch.uses_next_sample
@@ -391,30 +392,33 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     xs_all = (jnp.arange(T, dtype=jnp.uint32), table)
 
     def update(carry, i):
-        """Position fix ``i`` (measurement noise: streams _MEAS, counter i)."""
-        ref = tuple(x[i] for x in c["ref"])
-        e = _errors(carry, ref)
+        """Position fix ``i`` (measurement noise: streams _MEAS, counter i), on the lanes:
+        :func:`jaximu._blocks.kalman_update` (the mathematics of
+        :func:`jaximu.errorstate.ekf_update`) on the covariance blocks."""
+        ref_p = c["ref"][1][i]
         nu = _rng.normals(c["keys"][_MEAS:_MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]
-        res = e[:, 3:6] + jnp.stack(nu, -1) * c["meas_sd"]  # z - p̂ = (p + ν) - p̂
+        res = [ref_p[j] - carry["p"][j] + nu[j] * c["meas_sd"][j] for j in range(3)]  # z - p̂
+        up = kalman_update(dict(zip(UPPER, carry["P"])), _POSITION_H,
+                           SOA.from_arrays(c["meas_R"]), _rows([r[None] for r in res], dtype),
+                           SOA)
+        dx = jnp.concatenate([d[:, 0] for d in up.dx], 0).T  # (B, 15)
         st = lambda t: jnp.stack(t, -1)  # noqa: E731
         est = NavState(st(carry["q"]), st(carry["p"]), st(carry["v"]), -st(carry["dbg"]),
                        -st(carry["dba"]))
-        est, P, nis = ekf_update(est, blocks_to_dense(carry["P"]), res,
-                                 position_jacobian(dtype), c["meas_R"])
+        est = boxplus(est, dx)
         comps = lambda x: tuple(x[:, j] for j in range(x.shape[1]))  # noqa: E731
         out = dict(carry, q=comps(est.q), p=V3(*comps(est.p)), v=V3(*comps(est.v)),
-                   dbg=-V3(*comps(est.b_g)), dba=-V3(*comps(est.b_a)), P=dense_to_blocks(P))
+                   dbg=-V3(*comps(est.b_g)), dba=-V3(*comps(est.b_a)),
+                   P=tuple(up.P[k] for k in UPPER))
         if nxt:  # the carried sample is corrected with the new bias estimate
             omega, f = carry["s"]
             out["s"] = (omega + (out["dbg"] - carry["dbg"]), f + (out["dba"] - carry["dba"]))
-        return out, P, nis
+        return out, up.nis[0, 0]
 
     def record(carry, i, with_update):
-        P = nis = None
+        nis = None
         if filt and with_update:
-            carry, P, nis = update(carry, i)
-        elif filt:
-            P = blocks_to_dense(carry["P"])
+            carry, nis = update(carry, i)
         ref = tuple(x[i] for x in c["ref"])
         e = _errors(carry, ref)
         if mode == "errors":
@@ -423,7 +427,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
             return carry, _lane_stats(e, wt, W=c["W"][i])
         if nis is None:
             nis = jnp.full((B,), jnp.nan, dtype)
-        return carry, _lane_stats(e, wt, P=P, nis=nis)
+        return carry, _lane_stats(e, wt, Pb=carry["P"], nis=nis)
 
     def segment(carry, i):
         xs = jax.tree_util.tree_map(
@@ -443,20 +447,23 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x, 0), *outs)
 
 
-def _lane_stats(e, wt, W=None, P=None, nis=None):
+def _lane_stats(e, wt, W=None, Pb=None, nis=None):
     """Over the lanes weighted by ``wt``: the mean and centred second moment of the
     ``(B, 15)`` errors, and the per-lane NEES: ``|W e|²`` with ``W`` the inverse Cholesky
-    factor of the shared covariance, or ``eᵀ P⁻¹ e`` with each lane's own ``(B, 15, 15)``
-    ``P`` (filter study; then also the weighted sum of ``P`` and the lanes' NIS)."""
+    factor of the shared covariance, or ``eᵀ P⁻¹ e`` with each lane's own covariance, its 15
+    upper blocks ``Pb`` (``(3, 3, B)``; filter study: then also the weighted sum of ``P``
+    and the lanes' NIS)."""
     n = jnp.sum(wt)
     mean = jnp.sum(e * wt[:, None], 0) / jnp.maximum(n, 1)
     d = (e - mean) * wt[:, None]
-    if P is None:
+    if Pb is None:
         y = e @ W.T
         return mean, d.T @ d, jnp.sum(y * y, -1)
-    Lc = jnp.linalg.cholesky(P)
-    y = jax.scipy.linalg.solve_triangular(Lc, e[..., None], lower=True)[..., 0]
-    return mean, d.T @ d, jnp.sum(y * y, -1), jnp.einsum("b,bij->ij", wt, P), nis
+    eT = e.T
+    y = whiten(dict(zip(UPPER, Pb)), [eT[3 * i:3 * i + 3, None] for i in range(5)], SOA)
+    nees = sum(jnp.sum(b * b, (0, 1)) for b in y)
+    P_sum = blocks_to_dense({k: jnp.sum(b * wt, -1) for k, b in zip(UPPER, Pb)})
+    return mean, d.T @ d, nees, P_sum, nis
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt"))
@@ -473,7 +480,7 @@ class _Study(NamedTuple):
     seg: tuple
     rec: np.ndarray  # recorded step indices
     times: np.ndarray
-    P_rec: np.ndarray
+    P_rec: np.ndarray | None  # open loop: the linearised covariance at the recorded times
     disc: np.ndarray
     dtype: object
     filt: bool
@@ -559,17 +566,21 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     rec_j = jnp.asarray(rec)
 
     # The reference: noise-free propagation of the exact signals (with the true biases added
-    # to the samples and to the state, which cancel), and the linearised covariance.
+    # to the samples and to the state, which cancel), and (open loop) the linearised
+    # covariance; the filter study's runs carry their own.
     clean = _propagate(x0, gyro + b_g0, accel + b_a0, dt, g, scheme=scheme,
                        attitude="quaternion", save_all=True)[0]
-    _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
-                                model_noise, scheme)
-    P_rec = np.asarray(P, np.float64)[rec]
+    P_rec = W = None
+    if not filt:
+        _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
+                                    model_noise, scheme)
+        P_rec = np.asarray(P, np.float64)[rec]
+        # NEES = |W e|², W = L⁻¹, P = L Lᵀ
+        W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
     disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
                       np.float64)
-    W = np.linalg.inv(np.linalg.cholesky(P_rec))  # NEES = |W e|², P = L Lᵀ, W = L⁻¹
 
     # per-sample white-noise std (sample j held over dt_j; the last sample over dt_{T-1}) and
     # per-step bias-walk std, in float64 then rounded once
@@ -592,7 +603,7 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                   dt=dt, g=g, w_in=gyro[sl], a_in=accel[sl], sd_in=jnp.asarray(sd[sl], dtype),
                   w0=gyro[0], a0=accel[0], sd0=jnp.asarray(sd[0], dtype),
                   sw=jnp.asarray(sw, dtype), ref=(clean_rec.q, clean_rec.p, clean_rec.v),
-                  W=jnp.asarray(W, dtype), gyro=gyro, accel=accel, sd=jnp.asarray(sd, dtype),
+                  W=W, gyro=gyro, accel=accel, sd=jnp.asarray(sd, dtype),
                   b0=jnp.concatenate([b_g0, b_a0]))
     if filt:
         consts.update(qc=model_noise.discrete_variances(dt), P0=jnp.asarray(P0, dtype),
