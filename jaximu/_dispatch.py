@@ -80,7 +80,7 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
     and ``steps`` time steps; ``rotating``: a world rotation rate (``omega_coriolis``) is
     given (the rows that implement it say so in their ``rotating`` column); ``lever``: the
     samples are a sensor's at a lever arm, whose Jacobians couple the gyro into the specific
-    force (column ``lever``)."""
+    force (column "lever arm (Jacobians)" of docs/DESIGN.md)."""
     if not fast:
         return GENERIC
     for row in TABLE:

@@ -135,8 +135,8 @@ def _cov9_b(M10, M20, S00, Cv):
 
 def _lever_rk(R, omega, lever):
     """``R K(ω)`` (``(3, 3, B)``) for samples moved from a sensor at the lever arm ``lever``
-    (a 3-tuple): the specific force moves by ``K δω``
-    (:func:`jaximu.sensor.centripetal_jacobian`)."""
+    (a 3-tuple): a gyro bias error ``δb_g`` moves the specific force by ``K δb_g``, a noise
+    the same way (:func:`jaximu.sensor.centripetal_jacobian`)."""
     from jaximu._soa import SOA
     from jaximu._vec import V3
     from jaximu.sensor import centripetal_jacobian

@@ -102,8 +102,7 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
 
     ``lever``: the lever arm ``r`` (``(..., 3)`` [m]) of samples moved from a sensor to the
     body (:mod:`jaximu.sensor`): their specific force carries ``-ω×(ω×r)``, so it moves with
-    the gyro bias, and the derivative sees it (the moved samples gain
-    ``c(ω̂) - c(ω)``, zero at the nominal point).
+    the gyro bias, and the derivative sees it (:func:`jaximu.sensor.moved_specific_force`).
     """
     nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
     dtype = state.q.dtype
@@ -114,10 +113,10 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
         at = boxplus(state, delta)
         a0_, a1_ = a0, a1
         if lever is not None:
-            from jaximu.sensor import lever_arm_acceleration as c
+            from jaximu.sensor import moved_specific_force as moved
 
-            a0_ = a0 + c(w0 - state.b_g, None, lever) - c(w0 - at.b_g, None, lever)
-            a1_ = a1 + c(w1 - state.b_g, None, lever) - c(w1 - at.b_g, None, lever)
+            a0_ = moved(a0, w0 - state.b_g, w0 - at.b_g, lever)
+            a1_ = moved(a1, w1 - state.b_g, w1 - at.b_g, lever)
         moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
         return boxminus(moved, nominal)[..., :9]
 
@@ -323,8 +322,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
         w0, a0, w1, a1, h = xs
         qc = noise.discrete_variances(h, x.dtype)
         if jacobians == "analytic":
-            b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h,
-                                lever)
+            b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g,
+                                a1 - b_a, h, lever)
         else:
             v_lin = v if omega is None or coriolis != "exact" else world.to_inertial(omega, p, v)
             lin = NavState(att.to_quat(x), p, v_lin, b_g, b_a)
@@ -578,7 +577,8 @@ def ekf_update(state: NavState, P, residual, H, R):
 
 def _ekf_update(state, P, residual, H, R):
     """The update on dense arrays: :func:`jaximu._blocks.kalman_update` (the one home of
-    the Joseph form) on ``P``'s blocks and ``H``'s column blocks."""
+    the Joseph form) on ``P``'s blocks and ``H``'s column blocks. Only ``P``'s upper blocks
+    are read: :func:`ekf_update` has checked it symmetric to rounding."""
     batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2],
                                  R.shape[:-2])
     out = blk.kalman_update(blk.dense_to_blocks(P),

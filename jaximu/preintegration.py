@@ -264,8 +264,10 @@ def _vins_variances(v):
 class PreintegrationStep:
     """What a scheme brings to preintegration (:attr:`jaximu.integrators.Scheme.preintegration`):
 
-    * ``step(dR, w0, a0, w1, a1, h, b_g, b_a, var) -> (dq, acc, F, Q9, (σ_bg², σ_ba²))``:
-      the generic step on ``(..., 3)`` arrays, with closed-form ``F`` and white-noise blocks;
+    * ``step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever) -> (dq, acc, F, Q9, (σ_bg², σ_ba²))``:
+      the generic step on ``(..., 3)`` arrays, with closed-form ``F`` and white-noise blocks
+      (``lever``: ``None``, or the lever arm of samples moved from a sensor,
+      :mod:`jaximu.sensor`);
     * ``noise_dim``, ``perturb(n, w0, a0, w1, a1)`` and ``variances(σ²/dt)``: how its step
       noise enters, for the autodiff Jacobians (:func:`_step_autodiff`);
     * ``kernel``: its structure-of-arrays kernel (:mod:`jaximu._fast_preint`).
@@ -323,10 +325,10 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
         bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
         w0n, a0n, w1n, a1n, nbg, nba = pre.perturb(n, w0, a0, w1, a1)
         if lever is not None:  # the samples' -ω×(ω×r), moved with the perturbed rate
-            from jaximu.sensor import lever_arm_acceleration as c
+            from jaximu.sensor import moved_specific_force as moved
 
-            a0n = a0n + c(w0 - b_g, None, lever) - c(w0n - bg, None, lever)
-            a1n = a1n + c(w1 - b_g, None, lever) - c(w1n - bg, None, lever)
+            a0n = moved(a0n, w0 - b_g, w0n - bg, lever)
+            a1n = moved(a1n, w1 - b_g, w1n - bg, lever)
         s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
         dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
         hv = h[..., None]

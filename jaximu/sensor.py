@@ -26,17 +26,21 @@ omits the tangential term ``α×r``; ``tangential=False`` does the same (to comp
 **Covariance.** Isotropic densities are unchanged by the rotation. Per-axis densities are
 rotated as variances, ``σ²_B = diag(R_BS diag(σ²_S) R_BSᵀ)``: exact for axis permutations,
 the cross-axis correlations of a general rotation are dropped. The lever arm couples the
-gyro into the body's specific force: ``δf_B = K δω`` with
+gyro into the body's specific force: a rate error ``δω`` moves it by ``-K δω`` (a gyro bias
+error ``δb_g``, which lowers the rate, by ``+K δb_g``) with
 ``K = ∂(ω×(ω×r))/∂ω = -[ω×r]x - [ω]x[r]x`` (:func:`centripetal_jacobian`; about
 ``2|ω||r|``). A gyro bias error therefore moves the velocity and position (``Φ``'s ``b_g``
 column gains ``-Φ_ba K`` at every evaluation point of the scheme) and so does the gyro white
 noise, which enters as the bias does (GTSAM's Manifold preintegration models the noise part
 through ``D_correctedAcc_measuredOmega``; its bias Jacobians leave out the bias part, ours
 keep it: they are the derivatives of the deltas). The noise carried by the tangential term
-is not modelled: ``α`` is a difference of neighbouring gyro samples, so its white noise
-(``~ σ_g |r| / (h √h)`` per sample) does not accumulate in the velocity, its sum over steps
-telescopes to the noise of the first and last rates, ``~ σ_g |r| / √h`` in total (2e-4 m/s
-for EuRoC's gyro at 200 Hz and ``|r| = 0.1`` m).
+``α×r`` (on by default) is **not** modelled: ``α`` is a difference of neighbouring gyro
+samples, so its white noise (``~ σ_g |r| / (h √h)`` per sample) does not accumulate in the
+velocity (its sum over steps telescopes to the noise of the first and last rates), but it
+is not small either: ``~ σ_g |r| / √h`` in total, 2e-4 m/s for EuRoC's gyro at 200 Hz and
+``|r| = 0.1`` m, about 7× the modelled ``ω×(ω×r)`` coupling over a 1 s window at 1 rad/s
+(both are small beside the accelerometer's own, ~2e-3 m/s over 1 s). :func:`jaximu.calibrate`
+weighs its residuals with the exact sample-noise covariance, which includes it.
 """
 
 from __future__ import annotations
@@ -184,6 +188,15 @@ def lever_arm_acceleration(omega, alpha, r):
     to its origin (body frame, ``(..., 3)``); ``alpha=None`` drops the tangential term."""
     a = jnp.cross(omega, jnp.cross(omega, r))
     return a if alpha is None else a + jnp.cross(alpha, r)
+
+
+def moved_specific_force(accel, omega_hat, omega, r):
+    """``accel + c(ω̂) - c(ω)`` with ``c(ω) = ω×(ω×r)``: a body specific force corrected at
+    the rate ``omega_hat`` (``(..., 3)``), as it would be at the rate ``omega`` instead. The
+    autodiff Jacobians perturb the rate (bias or noise) and read this; it equals ``accel`` at
+    ``omega = omega_hat``."""
+    return (accel + lever_arm_acceleration(omega_hat, None, r)
+            - lever_arm_acceleration(omega, None, r))
 
 
 def centripetal_jacobian(omega, r, ops):

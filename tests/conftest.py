@@ -22,9 +22,12 @@ jax.config.update("jax_enable_x64", True)
 # module's jax.clear_caches() (and where a test builds a graph another test compiled already)
 # the executables are loaded instead of compiled again. Only compilations of at least 1 s are
 # written: writing each of the thousands of small ones costs more than compiling it again
-# (measured: ~5% on tests/test_sensor.py with everything written, few hits). The `jaximu` commands the tests run as subprocesses get the same folder
-# (JAXIMU_CACHE_DIR), so they never write into the user's ~/.cache.
-# JAXIMU_TEST_XLA_CACHE=off runs the suite without it.
+# (measured: ~5% on tests/test_sensor.py with everything written, few hits). The `jaximu`
+# commands the tests run as subprocesses get the same folder (JAXIMU_CACHE_DIR), so they
+# never write into the user's ~/.cache; they write with the CLI's own threshold, while the
+# worker that started them waits, so no two writers share the folder at once. A killed
+# worker leaves its folder in the temporary directory. JAXIMU_TEST_XLA_CACHE=off runs the
+# suite without the cache.
 _XLA_CACHE = None
 if os.environ.get("JAXIMU_TEST_XLA_CACHE", "").lower() != "off":
     _XLA_CACHE = tempfile.mkdtemp(prefix="jaximu-tests-xla-")

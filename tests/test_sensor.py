@@ -298,6 +298,9 @@ def test_vins_midpoint_covariance_of_a_sensor_at_a_lever_arm_is_near_the_exact_o
     for f in ("transition", "cov15"):
         x, y = np.asarray(getattr(a, f)), np.asarray(getattr(b, f))
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-3 * np.abs(y).max(), err_msg=f)
+    rotated = jaximu.preintegrate(gyro, accel, dt, bias, noise, "midpoint", jacobians="autodiff",
+                                  body_P_sensor=SensorPose(POSE.q, jnp.zeros(3)))
+    assert np.abs(np.asarray(rotated.cov15 - b.cov15)).max() > 1e-2 * np.abs(b.cov15).max()
 
 
 # --------------------------------------------------------------------------- transforms
