@@ -720,7 +720,8 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         record_every: record errors every this many steps (and at the last); an integer ≥ 1.
         chunk_size: runs per device call (the lanes of one scan), an integer ≥ 1; memory
             ``O(chunk · K)``, independent of ``n_runs``. The statistics do not depend on it
-            (to the rounding of the sums).
+            (to the rounding of the sums). A chunk of one run is computed beside an idle lane
+            (a one-lane program rounds differently: ``_lane_errors``).
         n_keep: runs whose errors are returned in ``sample_errors``, an integer ≥ 0 (the
             first ``min(n_keep, n_runs)``).
         confidence: the NEES interval's probability, in ``(0, 1)`` (0.95, not 95).
@@ -785,7 +786,9 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                          f"jax.distributed ({n_proc} processes)")
 
     devices = jax.local_devices() if shard else jax.local_devices()[:1]
-    chunk = min(chunk_size, n_runs)
+    # at least two lanes: a one-lane program rounds differently (_lane_errors); a lane past
+    # n_runs has weight 0
+    chunk = max(2, min(chunk_size, n_runs))
     n_chunks = -(-n_runs // chunk)
     consts = [jax.device_put(st.consts, d) for d in devices]
     mine = list(range(proc, n_chunks, n_proc))
@@ -840,7 +843,8 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                     scheme=scheme,
                     record_every=int(record_every), n_steps=len(st.consts["dt"]),
                     dtype=jnp.dtype(st.dtype).name, confidence=confidence,
-                    key=np.asarray(st.consts["keys"][0]).tolist(), chunk_size=chunk,
+                    key=np.asarray(st.consts["keys"][0]).tolist(),
+                    chunk_size=min(chunk_size, n_runs),
                     processes=n_proc, update_every=update_every,
                     measurement_sigma=None if update_every is None else
                     np.asarray(measurement.sigma, float).tolist())
@@ -879,11 +883,24 @@ def _collect(item, chunk, n_runs, acc, nees_all, bar):
     bar.update(n_valid)
 
 
+def _lane_errors(study, run):
+    """``(K, n, 15)`` errors of the runs ``run`` (``(n,)`` uint32), regenerated.
+
+    A lone run is computed beside a copy of itself: in a program whose lanes are ``(1,)``
+    arrays XLA's algebraic simplifier treats the constants as scalars and reorders products
+    with them (``(a c)(a c) → (a a)(c c)``), which changes last bits, so the run would not
+    equal itself inside a study (chunks have at least two lanes too, :func:`monte_carlo`)."""
+    n = run.shape[0]
+    if n == 1:
+        run = jnp.concatenate([run, run])
+    e = _chunk(run, jnp.ones(run.shape[0], study.dtype), study.consts, scheme=study.scheme,
+               seg=study.seg, mode="errors", filt=study.filt)
+    return e[:, :n]
+
+
 def _sample_errors(study, n):
     """``(n, K, 15)`` errors of runs ``0..n-1`` (regenerated; see :func:`sample_run`)."""
-    run = jnp.arange(n, dtype=jnp.uint32)
-    e = _chunk(run, jnp.ones(n, study.dtype), study.consts, scheme=study.scheme, seg=study.seg,
-               mode="errors", filt=study.filt)
+    e = _lane_errors(study, jnp.arange(n, dtype=jnp.uint32))
     return np.swapaxes(np.asarray(e, np.float64), 0, 1)
 
 
@@ -921,8 +938,7 @@ def sample_run(trajectory: Trajectory, times, P0, noise: ImuNoise, key, i: int, 
                   b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
                   measurement=measurement)
     run = jnp.asarray([i], jnp.uint32)
-    e = _chunk(run, jnp.ones(1, st.dtype), st.consts, scheme=st.scheme, seg=st.seg,
-               mode="errors", filt=st.filt)[:, 0]
+    e = _lane_errors(st, run)[:, 0]
     gyro, accel, b, start = _measured(run, st.consts)
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
     return Run(f64(e), st.times, f64(gyro), f64(accel), jax.tree_util.tree_map(f64, start),
