@@ -36,9 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import sensor
 from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
-                         _quat_normalize, _quat_rotate, _skew3, _stage, _time_chunks, _vec3,
+                         _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
                          quat_matrix, run_blocked)
 
 BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
@@ -76,7 +77,7 @@ def _rot_jl(q, phi, t2, k, b):
     """Stage 2a: ``R = R(q)`` and ``Jl(φ)`` as ``(3, 3, B)``."""
     dtype = q[0].dtype
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    phi3 = _vec3(phi, dtype)
+    phi3 = _rows(phi, dtype)
     Jl = (I3 + _lane(2.0 * (k * k)) * _skew3(phi, dtype)
           + _lane(b) * (_outer(phi3, phi3) - _lane(t2) * I3))
     return quat_matrix(q, dtype), Jl
@@ -139,9 +140,8 @@ def _lever_rk(R, omega, lever):
     the same way (:func:`jaximu.sensor.centripetal_jacobian`)."""
     from jaximu._soa import SOA
     from jaximu._vec import V3
-    from jaximu.sensor import centripetal_jacobian
 
-    return _bmm(R, centripetal_jacobian(V3(*omega), V3(*lever), SOA))
+    return _bmm(R, sensor.centripetal_jacobian(V3(*omega), V3(*lever), SOA))
 
 
 def step(carry, omega, fsp, h, s, guard, lever=None):

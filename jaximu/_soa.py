@@ -151,7 +151,7 @@ def quat_matrix(q, dtype):
     ``I + 2(u uᵀ - |u|² I) + 2 w [u]x``."""
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
     w, u = q[0], q[1:]
-    u3 = _vec3(u, dtype)
+    u3 = _rows(u, dtype)
     return (I3 + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
             + _lane(2.0 * w) * _skew3(u, dtype))
 
@@ -172,9 +172,15 @@ def _bmm(X, Y):
 
 
 def _rows(rows, dtype):
-    """A list of ``m`` rows ``(n, B)`` -> ``(m, n, B)`` by broadcasting (no concatenate)."""
+    """``m`` rows, each ``(B,)`` or ``(n, B)``, -> ``(m, B)`` or ``(m, n, B)`` by broadcasting
+    against one-hot columns (no concatenate)."""
     E = np.eye(len(rows))
-    return sum(jnp.asarray(E[:, i], dtype)[:, None, None] * r[None] for i, r in enumerate(rows))
+    terms = [jnp.asarray(E[:, i], dtype).reshape((-1,) + (1,) * r.ndim) * r[None]
+             for i, r in enumerate(rows)]
+    out = terms[0]
+    for x in terms[1:]:
+        out = out + x
+    return out
 
 
 def _cholesky(S):
@@ -220,12 +226,6 @@ def _bsym(X):
     return 0.5 * (X + _bt(X))
 
 
-def _vec3(t, dtype):
-    """3-tuple of ``(B,)`` -> ``(3, B)`` by broadcasting (no concatenate)."""
-    E = jnp.asarray(_E3, dtype)
-    return E[:, 0:1] * t[0][None] + E[:, 1:2] * t[1][None] + E[:, 2:3] * t[2][None]
-
-
 def _skew3(t, dtype):
     """3-tuple of ``(B,)`` -> ``[v]x`` as ``(3, 3, B)``."""
     S = jnp.asarray(_S3, dtype)
@@ -243,7 +243,7 @@ def _lane(s):
 
 def _diag_row(s3, dtype):
     if jnp.ndim(s3[0]):
-        return _vec3(s3, dtype)[None]
+        return _rows(s3, dtype)[None]
     return jnp.stack([jnp.asarray(x, dtype) for x in s3])[None, :, None]
 
 
@@ -293,7 +293,7 @@ def exp_jr(phi: V3, half=None):
     t2 = phi.dot(phi)
     c, k, b = half_angle_jr(t2) if half is None else half
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    p3 = _vec3(phi, dtype)
+    p3 = _rows(phi, dtype)
     ppT = _outer(p3, p3)
     K = _skew3(phi, dtype)
     kk = k * k
