@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import so3, world
+from jaximu import sensor, so3, world
 from jaximu._blocks import Blocks, block, structured_update
 from jaximu._soa import (SOA, _E3, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
@@ -150,10 +150,8 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
         d_bg = directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
                           (minus_e, minus_e))
     else:  # direction j moves f by the column K e_j: component i is K[i, j] per lane
-        from jaximu.sensor import centripetal_jacobian
-
         def k_cols(omega):
-            K = jnp.broadcast_to(centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
+            K = jnp.broadcast_to(sensor.centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
             return V3(K[0], K[1], K[2])
 
         d_bg = directions(lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),

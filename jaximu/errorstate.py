@@ -40,6 +40,7 @@ from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
+from jaximu import sensor
 from jaximu import world
 from jaximu.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
 from jaximu._blocks import Blocks
@@ -113,10 +114,9 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
         at = boxplus(state, delta)
         a0_, a1_ = a0, a1
         if lever is not None:
-            from jaximu.sensor import moved_specific_force as moved
 
-            a0_ = moved(a0, w0 - state.b_g, w0 - at.b_g, lever)
-            a1_ = moved(a1, w1 - state.b_g, w1 - at.b_g, lever)
+            a0_ = sensor.moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, lever)
+            a1_ = sensor.moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, lever)
         moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
         return boxminus(moved, nominal)[..., :9]
 
@@ -408,7 +408,6 @@ def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact"):
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
                       coriolis="exact"):
-    from jaximu import sensor
     from jaximu.propagate import _report_gimbal_lock, _sensor_inputs, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude)

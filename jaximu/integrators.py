@@ -45,7 +45,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaximu import so3
+from jaximu import sensor, so3
 from jaximu._vec import V3
 from jaximu.state import NavState
 
@@ -229,10 +229,9 @@ class Scheme:
             return out if c is None else out + ops.matmul(X, ops.skew(c))
 
         if lever is not None:
-            from jaximu.sensor import centripetal_jacobian
 
-            K0 = centripetal_jacobian(omega0, lever, ops)
-            K1 = centripetal_jacobian(omega1, lever, ops) if self.uses_next_sample else K0
+            K0 = sensor.centripetal_jacobian(omega0, lever, ops)
+            K1 = sensor.centripetal_jacobian(omega1, lever, ops) if self.uses_next_sample else K0
             K0, K1 = ops.barrier((K0, K1))
 
         uv, up, Dv, Dp, Ev, Ep = [], [], [], [], [], []

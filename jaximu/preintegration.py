@@ -44,6 +44,7 @@ from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
 from jaximu import _fast_preint
 from jaximu import _validation as val
+from jaximu import sensor
 from jaximu import so3
 from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
@@ -230,11 +231,10 @@ def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever=None):
     Va1 = {1: 0.25 * R1 * h2, 2: 0.5 * R1 * h1}
     Vg0 = Vg1 = Vg
     if lever is not None:
-        from jaximu.sensor import centripetal_jacobian
 
         r = V3.of(lever)
-        RK0 = mm(R0, centripetal_jacobian(V3.of(w0 - b_g), r, blk.ARRAYS))
-        RK1 = mm(R1, centripetal_jacobian(V3.of(w1 - b_g), r, blk.ARRAYS))
+        RK0 = mm(R0, sensor.centripetal_jacobian(V3.of(w0 - b_g), r, blk.ARRAYS))
+        RK1 = mm(R1, sensor.centripetal_jacobian(V3.of(w1 - b_g), r, blk.ARRAYS))
         F = F._replace(Dp=F.Dp + 0.25 * (RK0 + RK1) * h2, Dv=F.Dv + 0.5 * (RK0 + RK1) * h1)
         Vg0 = {0: Vg[0], 1: Vg[1] - 0.25 * RK0 * h2, 2: Vg[2] - 0.5 * RK0 * h1}
         Vg1 = {0: Vg[0], 1: Vg[1] - 0.25 * RK1 * h2, 2: Vg[2] - 0.5 * RK1 * h1}
@@ -325,10 +325,9 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
         bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
         w0n, a0n, w1n, a1n, nbg, nba = pre.perturb(n, w0, a0, w1, a1)
         if lever is not None:  # the samples' -ω×(ω×r), moved with the perturbed rate
-            from jaximu.sensor import moved_specific_force as moved
 
-            a0n = moved(a0n, w0 - b_g, w0n - bg, lever)
-            a1n = moved(a1n, w1 - b_g, w1n - bg, lever)
+            a0n = sensor.moved_specific_force(a0n, w0 - b_g, w0n - bg, lever)
+            a1n = sensor.moved_specific_force(a1n, w1 - b_g, w1n - bg, lever)
         s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
         dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
         hv = h[..., None]
@@ -712,7 +711,6 @@ def _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
     """:func:`preintegrate` of a sensor at ``body_P_sensor``: the body's samples
     (:func:`jaximu.sensor.to_body`) with body-frame biases, and the result's bias
     quantities back in the sensor frame (``Φ_S = Tᵀ Φ_B T``, ``C_S = Tᵀ C_B T``)."""
-    from jaximu import sensor
 
     tangential = val.check_bool("tangential", tangential)
     pose = sensor.check_pose(body_P_sensor, gyro.dtype,

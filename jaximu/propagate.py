@@ -16,6 +16,7 @@ import numpy as np
 from jaximu import _dispatch as dispatch
 from jaximu import _fast
 from jaximu import _validation as val
+from jaximu import sensor
 from jaximu import so3
 from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
@@ -352,7 +353,6 @@ SENSOR_ARGS_DOC = """
 def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
     """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
     samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
-    from jaximu import sensor
 
     dtype = state.q.dtype
     tangential = val.check_bool("tangential", tangential)
