@@ -3,6 +3,7 @@
 The subprocesses keep their compilations in the suite's temporary folder (conftest.py sets
 JAXIMU_CACHE_DIR), never in the user's ~/.cache."""
 
+import os
 import pathlib
 import subprocess
 import sys
@@ -15,9 +16,14 @@ from jaximu.datasets import euroc_v1_02_segment
 DATA = pathlib.Path(__file__).parent / "data"
 
 
-def run(*args, cwd=None):
+def run(*args, cwd=None, default_codegen=False):
+    """``python -m jaximu *args``; ``default_codegen``: with the caller's XLA flags only, not
+    the suite's fast-compile ones (conftest.py), so XLA's default code generation runs."""
+    env = None
+    if default_codegen:
+        env = dict(os.environ, XLA_FLAGS=os.environ.get("JAXIMU_TEST_CALLER_XLA_FLAGS", ""))
     return subprocess.run([sys.executable, "-m", "jaximu", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
+                          cwd=cwd, timeout=300, env=env)
 
 
 def run_here(capsys, *args):
@@ -47,7 +53,7 @@ def test_bundled_segment_is_intact():
 def test_demo_runs_and_reports_drift(tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "demo.png"
-    res = run("demo", "--seconds", "2", "--plot", str(out))
+    res = run("demo", "--seconds", "2", "--plot", str(out), default_codegen=True)
     assert res.returncode == 0, res.stderr
     assert "EuRoC MAV V1_02_medium" in res.stdout and "position drift" in res.stdout
     lines = [ln for ln in res.stdout.splitlines()
@@ -61,9 +67,9 @@ def test_demo_runs_and_reports_drift(tmp_path):
 
 
 def test_demo_without_plot():
-    # the length of test_demo_runs_and_reports_drift: its compilations, from the suite's
-    # compilation cache (conftest.py: JAXIMU_CACHE_DIR), are reused
-    res = run("demo", "--seconds", "2", "--no-plot")
+    # the length and XLA flags of test_demo_runs_and_reports_drift: its compilations, from
+    # the suite's compilation cache (conftest.py: JAXIMU_CACHE_DIR), are reused
+    res = run("demo", "--seconds", "2", "--no-plot", default_codegen=True)
     assert res.returncode == 0, res.stderr
     assert "plot written" not in res.stdout
 

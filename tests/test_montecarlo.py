@@ -126,6 +126,7 @@ def study(setup):
                        **STUDY)
 
 
+@pytest.mark.default_codegen
 def test_chunk_size_and_devices_do_not_change_the_statistics(setup, study):
     traj, times, P0, noise = setup
     other = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5),
@@ -136,12 +137,19 @@ def test_chunk_size_and_devices_do_not_change_the_statistics(setup, study):
     np.testing.assert_allclose(other.nees, study.nees, rtol=1e-10)
     np.testing.assert_array_equal(other.sample_errors, study.sample_errors)
     np.testing.assert_allclose(other.nees_mean, study.nees.mean(0), rtol=1e-12)
+    # chunks of one run, and one kept run: a one-lane program would round differently
+    one = monte_carlo(traj, times, P0, noise, 3, jax.random.key(5), keep_nees=True,
+                      **dict(STUDY, chunk_size=1, n_keep=1))
+    np.testing.assert_allclose(one.nees, study.nees[:3], rtol=1e-10)
+    np.testing.assert_array_equal(one.sample_errors, study.sample_errors[:1])
+    assert one.settings["chunk_size"] == 1
     # the streamed moments equal the two-pass ones of the per-run errors
     errs = np.stack([sample_run(traj, times, P0, noise, jax.random.key(5), i, record_every=25,
                                 scheme="midpoint").errors for i in (0, 1, 2, 3)])
     np.testing.assert_array_equal(errs, study.sample_errors)
 
 
+@pytest.mark.default_codegen
 def test_run_regenerated_alone_reproduces_the_study_and_its_samples(setup, study):
     """sample_run(i) gives run i's errors bit for bit, and its samples, propagated by the
     generic engine (jaximu.propagate) against the noise-free propagation, give them too."""
