@@ -13,12 +13,13 @@ import tempfile
 # benchmarks run with XLA's defaults. Set before the first JAX computation initialises the
 # backend; the caller's flags are kept (and win: they come last).
 #
-# The classic emitter's vectorised math functions round differently from its scalar loop
-# tails, so a value can depend on its lane's position in the batch; XLA's default emitters do
-# not. Tests of bitwise reproducibility (a Monte Carlo run regenerated alone, chunk sizes)
-# are marked ``default_codegen`` and run in a child pytest with the caller's flags only (see
-# pytest_pyfunc_call below); tests/test_cli.py runs the demo (real EuRoC data, every scheme)
-# that way too, so the default code generation is exercised end to end.
+# Where two programs differ in shape, XLA's code generation decides their last bits, and
+# these flags hid one such difference that users' default flags show (a one-lane Monte Carlo
+# program: jaximu.montecarlo._lane_errors). So the tests of bitwise reproducibility (a run
+# regenerated alone, chunk sizes) are marked ``default_codegen`` and run in a child pytest
+# with the caller's flags only (pytest_pyfunc_call below); tests/test_cli.py runs the demo
+# (real EuRoC data, every scheme) that way too, so the default code generation is exercised
+# end to end.
 _FAST_COMPILE = ("--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
                  " --xla_cpu_use_fusion_emitters=false")
 os.environ.setdefault("JAXIMU_TEST_CALLER_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
