@@ -37,10 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import sensor
-from jaximu._soa import (_E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
+from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
                          quat_matrix, run_blocked)
+from jaximu._vec import V3
 
 BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
 MIN_CHUNK = 16
@@ -138,9 +139,6 @@ def _lever_rk(R, omega, lever):
     """``R K(ω)`` (``(3, 3, B)``) for samples moved from a sensor at the lever arm ``lever``
     (a 3-tuple): a gyro bias error ``δb_g`` moves the specific force by ``K δb_g``, a noise
     the same way (:func:`jaximu.sensor.centripetal_jacobian`)."""
-    from jaximu._soa import SOA
-    from jaximu._vec import V3
-
     return _bmm(R, sensor.centripetal_jacobian(V3(*omega), V3(*lever), SOA))
 
 

@@ -114,7 +114,6 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
         at = boxplus(state, delta)
         a0_, a1_ = a0, a1
         if lever is not None:
-
             a0_ = sensor.moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, lever)
             a1_ = sensor.moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, lever)
         moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)

@@ -229,7 +229,6 @@ class Scheme:
             return out if c is None else out + ops.matmul(X, ops.skew(c))
 
         if lever is not None:
-
             K0 = sensor.centripetal_jacobian(omega0, lever, ops)
             K1 = sensor.centripetal_jacobian(omega1, lever, ops) if self.uses_next_sample else K0
             K0, K1 = ops.barrier((K0, K1))

@@ -231,7 +231,6 @@ def _vins_midpoint_step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever=None):
     Va1 = {1: 0.25 * R1 * h2, 2: 0.5 * R1 * h1}
     Vg0 = Vg1 = Vg
     if lever is not None:
-
         r = V3.of(lever)
         RK0 = mm(R0, sensor.centripetal_jacobian(V3.of(w0 - b_g), r, blk.ARRAYS))
         RK1 = mm(R1, sensor.centripetal_jacobian(V3.of(w1 - b_g), r, blk.ARRAYS))
@@ -325,7 +324,6 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
         bg, ba = b_g + delta[..., 9:12], b_a + delta[..., 12:15]
         w0n, a0n, w1n, a1n, nbg, nba = pre.perturb(n, w0, a0, w1, a1)
         if lever is not None:  # the samples' -ω×(ω×r), moved with the perturbed rate
-
             a0n = sensor.moved_specific_force(a0n, w0 - b_g, w0n - bg, lever)
             a1n = sensor.moved_specific_force(a1n, w1 - b_g, w1n - bg, lever)
         s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
@@ -711,7 +709,6 @@ def _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
     """:func:`preintegrate` of a sensor at ``body_P_sensor``: the body's samples
     (:func:`jaximu.sensor.to_body`) with body-frame biases, and the result's bias
     quantities back in the sensor frame (``Φ_S = Tᵀ Φ_B T``, ``C_S = Tᵀ C_B T``)."""
-
     tangential = val.check_bool("tangential", tangential)
     pose = sensor.check_pose(body_P_sensor, gyro.dtype,
                              batch=jnp.broadcast_shapes(gyro.shape[:-2], bias.b_g.shape[:-1]),

@@ -353,7 +353,6 @@ SENSOR_ARGS_DOC = """
 def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
     """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
     samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
-
     dtype = state.q.dtype
     tangential = val.check_bool("tangential", tangential)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2])
