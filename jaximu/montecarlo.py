@@ -468,6 +468,11 @@ def _lane_stats(e, wt, W=None, Pb=None, nis=None):
 
 @functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt"))
 def _chunk(run, wt, c, *, scheme, seg, mode, filt=False):
+    """The jitted lane kernel (:func:`_run_lanes`). Every caller gives it at least two lanes:
+    a one-lane program rounds differently (:func:`_lane_errors`), so the rule is checked
+    here, at trace time, where a new caller would break it."""
+    if run.shape[0] < 2:
+        raise AssertionError(f"_chunk needs at least two lanes, got {run.shape[0]}")
     return _run_lanes(run, wt, c, scheme=scheme, seg=seg, mode=mode, filt=filt)
 
 
