@@ -25,6 +25,7 @@ the same samples as the row "C++ Eigen reference (1 core)", with the ratio jaxim
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import time
@@ -38,7 +39,8 @@ import numpy as np  # noqa: E402
 
 import jaximu  # noqa: E402
 from jaximu.datasets import euroc_v1_02_segment  # noqa: E402
-from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
+# (propagation reads --devices before JAX starts: one CPU device per core)
+from propagation import DEVICES, lane_mesh, machine_info, machine_slug, place  # noqa: E402
 
 TARGETS = {"long": 5.0, "windows": 10.0}  # × GTSAM Manifold, float64
 
@@ -74,10 +76,14 @@ def bench_jaximu(data, bias, dtype, method, scheme="euler"):
     b = jaximu.ImuBias(jnp.asarray(bias[0], dtype), jnp.asarray(bias[1], dtype))
     noise = jaximu.ImuNoise.euroc()
     fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, scheme, method))
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(gyro, accel, dt))
-    first = time.perf_counter() - t0
-    run = best_time(lambda: fn(gyro, accel, dt))
+    mesh = lane_mesh()  # --devices N: windows split over the devices, a long one's chunks too
+    if mesh is not None:
+        gyro, accel, dt = place((gyro, accel, dt), gyro.shape[0], mesh)
+    with (jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext()):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(gyro, accel, dt))
+        first = time.perf_counter() - t0
+        run = best_time(lambda: fn(gyro, accel, dt))
     return out, run, max(first - run, 0.0)
 
 
@@ -118,6 +124,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--out", default=None, help="JSON output path")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="split the CPU into this many JAX devices and run jaximu under a mesh "
+                         "of them (benchmarks/propagation.py --devices)")
     args = ap.parse_args(argv)
     n_long, n_win, w_len = (20_000, 512, 200) if args.quick else (100_000, 4096, 200)
     long, windows, bias = make_inputs(n_long, n_win, w_len)
@@ -185,7 +194,8 @@ def main(argv=None):
             for method in ("auto", "sequential", "parallel"):  # auto: the default
                 out, run, comp = bench_jaximu(data, bias, dtype, method)
                 n = int(np.prod(data[0].shape[:-1]))
-                row = dict(tool="jaximu", workload=name, dtype=jnp.dtype(dtype).name,
+                tool = "jaximu" if DEVICES < 2 else f"jaximu ({DEVICES} CPU devices)"
+                row = dict(tool=tool, workload=name, dtype=jnp.dtype(dtype).name,
                            method=method, samples=n, run_s=run, compile_s=comp, rate=n / run)
                 if name in gtsam_rate:
                     row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
@@ -216,8 +226,9 @@ def main(argv=None):
     if gtsam_rate:
         print("\nTargets (float64, with covariance and bias Jacobians):")
         for name, target in TARGETS.items():
-            best = max((r for r in rows if r["tool"] == "jaximu" and r["workload"] == name
-                        and r["dtype"] == "float64"), key=lambda r: r["rate"])
+            best = max((r for r in rows if r["tool"].startswith("jaximu")
+                        and r["workload"] == name and r["dtype"] == "float64"),
+                       key=lambda r: r["rate"])
             ratio = best["ratio_to_gtsam"]
             verdict = "met" if ratio >= target else f"missed by {target / ratio:.1f}×"
             print(f"- {name}: {ratio:.1f}× GTSAM ({best['method']}), target {target:.0f}×: "
@@ -227,13 +238,14 @@ def main(argv=None):
         print("\njaximu / C++ Eigen reference (one core, float64, blocked 9×9 covariance and "
               "bias Jacobians; > 1: jaximu faster):")
         for r in rows:
-            if r["tool"] == "jaximu" and r["workload"] in cpp_rate:
+            if r["tool"].startswith("jaximu") and r["workload"] in cpp_rate:
                 r["ratio_to_cpp"] = r["rate"] / cpp_rate[r["workload"]]
                 print(f"- {r['workload']} {r['dtype']} {r['method']}: {r['ratio_to_cpp']:.2f}")
     # ------------------------------------------------------------------------------------------
     out_path = args.out or os.path.join(
         os.path.dirname(__file__), "results",
-        f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
+        f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}"
+        f"{f'-{DEVICES}dev' if DEVICES > 1 else ''}.json")
     os.makedirs(os.path.dirname(out_path), exist_ok=True)
     with open(out_path, "w") as f:
         json.dump(dict(machine=info, rows=rows), f, indent=1)

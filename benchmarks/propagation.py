@@ -46,6 +46,21 @@ import jax
 # The library never enables float64 itself; the caller does, before any array is made.
 jax.config.update("jax_enable_x64", True)
 
+
+def _devices_arg(argv) -> int:
+    """``--devices N`` read before JAX starts (the CPU device count is fixed then)."""
+    for i, a in enumerate(argv):
+        if a == "--devices" and i + 1 < len(argv):
+            return int(argv[i + 1])
+        if a.startswith("--devices="):
+            return int(a.split("=", 1)[1])
+    return 1
+
+
+DEVICES = _devices_arg(sys.argv[1:])
+if DEVICES > 1:  # one CPU device per core; every case runs under a mesh of them
+    jax.config.update("jax_num_cpu_devices", DEVICES)
+
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -307,9 +322,42 @@ def _all_finite(tree) -> bool:
     return all(bool(np.isfinite(np.asarray(leaf)).all()) for leaf in leaves)
 
 
+def lane_mesh():
+    """With ``--devices N``: the mesh of the N CPU devices, one ``Auto`` axis. Under it
+    jaximu's kernels split their lanes over the devices (README, "GPU and several devices")."""
+    if DEVICES < 2:
+        return None
+    return jax.make_mesh((DEVICES,), ("lanes",), axis_types=(jax.sharding.AxisType.Auto,))
+
+
+def place(args, B: int, mesh):
+    """The arguments as a user of the mesh holds them: batch-leading arrays split over the
+    devices (when they divide the batch), the rest replicated."""
+    if mesh is None:
+        return args
+    P = jax.sharding.PartitionSpec
+    split = jax.sharding.NamedSharding(mesh, P("lanes"))
+    whole = jax.sharding.NamedSharding(mesh, P())
+
+    def put(x):
+        lanes = jnp.ndim(x) >= 1 and x.shape[0] == B and B % DEVICES == 0
+        return jax.device_put(x, split if lanes else whole)
+
+    return jax.tree_util.tree_map(put, args)
+
+
 def measure(case: dict, reps: int, min_time: float, max_reps: int = 50) -> dict:
     """Compile ahead of time, then run ≥ ``reps`` times (more while under ``min_time`` s)."""
+    mesh = lane_mesh()
+    if mesh is not None:
+        with jax.set_mesh(mesh):
+            return _measure(case, reps, min_time, max_reps, mesh)
+    return _measure(case, reps, min_time, max_reps, None)
+
+
+def _measure(case: dict, reps: int, min_time: float, max_reps: int, mesh) -> dict:
     fn, args = build(case)
+    args = place(args, case["B"], mesh)
     jitted = jax.jit(fn)
     t0 = time.perf_counter()
     lowered = jitted.lower(*args)
@@ -423,7 +471,8 @@ def worker(spec: dict) -> None:
 
 
 def run_in_subprocess(payload: dict, timeout: float) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(payload)]
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--devices", str(DEVICES), "--worker",
+           json.dumps(payload)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -636,6 +685,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rss", action="store_true",
                     help="run every case in its own process and report its max RSS (slower)")
     ap.add_argument("--out", type=Path, help="JSON output path (default benchmarks/results/...)")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="split the CPU into this many JAX devices (one per core) and run "
+                         "every case under a mesh of them, inputs split over the batch "
+                         "(default 1: JAX's default single CPU device)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -648,7 +701,8 @@ def main(argv=None) -> int:
     run_meter = CpuMeter()
     print(f"jaximu {jaximu.__version__} propagation benchmark: {info['cpu_model']}, "
           f"{info['cpus_usable'] or info['cpu_count']} CPUs, jax {info['jax']} "
-          f"({info['backend']}, {info['device_kind']}); {len(cases)} cases"
+          f"({info['backend']}, {info['device_kind']}, {info['device_count']} device(s)"
+          f"{', lanes split over a mesh of them' if DEVICES > 1 else ''}); {len(cases)} cases"
           f"{' (quick)' if args.quick else ''}", file=sys.stderr)
 
     idle_rss = None
@@ -722,7 +776,8 @@ def main(argv=None) -> int:
 
     out = args.out
     if out is None:
-        suffix = ("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
+        suffix = (("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
+                  + (f"-{args.devices}dev" if args.devices > 1 else ""))
         out = RESULTS_DIR / f"propagation-{machine_slug(info)}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
@@ -732,7 +787,7 @@ def main(argv=None) -> int:
         settings=dict(quick=args.quick, only=args.only, reps=args.reps, min_time_s=args.min_time,
                       max_case_s=args.max_case_s, rss=args.rss, dt=DT, gyro_std=GYRO_STD,
                       accel_std=ACCEL_STD, noise="ImuNoise.euroc()", attitude="quaternion",
-                      argv=sys.argv[1:]),
+                      devices=args.devices, argv=sys.argv[1:]),
         definitions=dict(
             samples_per_s="B*T / run_s",
             run_s="best of >= reps runs of the AOT-compiled jax.jit function (block_until_ready)",

@@ -457,12 +457,13 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
     shared_dt = dt.ndim == 1
     per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b):
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b, dt_s, bg_s, ba_s, var_s, r_s):
+        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
         Bc = gyro.shape[0]
-        bg = _components(bg_b if per_lane[0] else b_g)
-        ba = _components(ba_b if per_lane[1] else b_a)
-        s = _components(var_b if per_lane[2] else var)
-        r = None if lever is None else _components(r_b if per_lane[3] else lever)
+        bg = _components(bg_b if per_lane[0] else bg_s)
+        ba = _components(ba_b if per_lane[1] else ba_s)
+        s = _components(var_b if per_lane[2] else var_s)
+        r = None if lever is None else _components(r_b if per_lane[3] else r_s)
 
         def st(c, w, a, h, consts):
             w0 = tuple(w[i] - bg[i] for i in range(3))
@@ -472,7 +473,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
             return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r)
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
-            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt if shared_dt else dt_b, None,
+            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt_s if shared_dt else dt_b, None,
             None)[0]
         last = lambda x: jnp.stack(x, -1)  # noqa: E731
         bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
@@ -493,7 +494,9 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
             b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
-    out = run_blocked(block, n, block_lanes(dtype), *args)
+    shared = tuple(None if lane else x for x, lane in zip(
+        (dt, b_g, b_a, var, lever), [not shared_dt] + per_lane))
+    out = run_blocked(block, n, block_lanes(dtype), *args, shared=shared)
     if C > 1:
         out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
         out = _reduce_chunks(out, C, rotate=False)
@@ -687,12 +690,13 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
     shared_dt = dt.ndim == 1
     per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b):
+    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b, dt_s, bg_s, ba_s, var_s, r_s):
+        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
         Bc = gyro.shape[0]
-        bg = _components(bg_b if per_lane[0] else b_g)
-        ba = _components(ba_b if per_lane[1] else b_a)
-        s = _components(var_b if per_lane[2] else var)
-        r = None if lever is None else _components(r_b if per_lane[3] else lever)
+        bg = _components(bg_b if per_lane[0] else bg_s)
+        ba = _components(ba_b if per_lane[1] else ba_s)
+        s = _components(var_b if per_lane[2] else var_s)
+        r = None if lever is None else _components(r_b if per_lane[3] else r_s)
 
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
@@ -700,13 +704,15 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
             return step(c, omega, f, h, s, guard, r)
 
         carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
-                                      dt if shared_dt else dt_b, None, None)
+                                dt_s if shared_dt else dt_b, None, None)
         return _to_summary(carry)
 
     z = jnp.zeros((n, 1), dtype)
     args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
             b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
-    summ = run_blocked(block, n, block_lanes(dtype), *args)
+    shared = tuple(None if lane else x for x, lane in zip(
+        (dt, b_g, b_a, var, lever), [not shared_dt] + per_lane))
+    summ = run_blocked(block, n, block_lanes(dtype), *args, shared=shared)
     if C > 1:
         summ = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), summ)
         summ = _reduce_chunks(summ, C)

@@ -411,15 +411,48 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
     return state
 
 
-def run_blocked(block_fn, B, lanes, *args):
-    """``block_fn(*block_args)`` over batch blocks of at most ``lanes`` lanes (a
-    ``lax.map``); every leaf of ``args`` has leading axis B."""
+def lane_axes(B):
+    """The axes of the current mesh (``jax.set_mesh``) that the ``B`` lanes of a kernel are
+    split over: its ``Auto`` axes (not ``Explicit`` ones, not those already manual inside a
+    ``shard_map``), when they divide ``B``; ``()`` otherwise (no mesh, one device, or a
+    batch they do not divide: the kernel then runs as without a mesh)."""
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty:
+        return ()
+    axes = tuple(a for a in mesh.axis_names
+                 if mesh._name_to_type[a] == jax.sharding.AxisType.Auto)
+    n = math.prod(mesh.shape[a] for a in axes)
+    return axes if n > 1 and B % n == 0 else ()
+
+
+def run_blocked(block_fn, B, lanes, *args, shared=()):
+    """``block_fn(*block_args, *shared)`` over batch blocks of at most ``lanes`` lanes (a
+    ``lax.map``); every leaf of ``args`` has leading axis B; ``shared``: values every block
+    reads whole (a gravity, noise variances or a ``dt`` common to all lanes).
+
+    Under a mesh (``jax.set_mesh``) the lanes are first split over its devices
+    (:func:`lane_axes`, a ``shard_map``): lanes are independent, so each device runs its
+    own part with no communication (docs/DESIGN.md, "Several devices"). ``block_fn`` must
+    then close over no traced value (JAX cannot transpose a ``shard_map`` whose body does):
+    what all lanes share comes in ``shared``, replicated."""
+    axes = lane_axes(B)
+    if not axes:
+        return _run_blocks(block_fn, B, lanes, args, shared)
+    n = math.prod(jax.sharding.get_abstract_mesh().shape[a] for a in axes)
+    P = jax.sharding.PartitionSpec
+    local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s),
+                          in_specs=(P(axes), P()), out_specs=P(axes), axis_names=set(axes),
+                          check_vma=False)
+    return local(args, tuple(shared))
+
+
+def _run_blocks(block_fn, B, lanes, args, shared):
     Bc = _block_size(B, lanes)
     if Bc == B:
-        return block_fn(*args)
+        return block_fn(*args, *shared)
     nb = B // Bc
     split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
-    out = jax.lax.map(lambda a: block_fn(*a), jax.tree_util.tree_map(split, args))
+    out = jax.lax.map(lambda a: block_fn(*a, *shared), jax.tree_util.tree_map(split, args))
     return jax.tree_util.tree_map(lambda x: x.reshape((B,) + x.shape[2:]), out)
 
 

@@ -363,19 +363,18 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
     var = noise.variances(q.dtype)  # (..., 12)
-    shared = var.ndim == 1
-    var_f = None if shared else jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
+    if var.ndim > 1:  # noise per batch element
+        var = jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
 
-    def qc_fn(h, lane_var):  # noise.discrete_variances(h) = σ² / dt
-        v_ = var if shared else lane_var
-        return v_ / (h[..., None] if jnp.ndim(h) else h)
+    def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
+        return var / (h[..., None] if jnp.ndim(h) else h)
 
     if omega is not None and omega.ndim > 1:  # a world rate per batch element
         omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
     if lever is not None and lever.ndim > 1:  # a lever arm per batch element
         lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
     q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
-                                           qc_fn, var_f,
+                                           qc_fn, var,
                                            get_scheme(scheme), jacobians, omega, coriolis, lever)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     st = NavState(unflat(q), unflat(p), unflat(v),
