@@ -26,7 +26,7 @@ import jaximu
 from jaximu import _rng
 from jaximu import simulate as sim
 from jaximu.errorstate import ekf_update, position_jacobian
-from jaximu.montecarlo import PositionFix, load_result, monte_carlo, sample_run
+from jaximu.montecarlo import PositionFix, _chunk_runs, load_result, monte_carlo, sample_run
 from jaximu.state import NavState, boxminus
 
 # A statistic outside ±Z standard errors fails: two-sided false-alarm rate 5.7e-7 per check.
@@ -99,8 +99,9 @@ def test_generator_correlation_between_steps_runs_and_streams(draws):
 # --------------------------------------------------------------------------- studies
 
 
-# The study the tests below share: 56 runs in chunks of 16, the last chunk padded (8 runs).
-N_RUNS = 56
+# The study the tests below share: 57 runs in chunks of at most 16, which monte_carlo evens
+# out over the chunks in flight (15 runs each with 2 or 4 of them), the last chunk padded.
+N_RUNS = 57
 STUDY = {"chunk_size": 16, "record_every": 25, "n_keep": 4, "scheme": "midpoint"}
 
 
@@ -112,6 +113,21 @@ def study_setup():
     P0 = np.diag([1e-6] * 3 + [1e-6] * 3 + [1e-6] * 3 + [1e-8] * 3 + [1e-6] * 3)
     noise = jaximu.ImuNoise(2e-3, 2e-2, 1e-4, 2e-3)
     return traj, times, P0, noise
+
+
+def test_chunks_fill_every_round():
+    """Chunks go out in rounds of ``slots``: their size keeps the fewest rounds that chunks
+    of ``chunk_size`` would need, is at most ``chunk_size`` and at least 2 lanes, and
+    leaves less than one chunk of idle lanes in the last round."""
+    for n, size, slots in [(10_000, 2048, 2), (10_000, 2048, 1), (57, 16, 2), (57, 16, 4),
+                           (3, 1, 2), (1_000_000, 2048, 3), (5, 100, 8), (4097, 4096, 2)]:
+        chunk = _chunk_runs(n, size, slots)
+        n_chunks = -(-n // chunk)
+        rounds = -(-n_chunks // slots)
+        assert 2 <= chunk <= max(2, min(size, n))
+        assert rounds == max(1, -(-n // (slots * max(size, 2))))
+        assert rounds * slots * chunk - n < chunk or n_chunks < slots
+    assert _chunk_runs(10_000, 2048, 2) == 1667  # three full rounds, not 2048 × 5
 
 
 @pytest.fixture(scope="module")
