@@ -262,5 +262,6 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_par
                        z if shared_r else lever,
                        shared=tuple(x if s else None for x, s in (
                            (dt, shared_dt), (g, shared_g), (qc_params, shared_n),
-                           (omega, rotating and shared_w), (lever, lever is not None and shared_r))))
+                           (omega, rotating and shared_w),
+                           (lever, lever is not None and shared_r))))
 

@@ -419,8 +419,8 @@ def lane_axes(B):
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty:
         return ()
-    axes = tuple(a for a in mesh.axis_names
-                 if mesh._name_to_type[a] == jax.sharding.AxisType.Auto)
+    axes = tuple(a for a, kind in zip(mesh.axis_names, mesh.axis_types)
+                 if kind == jax.sharding.AxisType.Auto)
     n = math.prod(mesh.shape[a] for a in axes)
     return axes if n > 1 and B % n == 0 else ()
 

@@ -726,8 +726,9 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         chunk_size: the most runs per device call (the lanes of one scan), an integer ≥ 1;
             memory ``O(chunk · K)``, independent of ``n_runs``. Chunks are made as even as
             the chunks in flight allow (``_chunk_runs``: no half-idle last round). The
-            statistics do not depend on it (to the rounding of the sums). A chunk of one run is computed beside an idle lane
-            (a one-lane program rounds differently: ``_lane_errors``).
+            statistics do not depend on it (to the rounding of the sums). A chunk of one
+            run is computed beside an idle lane (a one-lane program rounds differently:
+            ``_lane_errors``).
         n_keep: runs whose errors are returned in ``sample_errors``, an integer ≥ 0 (the
             first ``min(n_keep, n_runs)``).
         confidence: the NEES interval's probability, in ``(0, 1)`` (0.95, not 95).
