@@ -411,18 +411,23 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
     return state
 
 
-def lane_axes(B):
-    """The axes of the current mesh (``jax.set_mesh``) that the ``B`` lanes of a kernel are
-    split over: its ``Auto`` axes (not ``Explicit`` ones, not those already manual inside a
-    ``shard_map``), when they divide ``B``; ``()`` otherwise (no mesh, one device, or a
-    batch they do not divide: the kernel then runs as without a mesh)."""
+def lane_mesh(B, args=()):
+    """``(mesh, axes)``: the mesh the ``B`` lanes of a kernel are split over and its axes,
+    or ``(None, ())``. The mesh is the current one (``jax.set_mesh``) or, without one, that
+    of the arguments' types (arrays sharded on an ``Explicit`` mesh carry it); the axes are
+    all its axes not already manual (inside a ``shard_map``), when they divide ``B`` (an odd
+    batch is not split: the kernel runs as on one device)."""
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty:
-        return ()
+        typed = (getattr(jax.typeof(x).sharding, "mesh", None)
+                 for x in jax.tree_util.tree_leaves(args))
+        mesh = next((m for m in typed if m is not None and not m.empty), mesh)
+    if mesh.empty:
+        return None, ()
     axes = tuple(a for a, kind in zip(mesh.axis_names, mesh.axis_types)
-                 if kind == jax.sharding.AxisType.Auto)
+                 if kind != jax.sharding.AxisType.Manual)
     n = math.prod(mesh.shape[a] for a in axes)
-    return axes if n > 1 and B % n == 0 else ()
+    return (mesh, axes) if n > 1 and B % n == 0 else (None, ())
 
 
 def run_blocked(block_fn, B, lanes, *args, shared=()):
@@ -430,20 +435,31 @@ def run_blocked(block_fn, B, lanes, *args, shared=()):
     ``lax.map``); every leaf of ``args`` has leading axis B; ``shared``: values every block
     reads whole (a gravity, noise variances or a ``dt`` common to all lanes).
 
-    Under a mesh (``jax.set_mesh``) the lanes are first split over its devices
-    (:func:`lane_axes`, a ``shard_map``): lanes are independent, so each device runs its
-    own part with no communication (docs/DESIGN.md, "Several devices"). ``block_fn`` must
-    then close over no traced value (JAX cannot transpose a ``shard_map`` whose body does):
-    what all lanes share comes in ``shared``, replicated."""
-    axes = lane_axes(B)
+    Under a mesh (:func:`lane_mesh`) the lanes are first split over its devices with a
+    ``shard_map``: lanes are independent, so each device runs its own part with no
+    communication (docs/DESIGN.md, "Several devices"). ``block_fn`` closes over no traced
+    value (JAX cannot transpose a ``shard_map`` whose body does): what all lanes share
+    comes in ``shared``, replicated."""
+    mesh, axes = lane_mesh(B, args)
     if not axes:
         return _run_blocks(block_fn, B, lanes, args, shared)
-    n = math.prod(jax.sharding.get_abstract_mesh().shape[a] for a in axes)
+    n = math.prod(mesh.shape[a] for a in axes)
     P = jax.sharding.PartitionSpec
-    local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s),
-                          in_specs=(P(axes), P()), out_specs=P(axes), axis_names=set(axes),
-                          check_vma=False)
-    return local(args, tuple(shared))
+    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
+                   for a in axes)
+    with jax.sharding.use_abstract_mesh(mesh):
+        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s),
+                              in_specs=(P(axes), P()), out_specs=P(axes),
+                              axis_names=set(axes), check_vma=False)
+        if not explicit:
+            return local(args, tuple(shared))
+        # Sharding in types (an Explicit mesh): the split is written into the arguments'
+        # types, and the results are gathered back to replicated ones, the types the code
+        # around the kernels is written for (one copy of the results between the devices).
+        rs = jax.sharding.reshard
+        out = local(jax.tree_util.tree_map(lambda x: rs(x, P(axes)), args),
+                    jax.tree_util.tree_map(lambda x: rs(x, P()), tuple(shared)))
+        return jax.tree_util.tree_map(lambda x: rs(x, P()), out)
 
 
 def _run_blocks(block_fn, B, lanes, args, shared):

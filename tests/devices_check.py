@@ -7,8 +7,9 @@ reference is the single-device kernel, which the rest of the suite tests against
 kernels and the peers. Values and gradients must agree to 1e-12 of their scale (float64;
 the kernels are elementwise in lanes, so the split changes at most the code generated for a
 different lane count), and the lowered program must hold the split (one
-``sdy.manual_computation``) exactly when the mesh divides the lanes. Prints ``OK <name>``
-per check; any failure raises.
+``sdy.manual_computation``) exactly when the mesh divides the lanes, for ``Auto`` and
+``Explicit`` meshes and for arrays sharded on an ``Explicit`` mesh with no mesh set.
+Prints ``OK <name>`` per check; any failure raises.
 """
 
 import jax
@@ -107,6 +108,16 @@ auto = jax.make_mesh((2,), ("lanes",), axis_types=(AxisType.Auto,))
 check(auto, 32, list(CASES), True)  # the fast kernels' smallest batch, split 16 + 16
 # an odd batch is not split (the driver's rule, the same for every kernel): the same results
 check(auto, 33, ["propagate_final/euler", "preintegrate/euler"], False)
-# an Explicit mesh (sharding in types) is not split: the kernels run as without a mesh
+# an Explicit mesh (sharding in types): split too, the results gathered back to replicated
 explicit = jax.make_mesh((2,), ("lanes",), axis_types=(AxisType.Explicit,))
-check(explicit, 32, ["propagate_covariance_final/rk4"], False)
+check(explicit, 32, ["propagate_covariance_final/rk4", "preintegrate/midpoint"], True)
+# arrays sharded on an Explicit mesh, no mesh set: their types carry the mesh
+st, w, a = inputs(32)
+split = jax.sharding.NamedSharding(explicit, jax.sharding.PartitionSpec("lanes"))
+f = CASES["propagate_covariance_final/rk4"]
+want = jax.jit(f)(st, w, a, 1.0)
+args = jax.device_put((st, w, a), split) + (1.0,)
+got, n = run(f, args)
+assert n == 1, f"{n} lane splits with Explicit-sharded inputs"
+close("Explicit-sharded inputs", got, want)
+print("OK Explicit-sharded inputs, no mesh set", flush=True)
