@@ -8,7 +8,7 @@ kernels and the peers. Values and gradients must agree to 1e-12 of their scale (
 the kernels are elementwise in lanes, so the split changes at most the code generated for a
 different lane count), and the lowered program must hold the split (one
 ``sdy.manual_computation``) exactly when the mesh divides the lanes, for ``Auto`` and
-``Explicit`` meshes and for arrays sharded on an ``Explicit`` mesh with no mesh set.
+``Explicit`` meshes and for arrays sharded on either with no mesh set.
 Prints ``OK <name>`` per check; any failure raises.
 """
 
@@ -111,13 +111,13 @@ check(auto, 33, ["propagate_final/euler", "preintegrate/euler"], False)
 # an Explicit mesh (sharding in types): split too, the results gathered back to replicated
 explicit = jax.make_mesh((2,), ("lanes",), axis_types=(AxisType.Explicit,))
 check(explicit, 32, ["propagate_covariance_final/rk4", "preintegrate/midpoint"], True)
-# arrays sharded on an Explicit mesh, no mesh set: their types carry the mesh
+# arrays sharded on a mesh, no mesh set: their types carry the mesh
 st, w, a = inputs(32)
-split = jax.sharding.NamedSharding(explicit, jax.sharding.PartitionSpec("lanes"))
 f = CASES["propagate_covariance_final/rk4"]
 want = jax.jit(f)(st, w, a, 1.0)
-args = jax.device_put((st, w, a), split) + (1.0,)
-got, n = run(f, args)
-assert n == 1, f"{n} lane splits with Explicit-sharded inputs"
-close("Explicit-sharded inputs", got, want)
-print("OK Explicit-sharded inputs, no mesh set", flush=True)
+for mesh in (auto, explicit):
+    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("lanes"))
+    got, n = run(f, jax.device_put((st, w, a), split) + (1.0,))
+    assert n == 1, f"{n} lane splits with inputs sharded on an {mesh.axis_types[0]} mesh"
+    close(f"inputs sharded on an {mesh.axis_types[0]} mesh", got, want)
+    print(f"OK inputs sharded on an {mesh.axis_types[0]} mesh, no mesh set", flush=True)
