@@ -69,10 +69,9 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
 
-    def block(q, p, v, b_g, b_a, gyro, accel, dt_b, g_b, w_b, dt_s, g_s, w_s):
-        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
-        consts = (_components(b_g), _components(b_a), _components(g_s if shared_g else g_b),
-                  _components(w_s if shared_w else w_b) if rotating else ())
+    def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega):
+        consts = (_components(b_g), _components(b_a), _components(g),
+                  _components(omega) if rotating else ())
         carry = (_components(q), _components(p), _components(v))
 
         def step(c, w, a, h, consts):
@@ -86,18 +85,15 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
-        carry, bufs = _time_chunks(step, carry, gyro, accel, dt_s if shared_dt else dt_b, consts,
-                                   save, next_sample=scheme.uses_next_sample)
+        carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
+                                   next_sample=scheme.uses_next_sample)
         if save_all:
             return bufs
         return tuple(_stack_last(x) for x in carry)
 
-    dt_arg = jnp.zeros((B, 1), gyro.dtype) if shared_dt else dt
-    g_arg = jnp.zeros((B, 1), gyro.dtype) if shared_g else g
-    w_arg = jnp.zeros((B, 1), gyro.dtype) if shared_w else omega
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt_arg, g_arg,
-                       w_arg, shared=(dt if shared_dt else None, g if shared_g else None,
-                                      omega if rotating and shared_w else None))
+    # dt, g and omega shared by all lanes are read whole by every block
+    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt, g, omega,
+                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w))
 
 
 def dense_to_blocks(P):
@@ -227,13 +223,10 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_par
     shared_r = lever is None or lever.ndim == 1
     shared_n = qc_params.ndim == 1
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt_b, g_b, n_b, w_b, r_b,
-              dt_s, g_s, n_s, w_s, r_s):
-        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
-        consts = (_components(b_g), _components(b_a), _components(g_s if shared_g else g_b),
-                  n_s if shared_n else n_b,
-                  (_components(w_s if shared_w else w_b) if rotating else None),
-                  (None if lever is None else _components(r_s if shared_r else r_b)))
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever):
+        consts = (_components(b_g), _components(b_a), _components(g), qc_params,
+                  (_components(omega) if rotating else None),
+                  (None if lever is None else _components(lever)))
         carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
 
         def step(c, w, a, h, consts):
@@ -250,18 +243,12 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_par
                                    None if wv is None else V3(*wv), coriolis,
                                    None if rv is None else V3(*rv))
 
-        (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt_s if shared_dt else dt_b,
-                                        consts, None,
+        (q, p, v, Pb), _ = _time_chunks(step, carry, gyro, accel, dt, consts, None,
                                         next_sample=scheme.uses_next_sample)
         return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
 
-    z = jnp.zeros((B, 1), gyro.dtype)
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, P0, gyro, accel,
-                       z if shared_dt else dt, z if shared_g else g,
-                       z if shared_n else qc_params, z if shared_w else omega,
-                       z if shared_r else lever,
-                       shared=tuple(x if s else None for x, s in (
-                           (dt, shared_dt), (g, shared_g), (qc_params, shared_n),
-                           (omega, rotating and shared_w),
-                           (lever, lever is not None and shared_r))))
-
+    # values shared by all lanes (and a missing lever arm) are read whole by every block
+    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, P0, gyro, accel, dt, g,
+                       qc_params, omega, lever,
+                       whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w,
+                                             shared_r))

@@ -453,17 +453,11 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
         b_a = b_a if b_a.ndim == 1 else rep(b_a)
         var = var if var.ndim == 1 else rep(var)
         lever = lever if lever is None or lever.ndim == 1 else rep(lever)
-    n = gyro.shape[0]
-    shared_dt = dt.ndim == 1
-    per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b, dt_s, bg_s, ba_s, var_s, r_s):
-        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
+    def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]
-        bg = _components(bg_b if per_lane[0] else bg_s)
-        ba = _components(ba_b if per_lane[1] else ba_s)
-        s = _components(var_b if per_lane[2] else var_s)
-        r = None if lever is None else _components(r_b if per_lane[3] else r_s)
+        bg, ba, s = _components(b_g), _components(b_a), _components(var)
+        r = None if lever is None else _components(lever)
 
         def st(c, w, a, h, consts):
             w0 = tuple(w[i] - bg[i] for i in range(3))
@@ -473,8 +467,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
             return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r)
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
-            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt_s if shared_dt else dt_b, None,
-            None)[0]
+            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt, None, None)[0]
         last = lambda x: jnp.stack(x, -1)  # noqa: E731
         bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
         A, Bg, Cp, Cv, Dp, Dv, Ep, Ev = (bm(X) for X in Phi)
@@ -491,12 +484,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
         return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=Phi, Q15=_dense(P15, 5),
                     Q9=_dense(P9, 3))
 
-    z = jnp.zeros((n, 1), dtype)
-    args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
-            b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
-    shared = tuple(None if lane else x for x, lane in zip(
-        (dt, b_g, b_a, var, lever), [not shared_dt] + per_lane))
-    out = run_blocked(block, n, block_lanes(dtype), *args, shared=shared)
+    out = _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever)
     if C > 1:
         out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
         out = _reduce_chunks(out, C, rotate=False)
@@ -642,6 +630,15 @@ def _finish(s):
 # ----------------------------------------------------------------------------- driver
 
 
+def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
+    """:func:`jaximu._soa.run_blocked` of ``block(gyro, accel, dt, b_g, b_a, var, lever)``
+    over the lanes: a ``dt`` ``(T,)``, biases ``(3,)``, variances ``(12,)`` or a lever arm
+    ``(3,)`` (or ``None``) shared by all lanes are read whole by every block."""
+    shared = (dt.ndim == 1,) + tuple(x is None or x.ndim == 1 for x in (b_g, b_a, var, lever))
+    return run_blocked(block, gyro.shape[0], block_lanes(gyro.dtype), gyro, accel, dt, b_g, b_a,
+                       var, lever, whole=(False, False) + shared)
+
+
 def block_lanes(dtype):
     """Lanes per batch block (the state of a block stays in L2: ~2 KB per lane in float64)."""
     return BLOCK_BYTES // jnp.dtype(dtype).itemsize
@@ -686,33 +683,21 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
         b_a = b_a if b_a.ndim == 1 else rep(b_a)
         var = var if var.ndim == 1 else rep(var)
         lever = lever if lever is None or lever.ndim == 1 else rep(lever)
-    n = gyro.shape[0]
-    shared_dt = dt.ndim == 1
-    per_lane = [x is not None and x.ndim == 2 for x in (b_g, b_a, var, lever)]
 
-    def block(gyro, accel, dt_b, bg_b, ba_b, var_b, r_b, dt_s, bg_s, ba_s, var_s, r_s):
-        # *_b: per-lane values (or placeholders), *_s: values all lanes share (or None)
+    def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]
-        bg = _components(bg_b if per_lane[0] else bg_s)
-        ba = _components(ba_b if per_lane[1] else ba_s)
-        s = _components(var_b if per_lane[2] else var_s)
-        r = None if lever is None else _components(r_b if per_lane[3] else r_s)
+        bg, ba, s = _components(b_g), _components(b_a), _components(var)
+        r = None if lever is None else _components(lever)
 
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
             f = tuple(a[i] - ba[i] for i in range(3))
             return step(c, omega, f, h, s, guard, r)
 
-        carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel,
-                                dt_s if shared_dt else dt_b, None, None)
+        carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel, dt, None, None)
         return _to_summary(carry)
 
-    z = jnp.zeros((n, 1), dtype)
-    args = (gyro, accel, z if shared_dt else dt, b_g if per_lane[0] else z,
-            b_a if per_lane[1] else z, var if per_lane[2] else z, lever if per_lane[3] else z)
-    shared = tuple(None if lane else x for x, lane in zip(
-        (dt, b_g, b_a, var, lever), [not shared_dt] + per_lane))
-    summ = run_blocked(block, n, block_lanes(dtype), *args, shared=shared)
+    summ = _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever)
     if C > 1:
         summ = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), summ)
         summ = _reduce_chunks(summ, C)

@@ -430,45 +430,53 @@ def lane_mesh(B, args=()):
     return (mesh, axes) if n > 1 and B % n == 0 else (None, ())
 
 
-def run_blocked(block_fn, B, lanes, *args, shared=()):
-    """``block_fn(*block_args, *shared)`` over batch blocks of at most ``lanes`` lanes (a
-    ``lax.map``); every leaf of ``args`` has leading axis B; ``shared``: values every block
-    reads whole (a gravity, noise variances or a ``dt`` common to all lanes).
+def run_blocked(block_fn, B, lanes, *args, whole=()):
+    """``block_fn(*args)`` over batch blocks of at most ``lanes`` lanes (a ``lax.map``).
+    ``whole``: a flag per argument, ``True`` for one every block reads whole (a gravity,
+    noise variances, a ``dt`` common to all lanes, ``None``); every leaf of the others has
+    leading axis B and each block gets its own lanes of it.
 
     Under a mesh (:func:`lane_mesh`) the lanes are first split over its devices with a
     ``shard_map``: lanes are independent, so each device runs its own part with no
     communication (docs/DESIGN.md, "Several devices"). ``block_fn`` closes over no traced
-    value (JAX cannot transpose a ``shard_map`` whose body does): what all lanes share
-    comes in ``shared``, replicated."""
-    mesh, axes = lane_mesh(B, args)
+    value (JAX cannot transpose a ``shard_map`` whose body does): what all lanes share is
+    an argument read whole, passed replicated."""
+    whole = tuple(whole) or (False,) * len(args)
+    lane_args = tuple(a for a, w in zip(args, whole, strict=True) if not w)
+    shared = tuple(a for a, w in zip(args, whole) if w)
+    mesh, axes = lane_mesh(B, lane_args)
     if not axes:
-        return _run_blocks(block_fn, B, lanes, args, shared)
+        return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
     n = math.prod(mesh.shape[a] for a in axes)
     P = jax.sharding.PartitionSpec
     explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
                    for a in axes)
     with jax.sharding.use_abstract_mesh(mesh):
-        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s),
+        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole),
                               in_specs=(P(axes), P()), out_specs=P(axes),
                               axis_names=set(axes), check_vma=False)
         if not explicit:
-            return local(args, tuple(shared))
+            return local(lane_args, shared)
         # Sharding in types (an Explicit mesh): the split is written into the arguments'
         # types, and the results are gathered back to replicated ones, the types the code
         # around the kernels is written for (one copy of the results between the devices).
         rs = jax.sharding.reshard
-        out = local(jax.tree_util.tree_map(lambda x: rs(x, P(axes)), args),
-                    jax.tree_util.tree_map(lambda x: rs(x, P()), tuple(shared)))
+        out = local(jax.tree_util.tree_map(lambda x: rs(x, P(axes)), lane_args),
+                    jax.tree_util.tree_map(lambda x: rs(x, P()), shared))
         return jax.tree_util.tree_map(lambda x: rs(x, P()), out)
 
 
-def _run_blocks(block_fn, B, lanes, args, shared):
+def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):
+    def call(block_args):  # the arguments back in their order
+        lane, common = iter(block_args), iter(shared)
+        return block_fn(*(next(common) if w else next(lane) for w in whole))
+
     Bc = _block_size(B, lanes)
     if Bc == B:
-        return block_fn(*args, *shared)
+        return call(lane_args)
     nb = B // Bc
     split = lambda x: x.reshape((nb, Bc) + x.shape[1:])  # noqa: E731
-    out = jax.lax.map(lambda a: block_fn(*a, *shared), jax.tree_util.tree_map(split, args))
+    out = jax.lax.map(call, jax.tree_util.tree_map(split, lane_args))
     return jax.tree_util.tree_map(lambda x: x.reshape((B,) + x.shape[2:]), out)
 
 
