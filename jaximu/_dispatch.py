@@ -115,7 +115,8 @@ def preint_method(method, lanes, steps, dtype) -> str:
     """
     if method != "auto":
         return method
-    from jaximu._fast_preint import MIN_CHUNK, block_lanes
+    from jaximu._fast_preint import MIN_CHUNK
+    from jaximu._soa import block_lanes
 
     if lanes < block_lanes(jnp.dtype(dtype)) // 2 and steps >= 4 * MIN_CHUNK:
         return "parallel"

@@ -13,11 +13,9 @@ from jaximu import sensor, so3, world
 from jaximu._blocks import Blocks, block, structured_update
 from jaximu._soa import (SOA, _E3, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
-                         _time_chunks, exp_jr, half_angle_jr, mean_step, quat_matrix,
-                         run_blocked)
+                         _time_chunks, block_lanes, exp_jr, half_angle_jr, mean_step,
+                         quat_matrix, run_blocked)
 from jaximu._vec import V3
-
-BLOCK_LANES = 1024  # lanes per batch block
 
 UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
@@ -92,8 +90,8 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
         return tuple(_stack_last(x) for x in carry)
 
     # dt, g and omega shared by all lanes are read whole by every block
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, gyro, accel, dt, g, omega,
-                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w))
+    return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, gyro, accel, dt,
+                       g, omega, whole=(False,) * 7 + (shared_dt, shared_g, shared_w))
 
 
 def dense_to_blocks(P):
@@ -248,7 +246,7 @@ def propagate_cov_final(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_par
         return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
-    return run_blocked(block, B, BLOCK_LANES, q, p, v, b_g, b_a, P0, gyro, accel, dt, g,
-                       qc_params, omega, lever,
+    return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,
+                       dt, g, qc_params, omega, lever,
                        whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w,
                                              shared_r))

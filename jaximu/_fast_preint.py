@@ -40,12 +40,10 @@ from jaximu import sensor
 from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
-                         quat_matrix, run_blocked)
+                         block_lanes, quat_matrix, run_blocked)
 from jaximu._vec import V3
 
-BLOCK_BYTES = 2048  # lanes per batch block × bytes per float: 256 (float64) / 512 (float32)
-MIN_CHUNK = 16
-  # shortest time chunk per lane
+MIN_CHUNK = 16  # shortest time chunk per lane
 
 
 # ----------------------------------------------------------------------------- one step
@@ -637,11 +635,6 @@ def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
     shared = (dt.ndim == 1,) + tuple(x is None or x.ndim == 1 for x in (b_g, b_a, var, lever))
     return run_blocked(block, gyro.shape[0], block_lanes(gyro.dtype), gyro, accel, dt, b_g, b_a,
                        var, lever, whole=(False, False) + shared)
-
-
-def block_lanes(dtype):
-    """Lanes per batch block (the state of a block stays in L2: ~2 KB per lane in float64)."""
-    return BLOCK_BYTES // jnp.dtype(dtype).itemsize
 
 
 def num_chunks(B, T, method, dtype):

@@ -26,9 +26,11 @@ and the reasoning are in docs/DESIGN.md, "Kernel layout"):
 from __future__ import annotations
 
 import math
+import os
 
 import jax
 import jax.numpy as jnp
+from jax.experimental.xla_metadata import set_xla_metadata
 import numpy as np
 
 from jaximu._blocks import Layout
@@ -430,6 +432,74 @@ def lane_mesh(B, args=()):
     return (mesh, axes) if n > 1 and B % n == 0 else (None, ())
 
 
+ONE_KERNEL = {"xla_cpu_small_call": "true", "inlineable": "false"}
+"""XLA frontend attributes that make XLA:CPU compile a call as one kernel (docs/DESIGN.md,
+"One kernel per block")."""
+
+ONE_KERNEL_ENABLED = os.environ.get("JAXIMU_ONE_KERNEL", "1") != "0"
+"""``JAXIMU_ONE_KERNEL=0`` in the environment (read at import) turns the tag off: every block
+then runs through XLA's thunk executor, as before (slower; for an XLA that mishandles it)."""
+
+
+BLOCK_BYTES = 512
+"""Bytes of one ``(B,)`` row of a batch block: 64 lanes in float64, 128 in float32. Inside
+one kernel (:func:`one_kernel`) a block's state then stays in L1/L2 (docs/DESIGN.md)."""
+
+
+def block_lanes(dtype):
+    """Lanes per batch block for ``dtype``."""
+    return BLOCK_BYTES // jnp.dtype(dtype).itemsize
+
+
+# Primitives XLA:CPU's whole-computation emitter compiles. It does not take the library
+# fusions XLA makes of dots (XNNPACK/YNNPACK), nor custom calls (LAPACK), scatters, sorts or
+# collectives: a block that uses anything outside this list runs as a plain call.
+_ONE_KERNEL_PRIMITIVES = frozenset("""
+    abs acos acosh add and asin asinh atan atan2 atanh bitcast_convert_type
+    broadcast_in_dim cbrt ceil clamp closed_call concatenate cond convert_element_type copy
+    copy_p cos cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr div
+    dynamic_slice dynamic_update_slice eq erf erf_inv erfc exp exp2 expand_dims expm1
+    floor ge gt imag integer_pow iota is_finite jit le log log1p logistic lt max min mul
+    ne neg nextafter not optimization_barrier or pad pjit population_count pow real
+    reduce_and reduce_max reduce_min reduce_or reduce_prod reduce_sum reduce_xor rem
+    reshape round rsqrt scan select_n shift_left shift_right_arithmetic
+    shift_right_logical sign sin sinh slice sqrt square squeeze stack stop_gradient sub
+    tan tanh threefry2x32 transpose while xor
+""".split())
+
+
+def _kernel_safe(jaxpr) -> bool:
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name not in _ONE_KERNEL_PRIMITIVES:
+            return False
+        for v in eqn.params.values():
+            for x in v if isinstance(v, (tuple, list)) else (v,):
+                sub = getattr(x, "jaxpr", x)  # a ClosedJaxpr's jaxpr, or a Jaxpr
+                if hasattr(sub, "eqns") and not _kernel_safe(sub):
+                    return False
+    return True
+
+
+def one_kernel(fn, *args):
+    """``fn(*args)``, compiled by XLA:CPU as one kernel.
+
+    The call is tagged so that XLA keeps it (``inlineable="false"``) and emits it whole
+    (``xla_cpu_small_call``, the tag XLA's own small-while-loop pass gives the loops it
+    hoists): the time loop inside runs as straight code instead of one thunk per fusion
+    (docs/DESIGN.md, "One kernel per block"). Only the call carries the tag. A block that
+    uses an operation that emitter lacks (:data:`_ONE_KERNEL_PRIMITIVES`), and every
+    backend but the CPU, get the plain call."""
+    call = jax.jit(fn)
+    if not ONE_KERNEL_ENABLED or jax.default_backend() != "cpu" or not _kernel_safe(
+            call.trace(*args).jaxpr.jaxpr):
+        return call(*args)
+    # The arguments pass a barrier: an argument XLA can fold to a constant (samples a user
+    # closed over, say) would otherwise be sunk into the loop inside the kernel as a large
+    # constant, which the whole-computation emitter cannot address (XLA aborts).
+    args = jax.lax.optimization_barrier(args)
+    return set_xla_metadata(call(*args), **ONE_KERNEL)
+
+
 def run_blocked(block_fn, B, lanes, *args, whole=()):
     """``block_fn(*args)`` over batch blocks of at most ``lanes`` lanes (a ``lax.map``).
     ``whole``: a flag per argument, ``True`` for one every block reads whole (a gravity,
@@ -467,9 +537,12 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
 
 
 def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):
-    def call(block_args):  # the arguments back in their order
+    def ordered(block_args, shared):  # the arguments back in their order
         lane, common = iter(block_args), iter(shared)
         return block_fn(*(next(common) if w else next(lane) for w in whole))
+
+    def call(block_args):
+        return one_kernel(ordered, block_args, shared)
 
     Bc = _block_size(B, lanes)
     if Bc == B:

@@ -1,0 +1,74 @@
+"""Each batch block of a structure-of-arrays kernel is compiled by XLA:CPU as one kernel
+(jaximu._soa.one_kernel, docs/DESIGN.md "One kernel per block"): the tag reaches the
+compiled program, inputs that XLA can fold to constants (samples a user closes over) compile
+and give the numbers of runtime inputs, and a block using an operation outside the emitter's
+list runs as a plain call."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaximu
+from jaximu import _soa
+from test_fast_path import inputs
+
+NOISE = jaximu.ImuNoise.euroc()
+B, T = 4, 400  # each sample array 38 kB: above XLA:CPU's large-constant size
+
+
+def _close(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * max(1.0, np.abs(y).max()))
+
+
+def _runs(fn, *arrays):
+    """``fn`` on runtime arguments and on the same values closed over as constants."""
+    on_args = jax.jit(fn)(*arrays)
+    const = [np.asarray(a) for a in arrays]
+    closed = jax.jit(lambda: fn(*(jnp.asarray(c) for c in const)))()
+    return on_args, closed
+
+
+@pytest.mark.skipif(not _soa.ONE_KERNEL_ENABLED, reason="JAXIMU_ONE_KERNEL=0")
+def test_the_tag_reaches_the_compiled_kernel():
+    state, gyro, accel = inputs(B, T)
+    P0 = jnp.broadcast_to(jnp.eye(15) * 1e-4, (B, 15, 15))
+    hlo = jax.jit(lambda s, w, a: jaximu.propagate_covariance_final(s, P0, w, a, 0.005, NOISE)
+                  ).lower(state, gyro, accel).compile().as_text()
+    calls = [ln for ln in hlo.splitlines() if " call(" in ln and "xla_cpu_small_call" in ln]
+    assert calls and all('inlineable="false"' in ln for ln in calls)
+
+
+def test_constant_inputs_mean_and_every_state():
+    state, gyro, accel = inputs(40, T // 4)  # 40 lanes: the structure-of-arrays rows
+    for fn in (lambda w, a: jaximu.propagate_final(state, w, a, 0.005),
+               lambda w, a: jaximu.propagate(state, w, a, 0.005)):
+        _close(*_runs(fn, gyro, accel))
+
+
+def test_constant_inputs_covariance():
+    state, gyro, accel = inputs(B, T)
+    P0 = jnp.broadcast_to(jnp.eye(15) * 1e-4, (B, 15, 15))
+    _close(*_runs(lambda w, a: jaximu.propagate_covariance_final(
+        state, P0, w, a, 0.005, NOISE), gyro, accel))
+
+
+def test_constant_inputs_preintegration():
+    _, gyro, accel = inputs(B, T)
+    for method in ("sequential", "parallel"):
+        _close(*_runs(lambda w, a: jaximu.preintegrate(w, a, 0.005, None, NOISE,
+                                                       method=method), gyro, accel))
+    _close(*_runs(lambda w, a: jaximu.preintegrate(w[0], a[0], 0.005, None, NOISE), gyro,
+                  accel))
+
+
+def test_blocks_outside_the_emitter_list_run_as_plain_calls():
+    x = jnp.ones((3, 3))
+    safe = jax.make_jaxpr(lambda x: jax.lax.scan(lambda c, _: (c * 2.0 + 1.0, None), x,
+                                                  None, length=3)[0])(x).jaxpr
+    dot = jax.make_jaxpr(lambda x: jax.lax.cond(True, lambda y: y @ y, lambda y: y, x))(x)
+    assert _soa._kernel_safe(safe)
+    assert not _soa._kernel_safe(dot.jaxpr)  # a dot nested in a branch is found
+    out = jax.jit(lambda x: _soa.one_kernel(lambda y: y @ y + 1.0, x))(x)
+    np.testing.assert_allclose(out, np.full((3, 3), 4.0))
