@@ -455,7 +455,7 @@ def block_lanes(dtype):
 # fusions XLA makes of dots (XNNPACK/YNNPACK), nor custom calls (LAPACK), scatters, sorts or
 # collectives: a block that uses anything outside this list runs as a plain call.
 _ONE_KERNEL_PRIMITIVES = frozenset("""
-    abs acos acosh add and asin asinh atan atan2 atanh bitcast_convert_type
+    abs acos acosh add add_any and asin asinh atan atan2 atanh bitcast_convert_type
     broadcast_in_dim cbrt ceil clamp closed_call concatenate cond convert_element_type copy
     copy_p cos cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr div
     dynamic_slice dynamic_update_slice eq erf erf_inv erfc exp exp2 expand_dims expm1

@@ -111,6 +111,14 @@ def skew(v):
     )
 
 
+def _skew_sq(v):
+    """``[v]x² = v vᵀ - |v|² I`` (``(..., 3) -> (..., 3, 3)``): the square of :func:`skew`
+    without a matrix product (XLA:CPU turns batched 3×3 products into library calls that
+    cannot run inside one compiled kernel: docs/DESIGN.md, "One kernel per block")."""
+    eye = jnp.eye(3, dtype=v.dtype)
+    return v[..., :, None] * v[..., None, :] - jnp.sum(v * v, axis=-1)[..., None, None] * eye
+
+
 # --------------------------------------------------------------------------- quaternions
 
 
@@ -285,7 +293,7 @@ def right_jacobian(phi):
     a, b, _ = _jacobian_coeffs(phi)
     K = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
-    return eye - a[..., None, None] * K + b[..., None, None] * (K @ K)
+    return eye - a[..., None, None] * K + b[..., None, None] * _skew_sq(phi)
 
 
 def right_jacobian_inv(phi):
@@ -297,7 +305,7 @@ def right_jacobian_inv(phi):
     _, _, c = _jacobian_coeffs(phi)
     K = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
-    return eye + 0.5 * K + c[..., None, None] * (K @ K)
+    return eye + 0.5 * K + c[..., None, None] * _skew_sq(phi)
 
 
 def left_jacobian(phi):

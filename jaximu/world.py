@@ -100,11 +100,16 @@ def gamma2(phi):
                   (0.5 - a) / safe)
     K = so3.skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
-    return 0.5 * eye + b[..., None, None] * K + e[..., None, None] * (K @ K)
+    return 0.5 * eye + b[..., None, None] * K + e[..., None, None] * so3._skew_sq(phi)
 
 
 def _mv(M, x):
-    return jnp.einsum("...ij,...j->...i", M, x)
+    # a broadcast sum, not a dot: it stays inside one compiled kernel (docs/DESIGN.md)
+    return jnp.sum(M * x[..., None, :], axis=-1)
+
+
+def _mm(A, B):
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
 # The per-element formulas below are written once on V3 (components: ``(...,)`` arrays or the
@@ -192,11 +197,11 @@ def error_map_rows(omega, dt, coriolis):
     h = jnp.asarray(dt)[..., None, None]
     if coriolis == "exact":
         Q = so3.exp_matrix(-jnp.asarray(dt)[..., None] * omega)
-        return {2: {1: W, 2: "I"}}, {1: {1: Q}, 2: {1: -(W @ Q), 2: Q}}
+        return {2: {1: W, 2: "I"}}, {1: {1: Q}, 2: {1: -_mm(W, Q), 2: Q}}
     eye = jnp.eye(3, dtype=W.dtype)
     cross = -(h * h) * W
     if coriolis == "second_order":
-        W2 = W @ W
+        W2 = so3._skew_sq(omega)
         return None, {1: {1: eye - 0.5 * h * h * W2, 2: cross},
                       2: {1: -h * W2, 2: eye - 2.0 * h * W}}
     return None, {1: {1: "I", 2: cross}, 2: {2: eye - 2.0 * h * W}}
