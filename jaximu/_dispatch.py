@@ -45,16 +45,21 @@ class Row(NamedTuple):
 
 
 TABLE = (
-    # mean of every scheme with the exact quaternion exponential; below 32 lanes XLA's
-    # generic scan (one fused kernel per step) is as fast
+    # mean of every scheme with the exact quaternion exponential, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None),
-    # a few long sequences in float64: time chunks side by side as lanes (mean_chunks),
-    # composed. float32 keeps the plain scan: it is fast there (XLA:CPU keeps a float32
-    # loop body under its small-loop limit), and the chunk deltas, which carry the
-    # specific force without gravity cancelling it, round 4x worse in float32
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
+    # the final state of a few long sequences in float64: time chunks side by side as lanes
+    # (mean_chunks), composed (the lanes can then also be split over devices). Every state
+    # stored: the one-lane kernel below is faster (the chunks would run twice). float32
+    # keeps the one-lane kernel too: the chunk deltas, which carry the specific force without
+    # gravity cancelling it, round 4x worse in float32
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False,), 1,
         LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None),
+    # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
+    # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
+    # one trajectory of 1000 samples)
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1, 1,
+        "soa_mean", rotating=(False, True), lever=None),
     # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
         1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),

@@ -129,17 +129,18 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     return states, jnp.zeros(batch, bool)
 
 
-def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
-    """A few long sequences, cut into ``C`` time chunks that run side by side as lanes.
+def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):
+    """The final state of a few long sequences, cut into ``C`` time chunks that run side by
+    side as lanes.
 
     Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
     known relative to its start, and its acceleration weights sum to ``h`` (in v) and
     ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
     exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The deltas are
     composed in sequence (``C`` cheap steps: ``R ΔR``, ``v + g Δt + R Δv``,
-    ``p + v Δt + ½ g Δt² + R Δp``) to give each chunk's start state, and, when every state
-    is asked for, the chunks are propagated again from those states, side by side. Equal to
-    the plain scan to rounding.
+    ``p + v Δt + ½ g Δt² + R Δp``). Equal to the plain scan to rounding. (Every state stored
+    would run the chunks twice, from the composed starts: the one-lane kernel is faster,
+    docs/DESIGN.md "Dispatch".)
     """
     sch = get_scheme(scheme)
     n = n_steps(gyro, dt)
@@ -178,25 +179,14 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all):
         q1 = so3.quat_normalize(so3.quat_mul(q0, dq_c))
         v1 = v0 + g_b * tt + so3.quat_rotate(q0, dv_c)
         p1 = p0 + v0 * tt + 0.5 * g_b * tt * tt + so3.quat_rotate(q0, dp_c)
-        return (q1, p1, v1), (q0, p0, v0)
+        return (q1, p1, v1), None
 
-    (qf, pf, vf), starts = jax.lax.scan(compose, (q, p, v),
+    (qf, pf, vf), _ = jax.lax.scan(compose, (q, p, v),
                                         (unlane(dq), unlane(dp), unlane(dv), t_c))
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    if not save_all:
-        states = NavState(unflat(qf), unflat(pf), unflat(vf),
-                          jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
-                          jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
-        return states, jnp.zeros(batch, bool)
-    q0, p0, v0 = (jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:]) for x in starts)
-    g_c = g_f if g_f.ndim == 1 else rep(g_f)
-    qs, ps, vs = _fast.propagate_mean(sch, q0, p0, v0, rep(b_g), rep(b_a), gyro_c, accel_c,
-                                      dt_c, g_c, True)
-    whole = lambda x: unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n])  # noqa: E731
-    bshape = tuple(batch) + (n, 3)
-    states = NavState(whole(qs), whole(ps), whole(vs),
-                      jnp.broadcast_to(state.b_g[..., None, :], bshape),
-                      jnp.broadcast_to(state.b_a[..., None, :], bshape))
+    states = NavState(unflat(qf), unflat(pf), unflat(vf),
+                      jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+                      jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
     return states, jnp.zeros(batch, bool)
 
 
@@ -271,7 +261,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
                                coriolis)
     if kernel == "soa_mean_chunked":
-        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
+        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
     body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, coriolis)

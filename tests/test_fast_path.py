@@ -131,18 +131,20 @@ def test_half_angle_kernels_match_trig(dtype):
 
 
 @pytest.mark.parametrize("B,T,scheme,save_all,intervals", [
-    (1, 2051, "euler", True, False), (1, 2051, "midpoint", False, False),
-    (2, 2050, "rk4", True, True)])  # rk4: 2049 steps, padded to whole chunks (dt = 0)
+    (1, 2051, "euler", False, False), (1, 2051, "midpoint", False, False),
+    (2, 2050, "rk4", False, True),  # rk4: 2049 steps, padded to whole chunks (dt = 0)
+    (1, 2051, "euler", True, False), (2, 2050, "rk4", True, True)])
 def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals):
-    """A few long sequences run as time chunks side by side (deltas from the identity,
-    composed, expanded): the plain generic scan's states to rounding, for every scheme, with
-    per-sample dt and with dt of length T-1 (samples at the ends of the intervals)."""
+    """The final state of a few long float64 sequences runs as time chunks side by side
+    (deltas from the identity, composed); every state stored runs the one-lane kernel. Both:
+    the plain generic scan's states to rounding, for every scheme, with per-sample dt and
+    with dt of length T-1 (samples at the ends of the intervals)."""
     state, gyro, accel = inputs(B, T, seed=8)
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all, lanes=B,
-                            steps=steps) == "soa_mean_chunked"
+                            steps=steps) == ("soa_mean" if save_all else "soa_mean_chunked")
     fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
