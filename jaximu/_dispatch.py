@@ -75,8 +75,6 @@ TABLE = (
 
 GENERIC = "generic"
 
-PREINT_MIN_LANES_SEQUENTIAL = 8
-"""Sequential preintegration of fewer windows than this runs the generic scan (as fast)."""
 
 
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
@@ -131,8 +129,6 @@ def preint_method(method, lanes, steps, dtype) -> str:
 def preintegrate_kernel(scheme, *, jacobians, prefixes, method, lanes, fast=True,
                         lever=False) -> str:
     if prefixes:
-        return GENERIC
-    if method == "sequential" and lanes < PREINT_MIN_LANES_SEQUENTIAL:
         return GENERIC
     return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast,
                   lever=lever)

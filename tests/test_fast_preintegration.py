@@ -61,7 +61,7 @@ def test_dispatch():
     f64 = jnp.float64
     assert uses_fast_path("euler", "analytic", False, "sequential", 8)
     assert uses_fast_path("euler", "analytic", False, "parallel", 1)
-    assert not uses_fast_path("euler", "analytic", False, "sequential", 4)
+    assert uses_fast_path("euler", "analytic", False, "sequential", 1)
     assert not uses_fast_path("euler", "analytic", True)
     assert not uses_fast_path("euler", "autodiff", False)
     assert not uses_fast_path("euler", "analytic", False, fast=False)
@@ -87,7 +87,7 @@ def test_dispatch():
                              "batched_noise": True, "intervals": True}),
     ((), 2000, "parallel", {"per_lane_dt": True}),
     ((1100,), 40, "sequential", {"big": True}),  # several batch blocks
-    ((4,), 80, "sequential", {}),  # below _dispatch.PREINT_MIN_LANES_SEQUENTIAL: the generic path itself
+    ((4,), 80, "sequential", {}),  # a few windows: one block of 4 lanes
 ])
 def test_fast_path_equals_generic(batch, T, method, kw):
     """The reference is the generic sequential scan (quick to compile; the generic parallel
