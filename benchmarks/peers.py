@@ -3,7 +3,7 @@
     pip install ".[bench]"                     # gtsam; for PyPose first a CPU torch (README)
     python benchmarks/peers.py                 # full sizes (~5 min on 2 cores)
     python benchmarks/peers.py --quick         # small sizes (~1 min)
-    python benchmarks/peers.py --check benchmarks/results/peers-baseline-amd-epyc-2cpu.json
+    python benchmarks/peers.py --check benchmarks/results/peers-baseline-intel-xeon-2cpu.json
 
 Workloads (EuRoC ADIS16448 noise densities; real EuRoC samples for preintegration):
 
