@@ -76,7 +76,6 @@ TABLE = (
 GENERIC = "generic"
 
 
-
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
            dtype="float64", fast=True, rotating=False, lever=False) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements

@@ -182,7 +182,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):
         return (q1, p1, v1), None
 
     (qf, pf, vf), _ = jax.lax.scan(compose, (q, p, v),
-                                        (unlane(dq), unlane(dp), unlane(dv), t_c))
+                                   (unlane(dq), unlane(dp), unlane(dv), t_c))
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     states = NavState(unflat(qf), unflat(pf), unflat(vf),
                       jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
