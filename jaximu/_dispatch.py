@@ -21,10 +21,12 @@ import jax.numpy as jnp
 
 
 LONG_STEPS = 2048
-"""From this many steps a sequence of a small batch is cut into time chunks (mean)."""
+"""From this many steps the final state of a float64 sequence of a small batch is computed in
+time chunks (mean)."""
 
 CHUNK_LANES = 1024
-"""Lanes the time chunks of long sequences aim to fill (one batch block)."""
+"""Lanes the time chunks of long sequences aim to fill (16 batch blocks in float64: the
+chunks also split over devices)."""
 
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
