@@ -22,6 +22,14 @@ Usage (see benchmarks/README.md)::
     python benchmarks/propagation.py --quick      # small sizes, a smoke test (< 1 min)
     python benchmarks/propagation.py --only mean  # or --only cov
     python benchmarks/propagation.py --rss        # each case in its own process, max RSS
+    python benchmarks/propagation.py --check benchmarks/results/propagation-baseline-intel-xeon-2cpu.json
+
+``--check BASELINE``: compares every case that BASELINE (an earlier run's JSON, same machine)
+also measured, matched by name, dtype and size: a run rate more than 30% below the baseline's,
+or a compile time more than 1.5× the baseline's, is a regression, and the script exits 1.
+Cases the baseline lacks are listed as new. The committed baseline is the round's first
+commit (342b89a) measured by its own script on the Intel host: rows added since (``vmap``,
+rotating world, lever arm, autodiff for midpoint and RK4) have no baseline.
 
 Prints a Markdown table and writes ``benchmarks/results/propagation-<machine>.json``.
 """
@@ -74,6 +82,10 @@ TARGET_MEAN = 100e6  # issue "One fast engine": Euler mean, float32, 1024×1000
 TARGET_COV = 10e6  # the same with the 15×15 covariance
 # Flag a case when other processes used more than this share of the CPUs while it ran.
 BUSY_WARN = 0.10
+# --check: a run rate more than 30% below the baseline's (run-to-run noise on a shared 2-core
+# VM is ±15-20%), or a compile time over 1.5× the baseline's (the issue's limit), regresses.
+RATE_TOLERANCE = 0.30
+COMPILE_LIMIT = 1.5
 
 DT = 0.005  # 200 Hz
 GYRO_STD = 0.5  # rad/s
@@ -667,6 +679,43 @@ def target_summary(results: list[dict]) -> tuple[str, dict]:
     return "\n".join(out), summary
 
 
+def check(results: list[dict], baseline_path: Path) -> tuple[str, list[str]]:
+    """This run against an earlier run's JSON: per case measured by both, the rate and
+    compile-time ratios. Returns the report and the regressions (``--check``)."""
+    base = json.loads(Path(baseline_path).read_text())
+    key = lambda c: (c["name"], c["dtype"], c["B"], c["T"])  # noqa: E731
+    old = {key(c): c for c in base["cases"] if c.get("status") == "ok"}
+    lines, worse, rates, compiles = [], [], [], []
+    for r in sorted(results, key=sort_key):
+        c = r["case"]
+        label = f"{c['name']} {c['dtype']} {c['B']}×{c['T']}"
+        if r["status"] != "ok":
+            continue
+        o = old.get(key(c))
+        if o is None:
+            lines.append(f"  new   {label}: no baseline")
+            continue
+        rate = r["samples_per_s"] / o["samples_per_s"]
+        comp = r["compile_s"] / o["compile_s"]
+        rates.append(rate)
+        compiles.append(comp)
+        bad = []
+        if rate < 1 - RATE_TOLERANCE:
+            bad.append(f"run rate {rate:.2f}× the baseline's")
+        if comp > COMPILE_LIMIT:
+            bad.append(f"compile {comp:.2f}× the baseline's ({r['compile_s']:.2f} s against "
+                       f"{o['compile_s']:.2f} s)")
+        if bad:
+            worse.append(label)
+        lines.append(f"  {'WORSE' if bad else 'ok   '} {label}: rate {rate:.2f}×, compile "
+                     f"{comp:.2f}×" + (f" -- {'; '.join(bad)}" if bad else ""))
+    if rates:
+        lines.append(f"  {len(rates)} cases compared: rate ratio median {np.median(rates):.2f} "
+                     f"(min {min(rates):.2f}), compile ratio median {np.median(compiles):.2f} "
+                     f"(max {max(compiles):.2f}); {len(worse)} regression(s)")
+    return "\n".join(lines), worse
+
+
 # --------------------------------------------------------------------------- main
 
 
@@ -689,6 +738,9 @@ def main(argv=None) -> int:
                     help="split the CPU into this many JAX devices (one per core) and run "
                          "every case under a mesh of them, inputs split over the batch "
                          "(default 1: JAX's default single CPU device)")
+    ap.add_argument("--check", type=Path, metavar="BASELINE",
+                    help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
+                         "more than 30%% slower or compiles more than 1.5× longer")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -808,6 +860,12 @@ def main(argv=None) -> int:
     )
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"Wrote {out}", file=sys.stderr)
+    if args.check:
+        report, worse = check(results, args.check)
+        print(f"\nRegression check against {args.check} (run rate tolerance "
+              f"{RATE_TOLERANCE:.0%}, compile time ≤ {COMPILE_LIMIT}×):")
+        print(report)
+        return 1 if worse else 0
     return 0
 
 

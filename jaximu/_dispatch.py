@@ -62,12 +62,13 @@ TABLE = (
     # one trajectory of 1000 samples)
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None),
-    # final covariance, every scheme, closed-form blocks (Scheme.blocks on the SoA layout)
-    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",), (False,), 1,
-        1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
-    # final covariance, every scheme, blocks by autodiff of the SoA step
-    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",), (False,), 1,
-        1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
+    # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
+    # SoA layout)
+    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",),
+        (False, True), 1, 1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
+    # the same with blocks by autodiff of the SoA step
+    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",),
+        (False, True), 1, 1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
     # preintegration, closed-form Jacobians, final i→j (min_lanes: see preintegrate_kernel)
     Row("preintegrate", ("euler",), None, ("analytic",), (False,), 1, 1, "soa_preint_euler",
         lever=(False, True)),

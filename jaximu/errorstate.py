@@ -309,7 +309,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
                              rotating=omega is not None, lever=lever is not None)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians, omega, coriolis, lever)
+                                          jacobians, omega, coriolis, lever, save_all)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -354,10 +354,10 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
 
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
-                               omega=None, coriolis="exact", lever=None):
-    """Final covariance on the :mod:`jaximu._fast` layout, exact quaternion exponential:
-    Euler with closed-form blocks (``scheme=None``), or any scheme with autodiff blocks
-    (:func:`jaximu._fast.cov_step_autodiff`); the block-structured update either way."""
+                               omega=None, coriolis="exact", lever=None, save_all=False):
+    """Mean and covariance (final, or after every step with ``save_all``) on the
+    :mod:`jaximu._fast` layout, exact quaternion exponential, any scheme with closed-form or
+    autodiff blocks (:func:`jaximu._fast.cov_step_blocks`); the block-structured update."""
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
@@ -373,13 +373,14 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
         omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
     if lever is not None and lever.ndim > 1:  # a lever arm per batch element
         lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
-    q, p, v, P = _fast.propagate_cov_final(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
-                                           qc_fn, var,
-                                           get_scheme(scheme), jacobians, omega, coriolis, lever)
+    q, p, v, P = _fast.propagate_cov(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f, qc_fn,
+                                     var, get_scheme(scheme), jacobians, omega, coriolis, lever,
+                                     save_all)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
+    lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
     st = NavState(unflat(q), unflat(p), unflat(v),
-                  jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
-                  jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+                  jnp.broadcast_to(state.b_g[..., None, :] if save_all else state.b_g, lead + (3,)),
+                  jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)))
     return st, unflat(P), jnp.zeros(batch, bool)
 
 

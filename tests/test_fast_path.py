@@ -152,13 +152,15 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
 
 
-@pytest.mark.parametrize("scheme,B,intervals,jac", [
-    ("euler", 3, False, "autodiff"), ("midpoint", 2, True, "autodiff"), ("rk4", 2, False, "autodiff"),
-    ("midpoint", 3, False, "analytic"), ("rk4", 2, True, "analytic")])
-def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac):
+@pytest.mark.parametrize("scheme,B,intervals,jac,save_all", [
+    ("euler", 3, False, "autodiff", True), ("midpoint", 2, True, "autodiff", True),
+    ("rk4", 2, False, "autodiff", False), ("midpoint", 3, False, "analytic", False),
+    ("rk4", 2, True, "analytic", True)])
+def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac, save_all):
     """soa_cov_autodiff (blocks by jax.linearize of the SoA step, 9 directions) and
     soa_cov_analytic (Scheme.blocks on the SoA layout) against the generic kernel with the
-    closed-form blocks on arrays: same mean and covariance to rounding."""
+    closed-form blocks on arrays: same mean and covariance to rounding, final or after every
+    step (``save_all``)."""
     T = 25
     state, gyro, accel = inputs(B, T, seed=10, big_angles=True)
     rng = np.random.default_rng(11)
@@ -170,19 +172,21 @@ def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals,
     def run(jac, fast):
         return jax.jit(lambda s, P, w, a, h: _propagate_covariance(
             s, P, w, a, h, G_W, noise, scheme=scheme, attitude="quaternion", jacobians=jac,
-            save_all=False, fast=fast)[:2])(state, P0, gyro, accel, dt)
+            save_all=save_all, fast=fast)[:2])(state, P0, gyro, accel, dt)
 
     assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jac,
-                            lanes=B) == f"soa_cov_{jac}"
+                            save_all=save_all, lanes=B) == f"soa_cov_{jac}"
     (s1, P1), (s2, P2) = run(jac, True), run("analytic", False)
+    assert P1.shape == P2.shape == (B,) + (dt.shape[-1:] if save_all else ()) + (15, 15)
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
     if scheme == "euler":  # float32 in, float32 out, close to float64
         f32 = lambda x: jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)  # noqa: E731
         s3, P3 = jax.jit(lambda s, P, w, a, h: _propagate_covariance(
             s, P, w, a, h, G_W.astype(jnp.float32), f32(noise), scheme=scheme,
-            attitude="quaternion", jacobians="autodiff", save_all=False, fast=True)[:2])(
+            attitude="quaternion", jacobians="autodiff", save_all=save_all, fast=True)[:2])(
             *f32((state, P0, gyro, accel, dt)))
         assert P3.dtype == jnp.float32 and s3.q.dtype == jnp.float32
         np.testing.assert_allclose(P3, P2, rtol=0, atol=1e-4 * np.abs(P2).max())
     for a, b in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
+        assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1, np.abs(b).max()))
