@@ -28,9 +28,10 @@ Usage (see benchmarks/README.md)::
 also measured, matched by name, dtype and size: a run rate more than 30% below the baseline's
 is a regression, and the script exits 1. Compile times over 1.5× the baseline's are listed
 too (the issue's limit), and fail the check only with ``--check-compile`` (compile times move
-±30% between runs of one commit on this host). Cases the baseline lacks are listed as new. The committed baseline is the round's first
-commit (342b89a) measured by its own script on the Intel host: rows added since (``vmap``,
-rotating world, lever arm, autodiff for midpoint and RK4) have no baseline.
+±30% between runs of one commit on this host). Cases the baseline lacks are listed as new.
+The committed baseline is the round's first commit (342b89a) measured by its own script on
+the Intel host: rows added since (``vmap``, rotating world, lever arm, autodiff for midpoint
+and RK4) have no baseline.
 
 Prints a Markdown table and writes ``benchmarks/results/propagation-<machine>.json``.
 """

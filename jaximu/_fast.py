@@ -9,8 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import sensor, so3, world
-from jaximu import _blocks
+from jaximu import _blocks, sensor, so3, world
 from jaximu._blocks import Blocks, block, structured_update
 from jaximu._soa import (SOA, _E3, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
@@ -208,8 +207,9 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
 def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
                   jacobians, omega=None, coriolis="exact", lever=None, save_all=False):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
-    after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)`` discrete variances from
-    the noise parameters ``qc_params``: ``(m,)`` shared by all lanes or ``(B, m)`` per lane.
+    after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
+    discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
+    or ``(B, m)`` per lane.
     ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
     uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
     ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
@@ -246,11 +246,12 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at
         # every step inside it ran 0.65 M samples/s against 0.83, float32, 1024 × 200)
-        save = None
-        if save_all:
-            save = lambda c: ((_stack_last(c[0]), _stack_last(c[1]), _stack_last(c[2]))  # noqa: E731
-                              + tuple(jnp.moveaxis(X, -1, 0).reshape(-1, 9) for X in c[3]))
-        (q, p, v, Pb), bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
+        def save(c):
+            return ((_stack_last(c[0]), _stack_last(c[1]), _stack_last(c[2]))
+                    + tuple(jnp.moveaxis(X, -1, 0).reshape(-1, 9) for X in c[3]))
+
+        (q, p, v, Pb), bufs = _time_chunks(step, carry, gyro, accel, dt, consts,
+                                           save if save_all else None,
                                            next_sample=scheme.uses_next_sample)
         if save_all:
             return bufs
