@@ -413,12 +413,10 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
     return state
 
 
-def lane_mesh(B, args=()):
-    """``(mesh, axes)``: the mesh the ``B`` lanes of a kernel are split over and its axes,
-    or ``(None, ())``. The mesh is the current one (``jax.set_mesh``) or, without one, that
-    of the arguments' types (arrays sharded on an ``Explicit`` mesh carry it); the axes are
-    all its axes not already manual (inside a ``shard_map``), when they divide ``B`` (an odd
-    batch is not split: the kernel runs as on one device)."""
+def _mesh_axes(args):
+    """``(mesh, axes)``: the current mesh (``jax.set_mesh``) or, without one, that of the
+    arguments' types (arrays sharded on a mesh carry it), and its axes not already manual
+    (inside a ``shard_map``) — or ``(None, ())``."""
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty:
         typed = (getattr(jax.typeof(x).sharding, "mesh", None)
@@ -428,8 +426,31 @@ def lane_mesh(B, args=()):
         return None, ()
     axes = tuple(a for a, kind in zip(mesh.axis_names, mesh.axis_types)
                  if kind != jax.sharding.AxisType.Manual)
-    n = math.prod(mesh.shape[a] for a in axes)
+    return mesh, axes
+
+
+def lane_mesh(B, args=()):
+    """``(mesh, axes)``: the mesh the ``B`` lanes of a kernel are split over and its axes,
+    or ``(None, ())``: the mesh of :func:`_mesh_axes`, when its axes divide ``B`` (an odd
+    batch is not split: the kernel runs as on one device)."""
+    mesh, axes = _mesh_axes(args)
+    n = math.prod(mesh.shape[a] for a in axes) if axes else 1
     return (mesh, axes) if n > 1 and B % n == 0 else (None, ())
+
+
+def _replicated(mesh, axes, tree):
+    """``tree``'s arrays replicated over the (non-manual) ``axes`` of ``mesh`` (the current
+    abstract mesh). A kernel that
+    runs whole (its lanes not split) must not see sharded inputs: the partitioner would put
+    collectives inside the one-kernel call, which XLA:CPU's kernel emitter cannot link (a
+    single sequence whose time axis a user split over the devices). The gather happens
+    before the call, once."""
+    P = jax.sharding.PartitionSpec
+    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
+                   for a in axes)
+    if explicit:
+        return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, P()), tree)
+    return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, P()), tree)
 
 
 ONE_KERNEL = {"xla_cpu_small_call": "true", "inlineable": "false"}
@@ -516,6 +537,11 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
     shared = tuple(a for a, w in zip(args, whole) if w)
     mesh, axes = lane_mesh(B, lane_args)
     if not axes:
+        mesh, axes = _mesh_axes(lane_args)
+        if axes and math.prod(mesh.shape[a] for a in axes) > 1:  # under a mesh, not split
+            with jax.sharding.use_abstract_mesh(mesh):  # the kernel's own arrays on it too
+                lane_args, shared = _replicated(mesh, axes, (lane_args, shared))
+                return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
         return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
     n = math.prod(mesh.shape[a] for a in axes)
     P = jax.sharding.PartitionSpec

@@ -179,7 +179,26 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
                 msg += (f", which is {cast[i]} in the computation dtype {cast.dtype.name} (out of "
                         "its range); rescale it or pass float64 inputs (with jax_enable_x64)")
             raise ValueError(msg)
-    return gyro, accel, dt, T
+    return _time_whole(gyro, 2), _time_whole(accel, 2), _time_whole(dt, 1), T
+
+
+def _time_whole(x, n_minor):
+    """``x`` with its last ``n_minor`` axes (a sequence's time and component axes) not split
+    over devices. The kernels split batch lanes only; a time axis that a user sharded on an
+    ``Explicit`` mesh is gathered here, once, so that the slicing along time that every
+    kernel does stays valid under sharding in types. Batch axes keep their sharding; arrays
+    without a mesh in their type (``Auto`` meshes: the partitioner places them) pass as
+    they are."""
+    sharding = getattr(jax.typeof(x), "sharding", None)
+    mesh, spec = getattr(sharding, "mesh", None), getattr(sharding, "spec", None)
+    if mesh is None or mesh.empty or spec is None or x.ndim == 0:
+        return x
+    spec = tuple(spec) + (None,) * (x.ndim - len(spec))
+    if all(s is None for s in spec[x.ndim - n_minor:]):
+        return x
+    P = jax.sharding.PartitionSpec
+    with jax.sharding.use_abstract_mesh(mesh):
+        return jax.sharding.reshard(x, P(*spec[:x.ndim - n_minor], *(None,) * n_minor))
 
 
 def require_navstate(state):

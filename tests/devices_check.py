@@ -121,3 +121,30 @@ for mesh in (auto, explicit):
     assert n == 1, f"{n} lane splits with inputs sharded on an {mesh.axis_types[0]} mesh"
     close(f"inputs sharded on an {mesh.axis_types[0]} mesh", got, want)
     print(f"OK inputs sharded on an {mesh.axis_types[0]} mesh, no mesh set", flush=True)
+# one sequence whose time axis a user split over the devices: nothing to split into lanes, so
+# the kernel runs whole, and must see its inputs gathered (collectives inside the one-kernel
+# call cannot be linked by XLA:CPU; slicing a sharded time axis fails under an Explicit
+# mesh). Placed on either mesh, with and without the mesh set; the same results.
+Tn = 64  # divisible by the 2 devices
+st1 = jax.tree_util.tree_map(lambda x: x[0], inputs(1)[0])
+rng = np.random.default_rng(3)
+w1 = jnp.asarray(rng.normal(size=(Tn, 3)))
+a1 = jnp.asarray(rng.normal(size=(Tn, 3)) + [0.0, 0.0, 9.81])
+ONE = {
+    "preintegrate/euler sequential": lambda w, a: jaximu.preintegrate(
+        w, a, DT, st1.bias, noise(1.0), method="sequential"),
+    "propagate_covariance/midpoint": lambda w, a: jaximu.propagate_covariance(
+        st1, P0, w, a, DT, noise(1.0), "midpoint"),
+}
+for name, f in ONE.items():
+    want = jax.jit(f)(w1, a1)
+    for mesh, set_mesh in ((auto, True), (explicit, False)):
+        time_split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("lanes"))
+        args = jax.device_put((w1, a1), time_split)
+        if set_mesh:
+            with jax.set_mesh(mesh):
+                got = jax.jit(f)(*args)
+        else:
+            got = jax.jit(f)(*args)
+        close(f"{name}, time axis split", got, want)
+        print(f"OK {name}, time axis split on an {mesh.axis_types[0]} mesh", flush=True)
