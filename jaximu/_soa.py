@@ -440,11 +440,10 @@ def lane_mesh(B, args=()):
 
 def _replicated(mesh, axes, tree):
     """``tree``'s arrays replicated over the (non-manual) ``axes`` of ``mesh`` (the current
-    abstract mesh). A kernel that
-    runs whole (its lanes not split) must not see sharded inputs: the partitioner would put
-    collectives inside the one-kernel call, which XLA:CPU's kernel emitter cannot link (a
-    single sequence whose time axis a user split over the devices). The gather happens
-    before the call, once."""
+    abstract mesh). A kernel that runs whole (its lanes not split) must not see sharded
+    inputs: the partitioner would put collectives inside the one-kernel call, which
+    XLA:CPU's kernel emitter cannot link (a single sequence whose time axis a user split
+    over the devices). The gather happens before the call, once."""
     P = jax.sharding.PartitionSpec
     explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
                    for a in axes)
