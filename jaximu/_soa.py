@@ -429,29 +429,6 @@ def _mesh_axes(args):
     return mesh, axes
 
 
-def lane_mesh(B, args=()):
-    """``(mesh, axes)``: the mesh the ``B`` lanes of a kernel are split over and its axes,
-    or ``(None, ())``: the mesh of :func:`_mesh_axes`, when its axes divide ``B`` (an odd
-    batch is not split: the kernel runs as on one device)."""
-    mesh, axes = _mesh_axes(args)
-    n = math.prod(mesh.shape[a] for a in axes) if axes else 1
-    return (mesh, axes) if n > 1 and B % n == 0 else (None, ())
-
-
-def _replicated(mesh, axes, tree):
-    """``tree``'s arrays replicated over the (non-manual) ``axes`` of ``mesh`` (the current
-    abstract mesh). A kernel that runs whole (its lanes not split) must not see sharded
-    inputs: the partitioner would put collectives inside the one-kernel call, which
-    XLA:CPU's kernel emitter cannot link (a single sequence whose time axis a user split
-    over the devices). The gather happens before the call, once."""
-    P = jax.sharding.PartitionSpec
-    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
-                   for a in axes)
-    if explicit:
-        return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, P()), tree)
-    return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, P()), tree)
-
-
 ONE_KERNEL = {"xla_cpu_small_call": "true", "inlineable": "false"}
 """XLA frontend attributes that make XLA:CPU compile a call as one kernel (docs/DESIGN.md,
 "One kernel per block")."""
@@ -526,39 +503,46 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
     noise variances, a ``dt`` common to all lanes, ``None``); every leaf of the others has
     leading axis B and each block gets its own lanes of it.
 
-    Under a mesh (:func:`lane_mesh`) the lanes are first split over its devices with a
-    ``shard_map``: lanes are independent, so each device runs its own part with no
-    communication (docs/DESIGN.md, "Several devices"). ``block_fn`` closes over no traced
-    value (JAX cannot transpose a ``shard_map`` whose body does): what all lanes share is
-    an argument read whole, passed replicated."""
+    Under a mesh (:func:`_mesh_axes`) whose free axes divide ``B`` the lanes are first split
+    over its devices with a ``shard_map``: lanes are independent, so each device runs its
+    own part with no communication (docs/DESIGN.md, "Several devices"). ``block_fn`` closes
+    over no traced value (JAX cannot transpose a ``shard_map`` whose body does): what all
+    lanes share is an argument read whole, passed replicated. Under a mesh that does not
+    divide ``B`` (an odd batch, one sequence) the kernel runs whole on replicated inputs:
+    an input the partitioner left sharded (a sequence whose time axis a user split) would
+    otherwise get collectives inside the one-kernel call, which XLA:CPU's kernel emitter
+    cannot link; the gather happens before the call, once."""
     whole = tuple(whole) or (False,) * len(args)
     lane_args = tuple(a for a, w in zip(args, whole, strict=True) if not w)
     shared = tuple(a for a, w in zip(args, whole) if w)
-    mesh, axes = lane_mesh(B, lane_args)
-    if not axes:
-        mesh, axes = _mesh_axes(lane_args)
-        if axes and math.prod(mesh.shape[a] for a in axes) > 1:  # under a mesh, not split
-            with jax.sharding.use_abstract_mesh(mesh):  # the kernel's own arrays on it too
-                lane_args, shared = _replicated(mesh, axes, (lane_args, shared))
-                return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
+    mesh, axes = _mesh_axes(lane_args)
+    n = math.prod(mesh.shape[a] for a in axes) if axes else 1
+    if n == 1:
         return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
-    n = math.prod(mesh.shape[a] for a in axes)
     P = jax.sharding.PartitionSpec
+    # Sharding in types (an Explicit mesh): the layout is written into the arguments' types
+    # with reshard, and the results are gathered back to replicated ones, the types the code
+    # around the kernels is written for (one copy of the results between the devices).
     explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
                    for a in axes)
-    with jax.sharding.use_abstract_mesh(mesh):
+
+    def put(tree, spec):
+        if explicit:
+            return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, spec), tree)
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, spec),
+                                      tree)
+
+    with jax.sharding.use_abstract_mesh(mesh):  # the kernels' own arrays on it too
+        if B % n:  # not split: the kernel runs whole, on replicated inputs
+            lane_args, shared = put((lane_args, shared), P())
+            return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
         local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole),
                               in_specs=(P(axes), P()), out_specs=P(axes),
                               axis_names=set(axes), check_vma=False)
         if not explicit:
             return local(lane_args, shared)
-        # Sharding in types (an Explicit mesh): the split is written into the arguments'
-        # types, and the results are gathered back to replicated ones, the types the code
-        # around the kernels is written for (one copy of the results between the devices).
-        rs = jax.sharding.reshard
-        out = local(jax.tree_util.tree_map(lambda x: rs(x, P(axes)), lane_args),
-                    jax.tree_util.tree_map(lambda x: rs(x, P()), shared))
-        return jax.tree_util.tree_map(lambda x: rs(x, P()), out)
+        out = local(put(lane_args, P(axes)), put(shared, P()))
+        return put(out, P())
 
 
 def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):
