@@ -30,7 +30,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Primitive
+from jax.extend.core import Primitive, jaxpr_as_fun
 from jax.interpreters import ad, batching, mlir
 
 __all__ = ["leading_axes", "ArgSpec"]
@@ -91,8 +91,9 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
     The call is one primitive: its batching rule moves the mapped axis in front
     (:func:`_to_leading`) and binds it again, so nested ``vmap`` and ``vmap`` under any other
     transform route to the batched kernels; its JVP rule is ``jax.jvp`` of ``fn`` itself
-    (ordinary operations, so ``linearize``, ``grad`` and ``jacfwd`` need no more rules);
-    evaluation and lowering call ``fn``.
+    (ordinary operations, so ``linearize``, ``grad`` and ``jacfwd`` need no more rules).
+    Under a trace ``fn`` is traced once per bind (the primitive carries the jaxpr, which its
+    abstract evaluation, lowering and JVP read); a call on concrete arrays runs ``fn``.
     """
     plain = functools.partial(fn, **dict(statics))
 
@@ -100,25 +101,36 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         out = plain(*jax.tree_util.tree_unflatten(in_tree, leaves))
         return jax.tree_util.tree_leaves(out)
 
+    def bind(leaves, in_tree):
+        """Trace ``fn`` once at these arguments and bind the primitive with its jaxpr: the
+        abstract evaluation reads the jaxpr's output types and the lowering evaluates the
+        jaxpr, so the entry's Python runs once per call site, not once per stage (tracing
+        is a large part of the compile time of the small kernels)."""
+        out_tree = []
+
+        def traced(*leaves):
+            out = plain(*jax.tree_util.tree_unflatten(in_tree, leaves))
+            out_leaves, tree = jax.tree_util.tree_flatten(out)
+            out_tree.append(tree)
+            return out_leaves
+
+        jaxpr = jax.make_jaxpr(traced)(*leaves)
+        return prim.bind(*leaves, in_tree=in_tree, jaxpr=jaxpr), out_tree[0]
+
     prim = Primitive(f"jaximu_{fn.__name__.lstrip('_')}")
     prim.multiple_results = True
-    prim.def_impl(flat)
+    prim.def_impl(lambda *leaves, in_tree, jaxpr: flat(*leaves, in_tree=in_tree))
+    prim.def_abstract_eval(lambda *avals, in_tree, jaxpr: jaxpr.out_avals)
+    mlir.register_lowering(prim, mlir.lower_fun(
+        lambda *leaves, in_tree, jaxpr: jaxpr_as_fun(jaxpr)(*leaves), multiple_results=True))
 
-    @prim.def_abstract_eval
-    def _abstract(*avals, in_tree):
-        specs_ = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in avals]
-        out = jax.eval_shape(functools.partial(flat, in_tree=in_tree), *specs_)
-        return [jax.core.ShapedArray(o.shape, o.dtype) for o in out]
-
-    mlir.register_lowering(prim, mlir.lower_fun(flat, multiple_results=True))
-
-    def _jvp(primals, tangents, *, in_tree):
+    def _jvp(primals, tangents, *, in_tree, jaxpr):
         tangents = tuple(ad.instantiate_zeros(t) for t in tangents)
-        return jax.jvp(functools.partial(flat, in_tree=in_tree), tuple(primals), tangents)
+        return jax.jvp(jaxpr_as_fun(jaxpr), tuple(primals), tangents)
 
     ad.primitive_jvps[prim] = _jvp
 
-    def _batch(args, dims, *, in_tree):
+    def _batch(args, dims, *, in_tree, jaxpr):
         size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
         leaves = [x if d is None else jnp.moveaxis(x, d, 0)
                   for x, d in zip(args, dims)]
@@ -127,19 +139,16 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         tree_flags = jax.tree_util.tree_unflatten(in_tree, flags)
         moved = _to_leading(size, tree_flags, tree_args, specs)
         new_leaves, new_tree = jax.tree_util.tree_flatten(moved)
-        out = prim.bind(*new_leaves, in_tree=new_tree)
+        out, _ = bind(new_leaves, new_tree)
         return out, [0] * len(out)
 
     batching.primitive_batchers[prim] = _batch
 
-    out_trees = {}
-
     def routed(*args):
         leaves, in_tree = jax.tree_util.tree_flatten(args)
-        if in_tree not in out_trees:
-            out_trees[in_tree] = jax.tree_util.tree_structure(
-                jax.eval_shape(plain, *args))
-        return jax.tree_util.tree_unflatten(out_trees[in_tree],
-                                            prim.bind(*leaves, in_tree=in_tree))
+        if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return plain(*args)  # eager: nothing to route, and no trace to pay for
+        out, out_tree = bind(leaves, in_tree)
+        return jax.tree_util.tree_unflatten(out_tree, out)
 
     return routed
