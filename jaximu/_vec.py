@@ -15,6 +15,25 @@ import jax
 import jax.numpy as jnp
 
 
+def matvec(M, x):
+    """``M x`` for ``(..., n, m)`` matrices and ``(..., m)`` vectors, broadcasting.
+
+    A broadcast product and sum, not a ``dot``: it fuses with its neighbours and stays
+    inside one compiled kernel on XLA:CPU (docs/DESIGN.md, "One kernel per block")."""
+    return jnp.sum(M * x[..., None, :], axis=-1)
+
+
+def matmul(A, B):
+    """``A B`` for ``(..., n, k)`` and ``(..., k, m)``, broadcasting (as :func:`matvec`)."""
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
+def matvec_v3(M, x: V3) -> V3:
+    """``M x`` for ``(..., 3, 3)`` ``M`` (or ``(3, 3)``, shared) and a :class:`V3`."""
+    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z
+                for i in range(3)))
+
+
 class V3(NamedTuple):
     x: jax.Array
     y: jax.Array

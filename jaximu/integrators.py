@@ -43,10 +43,9 @@ import functools
 from typing import Callable, NamedTuple
 
 import jax
-import jax.numpy as jnp
 
 from jaximu import sensor, so3
-from jaximu._vec import V3
+from jaximu._vec import V3, matvec
 from jaximu.state import NavState
 
 __all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "Scheme", "get_attitude", "get_scheme",
@@ -59,10 +58,6 @@ ORDER = {"euler": 1, "midpoint": 2, "rk4": 4}
 
 # cos(pitch) below which the Euler-angle form is declared singular (0.08° from ±90°).
 GIMBAL_LOCK_COS = 1e-3
-
-
-def _matvec(M, v):
-    return jnp.einsum("...ij,...j->...i", M, v)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +99,7 @@ _ATTITUDE_FORMS = {
         from_quat=so3.quat_to_matrix,
         to_quat=so3.matrix_to_quat,
         to_matrix=lambda R: R,
-        rotate=_matvec,
+        rotate=matvec,
         advance=lambda R, phi: R @ so3.exp_matrix(phi),
         exact_exponential=True,
     ),
@@ -113,8 +108,8 @@ _ATTITUDE_FORMS = {
         from_quat=so3.quat_to_euler_zyx,
         to_quat=so3.euler_zyx_to_quat,
         to_matrix=so3.euler_zyx_to_matrix,
-        rotate=lambda chi, v: _matvec(so3.euler_zyx_to_matrix(chi), v),
-        advance=lambda chi, phi: chi + _matvec(so3.euler_rate_matrix(chi), phi),
+        rotate=lambda chi, v: matvec(so3.euler_zyx_to_matrix(chi), v),
+        advance=lambda chi, phi: chi + matvec(so3.euler_rate_matrix(chi), phi),
         exact_exponential=False,
     ),
 }
@@ -329,7 +324,7 @@ def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):
 
     def deriv(chi_s, omega, f):
         R = so3.euler_zyx_to_matrix(chi_s)
-        return _matvec(so3.euler_rate_matrix(chi_s), omega), _matvec(R, f) + g
+        return matvec(so3.euler_rate_matrix(chi_s), omega), matvec(R, f) + g
 
     omega_m, f_m = 0.5 * (omega0 + omega1), 0.5 * (f0 + f1)
     k1, a1 = deriv(chi, omega0, f0)

@@ -53,6 +53,7 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu import so3
+from jaximu._vec import matvec
 from jaximu.noise import ImuNoise
 
 __all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
@@ -157,10 +158,6 @@ def check_pose(pose, dtype, name: str = NAME, batch=None, batch_name: str = "the
     return SensorPose(q, p)
 
 
-def _mv(M, x):
-    return jnp.einsum("...ij,...j->...i", M, x)
-
-
 def angular_acceleration(omega, dt):
     """``α`` at every sample from the rates ``omega`` ``(..., T, 3)`` on the grid of ``dt``.
 
@@ -226,10 +223,10 @@ def to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool = True):
         ``accel_B - R_BS b_a = f_B``.
     """
     R = pose.R[..., None, :, :]
-    gyro_b = _mv(R, gyro)
-    omega = gyro_b - _mv(pose.R, b_g)[..., None, :]
+    gyro_b = matvec(R, gyro)
+    omega = gyro_b - matvec(pose.R, b_g)[..., None, :]
     alpha = angular_acceleration(gyro_b, dt) if tangential else None
-    accel_b = _mv(R, accel) - lever_arm_acceleration(omega, alpha, pose.p[..., None, :])
+    accel_b = matvec(R, accel) - lever_arm_acceleration(omega, alpha, pose.p[..., None, :])
     return gyro_b, accel_b
 
 
@@ -245,7 +242,7 @@ def lever_of(pose: SensorPose):
 
 def bias_to_body(pose: SensorPose, b):
     """``R_BS b`` for a ``(..., 3)`` sensor-frame bias."""
-    return _mv(pose.R, b)
+    return matvec(pose.R, b)
 
 
 def noise_to_body(pose: SensorPose, noise: ImuNoise) -> ImuNoise:
@@ -255,7 +252,7 @@ def noise_to_body(pose: SensorPose, noise: ImuNoise) -> ImuNoise:
 
     def rot(s):
         s = jnp.asarray(s)
-        return s if s.ndim == 0 else jnp.sqrt(_mv(RR, s * s))
+        return s if s.ndim == 0 else jnp.sqrt(matvec(RR, s * s))
 
     return ImuNoise(*(rot(getattr(noise, f.name)) for f in dataclasses.fields(ImuNoise)))
 

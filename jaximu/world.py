@@ -43,7 +43,7 @@ import numpy as np
 from jaximu import _blocks as blk
 from jaximu import _validation as val
 from jaximu import so3
-from jaximu._vec import V3
+from jaximu._vec import V3, matmul, matvec, matvec_v3
 
 __all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
            "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
@@ -103,24 +103,9 @@ def gamma2(phi):
     return 0.5 * eye + b[..., None, None] * K + e[..., None, None] * so3._skew_sq(phi)
 
 
-def _mv(M, x):
-    # a broadcast sum, not a dot: it stays inside one compiled kernel (docs/DESIGN.md)
-    return jnp.sum(M * x[..., None, :], axis=-1)
-
-
-def _mm(A, B):
-    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
-
-
 # The per-element formulas below are written once on V3 (components: ``(...,)`` arrays or the
 # ``(B,)`` lanes of the structure-of-arrays kernels, docs/DESIGN.md "kernel layout"); the
 # public functions take and return ``(..., 3)`` arrays and call them.
-
-
-def matvec(M, x: V3) -> V3:
-    """``M x`` for ``(..., 3, 3)`` ``M`` (or ``(3, 3)``, shared) and a :class:`V3`."""
-    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z
-                for i in range(3)))
 
 
 def to_inertial_v3(omega: V3, p: V3, v: V3) -> V3:
@@ -140,8 +125,8 @@ def gravity_excess(omega, dt, g):
     T = jnp.asarray(dt)[..., None]
     phi = omega * T
     eye = jnp.eye(3, dtype=phi.dtype)
-    dv = T * _mv(so3.left_jacobian(phi) - eye, g)
-    dp = T * T * _mv(gamma2(phi) - 0.5 * eye, g)
+    dv = T * matvec(so3.left_jacobian(phi) - eye, g)
+    dp = T * T * matvec(gamma2(phi) - 0.5 * eye, g)
     return dp, dv
 
 
@@ -157,8 +142,8 @@ def leave_inertial_terms(omega, dt, g):
 def leave_inertial_v3(omega: V3, Q, dp: V3, dv: V3, p: V3, v: V3):
     """:func:`leave_inertial` on components, from :func:`leave_inertial_terms`:
     ``p⁺ = Q (p' + dp)``, ``v⁺ = Q (v̄' + dv) - ω × p⁺``."""
-    p1 = matvec(Q, p + dp)
-    return p1, matvec(Q, v + dv) - omega.cross(p1)
+    p1 = matvec_v3(Q, p + dp)
+    return p1, matvec_v3(Q, v + dv) - omega.cross(p1)
 
 
 def leave_inertial(omega, dt, g, p, v):
@@ -174,7 +159,7 @@ def enter_inertial(omega, dt, g, p, v):
     dp, dv = gravity_excess(omega, dt, g)
     dth = -jnp.asarray(dt)[..., None] * omega
     Qt = jnp.swapaxes(so3.exp_matrix(dth), -1, -2)
-    return dth, _mv(Qt, p) - dp, _mv(Qt, v + jnp.cross(omega, p)) - dv
+    return dth, matvec(Qt, p) - dp, matvec(Qt, v + jnp.cross(omega, p)) - dv
 
 
 def error_map_rows(omega, dt, coriolis):
@@ -197,7 +182,7 @@ def error_map_rows(omega, dt, coriolis):
     h = jnp.asarray(dt)[..., None, None]
     if coriolis == "exact":
         Q = so3.exp_matrix(-jnp.asarray(dt)[..., None] * omega)
-        return {2: {1: W, 2: "I"}}, {1: {1: Q}, 2: {1: -_mm(W, Q), 2: Q}}
+        return {2: {1: W, 2: "I"}}, {1: {1: Q}, 2: {1: -matmul(W, Q), 2: Q}}
     eye = jnp.eye(3, dtype=W.dtype)
     cross = -(h * h) * W
     if coriolis == "second_order":
