@@ -95,31 +95,34 @@ def _noise_blocks(Bk, Ev, sg, sa):
     return (_bmm(Bk * _diag_row(sg, dtype), _bt(Bk)), _bmm(Ev * _diag_row(sa, dtype), _bt(Ev)))
 
 
-# blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4) 0)
-P15_KEYS = ((0, 0), (0, 1), (0, 2), (0, 3), (0, 4), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2),
-            (2, 3), (2, 4))
+# blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4)
+# and (0,4) zero: Cov(δθ, δb_a) starts at zero and stays there, as neither the rotation
+# rows of F nor the gyro noise reach b_a, and neither the bias rows nor their noise reach θ)
+P15_KEYS = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 3),
+            (2, 4))
 P9_KEYS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def _cov15_a(P, d3, d4, Bk, Cv, Ev):
-    """``M = F' P`` rows θ and the v-row increments ``N_j = Cv P_0j + Ev P_4j``."""
+    """``M = F' P`` rows θ and the v-row increments ``N_j = Cv P_0j + Ev P_4j``
+    (``P_04 = 0``)."""
     P = dict(zip(P15_KEYS, P))
     M00 = P[0, 0] + _bmm(Bk, _bt(P[0, 3]))
     M01 = P[0, 1] + _bmm(Bk, _bt(P[1, 3]))
     M02 = P[0, 2] + _bmm(Bk, _bt(P[2, 3]))
     M03 = P[0, 3] + Bk * d3[None]
-    N0 = _bmm(Cv, P[0, 0]) + _bmm(Ev, _bt(P[0, 4]))
+    N0 = _bmm(Cv, P[0, 0])
     N1 = _bmm(Cv, P[0, 1]) + _bmm(Ev, _bt(P[1, 4]))
     N2 = _bmm(Cv, P[0, 2]) + _bmm(Ev, _bt(P[2, 4]))
     N3 = _bmm(Cv, P[0, 3])
-    N4 = _bmm(Cv, P[0, 4]) + Ev * d4[None]
+    N4 = Ev * d4[None]
     return (M00, M01, M02, M03), (N0, N1, N2, N3, N4)
 
 
-def _cov15_b(M10, M14, M20, M24, M00, M04, Cv, Ev):
-    """``K_i = M_i0 Cvᵀ + M_i4 Evᵀ`` for the rows θ, p, v."""
+def _cov15_b(M10, M14, M20, M24, M00, Cv, Ev):
+    """``K_i = M_i0 Cvᵀ + M_i4 Evᵀ`` for the rows θ, p, v (``M_04 = P_04 = 0``)."""
     Cvt, Evt = _bt(Cv), _bt(Ev)
-    return (_bmm(M00, Cvt) + _bmm(M04, Evt), _bmm(M10, Cvt) + _bmm(M14, Evt),
+    return (_bmm(M00, Cvt), _bmm(M10, Cvt) + _bmm(M14, Evt),
             _bmm(M20, Cvt) + _bmm(M24, Evt))
 
 
@@ -179,7 +182,6 @@ def step(carry, omega, fsp, h, s, guard, lever=None):
     if Dk is not None:  # the v-row increments gain Dk P_3j
         N0, N1, N2 = (N + _bmm(Dk, _bt(Pd[j, 3])) for N, j in ((N0, 0), (N1, 1), (N2, 2)))
         N3 = N3 + Dk * d3[None]
-    M04 = Pd[0, 4]
     M10 = (_bt(Pd[0, 1]) + hb * _bt(Pd[0, 2])) + half * N0
     M11 = (Pd[1, 1] + hb * _bt(Pd[1, 2])) + half * N1
     M12 = (Pd[1, 2] + hb * Pd[2, 2]) + half * N2
@@ -191,7 +193,7 @@ def step(carry, omega, fsp, h, s, guard, lever=None):
     M24 = Pd[2, 4] + N4
     M10, M11, M12, M13, M14 = _stage(ok, lambda *a: tuple(x * 1 for x in a),
                                      M10, M11, M12, M13, M14)
-    K0, K1, K2 = _stage(ok, _cov15_b, M10, M14, M20, M24, M00, M04, Cv, Ev)
+    K0, K1, K2 = _stage(ok, _cov15_b, M10, M14, M20, M24, M00, Cv, Ev)
     if Dk is not None:  # and the v columns M_i3 Dkᵀ
         Dkt = _bt(Dk)
         K0, K1, K2 = K0 + _bmm(M03, Dkt), K1 + _bmm(M13, Dkt), K2 + _bmm(M23, Dkt)
@@ -200,7 +202,6 @@ def step(carry, omega, fsp, h, s, guard, lever=None):
         (0, 1): (M01 + hb * M02) + half * K0,
         (0, 2): M02 + K0,
         (0, 3): M03,
-        (0, 4): M04,
         (1, 1): _bsym(((M11 + hb * M12) + half * K1) + (half * half) * Qv),
         (1, 2): (M12 + K1) + half * Qv,
         (1, 3): M13,
@@ -307,24 +308,25 @@ def _mid_blocks2(A, R0, R1, R0a0, R1a1, h, sg, sa, RK=None):
 
 
 def _mid_cov_a(P, d3, d4, A, Cv, Dv, Ev, h):
-    """``M = F P`` rows θ and the v-row increments ``N_j = Cv P_0j + Dv P_3j + Ev P_4j``."""
+    """``M = F P`` rows θ and the v-row increments ``N_j = Cv P_0j + Dv P_3j + Ev P_4j``
+    (``P_04 = 0``: ``M`` has no block 4 in row θ)."""
     P = dict(zip(P15_KEYS, P))
     I3 = jnp.asarray(_E3, A.dtype)[:, :, None]
     hb = _lane(h)
     M0 = (_bmm(A, P[0, 0]) - hb * _bt(P[0, 3]), _bmm(A, P[0, 1]) - hb * _bt(P[1, 3]),
-          _bmm(A, P[0, 2]) - hb * _bt(P[2, 3]), _bmm(A, P[0, 3]) - hb * (I3 * d3[None]),
-          _bmm(A, P[0, 4]))
-    N = (_bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])) + _bmm(Ev, _bt(P[0, 4])),
+          _bmm(A, P[0, 2]) - hb * _bt(P[2, 3]), _bmm(A, P[0, 3]) - hb * (I3 * d3[None]))
+    N = (_bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])),
          _bmm(Cv, P[0, 1]) + _bmm(Dv, _bt(P[1, 3])) + _bmm(Ev, _bt(P[1, 4])),
          _bmm(Cv, P[0, 2]) + _bmm(Dv, _bt(P[2, 3])) + _bmm(Ev, _bt(P[2, 4])),
          _bmm(Cv, P[0, 3]) + Dv * d3[None],
-         _bmm(Cv, P[0, 4]) + Ev * d4[None])
+         Ev * d4[None])
     return M0, N
 
 
 def _mid_cov_b(M0, M1, M2, A, Cv, Dv, Ev, h):
     Cvt, Dvt, Evt = _bt(Cv), _bt(Dv), _bt(Ev)
-    K = tuple(_bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M0, M1, M2))
+    K = ((_bmm(M0[0], Cvt) + _bmm(M0[3], Dvt),)
+         + tuple(_bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M1, M2)))
     return K, _bmm(M0[0], _bt(A)) - _lane(h) * M0[3]
 
 
@@ -387,7 +389,7 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None)
         (0, 0): _bsym(C00 + Qtt),
         (0, 1): ((M0[1] + hb * M0[2]) + half * K0) + half * Qtv,
         (0, 2): (M0[2] + K0) + Qtv,
-        (0, 3): M0[3], (0, 4): M0[4],
+        (0, 3): M0[3],
         (1, 1): _bsym(((M1[1] + hb * M1[2]) + half * K1) + (half * half) * Qv),
         (1, 2): (M1[2] + K1) + half * Qv,
         (1, 3): M1[3], (1, 4): M1[4],
