@@ -97,15 +97,13 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
     """
     plain = functools.partial(fn, **dict(statics))
 
-    def flat(*leaves, in_tree):
-        out = plain(*jax.tree_util.tree_unflatten(in_tree, leaves))
-        return jax.tree_util.tree_leaves(out)
-
     def bind(leaves, in_tree):
-        """Trace ``fn`` once at these arguments and bind the primitive with its jaxpr: the
-        abstract evaluation reads the jaxpr's output types and the lowering evaluates the
-        jaxpr, so the entry's Python runs once per call site, not once per stage (tracing
-        is a large part of the compile time of the small kernels)."""
+        """``(output leaves, output tree)`` of ``fn`` on these arguments. Under a trace,
+        ``fn`` is traced once and the primitive bound with its jaxpr: the abstract
+        evaluation reads the jaxpr's output types and the lowering evaluates the jaxpr, so
+        the entry's Python runs once per call site (tracing is a large part of the compile
+        time of the small kernels). On concrete arrays (an eager call, or the batching rule
+        of an eager ``vmap``) there is nothing to route: ``fn`` runs directly."""
         out_tree = []
 
         def traced(*leaves):
@@ -114,15 +112,20 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
             out_tree.append(tree)
             return out_leaves
 
+        if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return traced(*leaves), out_tree[0]
         jaxpr = jax.make_jaxpr(traced)(*leaves)
         return prim.bind(*leaves, in_tree=in_tree, jaxpr=jaxpr), out_tree[0]
 
     prim = Primitive(f"jaximu_{fn.__name__.lstrip('_')}")
     prim.multiple_results = True
-    prim.def_impl(lambda *leaves, in_tree, jaxpr: flat(*leaves, in_tree=in_tree))
+
+    def evaluate(*leaves, in_tree, jaxpr):
+        return jaxpr_as_fun(jaxpr)(*leaves)
+
+    prim.def_impl(evaluate)
     prim.def_abstract_eval(lambda *avals, in_tree, jaxpr: jaxpr.out_avals)
-    mlir.register_lowering(prim, mlir.lower_fun(
-        lambda *leaves, in_tree, jaxpr: jaxpr_as_fun(jaxpr)(*leaves), multiple_results=True))
+    mlir.register_lowering(prim, mlir.lower_fun(evaluate, multiple_results=True))
 
     def _jvp(primals, tangents, *, in_tree, jaxpr):
         tangents = tuple(ad.instantiate_zeros(t) for t in tangents)
@@ -145,10 +148,7 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
     batching.primitive_batchers[prim] = _batch
 
     def routed(*args):
-        leaves, in_tree = jax.tree_util.tree_flatten(args)
-        if not any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return plain(*args)  # eager: nothing to route, and no trace to pay for
-        out, out_tree = bind(leaves, in_tree)
+        out, out_tree = bind(*jax.tree_util.tree_flatten(args))
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     return routed
