@@ -89,13 +89,9 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             return bufs
         return tuple(_stack_last(x) for x in carry)
 
-    # dt, g and omega shared by all lanes are read whole by every block. Derivatives keep
-    # the one-kernel tag: they compile in seconds here (an eager grad of RK4, every state,
-    # 64 × 500: 20 s, 5 s untagged) and run faster so (a calibration gradient step, midpoint
-    # under jax.checkpoint: 1.4-1.6x)
+    # dt, g and omega shared by all lanes are read whole by every block
     return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, gyro, accel, dt,
-                       g, omega, whole=(False,) * 7 + (shared_dt, shared_g, shared_w),
-                       tag_derivatives=True)
+                       g, omega, whole=(False,) * 7 + (shared_dt, shared_g, shared_w))
 
 
 def dense_to_blocks(P):

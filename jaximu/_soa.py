@@ -477,18 +477,16 @@ def _kernel_safe(jaxpr) -> bool:
     return True
 
 
-def one_kernel(fn, *args, tag_derivatives=False):
+def one_kernel(fn, *args):
     """``fn(*args)``, compiled by XLA:CPU as one kernel.
 
     The call is tagged so that XLA keeps it (``inlineable="false"``) and emits it whole
     (``xla_cpu_small_call``, the tag XLA's own small-while-loop pass gives the loops it
     hoists): the time loop inside runs as straight code instead of one thunk per fusion
-    (docs/DESIGN.md, "One kernel per block"). Only the call carries the tag, and by default
-    only its primal: derivatives run through the plain call (:func:`_tagged`);
-    ``tag_derivatives`` tags them too (the mean kernels, whose derivatives compile as one
-    function in seconds and run faster so). A block that uses an operation that emitter
-    lacks (:data:`_ONE_KERNEL_PRIMITIVES`), and every backend but the CPU, get the plain
-    call."""
+    (docs/DESIGN.md, "One kernel per block"). Only the call carries the tag, and only its
+    primal: derivatives run through the plain call (:func:`_plain_derivatives`). A block that
+    uses an operation that emitter lacks (:data:`_ONE_KERNEL_PRIMITIVES`), and every
+    backend but the CPU, get the plain call."""
     call = jax.jit(fn)
     if not ONE_KERNEL_ENABLED or jax.default_backend() != "cpu" or not _kernel_safe(
             call.trace(*args).jaxpr.jaxpr):
@@ -497,26 +495,26 @@ def one_kernel(fn, *args, tag_derivatives=False):
     # closed over, say) would otherwise be sunk into the loop inside the kernel as a large
     # constant, which the whole-computation emitter cannot address (XLA aborts).
     args = jax.lax.optimization_barrier(args)
-    if tag_derivatives:
-        return set_xla_metadata(call(*args), **ONE_KERNEL)
-    return _tagged(call)(*args)
 
-
-def _tagged(call):
-    """``call`` with the one-kernel tag on its primal, and derivatives through the plain
-    call: a differentiated covariance or preintegration kernel (its forward pass saving
-    every step's residuals, its transpose) compiled as one function took LLVM minutes (an
-    eager ``jax.grad`` of a 64 × 500 preintegration: 150 s against 10 s)."""
-
-    @jax.custom_jvp
     def tagged(*args):
         return set_xla_metadata(call(*args), **ONE_KERNEL)
 
-    tagged.defjvp(lambda primals, tangents: jax.jvp(call, primals, tangents))
-    return tagged
+    return _plain_derivatives(tagged, call)(*args)
 
 
-def run_blocked(block_fn, B, lanes, *args, whole=(), tag_derivatives=False):
+def _plain_derivatives(fn, plain):
+    """``fn`` whose derivatives are those of ``plain`` (the same function untagged). A
+    tagged derivative keeps neither guard of the primal: the arguments' barrier (a
+    ``jax.linearize`` of ``propagate_final`` on closed-over samples aborted the process in
+    XLA's emitter) nor a sane compile time (its forward pass saving every step's residuals
+    in one LLVM function: an eager ``jax.grad`` of a 64 × 500 preintegration compiled for
+    150 s, against 10 s)."""
+    fn = jax.custom_jvp(fn)
+    fn.defjvp(lambda primals, tangents: jax.jvp(plain, primals, tangents))
+    return fn
+
+
+def run_blocked(block_fn, B, lanes, *args, whole=()):
     """``block_fn(*args)`` over batch blocks of at most ``lanes`` lanes (a ``lax.map``).
     ``whole``: a flag per argument, ``True`` for one every block reads whole (a gravity,
     noise variances, a ``dt`` common to all lanes, ``None``); every leaf of the others has
@@ -530,15 +528,14 @@ def run_blocked(block_fn, B, lanes, *args, whole=(), tag_derivatives=False):
     divide ``B`` (an odd batch, one sequence) the kernel runs whole on replicated inputs:
     an input the partitioner left sharded (a sequence whose time axis a user split) would
     otherwise get collectives inside the one-kernel call, which XLA:CPU's kernel emitter
-    cannot link; the gather happens before the call, once. ``tag_derivatives``: as
-    :func:`one_kernel`."""
+    cannot link; the gather happens before the call, once."""
     whole = tuple(whole) or (False,) * len(args)
     lane_args = tuple(a for a, w in zip(args, whole, strict=True) if not w)
     shared = tuple(a for a, w in zip(args, whole) if w)
     mesh, axes = _mesh_axes(lane_args)
     n = math.prod(mesh.shape[a] for a in axes) if axes else 1
     if n == 1:
-        return _run_blocks(block_fn, B, lanes, lane_args, shared, whole, tag_derivatives)
+        return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
     P = jax.sharding.PartitionSpec
     # Sharding in types (an Explicit mesh): the layout is written into the arguments' types
     # with reshard, and the results are gathered back to replicated ones, the types the code
@@ -555,9 +552,8 @@ def run_blocked(block_fn, B, lanes, *args, whole=(), tag_derivatives=False):
     with jax.sharding.use_abstract_mesh(mesh):  # the kernels' own arrays on it too
         if B % n:  # not split: the kernel runs whole, on replicated inputs
             lane_args, shared = put((lane_args, shared), P())
-            return _run_blocks(block_fn, B, lanes, lane_args, shared, whole, tag_derivatives)
-        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole,
-                                                       tag_derivatives),
+            return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
+        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole),
                               in_specs=(P(axes), P()), out_specs=P(axes),
                               axis_names=set(axes), check_vma=False)
         if not explicit:
@@ -566,13 +562,13 @@ def run_blocked(block_fn, B, lanes, *args, whole=(), tag_derivatives=False):
         return put(out, P())
 
 
-def _run_blocks(block_fn, B, lanes, lane_args, shared, whole, tag_derivatives):
+def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):
     def ordered(block_args, shared):  # the arguments back in their order
         lane, common = iter(block_args), iter(shared)
         return block_fn(*(next(common) if w else next(lane) for w in whole))
 
     def call(block_args):
-        return one_kernel(ordered, block_args, shared, tag_derivatives=tag_derivatives)
+        return one_kernel(ordered, block_args, shared)
 
     Bc = _block_size(B, lanes)
     if Bc == B:

@@ -75,12 +75,11 @@ def test_blocks_outside_the_emitter_list_run_as_plain_calls():
 
 
 @pytest.mark.skipif(not _soa.ONE_KERNEL_ENABLED, reason="JAXIMU_ONE_KERNEL=0")
-def test_derivatives_of_the_preintegration_run_the_plain_call():
-    """The tag is on the primal only for the preintegration and covariance kernels: a
-    differentiated kernel (its forward pass saving every step's residuals, then its
-    transpose) compiled as one function took LLVM minutes (an eager ``jax.grad`` of a
-    64 × 500 preintegration: 150 s, against 10 s untagged). The mean kernels keep it on
-    their derivatives (they compile in seconds and run faster so)."""
+def test_derivatives_run_the_plain_call():
+    """The tag is on the primal only. A tagged derivative kept neither guard of the primal:
+    compiled as one function, an eager ``jax.grad`` of a 64 × 500 preintegration took LLVM
+    150 s (10 s untagged), and samples closed over reached a tagged derivative as constants
+    (the abort of ``test_constant_inputs_*``; see the linearize test below)."""
     state, gyro, accel = inputs(B, T // 4)
 
     def tagged_calls(fn):
@@ -88,13 +87,30 @@ def test_derivatives_of_the_preintegration_run_the_plain_call():
         return [ln for ln in hlo.splitlines()
                 if "xla_cpu_small_call" in ln and 'inlineable="false"' in ln]
 
-    def loss(w):
-        return jaximu.preintegrate(w, accel, 0.005, None, NOISE).delta_p.sum()
+    for loss in (lambda w: jaximu.preintegrate(w, accel, 0.005, None, NOISE).delta_p.sum(),
+                 lambda w: jaximu.propagate_final(state, w, accel, 0.005).p.sum()):
+        assert tagged_calls(loss)
+        for derivative in (jax.grad(loss), jax.value_and_grad(loss),
+                           lambda w: jax.jvp(loss, (w,), (jnp.ones_like(w),))):
+            assert not tagged_calls(derivative)
 
-    assert tagged_calls(loss)
-    for derivative in (jax.grad(loss), jax.value_and_grad(loss),
-                       lambda w: jax.jvp(loss, (w,), (jnp.ones_like(w),))):
-        assert not tagged_calls(derivative)
-    # the forward pass of a mean kernel's derivative keeps it (the primal value is used)
-    assert tagged_calls(jax.value_and_grad(
-        lambda w: jaximu.propagate_final(state, w, accel, 0.005).p.sum()))
+
+def test_linearize_on_closed_over_samples():
+    """``jax.linearize`` of the mean kernel with float32 samples closed over (constants of
+    the linear function) aborted the process in XLA's emitter while derivatives were
+    tagged. Its tangent against central differences of the float64 call."""
+    d = np.random.default_rng(3).normal(size=(B, T // 8, 3)) * 1e-2
+
+    def f(dtype):
+        state, _, accel = inputs(B, T // 8, dtype=dtype)
+        accel = np.asarray(accel)  # closed over: a constant
+        return (lambda w: jaximu.propagate_final(state, w, accel, 0.005).p), inputs(
+            B, T // 8, dtype=dtype)[1]
+
+    f32, g32 = f(np.float32)
+    _, f_lin = jax.linearize(f32, g32)
+    tangent = f_lin(jnp.asarray(d, np.float32))
+    f64, g64 = f(np.float64)
+    eps = 1e-6
+    fd = (f64(g64 + eps * d) - f64(g64 - eps * d)) / (2 * eps)
+    np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-4 * np.abs(fd).max())
