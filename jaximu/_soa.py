@@ -586,6 +586,13 @@ def _stack_last(t):
 # ----------------------------------------------------------------------------- mean step
 
 
+def _rotate_stage(q, f):
+    """``R(q) f`` of one stage, computed once into memory: the position and velocity rows
+    that read it are separate loops, and each would otherwise recompute the rotation (mean
+    kernels 1.07-1.25x faster; docs/DESIGN.md, "Stage boundaries")."""
+    return V3(*_materialise(_quat_rotate(q, f)))
+
+
 def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
     """One step of ``scheme`` (a :class:`jaximu.integrators.Scheme`) on SoA lanes, exact
     quaternion exponential: :func:`jaximu.integrators.step` in this layout.
@@ -603,6 +610,5 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
     c, k = half_angle(phi_end.dot(phi_end)) if end_half is None else end_half
     q_end = _quat_normalize(_quat_mul(q, (c, k * phi_end.x, k * phi_end.y, k * phi_end.z)))
-    p1, v1 = stage_sum(pts, q, q_end, quat_exp_mul, lambda q, f: V3(*_quat_rotate(q, f)),
-                       p, v, h, g)
+    p1, v1 = stage_sum(pts, q, q_end, quat_exp_mul, _rotate_stage, p, v, h, g)
     return q_end, tuple(p1), tuple(v1)
