@@ -191,6 +191,8 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     ``dt I`` are ``s`` times its v rows (``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev``; Euler
     and midpoint, ``s = dt/2``: :attr:`jaximu.integrators.Scheme.p_over_v`). The p rows'
     products are then those of the v rows, scaled: ``b.Cp``, ``b.Dp``, ``b.Ep`` are not read.
+    ``b.A`` may be the string ``"I"`` (an identity block: no product; the rotation error in
+    the world frame, :func:`jaximu._fast.cov_step_blocks`).
     """
 
     def P(i, j):
@@ -206,10 +208,10 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
         return globals()["t"](x, ops)
 
     hh = b.dt
-    At, Bt, Cvt, Dvt, Evt = t(b.A), t(b.B), t(b.Cv), t(b.Dv), t(b.Ev)
+    Bt, Cvt, Dvt, Evt = t(b.B), t(b.Cv), t(b.Dv), t(b.Ev)
     # M = Φ P, rows θ (0), p (1), v (2); rows b_g (3), b_a (4) are those of P.
     M = {3: {j: P(3, j) for j in range(5)}, 4: {j: P(4, j) for j in range(5)}}
-    M[0] = {j: add(mm(b.A, P(0, j)), mm(b.B, P(3, j))) for j in range(5)}
+    M[0] = {j: add(_times(b.A, P(0, j), ops), mm(b.B, P(3, j))) for j in range(5)}
     if p_over_v is None:
         M[1] = {j: add(P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)),
                        mm(b.Ep, P(4, j))) for j in range(5)}
@@ -240,7 +242,7 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
         out[(i, 4)] = Mi[4]
         kp, kv = K(i if p_over_v is not None else Mi)
         cols = {
-            0: lambda: add(mm(Mi[0], At), mm(Mi[3], Bt)),
+            0: lambda: add(_times_t(Mi[0], b.A, ops), mm(Mi[3], Bt)),
             1: lambda: add(Mi[1], scale(hh, Mi[2]), kp),
             2: lambda: add(Mi[2], kv),
         }
@@ -327,7 +329,11 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         qc = (qc[..., 0:3], qc[..., 3:6], qc[..., 6:9], qc[..., 9:12])
     if p_over_v is not None:  # the p rows follow from the v rows: not formed at all
         b = b._replace(Cp=None, Dp=None, Ep=None)
-    b = ops.barrier(b)  # every block is read by several products
+    # every block is read by several products (an identity "I" is no array to keep)
+    if isinstance(b.A, str):
+        b = ops.barrier(b._replace(A=None))._replace(A=b.A)
+    else:
+        b = ops.barrier(b)
     h = b.dt
     if p_over_v is None:
         Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)

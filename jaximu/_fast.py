@@ -11,7 +11,7 @@ import numpy as np
 
 from jaximu import _blocks, sensor, so3, world
 from jaximu._blocks import Blocks, block, structured_update
-from jaximu._soa import (SOA, _E3, _components, _materialise, _quat_mul,
+from jaximu._soa import (SOA, _E3, _bmm, _bt, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
                          _time_chunks, block_lanes, exp_jr, half_angle_jr, mean_step,
                          quat_matrix, run_blocked)
@@ -106,7 +106,8 @@ def blocks_to_dense(Pb):
     return jnp.moveaxis(D, -1, 0)
 
 
-def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
+def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
+                    world_error=False):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
     ``jax.jvp`` of :func:`jaximu._soa.mean_step` in the 9 non-structural directions, in
@@ -118,7 +119,9 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
     tangent of ``Log(q̂⁺* q⁺)``). As :func:`jaximu.errorstate.blocks_autodiff`, on this
     layout. ``lever`` (a :class:`V3`, or ``None``): samples moved from a sensor at that lever
     arm, whose specific force moves by ``K δb_g`` (:func:`jaximu.sensor.centripetal_jacobian`):
-    the ``db_g`` tangents then perturb the specific force too.
+    the ``db_g`` tangents then perturb the specific force too. ``world_error``: the rotation
+    error in the world frame (``Exp(δθ_W) ⊗ q``: tangent ``[0, ½ e_j] ⊗ q``, rows
+    ``2 vec(δq⁺ ⊗ q⁺*)``), whose ``A`` block is the identity (returned as ``"I"``, not formed).
 
     Returns:
         ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
@@ -137,7 +140,10 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
         return jax.vmap(lambda t: jax.jvp(fn, primals, t)[1])(tangents)
 
     # Python floats (weakly typed): the tangents keep the lanes' dtype
-    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
+    if world_error:
+        half = [_quat_mul(tuple(0.5 * float(x) for x in (0.0, *E[j])), q) for j in range(3)]
+    else:
+        half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
     tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
     minus_e = V3(*(const(-E[:, i]) for i in range(3)))
     q1, p1, v1 = step(q, omega0, omega1, f0, f1)
@@ -163,24 +169,27 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None):
         return sum(E3[:, i, None, None] * r[None] for i, r in enumerate(rows))
 
     def rot(tq1):
-        rel = _quat_mul(conj, tq1)
+        rel = _quat_mul(tq1, conj) if world_error else _quat_mul(conj, tq1)
         return tuple(2.0 * rel[1 + i] for i in range(3))
 
     (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
-    b = Blocks(A=block(rot(tq_t)), B=block(rot(tq_g)), Cp=block(tp_t), Cv=block(tv_t),
-               Dp=block(tp_g), Dv=block(tv_g), Ep=block(tp_a), Ev=block(tv_a), dt=h)
+    b = Blocks(A="I" if world_error else block(rot(tq_t)), B=block(rot(tq_g)),
+               Cp=block(tp_t), Cv=block(tv_t), Dp=block(tp_g), Dv=block(tv_g), Ep=block(tp_a),
+               Ev=block(tv_a), dt=h)
     return (q1, p1, v1), b
 
 
 def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
-                    coriolis="exact", lever=None):
+                    coriolis="exact", lever=None, world_error=False):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
     :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``. ``omega`` (a
     :class:`V3`, or ``None``): the world turns, and the step runs between the world's maps
     (:func:`jaximu.world.covariance_step`). ``lever`` (a :class:`V3`, or ``None``): the
-    samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`)."""
+    samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`).
+    ``world_error`` (a still world only): ``Pb``'s rotation error is in the world frame,
+    ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -189,11 +198,16 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
         half = half_angle_jr(phi_end.dot(phi_end))  # one half angle for the mean and Φ
         q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g,
                                half[:2])
-        b = scheme.blocks(quat_matrix(q, q[0].dtype), omega0, f0, omega1, f1, h, SOA,
-                          end=exp_jr(phi_end, half), lever=lever)
+        R = quat_matrix(q, q[0].dtype)
+        b = scheme.blocks(R, omega0, f0, omega1, f1, h, SOA, end=exp_jr(phi_end, half),
+                          lever=lever)
+        if world_error:  # Φ' = T⁺ Φ Tᵀ, T = blockdiag(R, I, I, I, I): A' = R⁺ A Rᵀ = I
+            Rt = _bt(R)
+            b = b._replace(A="I", B=_bmm(quat_matrix(q1, q[0].dtype), b.B),
+                           Cv=_bmm(b.Cv, Rt), Cp=None if b.Cp is None else _bmm(b.Cp, Rt))
     else:
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, g, lever)
+                                          h, g, lever, world_error)
     qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
     if omega is None:
         new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, scheme.p_over_v(h))
@@ -202,6 +216,18 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
                                     SOA, scheme.p_over_v(h))
         q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis)
     return q1, p1, v1, tuple(new[k] for k in UPPER)
+
+
+def world_error_blocks(Pb, q, inverse=False):
+    """``T P Tᵀ`` with ``T = blockdiag(R(q), I, I, I, I)`` on the 15 upper blocks
+    (``inverse``: ``Tᵀ P T``): the covariance of the body-frame rotation error ``δθ`` as that
+    of the world-frame one ``δθ_W = R δθ``, or back. In the world frame ``Φ_θθ = I`` (the
+    same change of coordinates as the preintegration kernel's, :mod:`jaximu._fast_preint`),
+    which saves the covariance update eight 3×3 products a step (closed-form blocks pay two
+    to change frame; autodiff makes its blocks in that frame)."""
+    R = quat_matrix(q, q[0].dtype)
+    new = _blocks.congruence(dict(zip(UPPER, Pb)), {0: {0: _bt(R) if inverse else R}}, SOA)
+    return tuple(new[k] for k in UPPER)
 
 
 def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
@@ -222,12 +248,16 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     shared_w = not rotating or omega.ndim == 1
     shared_r = lever is None or lever.ndim == 1
     shared_n = qc_params.ndim == 1
+    # final covariance in a still world: the rotation error runs in the world frame
+    world_error = omega is None and not save_all
 
     def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever):
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
                   (_components(omega) if rotating else None),
                   (None if lever is None else _components(lever)))
         carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
+        if world_error:
+            carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
 
         def step(c, w, a, h, consts):
             bg, ba, gv, ln, wv, rv = consts
@@ -241,7 +271,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
             return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc,
                                    None if wv is None else V3(*wv), coriolis,
-                                   None if rv is None else V3(*rv))
+                                   None if rv is None else V3(*rv), world_error)
 
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at
@@ -255,6 +285,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
                                            next_sample=scheme.uses_next_sample)
         if save_all:
             return bufs
+        if world_error:
+            Pb = world_error_blocks(Pb, q, inverse=True)
         return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
