@@ -113,6 +113,7 @@ CASE_ORDER = [
     "mean midpoint final vmap",
     "mean rk4 final",
     "mean euler final rotating",
+    "mean euler final lever",
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
@@ -187,6 +188,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     # a rotating world (Earth's rate at 48°, the exact transition)
                     cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
                                       rotating=True))
+                    # a sensor at a lever arm (body_P_sensor: its samples moved to the body)
+                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
+                                      lever=True))
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):
@@ -304,6 +308,8 @@ def build(case: dict, T: int | None = None):
     if case["kind"] == "mean":
         f = jaximu.propagate if case["save"] == "all" else jaximu.propagate_final
         kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
+        if case.get("lever"):
+            kw["body_P_sensor"] = LEVER_POSE
 
         def fn(s, g, a, h):
             return f(s, g, a, h, scheme, **kw)

@@ -53,7 +53,7 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu import so3
-from jaximu._vec import matvec
+from jaximu._vec import V3, matvec, matvec_v3
 from jaximu.noise import ImuNoise
 
 __all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
@@ -166,25 +166,43 @@ def angular_acceleration(omega, dt):
     way. Central differences inside, one-sided at the ends (module docstring); zero for
     ``T = 1``. Returns ``(..., T, 3)`` [rad/s²].
     """
-    T = omega.shape[-2]
+    return _angular_acceleration(V3.of(omega), dt).stack()
+
+
+def _angular_acceleration(omega: V3, dt) -> V3:
+    """:func:`angular_acceleration` on components ``(..., T)`` (one pass per component: on
+    ``(..., T, 3)`` arrays XLA:CPU reads the components with strides, as scalar code)."""
+    T = omega.x.shape[-1]
     if T < 2:
-        return jnp.zeros_like(omega)
-    dt = jnp.asarray(dt, omega.dtype)
-    h = (jnp.broadcast_to(dt, (T - 1,)) if dt.ndim == 0 else dt[..., :T - 1])[..., None]
-    d = jnp.diff(omega, axis=-2) / h  # (..., T-1, 3) forward differences
-    if T == 2:
-        return jnp.concatenate([d, d], axis=-2)
-    h1, h2 = h[..., :-1, :], h[..., 1:, :]
-    # weighted mean of the neighbouring slopes: exact for a quadratic rate
-    mid = (h2 * d[..., :-1, :] + h1 * d[..., 1:, :]) / (h1 + h2)
-    return jnp.concatenate([d[..., :1, :], mid, d[..., -1:, :]], axis=-2)
+        return V3(*(jnp.zeros_like(c) for c in omega))
+    dt = jnp.asarray(dt, omega.x.dtype)
+    h = jnp.broadcast_to(dt, (T - 1,)) if dt.ndim == 0 else dt[..., :T - 1]
+
+    def one(x):
+        d = jnp.diff(x, axis=-1) / h  # (..., T-1) forward differences
+        if T == 2:
+            return jnp.concatenate([d, d], axis=-1)
+        h1, h2 = h[..., :-1], h[..., 1:]
+        # weighted mean of the neighbouring slopes: exact for a quadratic rate
+        mid = (h2 * d[..., :-1] + h1 * d[..., 1:]) / (h1 + h2)
+        return jnp.concatenate([d[..., :1], mid, d[..., -1:]], axis=-1)
+
+    return V3(*(one(c) for c in omega))
 
 
 def lever_arm_acceleration(omega, alpha, r):
     """``α × r + ω × (ω × r)``: the acceleration of a point at ``r`` on a rigid body relative
     to its origin (body frame, ``(..., 3)``); ``alpha=None`` drops the tangential term."""
-    a = jnp.cross(omega, jnp.cross(omega, r))
-    return a if alpha is None else a + jnp.cross(alpha, r)
+    return _lever_arm_acceleration(V3.of(omega), None if alpha is None else V3.of(alpha),
+                                   V3.of(r)).stack()
+
+
+def _lever_arm_acceleration(omega: V3, alpha, r: V3) -> V3:
+    """:func:`lever_arm_acceleration` on components (``jnp.cross`` on ``(..., 3)`` arrays
+    slices and stacks; nested, XLA:CPU recomputed its operands per component: 1024 × 1000
+    samples took 0.2 s)."""
+    a = omega.cross(omega.cross(r))
+    return a if alpha is None else a + alpha.cross(r)
 
 
 def moved_specific_force(accel, omega_hat, omega, r):
@@ -222,12 +240,14 @@ def to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool = True):
         ``R_BS b`` (:func:`bias_to_body`), i.e. ``gyro_B - R_BS b_g = ω_B`` and
         ``accel_B - R_BS b_a = f_B``.
     """
+    # on components (..., T), stacked once at the end (docs/DESIGN.md, "kernel layout")
     R = pose.R[..., None, :, :]
-    gyro_b = matvec(R, gyro)
-    omega = gyro_b - matvec(pose.R, b_g)[..., None, :]
-    alpha = angular_acceleration(gyro_b, dt) if tangential else None
-    accel_b = matvec(R, accel) - lever_arm_acceleration(omega, alpha, pose.p[..., None, :])
-    return gyro_b, accel_b
+    gyro_b = matvec_v3(R, V3.of(gyro))
+    omega = gyro_b - V3(*(c[..., None] for c in matvec_v3(pose.R, V3.of(b_g))))
+    alpha = _angular_acceleration(gyro_b, dt) if tangential else None
+    r = V3(*(c[..., None] for c in V3.of(pose.p)))
+    accel_b = matvec_v3(R, V3.of(accel)) - _lever_arm_acceleration(omega, alpha, r)
+    return gyro_b.stack(), accel_b.stack()
 
 
 def lever_of(pose: SensorPose):
