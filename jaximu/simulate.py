@@ -303,11 +303,13 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         pose = check_pose(body_P_sensor, t.dtype)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     if omega_coriolis is not None:
+        from jaximu.sensor import lever_arm_acceleration
         from jaximu.world import check_omega
 
         w = check_omega(omega_coriolis, t.dtype)
         omega = omega + so3.quat_rotate(so3.quat_conj(q), jnp.broadcast_to(w, omega.shape))
-        a = a + 2 * jnp.cross(w, v) + jnp.cross(w, jnp.cross(w, p))
+        # Coriolis, and ω×(ω×p): a point fixed in the turning world (on components)
+        a = a + 2 * jnp.cross(w, v) + lever_arm_acceleration(w, None, p)
     accel = so3.quat_rotate(so3.quat_conj(q), a - g)
     return omega, accel
 
