@@ -7,7 +7,8 @@ Workloads (real EuRoC MAV samples, tiled; noise = EuRoC ADIS16448 densities; cov
 and bias Jacobians always computed):
 
 * ``long``:    one window of 10^5 samples (500 s at 200 Hz);
-* ``windows``: 4096 windows of 200 samples (1 s each), batched.
+* ``windows``: 4096 windows of 200 samples (1 s each), batched; also with
+  ``jacobians="autodiff"`` and with VINS-Mono's midpoint (closed form and autodiff).
 
 jaximu computes the deltas, all five bias Jacobians (the full 15×15 transition), the 9×9
 covariance and the 15×15 one with the bias random walk. The GTSAM baseline is
@@ -71,11 +72,12 @@ def best_time(fn, reps=3, min_time=0.3):
     return min(times)
 
 
-def bench_jaximu(data, bias, dtype, method, scheme="euler"):
+def bench_jaximu(data, bias, dtype, method, scheme="euler", jacobians="analytic"):
     gyro, accel, dt = (jnp.asarray(x, dtype) for x in data)
     b = jaximu.ImuBias(jnp.asarray(bias[0], dtype), jnp.asarray(bias[1], dtype))
     noise = jaximu.ImuNoise.euroc()
-    fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, scheme, method))
+    fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, scheme, method,
+                                                     jacobians=jacobians))
     mesh = lane_mesh()  # --devices N: windows split over the devices, a long one's chunks too
     if mesh is not None:
         gyro, accel, dt = place((gyro, accel, dt), gyro.shape[0], mesh)
@@ -213,6 +215,24 @@ def main(argv=None):
                 rows.append(row)
                 print(f"jaximu {row['dtype']} {name} {method}: {row['rate'] / 1e6:.3f} M "
                       f"samples/s (compile {comp:.1f} s)", flush=True)
+
+    # the other schemes and Jacobian options a user can pick, on the windows (defaults
+    # otherwise): VINS-Mono's midpoint, and autodiff Jacobians (Euler's run its kernel;
+    # the midpoint's exact derivatives run the generic recursion)
+    for dtype in (jnp.float64, jnp.float32):
+        for scheme, jac in (("euler", "autodiff"), ("midpoint", "analytic"),
+                            ("midpoint", "autodiff")):
+            out, run, comp = bench_jaximu(windows, bias, dtype, "auto", scheme, jac)
+            n = int(np.prod(windows[0].shape[:-1]))
+            tool = "jaximu" if DEVICES < 2 else f"jaximu ({DEVICES} CPU devices)"
+            row = dict(tool=tool, workload="windows", dtype=jnp.dtype(dtype).name,
+                       method=f"auto, {scheme}, {jac}", scheme=scheme, jacobians=jac,
+                       samples=n, run_s=run, compile_s=comp, rate=n / run)
+            if "windows" in gtsam_rate:
+                row["ratio_to_gtsam"] = row["rate"] / gtsam_rate["windows"]
+            rows.append(row)
+            print(f"jaximu {row['dtype']} windows {row['method']}: {row['rate'] / 1e6:.3f} M "
+                  f"samples/s (compile {comp:.1f} s)", flush=True)
 
     print("\n| tool | workload | dtype | method | samples/s | run ms | compile s | × GTSAM | "
           "max abs diff vs GTSAM |")

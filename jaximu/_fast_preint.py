@@ -89,6 +89,24 @@ def _step_blocks(R, Jl, h, u):
     return Ev, _bmm(Ev, Jl), mh * _skew3(u, R.dtype)
 
 
+def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
+    """Stage 2 by autodiff (``jacobians="autodiff"``): ``Ev``, ``B'``, ``Cv`` (and with a
+    lever arm ``Dk``) as the propagation kernel's :func:`jaximu._fast.blocks_autodiff` makes
+    them, ``jax.jvp`` of the Euler step (:func:`jaximu._soa.mean_step`, zero gravity, from
+    ``(ΔR_ik, Δp, Δv)``) with the rotation error in the start frame ``B_i``
+    (``world_error``): the rotated coordinates of this kernel, where ``Φ'_θθ = I``. The
+    other blocks follow from these in an Euler step (``Cp = h/2 Cv``, ``Ep = h/2 Ev``,
+    ``Dp = h/2 Dk``), as in the closed forms; the exact Euler step makes the two equal to
+    rounding."""
+    from jaximu._fast import blocks_autodiff
+    from jaximu.integrators import get_scheme
+
+    w, f, zero = V3(*omega), V3(*fsp), V3(0.0, 0.0, 0.0)
+    _, b = blocks_autodiff(get_scheme("euler"), q, V3(*dp), V3(*dv), w, f, w, f, h, zero,
+                           None if lever is None else V3(*lever), world_error=True)
+    return b.Ev, b.B, b.Cv, (None if lever is None else b.Dv)
+
+
 def _noise_blocks(Bk, Ev, sg, sa):
     """Stage 2c: ``Qθ = B' diag(σ_g²/h) B'ᵀ``, ``Qv = Ev diag(σ_a²/h) Evᵀ``."""
     dtype = Bk.dtype
@@ -143,12 +161,14 @@ def _lever_rk(R, omega, lever):
     return _bmm(R, sensor.centripetal_jacobian(V3(*omega), V3(*lever), SOA))
 
 
-def step(carry, omega, fsp, h, s, guard, lever=None):
+def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic"):
     """One Euler step in the rotated coordinates. ``s``: 12-tuple of ``σ²`` per axis
     (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities.
     ``lever`` (a 3-tuple, or ``None``): samples moved from a sensor at that lever arm; the
     gyro bias and noise then reach v (and p) through ``Dk = h R K`` (:func:`_lever_rk`),
-    F''s b_g column and the gyro noise's (they enter alike)."""
+    F''s b_g column and the gyro noise's (they enter alike). ``jacobians``: the step's
+    blocks in closed form (``"analytic"``) or by autodiff (:func:`_autodiff_blocks`); the
+    covariance update after them is the same."""
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
     (q1, dv1, dp1, t1), lane = jax.lax.cond(
@@ -159,14 +179,19 @@ def step(carry, omega, fsp, h, s, guard, lever=None):
     hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
     var = tuple(x / hd for x in s)  # noise.discrete_variances: σ² / dt
     h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
-    R, Jl = _stage(ok, _rot_jl, q, phi, t2, k, b)
-    Ev, Bk, Cv = _stage(ok, _step_blocks, R, Jl, h, u)
+    Dk = Qtv = None
+    if jacobians == "analytic":
+        R, Jl = _stage(ok, _rot_jl, q, phi, t2, k, b)
+        Ev, Bk, Cv = _stage(ok, _step_blocks, R, Jl, h, u)
+        if lever is not None:
+            Dk = _stage(ok, lambda R, h: _lever_rk(R, omega, lever) * _lane(h), R, h)
+    else:
+        Ev, Bk, Cv, Dk = _stage(ok, lambda *a: _autodiff_blocks(*a, lever), q, dv, dp, omega,
+                                fsp, h)
     Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
     hb = _lane(h)
     half = 0.5 * hb
-    Dk = Qtv = None
     if lever is not None:  # F'_vbg = Dk; the gyro noise column is [Bk, h/2 Dk, Dk]
-        Dk = _stage(ok, lambda R, h: _lever_rk(R, omega, lever) * _lane(h), R, h)
         sg = _diag_row(var[0:3], q[0].dtype)
         Qv = Qv + _bmm(Dk * sg, _bt(Dk))
         Qtv = _bmm(Bk * sg, _bt(Dk))
@@ -417,15 +442,23 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None)
     return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
 
 
-def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None):
+def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
+                          jacobians="analytic"):
     """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
     samples k and k+1 side by side. Returns the generic code's outputs.
 
     With ``C > 1`` chunks (the parallel method): as the generic code, the rotations ``ΔR_ik``
     come first from an associative scan of the normalised increments; each chunk then runs in
     frame ``B_i`` with its rotations given, and the chunk summaries compose without a frame
-    change (VINS-Mono's unnormalised rotation makes a change of frame inexact)."""
+    change (VINS-Mono's unnormalised rotation makes a change of frame inexact).
+
+    Closed-form Jacobians only: its step hard-codes VINS-Mono's ``B = -h I`` and noise
+    blocks, which exact derivatives do not have (the dispatch table sends
+    ``jacobians="autodiff"`` to the generic recursion)."""
     from jaximu import so3
+
+    if jacobians != "analytic":
+        raise ValueError("the midpoint preintegration kernel has closed-form Jacobians only")
 
     B, T, _ = gyro.shape
     dtype = gyro.dtype
@@ -653,11 +686,11 @@ def num_chunks(B, T, method, dtype):
     return C
 
 
-def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
+def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians="analytic"):
     """Flat batch: gyro, accel ``(B, T, 3)``; dt ``(T,)`` or ``(B, T)``; b_g, b_a ``(3,)`` or
     ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence;
-    ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of samples moved from a sensor
-    (:func:`step`).
+    ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of samples moved from a sensor;
+    ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`step`).
 
     Returns ``(t, q, dv, dp, Φ, Q15, Q9)`` with leading axis B, as the generic code."""
     B, T, _ = gyro.shape
@@ -687,7 +720,7 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None):
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
             f = tuple(a[i] - ba[i] for i in range(3))
-            return step(c, omega, f, h, s, guard, r)
+            return step(c, omega, f, h, s, guard, r, jacobians)
 
         carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel, dt, None, None)
         return _to_summary(carry)

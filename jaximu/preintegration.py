@@ -498,7 +498,8 @@ def _time_major_batch(x, batch, tail):
     return jnp.broadcast_to(x, x.shape[:1] + tuple(batch) + tuple(tail))
 
 
-def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever=None):
+def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever=None,
+                       jacobians="analytic"):
     T = gyro.shape[-2]
     n = dt.shape[-1] if dt.ndim else T  # dt of length T-1: Euler leaves the last sample unused
     dtype = gyro.dtype
@@ -525,7 +526,8 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     if lever is not None and lever.ndim > 1:
         lever = flat(lever, (3,))
     C = _fast_preint.num_chunks(B, n, method, dtype)
-    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever)
+    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
+                                            jacobians)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
         delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),
@@ -549,7 +551,8 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
     if dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
                                     method=method, lanes=lanes, fast=fast,
                                     lever=lever is not None) != dispatch.GENERIC:
-        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever)
+        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever,
+                                  jacobians)
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
     b_g, b_a = bias.b_g, bias.b_a

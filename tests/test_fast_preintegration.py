@@ -42,10 +42,11 @@ def inputs(batch, T, seed=0, per_lane_dt=False, big=False, batched_bias=False,
     return (jnp.asarray(g, dtype), jnp.asarray(a, dtype), jnp.asarray(dt, dtype), bias, noise)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "fast", "scheme"))
-def pre(gyro, accel, dt, bias, noise, lever=None, *, method, fast, scheme="euler"):
+@functools.partial(jax.jit, static_argnames=("method", "fast", "scheme", "jacobians"))
+def pre(gyro, accel, dt, bias, noise, lever=None, *, method, fast, scheme="euler",
+        jacobians="analytic"):
     return _preintegrate(gyro, accel, dt, bias, noise, lever, scheme=scheme, method=method,
-                         jacobians="analytic", prefixes=False, fast=fast)
+                         jacobians=jacobians, prefixes=False, fast=fast)
 
 
 def assert_same(fast, ref, rel):
@@ -63,7 +64,8 @@ def test_dispatch():
     assert uses_fast_path("euler", "analytic", False, "parallel", 1)
     assert uses_fast_path("euler", "analytic", False, "sequential", 1)
     assert not uses_fast_path("euler", "analytic", True)
-    assert not uses_fast_path("euler", "autodiff", False)
+    assert uses_fast_path("euler", "autodiff", False)
+    assert uses_fast_path("euler", "autodiff", False, "parallel", 1, lever=True)
     assert not uses_fast_path("euler", "analytic", False, fast=False)
     assert uses_fast_path("midpoint", "analytic", False, "sequential", 8)
     assert uses_fast_path("midpoint", "analytic", False, "parallel", 1, f64)
@@ -115,6 +117,46 @@ def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per
                           scheme=scheme), 1e-12)
     plain = pre(g, a, dt, bias, noise, None, method="sequential", fast=False, scheme=scheme)
     assert np.abs(np.asarray(fast.cov - plain.cov)).max() > 1e-3 * np.abs(plain.cov).max()
+
+
+@pytest.mark.parametrize("batch,T,method,kw,lever", [
+    ((3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
+                                 "batched_noise": True}, False),
+    ((), 301, "parallel", {"big": True}, False),  # padded last chunk, big angles
+    ((2,), 150, "parallel", {"per_lane_dt": True}, True),
+])
+def test_autodiff_fast_path_equals_generic_autodiff(batch, T, method, kw, lever):
+    """``jacobians="autodiff"`` on the Euler kernel (its blocks by ``jax.jvp`` of the SoA
+    step, _fast_preint._autodiff_blocks) against the generic recursion's autodiff step
+    (``jax.jacfwd`` of the step's mean and noise, dense): the same numbers to rounding,
+    with a lever arm too (its gyro bias and noise then move the specific force)."""
+    args = inputs(batch, T, seed=11, **kw)
+    r = jnp.asarray(np.random.default_rng(12).normal(size=batch + (3,)) * 0.3) if lever else None
+    assert uses_fast_path("euler", "autodiff", False, method, int(np.prod(batch)),
+                          lever=lever)
+    fast = pre(*args, r, method=method, fast=True, jacobians="autodiff")
+    assert_same(fast, pre(*args, r, method="sequential", fast=False, jacobians="autodiff"),
+                1e-12)
+
+
+def test_autodiff_fast_path_gradients_equal_generic():
+    """Gradients through the autodiff blocks (second derivatives of the step) equal the
+    generic autodiff recursion's."""
+    g, a, dt, bias, _ = inputs((3,), 24, seed=13)
+
+    def loss(g, bg, sigma, fast):
+        pim = pre(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
+                  jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), method="sequential", fast=fast,
+                  jacobians="autodiff")
+        return (jnp.sum(pim.delta_p) + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
+                + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
+                + jnp.sum(pim.transition[..., 0:9, 9:15] ** 2))
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
+    args = (g, bias.b_g, jnp.asarray(1.7e-4))
+    for x, y in zip(grad(*args, True), grad(*args, False)):
+        assert np.all(np.isfinite(np.asarray(x)))
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-10 * max(np.abs(y).max(), 1e-300))
 
 
 @pytest.mark.parametrize("method", ["sequential", "parallel"])
