@@ -69,13 +69,11 @@ TABLE = (
     # the same with blocks by autodiff of the SoA step
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",),
         (False, True), 1, 1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
-    # preintegration, final i→j (min_lanes: see preintegrate_kernel). Euler: closed-form
-    # blocks or blocks by autodiff of the SoA step, the same update after them
+    # preintegration, final i→j (min_lanes: see preintegrate_kernel): closed-form blocks or
+    # blocks by autodiff of the SoA step (jax.jvp), the same update after them
     Row("preintegrate", ("euler",), None, ("analytic", "autodiff"), (False,), 1, 1,
         "soa_preint_euler", lever=(False, True)),
-    # VINS-Mono's midpoint: its kernel hard-codes VINS-Mono's linearisation (B = -h I and its
-    # noise blocks); exact derivatives (autodiff) run the generic recursion
-    Row("preintegrate", ("midpoint",), None, ("analytic",), (False,), 1, 1,
+    Row("preintegrate", ("midpoint",), None, ("analytic", "autodiff"), (False,), 1, 1,
         "soa_preint_midpoint", lever=(False, True)),
 )
 

@@ -306,40 +306,106 @@ def _mid_blocks(q, q1u, omega, f0, f1, h):
     return A, R0, R1, R0a0, R1a1
 
 
-def _mid_blocks2(A, R0, R1, R0a0, R1a1, h, sg, sa, RK=None):
-    """Cv, Dv, Ev of F and the white-noise blocks Qv, Qθv. ``RK = (R0 K0, R1 K1)`` for samples
-    moved from a sensor at a lever arm (:func:`_lever_rk`): f_i moves with the gyro bias
-    and noise of sample i, ``K_i δω_i``."""
-    dtype = A.dtype
+def _mid_analytic(q, q1u, omega, f0, f1, h):
+    """VINS-Mono's closed-form blocks: ``A = I - [ω̄]x h``, ``B = -h I`` (``None``: not
+    formed), ``Cv`` and ``Dr = -∂v/∂ω̄ = ½ R1 [f1]x h²`` (``Dv`` without a lever arm)."""
+    A, R0, R1, R0a0, R1a1 = _mid_blocks(q, q1u, omega, f0, f1, h)
     hb = _lane(h)
     Cv = -0.5 * (R0a0 + _bmm(R1a1, A)) * hb
-    Dv = 0.5 * R1a1 * (hb * hb)
+    return A, None, Cv, 0.5 * R1a1 * (hb * hb), R0, R1
+
+
+def _mid_autodiff(q, omega, f0, f1, h):
+    """The same blocks by autodiff (``jacobians="autodiff"``): ``jax.jvp`` of VINS-Mono's
+    mean (:func:`_mid_lane`) in the directions ``δθ`` (the tangent ``q ⊗ [0, ½ e_j]``) and
+    ``δω̄``, each a ``vmap`` over its 3 directions; rotation rows ``2 vec(q⁺* ⊗ δq⁺)`` (as
+    :func:`jaximu._fast.blocks_autodiff`). ``∂v/∂f_i = ½ h R_i`` is exact in both."""
+    dtype = q[0].dtype
+    lanes = q[0].shape
+    E = np.eye(3)
+    E3 = jnp.asarray(_E3, dtype)
+    zero = jnp.zeros(lanes, dtype)
+    z3 = (zero, zero, zero)
+
+    def mean(q, omega):
+        (q1, dv1, _, _), _ = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)
+        return q1, dv1
+
+    def directions(fn, primal, tangents):
+        return jax.vmap(lambda t: jax.jvp(fn, (primal,), (t,))[1])(tangents)
+
+    def const(col):
+        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (3,) + lanes)
+
+    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
+    tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
+    q1, _ = mean(q, omega)
+    tq_t, tv_t = directions(lambda q: mean(q, omega), q, tq)
+    tq_w, tv_w = directions(lambda w: mean(q, w), omega,
+                            tuple(const(E[:, i]) for i in range(3)))
+    conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
+
+    def block(rows):  # 3 row components, each (3 directions, B) -> (3, 3, B)
+        return sum(E3[:, i, None, None] * r[None] for i, r in enumerate(rows))
+
+    def rot(tq1):
+        rel = _quat_mul(conj, tq1)
+        return tuple(2.0 * rel[1 + i] for i in range(3))
+
+    q1u = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)[1]
+    R0, R1 = quat_matrix(q, dtype), quat_matrix(q1u, dtype)
+    return block(rot(tq_t)), -block(rot(tq_w)), block(tv_t), -block(tv_w), R0, R1
+
+
+def _mid_blocks2(A, B, Cv, Dr, R0, R1, h, sg, sa, RK=None):
+    """Dv, Ev of F and the white-noise blocks Qθθ, Qv, Qθv from the step's blocks (closed
+    form or autodiff): the gyro noise of either sample moves ω̄ by half of it, so its rows
+    are ``-½ B`` (θ) and ``-½ Dr`` (v; ``Dr = -∂v/∂ω̄``); the accelerometer noise's v rows
+    are ``½ h R_i``; the p rows are h/2 of the v rows. ``B = None``: VINS-Mono's ``-h I``.
+    ``RK = (R0 K0, R1 K1)`` for samples moved from a sensor at a lever arm
+    (:func:`_lever_rk`): f_i moves with the gyro bias and noise of sample i, ``K_i δω_i``."""
+    dtype = A.dtype
+    hb = _lane(h)
     Ev = -0.5 * (R0 + R1) * hb
-    W = -0.25 * R1a1 * (hb * hb)  # v row of either gyro noise (p row: h/2 of it)
+    W = -0.5 * Dr  # v row of either gyro noise (p row: h/2 of it)
     sa2 = _diag_row(tuple(2.0 * x for x in sa), dtype)
     sg2 = _diag_row(tuple(2.0 * x for x in sg), dtype)
     G = 0.25 * (hb * hb)
     Qa = G * (_bmm(R0 * sa2, _bt(R0)) + _bmm(R1 * sa2, _bt(R1)))
-    if RK is None:
-        Qv = Qa + 2.0 * _bmm(W * sg2, _bt(W))
-        Qtv = _bt(hb * W * sg2)  # 2 × (h/2 I) diag(2σ_g²/h) Wᵀ (Vg appears twice)
-        return Cv, Dv, Ev, Qv, Qtv
-    RK0, RK1 = RK
-    Dv = Dv + 0.5 * (RK0 + RK1) * hb
-    W0, W1 = W - 0.5 * RK0 * hb, W - 0.5 * RK1 * hb
+    if B is None:  # θ row of either gyro noise: ½ h I
+        Qtt = jnp.asarray(_E3, dtype)[:, :, None] * (sg2 * (2.0 * G))
+        Gt = None
+    else:
+        Gt = -0.5 * B
+        Qtt = 2.0 * _bmm(Gt * sg2, _bt(Gt))
+    W0 = W1 = W
+    Dv = Dr
+    if RK is not None:
+        RK0, RK1 = RK
+        Dv = Dr + 0.5 * (RK0 + RK1) * hb
+        W0, W1 = W - 0.5 * RK0 * hb, W - 0.5 * RK1 * hb
     Qv = Qa + _bmm(W0 * sg2, _bt(W0)) + _bmm(W1 * sg2, _bt(W1))
-    Qtv = _bt(0.5 * hb * (W0 + W1) * sg2)
-    return Cv, Dv, Ev, Qv, Qtv
+    if Gt is None:
+        Qtv = _bt(0.5 * hb * (W0 + W1) * sg2)  # (h/2 I) diag(2σ_g²/h) (W0 + W1)ᵀ
+    else:
+        Qtv = _bmm(Gt * sg2, _bt(W0 + W1))
+    return Dv, Ev, Qtt, Qv, Qtv
 
 
-def _mid_cov_a(P, d3, d4, A, Cv, Dv, Ev, h):
+def _b_times(B, X, h):
+    """``B X`` for the θ row's b_g block ``B`` (``None``: VINS-Mono's ``-h I``)."""
+    return -_lane(h) * X if B is None else _bmm(B, X)
+
+
+def _mid_cov_a(P, d3, d4, A, B, Cv, Dv, Ev, h):
     """``M = F P`` rows θ and the v-row increments ``N_j = Cv P_0j + Dv P_3j + Ev P_4j``
     (``P_04 = 0``: ``M`` has no block 4 in row θ)."""
     P = dict(zip(P15_KEYS, P))
     I3 = jnp.asarray(_E3, A.dtype)[:, :, None]
-    hb = _lane(h)
-    M0 = (_bmm(A, P[0, 0]) - hb * _bt(P[0, 3]), _bmm(A, P[0, 1]) - hb * _bt(P[1, 3]),
-          _bmm(A, P[0, 2]) - hb * _bt(P[2, 3]), _bmm(A, P[0, 3]) - hb * (I3 * d3[None]))
+    M0 = (_bmm(A, P[0, 0]) + _b_times(B, _bt(P[0, 3]), h),
+          _bmm(A, P[0, 1]) + _b_times(B, _bt(P[1, 3]), h),
+          _bmm(A, P[0, 2]) + _b_times(B, _bt(P[2, 3]), h),
+          _bmm(A, P[0, 3]) + _b_times(B, I3 * d3[None], h))
     N = (_bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])),
          _bmm(Cv, P[0, 1]) + _bmm(Dv, _bt(P[1, 3])) + _bmm(Ev, _bt(P[1, 4])),
          _bmm(Cv, P[0, 2]) + _bmm(Dv, _bt(P[2, 3])) + _bmm(Ev, _bt(P[2, 4])),
@@ -348,11 +414,11 @@ def _mid_cov_a(P, d3, d4, A, Cv, Dv, Ev, h):
     return M0, N
 
 
-def _mid_cov_b(M0, M1, M2, A, Cv, Dv, Ev, h):
+def _mid_cov_b(M0, M1, M2, A, B, Cv, Dv, Ev, h):
     Cvt, Dvt, Evt = _bt(Cv), _bt(Dv), _bt(Ev)
     K = ((_bmm(M0[0], Cvt) + _bmm(M0[3], Dvt),)
          + tuple(_bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M1, M2)))
-    return K, _bmm(M0[0], _bt(A)) - _lane(h) * M0[3]
+    return K, _bmm(M0[0], _bt(A)) + _bt(_b_times(B, _bt(M0[3]), h))
 
 
 def _mid_cov9(S, A, Cv, h):
@@ -367,10 +433,13 @@ def _mid_cov9(S, A, Cv, h):
     return M0, N, K, _bmm(M0[0], _bt(A))
 
 
-def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None):
+def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
+             jacobians="analytic"):
     """One VINS-Mono midpoint step; with ``q_given`` the rotation at the step is an input (the
     parallel method's chunks, frame ``B_i``) instead of the carried one. ``lever``: as
-    :func:`step`."""
+    :func:`step`. ``jacobians``: VINS-Mono's linearisation (``"analytic"``,
+    :func:`_mid_analytic`) or the exact derivatives of its mean (``"autodiff"``,
+    :func:`_mid_autodiff`); the covariance update after them is the same."""
     q, dv, dp, t, (Ac, Bc, Cpc, Cvc, Dpc, Dvc, Epc, Evc), P, d3, d4, S = carry
     omega = tuple(0.5 * (w0[i] + w1[i]) for i in range(3))  # bias removed by the caller
     ok = jnp.all(jnp.isfinite(h))
@@ -380,36 +449,37 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None)
     hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
     var = tuple(x / hd for x in s)
     h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
-    A, R0, R1, R0a0, R1a1 = _stage(ok, _mid_blocks, q, q1u, omega, a0, a1, h)
+    if jacobians == "analytic":
+        A, B, Cv, Dr, R0, R1 = _stage(ok, _mid_analytic, q, q1u, omega, a0, a1, h)
+    else:
+        A, B, Cv, Dr, R0, R1 = _stage(ok, _mid_autodiff, q, omega, a0, a1, h)
     RK = None
     if lever is not None:
         RK = _stage(ok, lambda R0, R1: (_lever_rk(R0, w0, lever), _lever_rk(R1, w1, lever)),
                     R0, R1)
-    Cv, Dv, Ev, Qv, Qtv = _stage(ok, _mid_blocks2, A, R0, R1, R0a0, R1a1, h, var[0:3],
-                                 var[3:6], RK)
+    Dv, Ev, Qtt, Qv, Qtv = _stage(ok, _mid_blocks2, A, B, Cv, Dr, R0, R1, h, var[0:3],
+                                  var[3:6], RK)
     dtype = q[0].dtype
-    I3 = jnp.asarray(_E3, dtype)[:, :, None]
     hb = _lane(h)
     half = 0.5 * hb
-    Qtt = I3 * _diag_row(tuple(2.0 * ((0.5 * h) * (0.5 * h) * (2.0 * x)) for x in var[0:3]),
-                         dtype)
 
-    # transition Φ ← F Φ (F.Cp = h/2 F.Cv, F.Dp = h/2 F.Dv, F.Ep = h/2 F.Ev, F.B = -h I)
+    # transition Φ ← F Φ (F.Cp = h/2 F.Cv, F.Dp = h/2 F.Dv, F.Ep = h/2 F.Ev)
     XA, XB, AA, AB = _stage(ok, lambda A, Cv, Ac, Bc: (_bmm(Cv, Ac), _bmm(Cv, Bc), _bmm(A, Ac),
                                                         _bmm(A, Bc)), A, Cv, Ac, Bc)
-    Phi1 = (AA, AB - hb * I3, (half * XA + Cpc) + hb * Cvc, XA + Cvc,
+    I3 = jnp.asarray(_E3, dtype)[:, :, None]
+    Phi1 = (AA, AB + (-hb * I3 if B is None else B), (half * XA + Cpc) + hb * Cvc, XA + Cvc,
             ((half * XB + Dpc) + hb * Dvc) + half * Dv, (XB + Dvc) + Dv,
             (Epc + hb * Evc) + half * Ev, Evc + Ev)
 
     # 15×15 covariance
     Pd = dict(zip(P15_KEYS, P))
-    M0, N = _stage(ok, _mid_cov_a, P, d3, d4, A, Cv, Dv, Ev, h)
+    M0, N = _stage(ok, _mid_cov_a, P, d3, d4, A, B, Cv, Dv, Ev, h)
     M1 = tuple((Pd[1, j] if j >= 1 else _bt(Pd[0, 1])) + hb * (
         Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + half * N[j] for j in range(5))
     M2 = tuple((Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + N[j] for j in range(5))
     M1, M2 = _stage(ok, lambda a, b: (tuple(x * 1 for x in a), tuple(x * 1 for x in b)),
                     M1, M2)
-    (K0, K1, K2), C00 = _stage(ok, _mid_cov_b, M0, M1, M2, A, Cv, Dv, Ev, h)
+    (K0, K1, K2), C00 = _stage(ok, _mid_cov_b, M0, M1, M2, A, B, Cv, Dv, Ev, h)
     new = {
         (0, 0): _bsym(C00 + Qtt),
         (0, 1): ((M0[1] + hb * M0[2]) + half * K0) + half * Qtv,
@@ -451,14 +521,8 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
     come first from an associative scan of the normalised increments; each chunk then runs in
     frame ``B_i`` with its rotations given, and the chunk summaries compose without a frame
     change (VINS-Mono's unnormalised rotation makes a change of frame inexact).
-
-    Closed-form Jacobians only: its step hard-codes VINS-Mono's ``B = -h I`` and noise
-    blocks, which exact derivatives do not have (the dispatch table sends
-    ``jacobians="autodiff"`` to the generic recursion)."""
+    ``jacobians``: :func:`mid_step`."""
     from jaximu import so3
-
-    if jacobians != "analytic":
-        raise ValueError("the midpoint preintegration kernel has closed-form Jacobians only")
 
     B, T, _ = gyro.shape
     dtype = gyro.dtype
@@ -472,13 +536,14 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
         q_last = incl[:, -1]
         dR = jnp.concatenate([jnp.broadcast_to(so3.quat_identity((), dtype), (B, 1, 4)),
                               incl[:, :-1]], 1)
-        accel = jnp.concatenate([accel, dR], -1)  # (B, T, 10): the rotation rides along
         L = -(-T // C)
         pad = C * L - T
-        if pad:
+        if pad:  # padded steps: h = 0 at a unit rotation (autodiff normalises through it)
             padw = lambda x: jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
             gyro, accel, hT = padw(gyro), padw(accel), padw(hT)
+            dR = jnp.pad(dR, ((0, 0), (0, pad), (0, 0)), mode="edge")
             guard = True
+        accel = jnp.concatenate([accel, dR], -1)  # (B, T, 10): the rotation rides along
         lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
         gyro, accel, dt = lanes(gyro), lanes(accel), lanes(hT)
         rep = lambda x: jnp.repeat(x, C, axis=0)  # noqa: E731
@@ -497,7 +562,8 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
             w1 = tuple(w[3 + i] - bg[i] for i in range(3))
             a0 = tuple(a[i] - ba[i] for i in range(3))
             a1 = tuple(a[3 + i] - ba[i] for i in range(3))
-            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r)
+            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r,
+                            jacobians)
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
             st, _zero_carry_mid(Bc, dtype), gyro, accel, dt, None, None)[0]

@@ -69,7 +69,7 @@ def test_dispatch():
     assert not uses_fast_path("euler", "analytic", False, fast=False)
     assert uses_fast_path("midpoint", "analytic", False, "sequential", 8)
     assert uses_fast_path("midpoint", "analytic", False, "parallel", 1, f64)
-    assert not uses_fast_path("midpoint", "autodiff", False, "parallel", 4096, f64)
+    assert uses_fast_path("midpoint", "autodiff", False, "parallel", 4096, f64)
     f64 = jnp.float64
     assert _fast_preint.num_chunks(4096, 200, "parallel", f64) == 1
     assert _fast_preint.num_chunks(1, 100000, "sequential", f64) == 1
@@ -119,27 +119,36 @@ def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per
     assert np.abs(np.asarray(fast.cov - plain.cov)).max() > 1e-3 * np.abs(plain.cov).max()
 
 
-@pytest.mark.parametrize("batch,T,method,kw,lever", [
-    ((3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
-                                 "batched_noise": True}, False),
-    ((), 301, "parallel", {"big": True}, False),  # padded last chunk, big angles
-    ((2,), 150, "parallel", {"per_lane_dt": True}, True),
+@pytest.mark.parametrize("scheme,batch,T,method,kw,lever", [
+    ("euler", (3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
+                                          "batched_noise": True}, False),
+    ("euler", (), 301, "parallel", {"big": True}, False),  # padded last chunk, big angles
+    ("euler", (2,), 150, "parallel", {"per_lane_dt": True}, True),
+    ("midpoint", (9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}, True),
+    ("midpoint", (), 301, "parallel", {"big": True, "per_lane_dt": True}, False),
 ])
-def test_autodiff_fast_path_equals_generic_autodiff(batch, T, method, kw, lever):
-    """``jacobians="autodiff"`` on the Euler kernel (its blocks by ``jax.jvp`` of the SoA
-    step, _fast_preint._autodiff_blocks) against the generic recursion's autodiff step
-    (``jax.jacfwd`` of the step's mean and noise, dense): the same numbers to rounding,
-    with a lever arm too (its gyro bias and noise then move the specific force)."""
+def test_autodiff_fast_path_equals_generic_autodiff(scheme, batch, T, method, kw, lever):
+    """``jacobians="autodiff"`` on the SoA kernels (their blocks by ``jax.jvp`` of the SoA
+    step: _fast_preint._autodiff_blocks, _mid_autodiff) against the generic recursion's
+    autodiff step (``jax.jacfwd`` of the step's mean and noise, dense): the same numbers to
+    rounding, with a lever arm too (its gyro bias and noise then move the specific force).
+    For the midpoint these are the exact derivatives, not VINS-Mono's linearisation (the
+    last assertion)."""
     args = inputs(batch, T, seed=11, **kw)
     r = jnp.asarray(np.random.default_rng(12).normal(size=batch + (3,)) * 0.3) if lever else None
-    assert uses_fast_path("euler", "autodiff", False, method, int(np.prod(batch)),
+    assert uses_fast_path(scheme, "autodiff", False, method, int(np.prod(batch)),
                           lever=lever)
-    fast = pre(*args, r, method=method, fast=True, jacobians="autodiff")
-    assert_same(fast, pre(*args, r, method="sequential", fast=False, jacobians="autodiff"),
-                1e-12)
+    fast = pre(*args, r, method=method, fast=True, jacobians="autodiff", scheme=scheme)
+    assert_same(fast, pre(*args, r, method="sequential", fast=False, jacobians="autodiff",
+                          scheme=scheme), 1e-12)
+    if scheme == "midpoint":
+        vins = pre(*args, r, method=method, fast=True, scheme=scheme)
+        diff = np.abs(np.asarray(fast.transition - vins.transition)).max()
+        assert diff > 1e-6 * np.abs(np.asarray(vins.transition)).max()
 
 
-def test_autodiff_fast_path_gradients_equal_generic():
+@pytest.mark.parametrize("scheme", ["euler", "midpoint"])
+def test_autodiff_fast_path_gradients_equal_generic(scheme):
     """Gradients through the autodiff blocks (second derivatives of the step) equal the
     generic autodiff recursion's."""
     g, a, dt, bias, _ = inputs((3,), 24, seed=13)
@@ -147,7 +156,7 @@ def test_autodiff_fast_path_gradients_equal_generic():
     def loss(g, bg, sigma, fast):
         pim = pre(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
                   jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), method="sequential", fast=fast,
-                  jacobians="autodiff")
+                  jacobians="autodiff", scheme=scheme)
         return (jnp.sum(pim.delta_p) + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
                 + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
                 + jnp.sum(pim.transition[..., 0:9, 9:15] ** 2))
