@@ -61,6 +61,9 @@ def test_constant_inputs_preintegration():
                                                        method=method), gyro, accel))
     _close(*_runs(lambda w, a: jaximu.preintegrate(w[0], a[0], 0.005, None, NOISE), gyro,
                   accel))
+    for scheme in ("euler", "midpoint"):  # blocks by jax.jvp inside the kernel
+        _close(*_runs(lambda w, a: jaximu.preintegrate(w, a, 0.005, None, NOISE, scheme,
+                                                       jacobians="autodiff"), gyro, accel))
 
 
 def test_blocks_outside_the_emitter_list_run_as_plain_calls():
