@@ -8,7 +8,9 @@ and bias Jacobians always computed):
 
 * ``long``:    one window of 10^5 samples (500 s at 200 Hz);
 * ``windows``: 4096 windows of 200 samples (1 s each), batched; also with
-  ``jacobians="autodiff"`` and with VINS-Mono's midpoint (closed form and autodiff).
+  ``jacobians="autodiff"`` and with VINS-Mono's midpoint (closed form and autodiff);
+* ``factors``: ``predict``, ``residual``, ``whitened_residual`` and the gradient of its
+  squared norm on the 4096 windows' measurements (windows/s).
 
 jaximu computes the deltas, all five bias Jacobians (the full 15×15 transition), the 9×9
 covariance and the 15×15 one with the bias random walk. The GTSAM baseline is
@@ -233,6 +235,36 @@ def main(argv=None):
             rows.append(row)
             print(f"jaximu {row['dtype']} windows {row['method']}: {row['rate'] / 1e6:.3f} M "
                   f"samples/s (compile {comp:.1f} s)", flush=True)
+
+    # factors on the windows' measurements (float64): predict, residual, whitened residual
+    # and the gradient of the whitened squared norm with respect to the states i, the
+    # evaluations an optimiser repeats (rate: windows/s in the samples/s column)
+    pim = bench_jaximu(windows, bias, jnp.float64, "auto")[0]
+    nw = pim.delta_t.shape[0]
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(nw, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    s_i = jaximu.NavState(jnp.asarray(q), *(jnp.asarray(rng.normal(size=(nw, 3)))
+                                            for _ in range(4)))
+    s_j = jaximu.boxplus(jaximu.predict(s_i, pim),
+                         jnp.asarray(rng.normal(size=(nw, 15)) * 1e-3))
+    factors = {
+        "predict": lambda s: jaximu.predict(s, pim),
+        "residual": lambda s: jaximu.residual(s, s_j, pim),
+        "whitened_residual": lambda s: jaximu.whitened_residual(s, s_j, pim),
+        "grad ‖whitened_residual‖²": jax.grad(
+            lambda s: jnp.sum(jaximu.whitened_residual(s, s_j, pim) ** 2)),
+    }
+    for name, f in factors.items():
+        f = jax.jit(f)
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(s_i))
+        first = time.perf_counter() - t0
+        run = best_time(lambda: f(s_i))
+        rows.append(dict(tool="jaximu", workload="factors", dtype="float64", method=name,
+                         samples=nw, run_s=run, compile_s=max(first - run, 0.0),
+                         rate=nw / run))
+        print(f"jaximu factors {name}: {nw / run / 1e6:.3f} M windows/s", flush=True)
 
     print("\n| tool | workload | dtype | method | samples/s | run ms | compile s | × GTSAM | "
           "max abs diff vs GTSAM |")
