@@ -177,7 +177,8 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic"):
     u, phi, t2, k, b = lane
     ok = jnp.all(jnp.isfinite(h))  # a runtime predicate for the stage conds
     hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
-    var = tuple(x / hd for x in s)  # noise.discrete_variances: σ² / dt
+    ih = 1.0 / hd  # one division a step (σ²/dt: noise.discrete_variances)
+    var = tuple(x * ih for x in s)
     h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
     Dk = Qtv = None
     if jacobians == "analytic":
