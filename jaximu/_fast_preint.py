@@ -448,7 +448,8 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
         q = q_given
     (q1, dv1, dp1, t1), q1u = _stage(ok, _mid_lane, q, dv, dp, t, omega, a0, a1, h)
     hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
-    var = tuple(x / hd for x in s)
+    ih = 1.0 / hd  # one division a step
+    var = tuple(x * ih for x in s)
     h, var = _stage(ok, lambda h, v: (h * 1, tuple(x * 1 for x in v)), h, var)
     if jacobians == "analytic":
         A, B, Cv, Dr, R0, R1 = _stage(ok, _mid_analytic, q, q1u, omega, a0, a1, h)
