@@ -66,6 +66,12 @@ CASES = {
         lambda s, w, a: _preintegrate(w, a, jnp.full(T, DT), s.bias, NOISE, scheme="midpoint",
                                       method="sequential", jacobians="analytic",
                                       prefixes=False, fast=False)),
+    "preintegrate/midpoint/autodiff": (
+        lambda s, w, a: jaximu.preintegrate(w, a, DT, s.bias, NOISE, "midpoint",
+                                            jacobians="autodiff"),
+        lambda s, w, a: _preintegrate(w, a, jnp.full(T, DT), s.bias, NOISE, scheme="midpoint",
+                                      method="sequential", jacobians="autodiff",
+                                      prefixes=False, fast=False)),
 }
 
 
