@@ -340,7 +340,7 @@ def _mid_autodiff(q, omega, f0, f1, h):
 
     half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
     tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
-    q1, _ = mean(q, omega)
+    (q1, _, _, _), q1u = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)
     tq_t, tv_t = directions(lambda q: mean(q, omega), q, tq)
     tq_w, tv_w = directions(lambda w: mean(q, w), omega,
                             tuple(const(E[:, i]) for i in range(3)))
@@ -353,7 +353,6 @@ def _mid_autodiff(q, omega, f0, f1, h):
         rel = _quat_mul(conj, tq1)
         return tuple(2.0 * rel[1 + i] for i in range(3))
 
-    q1u = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)[1]
     R0, R1 = quat_matrix(q, dtype), quat_matrix(q1u, dtype)
     return block(rot(tq_t)), -block(rot(tq_w)), block(tv_t), -block(tv_w), R0, R1
 

@@ -1044,6 +1044,8 @@ def _whiten(cov15, r):
     batch = jnp.broadcast_shapes(cov15.shape[:-2], r.shape[:-1])
     P = jnp.broadcast_to(cov15, batch + (15, 15)).reshape(-1, 15, 15)
     e = jnp.broadcast_to(r, batch + (15,)).reshape(-1, 15)
+    if e.shape[0] == 0:  # an empty batch: no lanes to run
+        return e.reshape(batch + (15,))
 
     def block(P, e):  # (Bc, 15, 15), (Bc, 15): one kernel per block of lanes
         Pb = {(i, j): jnp.moveaxis(P[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3], 0, -1)
