@@ -5,16 +5,16 @@ structure-of-arrays layout of :mod:`jaximu._soa` (why that layout: docs/DESIGN.m
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks, sensor, so3, world
 from jaximu._blocks import Blocks, block, structured_update
-from jaximu._soa import (SOA, _E3, _bmm, _bt, _components, _materialise, _quat_mul,
+from jaximu._soa import (SOA, _bmm, _bt, _components, _materialise, _quat_mul,
                          _quat_normalize, _stack_last,
-                         _time_chunks, block_lanes, exp_jr, half_angle_jr, mean_step,
-                         quat_matrix, run_blocked)
+                         _time_chunks, block_lanes, direction_block, exp_jr, half_angle_jr,
+                         jvp_directions, lane_directions, mean_step, quat_matrix,
+                         rotation_rows, rotation_tangents, run_blocked)
 from jaximu._vec import V3
 
 UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
@@ -128,49 +128,33 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
     """
     dtype = q[0].dtype
     lanes = q[0].shape
-    E = np.eye(3)
-
-    def const(col):  # (3,) per direction, broadcast over the lanes
-        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (3,) + lanes)
 
     def step(q, omega0, omega1, f0, f1):
         return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
 
-    def directions(fn, primals, tangents):
-        return jax.vmap(lambda t: jax.jvp(fn, primals, t)[1])(tangents)
-
-    # Python floats (weakly typed): the tangents keep the lanes' dtype
-    if world_error:
-        half = [_quat_mul(tuple(0.5 * float(x) for x in (0.0, *E[j])), q) for j in range(3)]
-    else:
-        half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
-    tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
-    minus_e = V3(*(const(-E[:, i]) for i in range(3)))
+    tq = rotation_tangents(q, world_error)
+    minus_e = V3(*lane_directions(-np.eye(3), dtype, lanes))
     q1, p1, v1 = step(q, omega0, omega1, f0, f1)
-    d_theta = directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
+    d_theta = jvp_directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
     if lever is None:
-        d_bg = directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
-                          (minus_e, minus_e))
+        d_bg = jvp_directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
+                              (minus_e, minus_e))
     else:  # direction j moves f by the column K e_j: component i is K[i, j] per lane
         def k_cols(omega):
             K = jnp.broadcast_to(sensor.centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
             return V3(K[0], K[1], K[2])
 
-        d_bg = directions(lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
-                          (omega0, omega1, f0, f1),
-                          (minus_e, minus_e, k_cols(omega0), k_cols(omega1)))
-    d_ba = directions(lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1),
-                      (minus_e, minus_e))
-    conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
-    E3 = jnp.asarray(_E3, dtype)
+        d_bg = jvp_directions(lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
+                              (omega0, omega1, f0, f1),
+                              (minus_e, minus_e, k_cols(omega0), k_cols(omega1)))
+    d_ba = jvp_directions(lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1),
+                          (minus_e, minus_e))
 
-    def block(rows):  # 3 row components, each (3 directions, B) -> (3, 3, B)
-        # one-hot broadcasting, not jnp.stack (a concatenate is a scalar loop on XLA:CPU)
-        return sum(E3[:, i, None, None] * r[None] for i, r in enumerate(rows))
+    def block(rows):
+        return direction_block(rows, dtype)
 
     def rot(tq1):
-        rel = _quat_mul(tq1, conj) if world_error else _quat_mul(conj, tq1)
-        return tuple(2.0 * rel[1 + i] for i in range(3))
+        return rotation_rows(tq1, q1, world_error)
 
     (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
     b = Blocks(A="I" if world_error else block(rot(tq_t)), B=block(rot(tq_g)),

@@ -40,7 +40,8 @@ from jaximu import sensor
 from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
-                         block_lanes, quat_matrix, run_blocked)
+                         block_lanes, direction_block, jvp_directions, lane_directions,
+                         quat_matrix, rotation_rows, rotation_tangents, run_blocked)
 from jaximu._vec import V3
 
 MIN_CHUNK = 16  # shortest time chunk per lane
@@ -323,8 +324,6 @@ def _mid_autodiff(q, omega, f0, f1, h):
     :func:`jaximu._fast.blocks_autodiff`). ``∂v/∂f_i = ½ h R_i`` is exact in both."""
     dtype = q[0].dtype
     lanes = q[0].shape
-    E = np.eye(3)
-    E3 = jnp.asarray(_E3, dtype)
     zero = jnp.zeros(lanes, dtype)
     z3 = (zero, zero, zero)
 
@@ -332,26 +331,16 @@ def _mid_autodiff(q, omega, f0, f1, h):
         (q1, dv1, _, _), _ = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)
         return q1, dv1
 
-    def directions(fn, primal, tangents):
-        return jax.vmap(lambda t: jax.jvp(fn, (primal,), (t,))[1])(tangents)
-
-    def const(col):
-        return jnp.broadcast_to(jnp.asarray(col, dtype)[:, None], (3,) + lanes)
-
-    half = [_quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
-    tq = tuple(sum(const(E[j]) * half[j][c][None] for j in range(3)) for c in range(4))
     (q1, _, _, _), q1u = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)
-    tq_t, tv_t = directions(lambda q: mean(q, omega), q, tq)
-    tq_w, tv_w = directions(lambda w: mean(q, w), omega,
-                            tuple(const(E[:, i]) for i in range(3)))
-    conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
+    tq_t, tv_t = jvp_directions(lambda q: mean(q, omega), (q,), (rotation_tangents(q),))
+    tq_w, tv_w = jvp_directions(lambda w: mean(q, w), (omega,),
+                                (lane_directions(np.eye(3), dtype, lanes),))
 
-    def block(rows):  # 3 row components, each (3 directions, B) -> (3, 3, B)
-        return sum(E3[:, i, None, None] * r[None] for i, r in enumerate(rows))
+    def block(rows):
+        return direction_block(rows, dtype)
 
     def rot(tq1):
-        rel = _quat_mul(conj, tq1)
-        return tuple(2.0 * rel[1 + i] for i in range(3))
+        return rotation_rows(tq1, q1)
 
     R0, R1 = quat_matrix(q, dtype), quat_matrix(q1u, dtype)
     return block(rot(tq_t)), -block(rot(tq_w)), block(tv_t), -block(tv_w), R0, R1
