@@ -329,11 +329,7 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         qc = (qc[..., 0:3], qc[..., 3:6], qc[..., 6:9], qc[..., 9:12])
     if p_over_v is not None:  # the p rows follow from the v rows: not formed at all
         b = b._replace(Cp=None, Dp=None, Ep=None)
-    # every block is read by several products (an identity "I" is no array to keep)
-    if isinstance(b.A, str):
-        b = ops.barrier(b._replace(A=None))._replace(A=b.A)
-    else:
-        b = ops.barrier(b)
+    b = ops.barrier(b)  # every block is read by several products
     h = b.dt
     if p_over_v is None:
         Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)

@@ -250,10 +250,17 @@ def _diag_row(s3, dtype):
 
 
 def _materialise(tree):
-    """:func:`_stage` of the identity on a pytree: its leaves are computed once, in memory."""
-    leaves = [x for x in jax.tree_util.tree_leaves(tree) if jnp.ndim(x)]
-    pred = leaves[0].ravel()[0] == leaves[0].ravel()[0]  # any runtime value: branches agree
-    return _stage(pred, lambda t: jax.tree_util.tree_map(lambda x: x * 1, t), tree)
+    """:func:`_stage` of the identity on a pytree: its array leaves are computed once, in
+    memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu._blocks`) pass
+    as they are."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    marks = [isinstance(x, str) for x in leaves]
+    arrays = [x for x, m in zip(leaves, marks) if not m]
+    big = [x for x in arrays if jnp.ndim(x)]
+    pred = big[0].ravel()[0] == big[0].ravel()[0]  # any runtime value: branches agree
+    staged = iter(_stage(pred, lambda a: [x * 1 for x in a], arrays))
+    return jax.tree_util.tree_unflatten(treedef, [x if m else next(staged)
+                                                  for x, m in zip(leaves, marks)])
 
 
 def _diag3(s3, dtype):
