@@ -37,12 +37,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import sensor
+from jaximu._fast import blocks_autodiff
 from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
                          _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
                          block_lanes, direction_block, jvp_directions, lane_directions,
                          quat_matrix, rotation_rows, rotation_tangents, run_blocked)
 from jaximu._vec import V3
+from jaximu.integrators import get_scheme
 
 MIN_CHUNK = 16  # shortest time chunk per lane
 
@@ -99,9 +101,6 @@ def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
     other blocks follow from these in an Euler step (``Cp = h/2 Cv``, ``Ep = h/2 Ev``,
     ``Dp = h/2 Dk``), as in the closed forms; the exact Euler step makes the two equal to
     rounding."""
-    from jaximu._fast import blocks_autodiff
-    from jaximu.integrators import get_scheme
-
     w, f, zero = V3(*omega), V3(*fsp), V3(0.0, 0.0, 0.0)
     _, b = blocks_autodiff(get_scheme("euler"), q, V3(*dp), V3(*dv), w, f, w, f, h, zero,
                            None if lever is None else V3(*lever), world_error=True)
