@@ -22,6 +22,7 @@ Usage (see benchmarks/README.md)::
     python benchmarks/propagation.py --quick      # small sizes, a smoke test (< 1 min)
     python benchmarks/propagation.py --only mean  # or --only cov
     python benchmarks/propagation.py --rss        # each case in its own process, max RSS
+    python benchmarks/propagation.py --vector-width 512  # XLA's 512-bit vectors (AVX-512)
     python benchmarks/propagation.py --check benchmarks/results/propagation-baseline-intel-xeon-2cpu.json
 
 ``--check BASELINE``: compares every case that BASELINE (an earlier run's JSON, same machine)
@@ -57,19 +58,27 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 
-def _devices_arg(argv) -> int:
-    """``--devices N`` read before JAX starts (the CPU device count is fixed then)."""
+def _int_arg(argv, name, default) -> int:
+    """``--name N`` read before JAX starts (device count and XLA flags are fixed then)."""
     for i, a in enumerate(argv):
-        if a == "--devices" and i + 1 < len(argv):
+        if a == name and i + 1 < len(argv):
             return int(argv[i + 1])
-        if a.startswith("--devices="):
+        if a.startswith(name + "="):
             return int(a.split("=", 1)[1])
-    return 1
+    return default
 
 
-DEVICES = _devices_arg(sys.argv[1:])
+DEVICES = _int_arg(sys.argv[1:], "--devices", 1)
 if DEVICES > 1:  # one CPU device per core; every case runs under a mesh of them
     jax.config.update("jax_num_cpu_devices", DEVICES)
+
+VECTOR_WIDTH = _int_arg(sys.argv[1:], "--vector-width", 0)
+"""``--vector-width N``: XLA:CPU compiles with N-bit vectors preferred (its flag
+``--xla_cpu_prefer_vector_width``, default 256), as a user sets it in ``XLA_FLAGS``; 0 leaves
+XLA's default (README, "CPU vector width")."""
+VW_FLAG = f"--xla_cpu_prefer_vector_width={VECTOR_WIDTH}"
+if VECTOR_WIDTH and VW_FLAG not in os.environ.get("XLA_FLAGS", ""):  # read when JAX starts
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + VW_FLAG).strip()
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -491,8 +500,8 @@ def worker(spec: dict) -> None:
 
 
 def run_in_subprocess(payload: dict, timeout: float) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--devices", str(DEVICES), "--worker",
-           json.dumps(payload)]
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--devices", str(DEVICES),
+           "--vector-width", str(VECTOR_WIDTH), "--worker", json.dumps(payload)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -752,6 +761,10 @@ def main(argv=None) -> int:
                     help="split the CPU into this many JAX devices (one per core) and run "
                          "every case under a mesh of them, inputs split over the batch "
                          "(default 1: JAX's default single CPU device)")
+    ap.add_argument("--vector-width", type=int, default=0, choices=(0, 128, 256, 512),
+                    help="XLA:CPU's preferred vector width in bits "
+                         "(--xla_cpu_prefer_vector_width in XLA_FLAGS; default 0: XLA's own, "
+                         "256)")
     ap.add_argument("--check", type=Path, metavar="BASELINE",
                     help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
                          "more than 30%% slower")
@@ -845,7 +858,8 @@ def main(argv=None) -> int:
     out = args.out
     if out is None:
         suffix = (("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
-                  + (f"-{args.devices}dev" if args.devices > 1 else ""))
+                  + (f"-{args.devices}dev" if args.devices > 1 else "")
+                  + (f"-vw{args.vector_width}" if args.vector_width else ""))
         out = RESULTS_DIR / f"propagation-{machine_slug(info)}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
@@ -855,7 +869,8 @@ def main(argv=None) -> int:
         settings=dict(quick=args.quick, only=args.only, reps=args.reps, min_time_s=args.min_time,
                       max_case_s=args.max_case_s, rss=args.rss, dt=DT, gyro_std=GYRO_STD,
                       accel_std=ACCEL_STD, noise="ImuNoise.euroc()", attitude="quaternion",
-                      devices=args.devices, argv=sys.argv[1:]),
+                      devices=args.devices, vector_width=args.vector_width or None,
+                      argv=sys.argv[1:]),
         definitions=dict(
             samples_per_s="B*T / run_s",
             run_s="best of >= reps runs of the AOT-compiled jax.jit function (block_until_ready)",
