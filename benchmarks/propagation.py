@@ -123,12 +123,16 @@ CASE_ORDER = [
     "mean rk4 final",
     "mean euler final rotating",
     "mean euler final lever",
+    "mean euler final matrix",
+    "mean euler final quaternion_first_order",
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
     "cov analytic euler final rotating",
     "cov analytic euler final lever",
+    "cov analytic euler final matrix",
     "cov autodiff euler final",
+    "cov autodiff euler final quaternion_first_order",
     "cov analytic midpoint final",
     "cov autodiff midpoint final",
     "cov analytic rk4 final",
@@ -165,8 +169,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
         )
 
     def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False,
-             lever=False):
-        world = (" rotating" if rotating else "") + (" lever" if lever else "")
+             lever=False, attitude="quaternion"):
+        world = ((" rotating" if rotating else "") + (" lever" if lever else "")
+                 + ("" if attitude == "quaternion" else f" {attitude}"))
         if kind == "mean":
             name = f"mean {scheme} {save}" + world
         elif kind == "cov":
@@ -175,7 +180,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
         return dict(section=section, name=name, kind=kind, scheme=scheme, jac=jac, save=save,
-                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating, lever=lever)
+                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating, lever=lever,
+                    attitude=attitude)
 
     all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size]))
     cases = []
@@ -200,6 +206,10 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     # a sensor at a lever arm (body_P_sensor: its samples moved to the body)
                     cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
                                       lever=True))
+                    # the other attitude forms on the same kernels (README, "Schemes and
+                    # attitude forms")
+                    cases += [case("mean", "mean", "euler", "final", B, T, dtype, attitude=a)
+                              for a in ("matrix", "quaternion_first_order")]
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):
@@ -216,6 +226,10 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     # a sensor at a lever arm (body_P_sensor)
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", lever=True))
+                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
+                                      jac="analytic", attitude="matrix"))
+                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
+                                      jac="autodiff", attitude="quaternion_first_order"))
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
@@ -320,6 +334,8 @@ def build(case: dict, T: int | None = None):
         if case.get("lever"):
             kw["body_P_sensor"] = LEVER_POSE
 
+        kw["attitude"] = case.get("attitude", "quaternion")
+
         def fn(s, g, a, h):
             return f(s, g, a, h, scheme, **kw)
 
@@ -335,6 +351,8 @@ def build(case: dict, T: int | None = None):
         kw = dict(omega_coriolis=EARTH_48) if case.get("rotating") else {}
         if case.get("lever"):
             kw["body_P_sensor"] = LEVER_POSE
+
+        kw["attitude"] = case.get("attitude", "quaternion")
 
         def fn(s, P, g, a, h):
             return f(s, P, g, a, h, NOISE, scheme, jacobians=jac, **kw)

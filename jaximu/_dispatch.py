@@ -46,9 +46,13 @@ class Row(NamedTuple):
     lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
 
 
+LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix")
+"""The attitude forms the structure-of-arrays kernels carry (:data:`jaximu._soa.LANE_FORMS`);
+Euler angles, whose pitch singularity is reported step by step, run the generic kernels."""
+
 TABLE = (
-    # mean of every scheme with the exact quaternion exponential, a batch of 32 or more
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 32, 1,
+    # mean of every scheme in every lane attitude form, a batch of 32 or more
+    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None),
     # the final state of a few long sequences in float64: time chunks side by side as lanes
     # (mean_chunks), composed (the lanes can then also be split over devices). Every state
@@ -60,14 +64,14 @@ TABLE = (
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples)
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1, 1,
+    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
-    # SoA layout)
-    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("analytic",),
+    # SoA layout; the exact-exponential forms have them)
+    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion", "matrix"), ("analytic",),
         (False, True), 1, 1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
-    # the same with blocks by autodiff of the SoA step
-    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion",), ("autodiff",),
+    # the same with blocks by autodiff of the SoA step, every lane attitude form
+    Row("covariance", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, ("autodiff",),
         (False, True), 1, 1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
     # preintegration, final i→j (min_lanes: see preintegrate_kernel): closed-form blocks or
     # blocks by autodiff of the SoA step (jax.jvp), the same update after them

@@ -8,23 +8,18 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks, sensor, so3, world
+from jaximu import _blocks, sensor, world
 from jaximu._blocks import Blocks, block, structured_update
-from jaximu._soa import (SOA, _bmm, _bt, _components, _materialise, _quat_mul,
-                         _quat_normalize, _stack_last,
-                         _time_chunks, block_lanes, direction_block, exp_jr, half_angle_jr,
-                         jvp_directions, lane_directions, mean_step, quat_matrix,
-                         rotation_rows, rotation_tangents, run_blocked)
+from jaximu._soa import (LANE_FORMS, SOA, LaneForm, _bmm, _bt, _components, _materialise,
+                         _quat_normalize, _stack_last, _time_chunks, block_lanes,
+                         direction_block, exp_jr, half_angle_jr, jvp_directions,
+                         lane_directions, mean_step, run_blocked)
 from jaximu._vec import V3
 
 UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
 
-
-def _rotate_left(q, dth):
-    """``Exp(dθ) ⊗ q`` (normalised) for a rotation vector ``dθ`` ``(..., 3)``."""
-    e = so3.exp(dth)
-    return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
+QUATERNION = LANE_FORMS["quaternion"]
 
 
 def _enter_world(omega: V3, p: V3, v: V3, coriolis) -> V3:
@@ -32,35 +27,37 @@ def _enter_world(omega: V3, p: V3, v: V3, coriolis) -> V3:
     return world.to_inertial_v3(omega, p, v) if coriolis == "exact" else v
 
 
-def _leave_world(q, p, v, h, g: V3, omega: V3, coriolis):
-    """The still-world step's end ``(q, p, v)`` (tuples of lanes) back in the turning world:
-    out of the step's inertial frame ("exact"), or GTSAM ≤ 4.2's increments at the end."""
+def _leave_world(q, p, v, h, g: V3, omega: V3, coriolis, form: LaneForm = QUATERNION):
+    """The still-world step's end ``(q, p, v)`` (tuples of lanes; ``q`` in the attitude
+    form ``form``) back in the turning world: out of the step's inertial frame ("exact"), or
+    GTSAM ≤ 4.2's increments at the end."""
     if coriolis == "exact":
         dth, Q, dp, dv = world.leave_inertial_terms(omega.stack(), h, g.stack())
         p, v = world.leave_inertial_v3(omega, Q, V3.of(dp), V3.of(dv), V3(*p), V3(*v))
-        return _rotate_left(q, dth), tuple(p), tuple(v)
+        return form.rotate_left(q, dth), tuple(p), tuple(v)
     dth, dp, dv = world.coriolis_increments_v3(omega, V3(*p), V3(*v), h,
                                                coriolis == "second_order")
-    return _rotate_left(q, dth.stack()), tuple(V3(*p) + dp), tuple(V3(*v) + dv)
+    return form.rotate_left(q, dth.stack()), tuple(V3(*p) + dp), tuple(V3(*v) + dv)
 
 
 def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3, omega: V3,
-                       coriolis):
+                       coriolis, form: LaneForm = QUATERNION):
     """:func:`jaximu.propagate.rotating_step` on lanes: the still-world step in the inertial
     frame of the step's start (``coriolis="exact"``) or followed by GTSAM ≤ 4.2's increments
     (:mod:`jaximu.world` holds both)."""
     v = _enter_world(omega, p, v, coriolis)
-    q, p, v = mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
-    return _leave_world(q, p, v, h, g, omega, coriolis)
+    q, p, v = mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, form=form)
+    return _leave_world(q, p, v, h, g, omega, coriolis, form)
 
 
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
-                   coriolis="exact"):
-    """Flat batch: q ``(B, 4)``, p/v/b_g/b_a ``(B, 3)``, gyro/accel ``(B, T, 3)`` (``T + 1``
-    samples for a scheme that uses sample k+1: the last one ends the last step), dt ``(T,)``
-    or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating world, :mod:`jaximu.world`)
-    ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)`` (B, ·) or, with save_all,
-    the ``(B, T, ·)`` trajectories."""
+                   coriolis="exact", form: LaneForm = QUATERNION):
+    """Flat batch: q ``(B, form.size)`` (the attitude form's state, :data:`LANE_FORMS`: a
+    quaternion ``(B, 4)``, a matrix ``(B, 9)`` row-major), p/v/b_g/b_a ``(B, 3)``, gyro/accel
+    ``(B, T, 3)`` (``T + 1`` samples for a scheme that uses sample k+1: the last one ends the
+    last step), dt ``(T,)`` or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating
+    world, :mod:`jaximu.world`) ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)``
+    (B, ·) or, with save_all, the ``(B, T, ·)`` trajectories, ``q`` in the form."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -79,8 +76,9 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             q, p, v = c
             if rotating:
                 return rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, gv, V3(*consts[3]), coriolis)
-            return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv)
+                                          h, gv, V3(*consts[3]), coriolis, form)
+            return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv,
+                             form=form)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
@@ -107,7 +105,7 @@ def blocks_to_dense(Pb):
 
 
 def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
-                    world_error=False):
+                    world_error=False, form: LaneForm = QUATERNION):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
     ``jax.jvp`` of :func:`jaximu._soa.mean_step` in the 9 non-structural directions, in
@@ -124,15 +122,16 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
     ``2 vec(δq⁺ ⊗ q⁺*)``), whose ``A`` block is the identity (returned as ``"I"``, not formed).
 
     Returns:
-        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
+        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks. ``form``: the attitude form of ``q`` (:data:`LANE_FORMS`), whose
+        own tangents and rows these are (a matrix: ``R [e_j]x``, ``vee(R⁺ᵀ δR⁺)``).
     """
     dtype = q[0].dtype
     lanes = q[0].shape
 
     def step(q, omega0, omega1, f0, f1):
-        return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g)
+        return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, form=form)
 
-    tq = rotation_tangents(q, world_error)
+    tq = form.tangents(q, world_error)
     minus_e = V3(*lane_directions(-np.eye(3), dtype, lanes))
     q1, p1, v1 = step(q, omega0, omega1, f0, f1)
     d_theta = jvp_directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
@@ -154,7 +153,7 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
         return direction_block(rows, dtype)
 
     def rot(tq1):
-        return rotation_rows(tq1, q1, world_error)
+        return form.rows(tq1, q1, world_error)
 
     (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
     b = Blocks(A="I" if world_error else block(rot(tq_t)), B=block(rot(tq_g)),
@@ -164,7 +163,8 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
 
 
 def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
-                    coriolis="exact", lever=None, world_error=False):
+                    coriolis="exact", lever=None, world_error=False,
+                    form: LaneForm = QUATERNION):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
@@ -173,7 +173,8 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
     (:func:`jaximu.world.covariance_step`). ``lever`` (a :class:`V3`, or ``None``): the
     samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`).
     ``world_error`` (a still world only): ``Pb``'s rotation error is in the world frame,
-    ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``."""
+    ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``. ``form``: the
+    attitude form of ``q`` (:data:`LANE_FORMS`; closed forms only for the exact ones)."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -181,24 +182,24 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
         phi_end = scheme.points(omega0, f0, omega1, f1, h)[1]
         half = half_angle_jr(phi_end.dot(phi_end))  # one half angle for the mean and Φ
         q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g,
-                               half[:2])
-        R = quat_matrix(q, q[0].dtype)
+                               half[:2], form)
+        R = form.matrix(q, q[0].dtype)
         b = scheme.blocks(R, omega0, f0, omega1, f1, h, SOA, end=exp_jr(phi_end, half),
                           lever=lever)
         if world_error:  # Φ' = T⁺ Φ Tᵀ, T = blockdiag(R, I, I, I, I): A' = R⁺ A Rᵀ = I
             Rt = _bt(R)
-            b = b._replace(A="I", B=_bmm(quat_matrix(q1, q[0].dtype), b.B),
+            b = b._replace(A="I", B=_bmm(form.matrix(q1, q[0].dtype), b.B),
                            Cv=_bmm(b.Cv, Rt), Cp=None if b.Cp is None else _bmm(b.Cp, Rt))
     else:
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, g, lever, world_error)
+                                          h, g, lever, world_error, form)
     qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
     if omega is None:
         new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, scheme.p_over_v(h))
     else:
         new = world.covariance_step(dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis,
                                     SOA, scheme.p_over_v(h))
-        q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis)
+        q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis, form)
     return q1, p1, v1, tuple(new[k] for k in UPPER)
 
 
@@ -211,13 +212,14 @@ def world_error_blocks(Pb, q, inverse=False):
     to change frame; autodiff makes its blocks in that frame). ``q`` is normalised first:
     under ``jit`` a caller's ``state.q`` is not checked, and ``T`` must be a rotation for the
     map back to undo the map in."""
-    R = quat_matrix(_quat_normalize(q), q[0].dtype)
+    R = QUATERNION.matrix(_quat_normalize(q), q[0].dtype)
     new = _blocks.congruence(dict(zip(UPPER, Pb)), {0: {0: _bt(R) if inverse else R}}, SOA)
     return tuple(new[k] for k in UPPER)
 
 
 def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
-                  jacobians, omega=None, coriolis="exact", lever=None, save_all=False):
+                  jacobians, omega=None, coriolis="exact", lever=None, save_all=False,
+                  form: LaneForm = QUATERNION):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
     after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
     discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
@@ -226,7 +228,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
     ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
     ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of a sensor's samples
-    (:func:`cov_step_blocks`)."""
+    (:func:`cov_step_blocks`); ``form``: the attitude form of ``q`` ``(B, form.size)``
+    (:data:`LANE_FORMS`), which the outputs keep."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -234,8 +237,9 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     shared_w = not rotating or omega.ndim == 1
     shared_r = lever is None or lever.ndim == 1
     shared_n = qc_params.ndim == 1
-    # final covariance in a still world: the rotation error runs in the world frame
-    world_error = omega is None and not save_all
+    # final covariance in a still world: the rotation error runs in the world frame (for a
+    # quaternion form: its map in and out normalises q, which a matrix cannot be)
+    world_error = omega is None and not save_all and form.size == 4
 
     def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever):
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
@@ -257,7 +261,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
             return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc,
                                    None if wv is None else V3(*wv), coriolis,
-                                   None if rv is None else V3(*rv), world_error)
+                                   None if rv is None else V3(*rv), world_error, form)
 
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at

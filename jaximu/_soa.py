@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -139,13 +140,6 @@ def half_angle(t2):
     """``(cos(θ/2), sin(θ/2)/θ)`` for per-lane ``θ² = t2``: the range-reduced path only when
     some lane needs it."""
     return jax.lax.cond(_any_big(t2), _half_any, _half_small, t2)
-
-
-def quat_exp_mul(q, phi: V3):
-    """``normalize(q ⊗ Exp(φ))`` on SoA lanes (:data:`jaximu.integrators` "quaternion" form):
-    the exact exponential, renormalised so that rounding cannot let ``|q|`` drift."""
-    c, k = half_angle(phi.dot(phi))
-    return _quat_normalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
 
 
 def quat_matrix(q, dtype):
@@ -637,23 +631,160 @@ def _stack_last(t):
     return jnp.stack(t, axis=-1)
 
 
+# ----------------------------------------------------------------------------- attitude forms
+#
+# The attitude forms of jaximu.integrators (``Attitude``) on lanes: a form's state is a tuple
+# of lanes (4 for the quaternions, 9 for a matrix, row-major). Each form advances, rotates,
+# gives its matrix, its tangents in the rotation error's 3 directions and the error's rows
+# from a tangent of the result (autodiff blocks), and turns left (a rotating world).
+
+
+def _quat_advance(q, phi: V3, half=None):
+    """``normalize(q ⊗ Exp(φ))``: the exact exponential, renormalised so that rounding
+    cannot let ``|q|`` drift; ``half``: ``(cos(θ/2), sin(θ/2)/θ)`` when the caller has them."""
+    c, k = half_angle(phi.dot(phi)) if half is None else half
+    return _quat_normalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
+
+
+def _quat_first_order(q, phi: V3, half=None):
+    """``normalize(q ⊗ [1, φ/2])`` (:func:`jaximu.so3.quat_first_order_update`)."""
+    return _quat_normalize(_quat_mul(q, (1.0, 0.5 * phi.x, 0.5 * phi.y, 0.5 * phi.z)))
+
+
+def _quat_rotate_left(q, dth):
+    """``normalize(Exp(dθ) ⊗ q)`` for a rotation vector ``dθ`` ``(..., 3)``."""
+    from jaximu import so3
+
+    e = so3.exp(dth)
+    return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
+
+
+def _lanes_matrix(x, dtype):
+    """A matrix's 9 lanes (row-major) as ``(3, 3, B)`` (one-hot broadcasting)."""
+    E = np.eye(9).reshape(9, 3, 3)
+    return sum(jnp.asarray(E[n], dtype)[:, :, None] * x[n][None, None] for n in range(9))
+
+
+def _mat_mul_lanes(X, Y):
+    """``X Y`` of two matrices given as 9 lanes each (or ``(3, 3, …)`` blocks), 9 lanes."""
+    return tuple(sum(X[3 * i + m] * Y[3 * m + j] for m in range(3))
+                 for i in range(3) for j in range(3))
+
+
+def _matrix_advance(R, phi: V3, half=None):
+    """``R Exp(φ)`` (:func:`jaximu.so3.exp_matrix`, from the same half angle)."""
+    c, k = half_angle(phi.dot(phi)) if half is None else half
+    E = quat_matrix((c, k * phi.x, k * phi.y, k * phi.z), _dtype_of(phi))
+    return _mat_mul_lanes(R, tuple(E[n // 3, n % 3] for n in range(9)))
+
+
+def _matrix_rotate(R, f):
+    return tuple(R[3 * i] * f[0] + R[3 * i + 1] * f[1] + R[3 * i + 2] * f[2]
+                 for i in range(3))
+
+
+def _matrix_rotate_left(R, dth):
+    """``Exp(dθ) R`` (:func:`jaximu.so3.exp_matrix`) for ``dθ`` ``(..., 3)``."""
+    from jaximu import so3
+
+    E = so3.exp_matrix(dth)
+    return _mat_mul_lanes(tuple(E[..., n // 3, n % 3] for n in range(9)), R)
+
+
+def _matrix_tangents(R, world=False):
+    """The tangents of ``R Exp(δθ)`` (``world``: ``Exp(δθ) R``) in the 3 directions of
+    ``δθ``: ``R [e_j]x`` (``[e_j]x R``), 9 lanes of ``(3, *lanes)``."""
+    dtype, lanes = R[0].dtype, R[0].shape
+    # [e_j]x (_S3[j]) as 9 lanes of (3 directions, *lanes)
+    S = tuple(jnp.broadcast_to(jnp.asarray(_S3[:, n // 3, n % 3], dtype).reshape(
+        (3,) + (1,) * len(lanes)), (3,) + lanes) for n in range(9))
+    Rd = tuple(x[None] for x in R)
+    return _mat_mul_lanes(S, Rd) if world else _mat_mul_lanes(Rd, S)
+
+
+def _matrix_rows(tR1, R1, world=False):
+    """The rotation error's rows from a tangent ``δR⁺`` of ``R⁺``: ``vee(R⁺ᵀ δR⁺)``
+    (``world``: ``vee(δR⁺ R⁺ᵀ)``), the tangent of ``Log(R̂⁺ᵀ R⁺)`` (its skew part: the
+    exact derivative for an orthonormal ``R⁺``)."""
+    R1t = tuple(R1[3 * (n % 3) + n // 3][None] for n in range(9))
+    M = _mat_mul_lanes(tR1, R1t) if world else _mat_mul_lanes(R1t, tR1)
+    return (0.5 * (M[7] - M[5]), 0.5 * (M[2] - M[6]), 0.5 * (M[3] - M[1]))
+
+
+class LaneForm(NamedTuple):
+    """An attitude form (:class:`jaximu.integrators.Attitude`) on SoA lanes."""
+
+    name: str
+    size: int  # lanes of its state
+    advance: Callable  # (x, φ: V3, half=None) -> x ⊞ φ
+    rotate: Callable  # (x, f) -> R(x) f, 3 lanes
+    matrix: Callable  # (x, dtype) -> R(x) as (3, 3, B)
+    tangents: Callable  # (x, world) -> tangents of x ⊞ δθ in 3 directions
+    rows: Callable  # (tx⁺, x⁺, world) -> the rotation error's 3 rows
+    rotate_left: Callable  # (x, dθ (…, 3)) -> Exp(dθ) R(x), the form's state
+    exact_exponential: bool
+
+
+_QUAT = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, rows=rotation_rows,
+             rotate_left=_quat_rotate_left)
+LANE_FORMS = {
+    "quaternion": LaneForm("quaternion", advance=_quat_advance,
+                           tangents=lambda q, world=False: rotation_tangents(q, world),
+                           exact_exponential=True, **_QUAT),
+    "quaternion_first_order": LaneForm(
+        "quaternion_first_order", advance=_quat_first_order,
+        tangents=lambda q, world=False: rotation_tangents(q, world), exact_exponential=False,
+        **_QUAT),
+    "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate,
+                       lambda R, dtype: _lanes_matrix(R, dtype), _matrix_tangents, _matrix_rows,
+                       _matrix_rotate_left, True),
+}
+"""The attitude forms the structure-of-arrays kernels run (Euler angles, whose pitch
+singularity the generic kernels report step by step, stay there)."""
+
+
+def lane_form(name) -> LaneForm:
+    return LANE_FORMS[name]
+
+
+def from_quat(form: LaneForm, q):
+    """The form's state ``(B, size)`` from quaternions ``(B, 4)`` (as the generic kernels'
+    ``Attitude.from_quat``)."""
+    if form.size == 4:
+        return q
+    from jaximu import so3
+
+    return so3.quat_to_matrix(q).reshape(q.shape[:-1] + (9,))
+
+
+def to_quat(form: LaneForm, x):
+    """Quaternions ``(…, 4)`` from the form's states ``(…, size)``."""
+    if form.size == 4:
+        return x
+    from jaximu import so3
+
+    return so3.matrix_to_quat(x.reshape(x.shape[:-1] + (3, 3)))
+
+
 # ----------------------------------------------------------------------------- mean step
 
 
-def _rotate_stage(q, f):
-    """``R(q) f`` of one stage, computed once into memory: the position and velocity rows
+def _rotate_stage(form, x, f):
+    """``R f`` of one stage, computed once into memory: the position and velocity rows
     that read it are separate loops, and each would otherwise recompute the rotation (mean
     kernels 1.07-1.25x faster; docs/DESIGN.md, "Stage boundaries")."""
-    return V3(*_materialise(_quat_rotate(q, f)))
+    return V3(*_materialise(form.rotate(x, f)))
 
 
-def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
-    """One step of ``scheme`` (a :class:`jaximu.integrators.Scheme`) on SoA lanes, exact
-    quaternion exponential: :func:`jaximu.integrators.step` in this layout.
+def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
+              form: LaneForm = LANE_FORMS["quaternion"]):
+    """One step of ``scheme`` (a :class:`jaximu.integrators.Scheme`) on SoA lanes in the
+    attitude form ``form`` (:data:`LANE_FORMS`; default the exact quaternion exponential):
+    :func:`jaximu.integrators.step` in this layout.
 
     Args:
-        q: 4-tuple of ``(B,)``; p, v, omega*, f*, g: :class:`V3` of ``(B,)`` (or scalars);
-        h: ``(B,)`` or scalar step [s].
+        q: the form's state (4-tuple of ``(B,)`` for a quaternion); p, v, omega*, f*, g:
+        :class:`V3` of ``(B,)`` (or scalars); h: ``(B,)`` or scalar step [s].
         end_half: ``(cos(θ/2), sin(θ/2)/θ)`` of the end rotation when the caller has them.
 
     Returns:
@@ -662,7 +793,7 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None):
     from jaximu.integrators import stage_sum
 
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
-    c, k = half_angle(phi_end.dot(phi_end)) if end_half is None else end_half
-    q_end = _quat_normalize(_quat_mul(q, (c, k * phi_end.x, k * phi_end.y, k * phi_end.z)))
-    p1, v1 = stage_sum(pts, q, q_end, quat_exp_mul, _rotate_stage, p, v, h, g)
+    q_end = form.advance(q, phi_end, end_half)
+    p1, v1 = stage_sum(pts, q, q_end, form.advance,
+                       lambda x, f: _rotate_stage(form, x, f), p, v, h, g)
     return q_end, tuple(p1), tuple(v1)

@@ -38,7 +38,7 @@ import numpy as np
 
 from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
-from jaximu import _fast
+from jaximu import _fast, _soa
 from jaximu import _validation as val
 from jaximu import sensor
 from jaximu import world
@@ -309,7 +309,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
                              rotating=omega is not None, lever=lever is not None)
     if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians, omega, coriolis, lever, save_all)
+                                          jacobians, omega, coriolis, lever, save_all, attitude)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -354,10 +354,12 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
 
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
-                               omega=None, coriolis="exact", lever=None, save_all=False):
+                               omega=None, coriolis="exact", lever=None, save_all=False,
+                               attitude="quaternion"):
     """Mean and covariance (final, or after every step with ``save_all``) on the
-    :mod:`jaximu._fast` layout, exact quaternion exponential, any scheme with closed-form or
-    autodiff blocks (:func:`jaximu._fast.cov_step_blocks`); the block-structured update."""
+    :mod:`jaximu._fast` layout, any scheme with closed-form or autodiff blocks
+    (:func:`jaximu._fast.cov_step_blocks`), the attitude form's state on lanes
+    (:data:`jaximu._soa.LANE_FORMS`); the block-structured update."""
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
@@ -373,9 +375,11 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
         omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
     if lever is not None and lever.ndim > 1:  # a lever arm per batch element
         lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
-    q, p, v, P = _fast.propagate_cov(q, p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f, qc_fn,
-                                     var, get_scheme(scheme), jacobians, omega, coriolis, lever,
-                                     save_all)
+    form = _soa.lane_form(attitude)
+    x, p, v, P = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f, gyro_f,
+                                     accel_f, dt_f, g_f, qc_fn, var, get_scheme(scheme),
+                                     jacobians, omega, coriolis, lever, save_all, form)
+    q = _soa.to_quat(form, x)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
     st = NavState(unflat(q), unflat(p), unflat(v),

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _dispatch as dispatch
-from jaximu import _fast
+from jaximu import _fast, _soa
 from jaximu import _validation as val
 from jaximu import sensor
 from jaximu import so3
@@ -110,15 +110,16 @@ def kernel_samples(scheme, gyro, accel, dt):
 
 
 def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
-                    coriolis="exact"):
+                    coriolis="exact", attitude="quaternion"):
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     if omega is not None and omega.ndim > 1:  # a world rate per batch element
         omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((-1, 3))
-    out = _fast.propagate_mean(get_scheme(scheme), q, p, v, b_g, b_a, gyro_f, accel_f, dt_f, g_f,
-                               save_all, omega, coriolis)
+    form = _soa.lane_form(attitude)  # the attitude form's state on lanes, and back after
+    out = _fast.propagate_mean(get_scheme(scheme), _soa.from_quat(form, q), p, v, b_g, b_a,
+                               gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    q, p, v = (unflat(x) for x in out)
+    q, p, v = (unflat(x) for x in (_soa.to_quat(form, out[0]),) + tuple(out[1:]))
     if save_all:
         bshape = q.shape[:-1] + (3,)
         states = NavState(q, p, v, jnp.broadcast_to(state.b_g[..., None, :], bshape),
@@ -259,7 +260,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
                              rotating=omega is not None)
     if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
-                               coriolis)
+                               coriolis, attitude)
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch)
     state = broadcast_state(state, batch)

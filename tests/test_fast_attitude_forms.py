@@ -1,0 +1,187 @@
+"""The structure-of-arrays kernels in the attitude forms other than the exact quaternion:
+the rotation matrix (exact exponential, closed-form and autodiff Jacobians) and the
+first-order quaternion (autodiff Jacobians), against the generic kernels (``fast=False``),
+which carry the same forms as ``(..., 3, 3)`` / ``(..., 4)`` arrays and differentiate the
+quaternion state with ``jax.jacfwd`` (jaximu/errorstate.py)."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import jaximu
+from jaximu import _dispatch
+from jaximu.errorstate import _propagate_covariance
+from jaximu.propagate import _propagate
+
+G_W = jnp.array([0.0, 0.0, -9.81])
+NOISE = jaximu.ImuNoise(jnp.asarray([1e-3, 2e-3, 3e-3]), 2e-3, 1e-4, 3e-3)
+EARTH = jnp.asarray(jaximu.earth_rate(48.0))
+
+
+def inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
+    rng = np.random.default_rng(seed)
+    q = Rotation.random(B, random_state=seed).as_quat(scalar_first=True)
+    state = jaximu.NavState(*(jnp.asarray(x, dtype) for x in (
+        q, rng.normal(size=(B, 3)), rng.normal(size=(B, 3)), 0.01 * rng.normal(size=(B, 3)),
+        0.1 * rng.normal(size=(B, 3)))))
+    gyro = rng.normal(size=(B, T, 3)) * 0.8
+    if big_angles:  # some lanes turn by more than π/2 per step: the range-reduced branch
+        gyro[: B // 3] *= 400.0
+    accel = rng.normal(size=(B, T, 3)) * 2 + [0, 0, 9.81]
+    dt = rng.uniform(0.002, 0.02, size=(B, T))
+    return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype), jnp.asarray(dt, dtype)
+
+
+def assert_close(got, want, rtol=1e-12):
+    """Every leaf within ``rtol`` of the largest value of the reference's leaf."""
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),
+                    strict=True):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * max(1.0, float(np.abs(b).max())))
+
+
+@functools.partial(jax.jit, static_argnames=("attitude", "scheme", "save_all", "fast"))
+def mean(state, gyro, accel, dt, omega, *, attitude, scheme, save_all, fast):
+    return _propagate(state, gyro, accel, dt, G_W.astype(gyro.dtype), omega, scheme=scheme,
+                      attitude=attitude, save_all=save_all, fast=fast)[0]
+
+
+@functools.partial(jax.jit, static_argnames=("attitude", "scheme", "jacobians", "save_all",
+                                             "fast"))
+def covariance(state, P0, gyro, accel, dt, omega, lever, *, attitude, scheme, jacobians,
+               save_all, fast):
+    return _propagate_covariance(state, P0, gyro, accel, dt, G_W, NOISE, omega, lever,
+                                 scheme=scheme, attitude=attitude, jacobians=jacobians,
+                                 save_all=save_all, fast=fast)[:2]
+
+
+def test_dispatch_of_the_attitude_forms():
+    """The matrix and the first-order quaternion run the SoA kernels (closed forms only for
+    the exact exponential); Euler angles stay generic."""
+    k = _dispatch.kernel
+    for att in ("matrix", "quaternion_first_order"):
+        assert k("mean", "rk4", attitude=att, lanes=40) == "soa_mean"
+        assert k("mean", "euler", attitude=att, lanes=1, steps=10**5,
+                 dtype="float64") == "soa_mean"  # the time chunks compose quaternions
+        assert k("covariance", "midpoint", attitude=att, jacobians="autodiff",
+                 lanes=3) == "soa_cov_autodiff"
+    assert k("covariance", "rk4", attitude="matrix", jacobians="analytic",
+             lanes=3) == "soa_cov_analytic"
+    assert k("covariance", "rk4", attitude="quaternion_first_order", jacobians="analytic",
+             lanes=3) == "generic"
+    assert k("mean", "euler", attitude="euler_angles", lanes=40) == "generic"
+
+
+@pytest.mark.parametrize("attitude,scheme,save_all,rotating", [
+    ("matrix", "euler", False, False), ("matrix", "midpoint", True, False),
+    ("matrix", "rk4", False, True), ("quaternion_first_order", "euler", True, False),
+    ("quaternion_first_order", "midpoint", False, True),
+    ("quaternion_first_order", "rk4", False, False)])
+def test_mean_in_attitude_forms_equals_generic(attitude, scheme, save_all, rotating):
+    """40 lanes (a batch block), per-lane dt, a third of the lanes past π/2 per step."""
+    state, gyro, accel, dt = inputs(40, 31, big_angles=True)
+    omega = 1e3 * EARTH if rotating else None  # a fast-turning world, so that it shows
+    if scheme != "euler":
+        dt = dt[:, :-1]  # samples at the ends of the intervals
+    args = (state, gyro, accel, dt, omega)
+    fast = mean(*args, attitude=attitude, scheme=scheme, save_all=save_all, fast=True)
+    ref = mean(*args, attitude=attitude, scheme=scheme, save_all=save_all, fast=False)
+    assert_close(fast, ref)
+    # the form is not the quaternion's: the first-order update differs from the exact one
+    if attitude == "quaternion_first_order":
+        exact = mean(*args, attitude="quaternion", scheme=scheme, save_all=save_all, fast=True)
+        assert float(jnp.max(jnp.abs(exact.q - fast.q))) > 1e-6
+
+
+def test_mean_matrix_form_float32_and_batch_shapes():
+    state, gyro, accel, dt = inputs(6, 20, seed=3, dtype=np.float32)
+    r = lambda x: x.reshape((2, 3) + x.shape[1:])  # noqa: E731
+    state, gyro, accel, dt = jax.tree_util.tree_map(r, (state, gyro, accel, dt))
+    fast = mean(state, gyro, accel, dt, None, attitude="matrix", scheme="rk4", save_all=True,
+                fast=True)
+    ref = mean(state, gyro, accel, dt, None, attitude="matrix", scheme="rk4", save_all=True,
+               fast=False)
+    assert fast.q.shape == (2, 3, 20, 4) and fast.q.dtype == jnp.float32
+    assert_close(fast, ref, rtol=2e-6)
+
+
+@pytest.mark.parametrize("attitude,scheme,jacobians,save_all,extra", [
+    ("matrix", "euler", "analytic", False, None), ("matrix", "rk4", "analytic", True, None),
+    ("matrix", "midpoint", "autodiff", False, "lever"),
+    ("matrix", "euler", "autodiff", False, "rotating"),
+    ("quaternion_first_order", "euler", "autodiff", True, None),
+    ("quaternion_first_order", "rk4", "autodiff", False, "rotating"),
+    ("quaternion_first_order", "midpoint", "autodiff", False, "lever")])
+def test_covariance_in_attitude_forms_equals_generic(attitude, scheme, jacobians, save_all,
+                                                     extra):
+    """Mean and 15×15 covariance, final or after every step, with a turning world or a
+    sensor's lever arm in the Jacobians, against the generic kernel with the same option."""
+    B, T = 3, 19
+    state, gyro, accel, dt = inputs(B, T, seed=4, big_angles=True)
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(15, 15)) * 0.02
+    P0 = jnp.asarray(A @ A.T + 1e-6 * np.eye(15))
+    omega = 1e3 * EARTH if extra == "rotating" else None
+    lever = jnp.asarray([0.3, -0.2, 0.15]) if extra == "lever" else None
+    kw = dict(attitude=attitude, scheme=scheme, jacobians=jacobians, save_all=save_all)
+    s1, P1 = covariance(state, P0, gyro, accel, dt, omega, lever, fast=True, **kw)
+    s2, P2 = covariance(state, P0, gyro, accel, dt, omega, lever, fast=False, **kw)
+    assert P1.shape == P2.shape == (B,) + ((T,) if save_all else ()) + (15, 15)
+    np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
+    assert_close(s1, s2)
+
+
+def test_matrix_form_closed_forms_equal_its_autodiff_blocks():
+    """The matrix form's blocks by autodiff (tangents ``R [e_j]x``, rows ``vee(R⁺ᵀ δR⁺)``)
+    against its closed forms, both on the SoA kernels."""
+    state, gyro, accel, dt = inputs(3, 17, seed=6)
+    P0 = jnp.eye(15) * 1e-3
+    kw = dict(attitude="matrix", scheme="midpoint", save_all=False, fast=True)
+    s1, P1 = covariance(state, P0, gyro, accel, dt, None, None, jacobians="autodiff", **kw)
+    s2, P2 = covariance(state, P0, gyro, accel, dt, None, None, jacobians="analytic", **kw)
+    np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
+    assert_close(s1, s2)
+
+
+def test_gradient_through_the_matrix_form_kernel_at_zero_rate():
+    """d(final state)/d(gyro) through the SoA matrix-form kernel equals the generic one's,
+    and is finite, at a zero rotation rate (the half angle's 0/0)."""
+    state, _, accel, dt = inputs(2, 9, seed=7)
+    gyro = jnp.zeros((2, 9, 3))
+
+    def loss(w, fast):
+        s = mean(state, w, accel, dt[:, :-1], None, attitude="matrix", scheme="midpoint",
+                 save_all=False, fast=fast)
+        return jnp.sum(jnp.sin(s.q)) + jnp.sum(jnp.sin(s.p)) + jnp.sum(jnp.sin(s.v))
+
+    g1 = jax.grad(loss)(gyro, True)
+    g2 = jax.grad(loss)(gyro, False)
+    assert np.all(np.isfinite(g1))
+    np.testing.assert_allclose(g1, g2, rtol=0, atol=1e-11 * np.abs(g2).max())
+
+
+def test_vmap_of_the_matrix_form_lands_on_the_batched_kernel():
+    """``jax.vmap`` of the public call in the matrix form equals the element-wise generic
+    kernel, and its program holds one engine call over the batch (no per-element kernel)."""
+    state, gyro, accel, dt = inputs(4, 11, seed=8)
+    h = dt[0]
+
+    def fn(s, w, a):
+        return jaximu.propagate_final(s, w, a, h, "rk4", attitude="matrix")
+
+    got = jax.vmap(fn)(state, gyro, accel)
+    want = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[
+        mean(jax.tree_util.tree_map(lambda x: x[i:i + 1], state), gyro[i:i + 1],
+             accel[i:i + 1], h, None, attitude="matrix", scheme="rk4", save_all=False,
+             fast=False) for i in range(4)])
+    want = jax.tree_util.tree_map(lambda x: x[:, 0], want)
+    assert_close(got, want)
+    jaxpr = jax.make_jaxpr(jax.vmap(fn))(state, gyro, accel)
+    eqns = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "jaximu_propagate"]
+    assert len(eqns) == 1
+    assert not [e for e in jaxpr.jaxpr.eqns if e.primitive.name in ("scan", "while")]
+    assert (4, 11, 3) in {tuple(v.aval.shape) for v in eqns[0].invars}
