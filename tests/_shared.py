@@ -2,6 +2,7 @@
 
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu.datasets import euroc_v1_02_segment
@@ -30,3 +31,20 @@ def central_difference_phi(run, x0, eps=1e-6):
         plus, minus = run(jaximu.boxplus(x0, d)), run(jaximu.boxplus(x0, -d))
         cols.append((jaximu.boxminus(plus, nominal) - jaximu.boxminus(minus, nominal)) / (2 * eps))
     return np.stack([np.asarray(c) for c in cols], axis=-1)
+
+
+def random_inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
+    """A random :class:`jaximu.NavState` batch ``(B,)`` (unit quaternions from scipy) and
+    samples ``(B, T, 3)``: rates of 0.8 rad/s (``big_angles``: a third of the lanes turn by
+    more than π/2 a step, the half angle's range-reduced branch), specific forces about
+    gravity."""
+    rng = np.random.default_rng(seed)
+    q = Rotation.random(B, random_state=seed).as_quat(scalar_first=True)
+    state = jaximu.NavState(*(jnp.asarray(x, dtype) for x in (
+        q, rng.normal(size=(B, 3)), rng.normal(size=(B, 3)), 0.01 * rng.normal(size=(B, 3)),
+        0.1 * rng.normal(size=(B, 3)))))
+    gyro = rng.normal(size=(B, T, 3)) * 0.8
+    if big_angles:
+        gyro[: B // 3] *= 400.0
+    accel = rng.normal(size=(B, T, 3)) * 2 + [0, 0, 9.81]
+    return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)

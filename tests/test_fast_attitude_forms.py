@@ -10,12 +10,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import _dispatch
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
+
+from _shared import random_inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 NOISE = jaximu.ImuNoise(jnp.asarray([1e-3, 2e-3, 3e-3]), 2e-3, 1e-4, 3e-3)
@@ -23,17 +24,10 @@ EARTH = jnp.asarray(jaximu.earth_rate(48.0))
 
 
 def inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
-    rng = np.random.default_rng(seed)
-    q = Rotation.random(B, random_state=seed).as_quat(scalar_first=True)
-    state = jaximu.NavState(*(jnp.asarray(x, dtype) for x in (
-        q, rng.normal(size=(B, 3)), rng.normal(size=(B, 3)), 0.01 * rng.normal(size=(B, 3)),
-        0.1 * rng.normal(size=(B, 3)))))
-    gyro = rng.normal(size=(B, T, 3)) * 0.8
-    if big_angles:  # some lanes turn by more than π/2 per step: the range-reduced branch
-        gyro[: B // 3] *= 400.0
-    accel = rng.normal(size=(B, T, 3)) * 2 + [0, 0, 9.81]
-    dt = rng.uniform(0.002, 0.02, size=(B, T))
-    return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype), jnp.asarray(dt, dtype)
+    """:func:`_shared.random_inputs` and a dt per lane and step ``(B, T)``."""
+    state, gyro, accel = random_inputs(B, T, seed, big_angles, dtype)
+    dt = np.random.default_rng(seed + 100).uniform(0.002, 0.02, size=(B, T))
+    return state, gyro, accel, jnp.asarray(dt, dtype)
 
 
 def assert_close(got, want, rtol=1e-12):
@@ -79,8 +73,7 @@ def test_dispatch_of_the_attitude_forms():
 @pytest.mark.parametrize("attitude,scheme,save_all,rotating", [
     ("matrix", "euler", False, False), ("matrix", "midpoint", True, False),
     ("matrix", "rk4", False, True), ("quaternion_first_order", "euler", True, False),
-    ("quaternion_first_order", "midpoint", False, True),
-    ("quaternion_first_order", "rk4", False, False)])
+    ("quaternion_first_order", "midpoint", False, True)])
 def test_mean_in_attitude_forms_equals_generic(attitude, scheme, save_all, rotating):
     """40 lanes (a batch block), per-lane dt, a third of the lanes past π/2 per step."""
     state, gyro, accel, dt = inputs(40, 31, big_angles=True)
@@ -112,10 +105,7 @@ def test_mean_matrix_form_float32_and_batch_shapes():
 @pytest.mark.parametrize("attitude,scheme,jacobians,save_all,extra", [
     ("matrix", "euler", "analytic", False, None), ("matrix", "rk4", "analytic", True, None),
     ("matrix", "midpoint", "autodiff", False, "lever"),
-    ("matrix", "euler", "autodiff", False, "rotating"),
-    ("quaternion_first_order", "euler", "autodiff", True, None),
-    ("quaternion_first_order", "rk4", "autodiff", False, "rotating"),
-    ("quaternion_first_order", "midpoint", "autodiff", False, "lever")])
+    ("quaternion_first_order", "rk4", "autodiff", False, "rotating")])
 def test_covariance_in_attitude_forms_equals_generic(attitude, scheme, jacobians, save_all,
                                                      extra):
     """Mean and 15×15 covariance, final or after every step, with a turning world or a

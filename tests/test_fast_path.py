@@ -7,27 +7,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 
+from _shared import random_inputs as inputs
+
 G_W = jnp.array([0.0, 0.0, -9.81])
-
-
-def inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
-    rng = np.random.default_rng(seed)
-    q = Rotation.random(B, random_state=seed).as_quat(scalar_first=True)
-    state = jaximu.NavState(*(jnp.asarray(x, dtype) for x in (
-        q, rng.normal(size=(B, 3)), rng.normal(size=(B, 3)), 0.01 * rng.normal(size=(B, 3)),
-        0.1 * rng.normal(size=(B, 3)))))
-    gyro = rng.normal(size=(B, T, 3)) * 0.8
-    if big_angles:  # some lanes turn by more than π/2 per step: the range-reduced branch
-        gyro[: B // 3] *= 400.0
-    accel = rng.normal(size=(B, T, 3)) * 2 + [0, 0, 9.81]
-    return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)
 
 
 @functools.partial(jax.jit, static_argnames=("save_all", "fast", "scheme"))
