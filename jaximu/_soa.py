@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jax.experimental.xla_metadata import set_xla_metadata
 import numpy as np
 
+from jaximu import so3
 from jaximu._blocks import Layout
 from jaximu._vec import V3
 
@@ -653,8 +654,6 @@ def _quat_first_order(q, phi: V3, half=None):
 
 def _quat_rotate_left(q, dth):
     """``normalize(Exp(dθ) ⊗ q)`` for a rotation vector ``dθ`` ``(..., 3)``."""
-    from jaximu import so3
-
     e = so3.exp(dth)
     return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
 
@@ -685,8 +684,6 @@ def _matrix_rotate(R, f):
 
 def _matrix_rotate_left(R, dth):
     """``Exp(dθ) R`` (:func:`jaximu.so3.exp_matrix`) for ``dθ`` ``(..., 3)``."""
-    from jaximu import so3
-
     E = so3.exp_matrix(dth)
     return _mat_mul_lanes(tuple(E[..., n // 3, n % 3] for n in range(9)), R)
 
@@ -722,22 +719,16 @@ class LaneForm(NamedTuple):
     tangents: Callable  # (x, world) -> tangents of x ⊞ δθ in 3 directions
     rows: Callable  # (tx⁺, x⁺, world) -> the rotation error's 3 rows
     rotate_left: Callable  # (x, dθ (…, 3)) -> Exp(dθ) R(x), the form's state
-    exact_exponential: bool
 
 
-_QUAT = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, rows=rotation_rows,
-             rotate_left=_quat_rotate_left)
+_QUAT = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, tangents=rotation_tangents,
+             rows=rotation_rows, rotate_left=_quat_rotate_left)
 LANE_FORMS = {
-    "quaternion": LaneForm("quaternion", advance=_quat_advance,
-                           tangents=lambda q, world=False: rotation_tangents(q, world),
-                           exact_exponential=True, **_QUAT),
-    "quaternion_first_order": LaneForm(
-        "quaternion_first_order", advance=_quat_first_order,
-        tangents=lambda q, world=False: rotation_tangents(q, world), exact_exponential=False,
-        **_QUAT),
-    "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate,
-                       lambda R, dtype: _lanes_matrix(R, dtype), _matrix_tangents, _matrix_rows,
-                       _matrix_rotate_left, True),
+    "quaternion": LaneForm("quaternion", advance=_quat_advance, **_QUAT),
+    "quaternion_first_order": LaneForm("quaternion_first_order", advance=_quat_first_order,
+                                       **_QUAT),
+    "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate, _lanes_matrix,
+                       _matrix_tangents, _matrix_rows, _matrix_rotate_left),
 }
 """The attitude forms the structure-of-arrays kernels run (Euler angles, whose pitch
 singularity the generic kernels report step by step, stay there)."""
@@ -752,8 +743,6 @@ def from_quat(form: LaneForm, q):
     ``Attitude.from_quat``)."""
     if form.size == 4:
         return q
-    from jaximu import so3
-
     return so3.quat_to_matrix(q).reshape(q.shape[:-1] + (9,))
 
 
@@ -761,8 +750,6 @@ def to_quat(form: LaneForm, x):
     """Quaternions ``(…, 4)`` from the form's states ``(…, size)``."""
     if form.size == 4:
         return x
-    from jaximu import so3
-
     return so3.matrix_to_quat(x.reshape(x.shape[:-1] + (3, 3)))
 
 
