@@ -125,6 +125,7 @@ CASE_ORDER = [
     "mean euler final lever",
     "mean euler final matrix",
     "mean euler final quaternion_first_order",
+    "mean euler final euler_angles",
     "baseline vmap(scan) euler final",
     "cov analytic euler final",
     "cov analytic euler final vmap",
@@ -209,7 +210,7 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     # the other attitude forms on the same kernels (README, "Schemes and
                     # attitude forms")
                     cases += [case("mean", "mean", "euler", "final", B, T, dtype, attitude=a)
-                              for a in ("matrix", "quaternion_first_order")]
+                              for a in ("matrix", "quaternion_first_order", "euler_angles")]
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):

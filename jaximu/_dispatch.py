@@ -47,12 +47,15 @@ class Row(NamedTuple):
 
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix")
-"""The attitude forms the structure-of-arrays kernels carry (:data:`jaximu._soa.LANE_FORMS`);
-Euler angles, whose pitch singularity is reported step by step, run the generic kernels."""
+"""The attitude forms whose mean and covariance the structure-of-arrays kernels carry
+(:data:`jaximu._soa.LANE_FORMS`); Euler angles too, for the mean (:data:`MEAN_ATTITUDES`):
+their covariance runs the generic kernels."""
+
+MEAN_ATTITUDES = LANE_ATTITUDES + ("euler_angles",)
 
 TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
-    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
+    Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None),
     # the final state of a few long sequences in float64: time chunks side by side as lanes
     # (mean_chunks), composed (the lanes can then also be split over devices). Every state
@@ -64,7 +67,7 @@ TABLE = (
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples)
-    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
+    Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
     # SoA layout; the exact-exponential forms have them)

@@ -15,6 +15,7 @@ from jaximu._soa import (LANE_FORMS, SOA, LaneForm, _bmm, _bt, _components, _mat
                          direction_block, exp_jr, half_angle_jr, jvp_directions,
                          lane_directions, mean_step, run_blocked)
 from jaximu._vec import V3
+from jaximu.integrators import GIMBAL_LOCK_COS
 
 UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 
@@ -57,28 +58,41 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     ``(B, T, 3)`` (``T + 1`` samples for a scheme that uses sample k+1: the last one ends the
     last step), dt ``(T,)`` or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating
     world, :mod:`jaximu.world`) ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)``
-    (B, ·) or, with save_all, the ``(B, T, ·)`` trajectories, ``q`` in the form."""
+    (B, ·) or, with save_all, the ``(B, T, ·)`` trajectories, ``q`` in the form; for Euler
+    angles a 4th output, the lanes that reached the pitch singularity (``(B, 1)`` or
+    ``(B, T, 1)`` bool: from that step on their states are NaN, as the generic kernel's)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
+    euler = form.name == "euler_angles"
 
     def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega):
         consts = (_components(b_g), _components(b_a), _components(g),
                   _components(omega) if rotating else ())
         carry = (_components(q), _components(p), _components(v))
+        if euler:  # and the locked flag of each lane
+            carry = carry + ((jnp.zeros(q.shape[:1], bool),),)
 
         def step(c, w, a, h, consts):
             bg, ba, gv = (V3(*x) for x in consts[:3])
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
-            q, p, v = c
+            q, p, v = c[:3]
             if rotating:
-                return rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, gv, V3(*consts[3]), coriolis, form)
-            return mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv,
-                             form=form)
+                q, p, v = rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
+                                             h, gv, V3(*consts[3]), coriolis, form)
+            else:
+                q, p, v = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv,
+                                    form=form)
+            if not euler:
+                return q, p, v
+            # the pitch ±90° singularity: NaN from the first step that reaches it, never a
+            # silently wrong attitude (jaximu.propagate.mean_body, on lanes)
+            locked = c[3][0] | (jnp.cos(q[1]) < GIMBAL_LOCK_COS)
+            nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
+            return nan(q), nan(p), nan(v), (locked,)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,

@@ -708,6 +708,74 @@ def _matrix_rows(tR1, R1, world=False):
     return (0.5 * (M[7] - M[5]), 0.5 * (M[2] - M[6]), 0.5 * (M[3] - M[1]))
 
 
+def _sincos(a):
+    """``(sin a, cos a)`` per lane from the range-reduced half angle of ``θ = 2|a|``
+    (:func:`_half_any`: ``cos a`` and ``sin|a| / 2|a|``): vectorised arithmetic, where
+    ``jnp.sin``/``cos`` are scalar library calls on XLA:CPU."""
+    c, k = _half_any(4.0 * (a * a))
+    return 2.0 * a * k, c
+
+
+def _euler_trig(chi):
+    """``(sin, cos)`` of roll, pitch and yaw."""
+    return tuple(_sincos(x) for x in chi)
+
+
+def _euler_matrix(chi, trig=None):
+    """``R(χ)`` of ZYX angles ``χ = (roll, pitch, yaw)`` as 9 lanes
+    (:func:`jaximu.so3.euler_zyx_to_matrix`)."""
+    (sr, cr), (sp, cp), (sy, cy) = _euler_trig(chi) if trig is None else trig
+    return (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr)
+
+
+def _euler_rate(chi, w, trig=None):
+    """``E(χ) ω``: the angles' rate for a body rate ``ω`` (:func:`jaximu.so3.euler_rate_matrix`;
+    singular at pitch ±π/2, which the kernels report)."""
+    (sr, cr), (sp, cp) = (_euler_trig(chi) if trig is None else trig)[:2]
+    tp = sp / cp
+    return V3(w[0] + (sr * tp) * w[1] + (cr * tp) * w[2], cr * w[1] + (-sr) * w[2],
+              (sr / cp) * w[1] + (cr / cp) * w[2])
+
+
+def _euler_advance(chi, phi: V3, half=None):
+    """``χ + E(χ) φ`` (the ``"euler_angles"`` form's update)."""
+    return tuple(V3(*chi) + _euler_rate(chi, phi))
+
+
+def _euler_rotate_left(chi, dth):
+    """The angles of ``Exp(dθ) R(χ)`` (as the generic kernels: through quaternions)."""
+    q = so3.euler_zyx_to_quat(jnp.stack(jnp.broadcast_arrays(*chi), -1))
+    chi1 = so3.quat_to_euler_zyx(so3.quat_normalize(so3.quat_mul(so3.exp(dth), q)))
+    return tuple(chi1[..., i] for i in range(3))
+
+
+def _euler_no_autodiff(*args):
+    raise NotImplementedError("the Euler-angle form's covariance runs the generic kernels")
+
+
+def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
+    """Classical RK4 on ``(χ, p, v)`` with ω, f linear inside the step, on lanes
+    (:func:`jaximu.integrators._rk4_euler_angles`, the ``"euler_angles"`` form's RK4)."""
+
+    def deriv(c, w, f):
+        trig = _euler_trig(c)
+        return _euler_rate(c, w, trig), V3(*_matrix_rotate(_euler_matrix(c, trig), f)) + g
+
+    # a V3 on the left of each product: h may be an array of lanes
+    omega_m, f_m = (omega0 + omega1) * 0.5, (f0 + f1) * 0.5
+    chi = V3(*chi)
+    k1, a1 = deriv(chi, omega0, f0)
+    k2, a2 = deriv(chi + k1 * (0.5 * h), omega_m, f_m)
+    k3, a3 = deriv(chi + k2 * (0.5 * h), omega_m, f_m)
+    k4, a4 = deriv(chi + k3 * h, omega1, f1)
+    chi1 = chi + (k1 + k2 * 2 + k3 * 2 + k4) * (h / 6)
+    v1 = v + (a1 + a2 * 2 + a3 * 2 + a4) * (h / 6)
+    p1 = p + v * h + (a1 + a2 + a3) * (h * h / 6)
+    return tuple(chi1), tuple(p1), tuple(v1)
+
+
 class LaneForm(NamedTuple):
     """An attitude form (:class:`jaximu.integrators.Attitude`) on SoA lanes."""
 
@@ -729,9 +797,15 @@ LANE_FORMS = {
                                        **_QUAT),
     "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate, _lanes_matrix,
                        _matrix_tangents, _matrix_rows, _matrix_rotate_left),
+    # the mean only (no closed-form Jacobian; the covariance runs the generic kernels), with
+    # the pitch singularity reported by the kernel (jaximu._fast.propagate_mean)
+    "euler_angles": LaneForm(
+        "euler_angles", 3, _euler_advance,
+        lambda chi, f: _matrix_rotate(_euler_matrix(chi), f),
+        lambda chi, dtype: _lanes_matrix(_euler_matrix(chi), dtype), _euler_no_autodiff,
+        _euler_no_autodiff, _euler_rotate_left),
 }
-"""The attitude forms the structure-of-arrays kernels run (Euler angles, whose pitch
-singularity the generic kernels report step by step, stay there)."""
+"""The attitude forms the structure-of-arrays kernels run, each as its own lanes."""
 
 
 def lane_form(name) -> LaneForm:
@@ -743,6 +817,8 @@ def from_quat(form: LaneForm, q):
     ``Attitude.from_quat``)."""
     if form.size == 4:
         return q
+    if form.name == "euler_angles":
+        return so3.quat_to_euler_zyx(q)
     return so3.quat_to_matrix(q).reshape(q.shape[:-1] + (9,))
 
 
@@ -750,6 +826,8 @@ def to_quat(form: LaneForm, x):
     """Quaternions ``(…, 4)`` from the form's states ``(…, size)``."""
     if form.size == 4:
         return x
+    if form.name == "euler_angles":
+        return so3.euler_zyx_to_quat(x)
     return so3.matrix_to_quat(x.reshape(x.shape[:-1] + (3, 3)))
 
 
@@ -779,6 +857,8 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
     """
     from jaximu.integrators import stage_sum
 
+    if form.name == "euler_angles" and scheme.name == "rk4":
+        return rk4_euler_angles(q, p, v, omega0, f0, omega1, f1, h, g)
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
     q_end = form.advance(q, phi_end, end_half)
     p1, v1 = stage_sum(pts, q, q_end, form.advance,

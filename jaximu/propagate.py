@@ -119,7 +119,10 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     out = _fast.propagate_mean(get_scheme(scheme), _soa.from_quat(form, q), p, v, b_g, b_a,
                                gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    q, p, v = (unflat(x) for x in (_soa.to_quat(form, out[0]),) + tuple(out[1:]))
+    q, p, v = (unflat(x) for x in (_soa.to_quat(form, out[0]),) + tuple(out[1:3]))
+    # Euler angles: the lanes that reached the pitch singularity (by the last step)
+    locked = unflat(out[3][..., -1, 0] if save_all else out[3][..., 0]) if len(out) > 3 \
+        else jnp.zeros(batch, bool)
     if save_all:
         bshape = q.shape[:-1] + (3,)
         states = NavState(q, p, v, jnp.broadcast_to(state.b_g[..., None, :], bshape),
@@ -127,7 +130,7 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     else:
         states = NavState(q, p, v, jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
                           jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
-    return states, jnp.zeros(batch, bool)
+    return states, locked
 
 
 def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):

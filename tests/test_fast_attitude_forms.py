@@ -1,7 +1,8 @@
 """The structure-of-arrays kernels in the attitude forms other than the exact quaternion:
-the rotation matrix (exact exponential, closed-form and autodiff Jacobians) and the
-first-order quaternion (autodiff Jacobians), against the generic kernels (``fast=False``),
-which carry the same forms as ``(..., 3, 3)`` / ``(..., 4)`` arrays and differentiate the
+the rotation matrix (exact exponential, closed-form and autodiff Jacobians), the
+first-order quaternion (autodiff Jacobians) and, for the mean, Euler angles (their pitch
+singularity reported), against the generic kernels (``fast=False``), which carry the same
+forms as ``(..., 3, 3)`` / ``(..., 4)`` / ``(..., 3)`` arrays and differentiate the
 quaternion state with ``jax.jacfwd`` (jaximu/errorstate.py)."""
 
 import functools
@@ -55,7 +56,7 @@ def covariance(state, P0, gyro, accel, dt, omega, lever, *, attitude, scheme, ja
 
 def test_dispatch_of_the_attitude_forms():
     """The matrix and the first-order quaternion run the SoA kernels (closed forms only for
-    the exact exponential); Euler angles stay generic."""
+    the exact exponential); Euler angles too for the mean, their covariance stays generic."""
     k = _dispatch.kernel
     for att in ("matrix", "quaternion_first_order"):
         assert k("mean", "rk4", attitude=att, lanes=40) == "soa_mean"
@@ -67,7 +68,9 @@ def test_dispatch_of_the_attitude_forms():
              lanes=3) == "soa_cov_analytic"
     assert k("covariance", "rk4", attitude="quaternion_first_order", jacobians="analytic",
              lanes=3) == "generic"
-    assert k("mean", "euler", attitude="euler_angles", lanes=40) == "generic"
+    assert k("mean", "rk4", attitude="euler_angles", lanes=40) == "soa_mean"
+    assert k("covariance", "euler", attitude="euler_angles", jacobians="autodiff",
+             lanes=3) == "generic"
 
 
 @pytest.mark.parametrize("attitude,scheme,save_all,rotating", [
@@ -175,3 +178,34 @@ def test_vmap_of_the_matrix_form_lands_on_the_batched_kernel():
     assert len(eqns) == 1
     assert not [e for e in jaxpr.jaxpr.eqns if e.primitive.name in ("scan", "while")]
     assert (4, 11, 3) in {tuple(v.aval.shape) for v in eqns[0].invars}
+
+
+@pytest.mark.parametrize("scheme,save_all,rotating", [
+    ("euler", False, False), ("midpoint", True, True), ("rk4", True, False)])
+def test_mean_in_euler_angles_equals_generic_and_reports_the_singularity(scheme, save_all,
+                                                                         rotating):
+    """Euler angles on the SoA kernel: the generic kernel's states (the pitch singularity
+    makes the lanes that approach it ill-conditioned, so values are compared on the others),
+    the same NaN from the step that reaches ±90° and the same locked lanes; an eager call
+    raises."""
+    B, T = 40, 31
+    state, gyro, accel, dt = inputs(B, T, seed=9)
+    # five lanes start level and pitch up at 20 rad/s: they reach ±90° within the run
+    gyro = gyro.at[:5, :, 1].set(20.0)
+    state = state.replace(q=state.q.at[:5].set(jnp.asarray([1.0, 0.0, 0.0, 0.0])))
+    if scheme != "euler":
+        dt = dt[:, :-1]
+    omega = 1e3 * EARTH if rotating else None
+    kw = dict(attitude="euler_angles", scheme=scheme, save_all=save_all)
+    runs = [jax.jit(lambda *a, fast=fast: _propagate(*a, G_W, omega, fast=fast, **kw))(
+        state, gyro, accel, dt) for fast in (True, False)]
+    (fast, locked), (ref, locked_ref) = runs
+    np.testing.assert_array_equal(locked, locked_ref)
+    if not rotating:  # the singularity is reached (a step may also jump over it)
+        assert np.sum(np.asarray(locked)[:5]) >= 3 and not np.any(np.asarray(locked)[5:])
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        assert_close(a[5:], b[5:])
+    with pytest.raises(ValueError, match="gimbal lock"):
+        jaximu.propagate_final(jax.tree_util.tree_map(lambda x: x[:5], state), gyro[:5],
+                               accel[:5], dt[:5], scheme, attitude="euler_angles")
