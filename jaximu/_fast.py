@@ -54,7 +54,8 @@ def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
                    coriolis="exact", form: LaneForm = QUATERNION):
     """Flat batch: q ``(B, form.size)`` (the attitude form's state, :data:`LANE_FORMS`: a
-    quaternion ``(B, 4)``, a matrix ``(B, 9)`` row-major), p/v/b_g/b_a ``(B, 3)``, gyro/accel
+    quaternion ``(B, 4)``, a matrix ``(B, 9)`` row-major, Euler angles ``(B, 3)``),
+    p/v/b_g/b_a ``(B, 3)``, gyro/accel
     ``(B, T, 3)`` (``T + 1`` samples for a scheme that uses sample k+1: the last one ends the
     last step), dt ``(T,)`` or ``(B, T)``, g ``(3,)`` or ``(B, 3)``; omega (a rotating
     world, :mod:`jaximu.world`) ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)``
@@ -136,8 +137,9 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
     ``2 vec(δq⁺ ⊗ q⁺*)``), whose ``A`` block is the identity (returned as ``"I"``, not formed).
 
     Returns:
-        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks. ``form``: the attitude form of ``q`` (:data:`LANE_FORMS`), whose
-        own tangents and rows these are (a matrix: ``R [e_j]x``, ``vee(R⁺ᵀ δR⁺)``).
+        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks. ``form``: the attitude form
+        of ``q`` (:data:`LANE_FORMS`), whose own tangents and rows these are (a matrix:
+        ``R [e_j]x``, ``vee(R⁺ᵀ δR⁺)``).
     """
     dtype = q[0].dtype
     lanes = q[0].shape
