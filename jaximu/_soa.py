@@ -813,22 +813,19 @@ def lane_form(name) -> LaneForm:
 
 
 def from_quat(form: LaneForm, q):
-    """The form's state ``(B, size)`` from quaternions ``(B, 4)`` (as the generic kernels'
-    ``Attitude.from_quat``)."""
-    if form.size == 4:
-        return q
-    if form.name == "euler_angles":
-        return so3.quat_to_euler_zyx(q)
-    return so3.quat_to_matrix(q).reshape(q.shape[:-1] + (9,))
+    """The form's state ``(B, size)`` from quaternions ``(B, 4)``: the generic kernels'
+    ``Attitude.from_quat``, a matrix flattened row-major."""
+    from jaximu.integrators import get_attitude
+
+    return get_attitude(form.name).from_quat(q).reshape(q.shape[:-1] + (form.size,))
 
 
 def to_quat(form: LaneForm, x):
-    """Quaternions ``(…, 4)`` from the form's states ``(…, size)``."""
-    if form.size == 4:
-        return x
-    if form.name == "euler_angles":
-        return so3.euler_zyx_to_quat(x)
-    return so3.matrix_to_quat(x.reshape(x.shape[:-1] + (3, 3)))
+    """Quaternions ``(…, 4)`` from the form's states ``(…, size)`` (``Attitude.to_quat``)."""
+    from jaximu.integrators import get_attitude
+
+    shape = (3, 3) if form.size == 9 else (form.size,)
+    return get_attitude(form.name).to_quat(x.reshape(x.shape[:-1] + shape))
 
 
 # ----------------------------------------------------------------------------- mean step
