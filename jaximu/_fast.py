@@ -9,16 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks, sensor, world
-from jaximu._blocks import Blocks, block, structured_update
+from jaximu._blocks import UPPER, Blocks, block, structured_update
 from jaximu._soa import (LANE_FORMS, SOA, LaneForm, _bmm, _bt, _components, _materialise,
-                         _quat_normalize, _stack_last, _time_chunks, block_lanes,
+                         _quat_normalize, _sincos, _stack_last, _time_chunks, block_lanes,
                          direction_block, exp_jr, half_angle_jr, jvp_directions,
                          lane_directions, mean_step, run_blocked)
 from jaximu._vec import V3
 from jaximu.integrators import GIMBAL_LOCK_COS
-
-UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
-
 
 QUATERNION = LANE_FORMS["quaternion"]
 
@@ -91,7 +88,7 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
                 return q, p, v
             # the pitch ±90° singularity: NaN from the first step that reaches it, never a
             # silently wrong attitude (jaximu.propagate.mean_body, on lanes)
-            locked = c[3][0] | (jnp.cos(q[1]) < GIMBAL_LOCK_COS)
+            locked = c[3][0] | (_sincos(q[1])[1] < GIMBAL_LOCK_COS)
             nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
             return nan(q), nan(p), nan(v), (locked,)
 

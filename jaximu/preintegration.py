@@ -1039,6 +1039,7 @@ def _whiten(cov15, r):
     the block Cholesky of :func:`jaximu._blocks.whiten` (the Monte Carlo NEES's) on lanes,
     3×3 blocks ``(3, 3, N)`` (a batch of 15×15 factorisations as LAPACK calls ran one
     matrix at a time: 2 µs per window). Not positive definite: NaN or inf."""
+    from jaximu._fast import dense_to_blocks
     from jaximu._soa import SOA, block_lanes, run_blocked
 
     batch = jnp.broadcast_shapes(cov15.shape[:-2], r.shape[:-1])
@@ -1048,8 +1049,7 @@ def _whiten(cov15, r):
         return e.reshape(batch + (15,))
 
     def block(P, e):  # (Bc, 15, 15), (Bc, 15): one kernel per block of lanes
-        Pb = {(i, j): jnp.moveaxis(P[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3], 0, -1)
-              for i, j in blk.UPPER}
+        Pb = dict(zip(blk.UPPER, dense_to_blocks(P)))
         eT = e.T
         y = blk.whiten(Pb, [eT[3 * i:3 * i + 3, None] for i in range(5)], SOA)
         return jnp.concatenate([b[:, 0] for b in y], 0).T
