@@ -17,8 +17,26 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
+
+CPU, ACCELERATOR = "cpu", "accelerator"
+
+
+def backend() -> str:
+    """The kind of device the kernels are compiled for: :data:`CPU`, or :data:`ACCELERATOR`
+    (a GPU or TPU: JAX's default backend when it is not the CPU). The structure-of-arrays
+    layout is tuned for XLA:CPU; on an accelerator a step is one launch over every lane, so
+    a batch is one block and the table's ``backends`` column keeps only the rows measured to
+    pay there (docs/DESIGN.md, "Dispatch" and "On a GPU")."""
+    return CPU if jax.default_backend() == "cpu" else ACCELERATOR
+
+
+ACCELERATOR_LANES = 1 << 16
+"""Lanes of one batch block on an accelerator, and the lanes the time chunks of long
+sequences aim to fill there: a launch over 65536 lanes fills a GPU (an H100 holds about
+270 000 threads), and every block or chunk fewer is a sequential step fewer."""
 
 LONG_STEPS = 2048
 """From this many steps the final state of a float64 sequence of a small batch is computed in
@@ -44,6 +62,7 @@ class Row(NamedTuple):
     dtypes: tuple = ("float32", "float64")
     rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
     lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
+    backends: tuple = (CPU, ACCELERATOR)  # where the row applies (backend())
 
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix")
@@ -56,21 +75,28 @@ MEAN_ATTITUDES = LANE_ATTITUDES + ("euler_angles",)
 TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 32, 1,
-        "soa_mean", rotating=(False, True), lever=None),
+        "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # the final state of a few long sequences in float64: time chunks side by side as lanes
     # (mean_chunks), composed (the lanes can then also be split over devices). Every state
     # stored: the one-lane kernel below is faster (the chunks would run twice). float32
     # keeps the one-lane kernel too: the chunk deltas, which carry the specific force without
     # gravity cancelling it, round 4x worse in float32
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False,), 1,
-        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None),
+        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,)),
+    # on an accelerator a sequential step costs a launch whatever the lanes: long sequences
+    # run as time chunks in both dtypes, every state stored too (the chunks run twice, from
+    # the composed starts)
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
+        LONG_STEPS, "soa_mean_chunked", lever=None, backends=(ACCELERATOR,)),
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
-    # one trajectory of 1000 samples)
+    # one trajectory of 1000 samples). On an accelerator the generic kernel's step over all
+    # lanes is as fast (float64) or 2x faster (float32, 1024 lanes)
     Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 1, 1,
-        "soa_mean", rotating=(False, True), lever=None),
+        "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
-    # SoA layout; the exact-exponential forms have them)
+    # SoA layout; the exact-exponential forms have them); on an accelerator too (2.6-8x the
+    # generic kernel on an H100)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion", "matrix"), ("analytic",),
         (False, True), 1, 1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
     # the same with blocks by autodiff of the SoA step, every lane attitude form
@@ -88,29 +114,33 @@ GENERIC = "generic"
 
 
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
-           dtype="float64", fast=True, rotating=False, lever=False) -> str:
+           dtype="float64", fast=True, rotating=False, lever=False, on=None) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
-    and ``steps`` time steps; ``rotating``: a world rotation rate (``omega_coriolis``) is
+    and ``steps`` time steps on the backend ``on`` (default :func:`backend`); ``rotating``: a world rotation rate (``omega_coriolis``) is
     given (the rows that implement it say so in their ``rotating`` column); ``lever``: the
     samples are a sensor's at a lever arm, whose Jacobians couple the gyro into the specific
     force (column "lever arm (Jacobians)" of docs/DESIGN.md)."""
     if not fast:
         return GENERIC
+    on = on or backend()
     for row in TABLE:
         if (row.entry == entry and scheme in row.schemes
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
                 and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
-                and rotating in row.rotating and (row.lever is None or lever in row.lever)):
+                and rotating in row.rotating and (row.lever is None or lever in row.lever)
+                and on in row.backends):
             return row.kernel
     return GENERIC
 
 
 def mean_chunks(lanes, steps) -> int:
     """Time chunks per sequence for ``soa_mean_chunked``: enough to fill about
-    :data:`CHUNK_LANES` lanes, each at least :data:`MIN_CHUNK_STEPS` steps long."""
-    return int(max(1, min(-(-CHUNK_LANES // lanes), steps // MIN_CHUNK_STEPS)))
+    :data:`CHUNK_LANES` lanes (:data:`ACCELERATOR_LANES` on an accelerator), each at least
+    :data:`MIN_CHUNK_STEPS` steps long."""
+    fill = CHUNK_LANES if backend() == CPU else ACCELERATOR_LANES
+    return int(max(1, min(-(-fill // lanes), steps // MIN_CHUNK_STEPS)))
 
 
 # --------------------------------------------------------------------------- preintegration

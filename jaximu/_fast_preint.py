@@ -38,8 +38,8 @@ import numpy as np
 
 from jaximu import sensor
 from jaximu._fast import blocks_autodiff
-from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _diag_row,
-                         _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
+from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _cond,
+                         _diag_row, _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
                          block_lanes, direction_block, jvp_directions, lane_directions,
                          quat_matrix, rotation_rows, rotation_tangents, run_blocked)
@@ -171,7 +171,7 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic"):
     covariance update after them is the same."""
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
-    (q1, dv1, dp1, t1), lane = jax.lax.cond(
+    (q1, dv1, dp1, t1), lane = _cond(
         _any_big(t2), _lane_scalars(True), _lane_scalars(False),
         q, dv, dp, t, omega, fsp, h)
     u, phi, t2, k, b = lane

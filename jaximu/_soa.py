@@ -140,7 +140,7 @@ def _quat_rotate(q, v):
 def half_angle(t2):
     """``(cos(θ/2), sin(θ/2)/θ)`` for per-lane ``θ² = t2``: the range-reduced path only when
     some lane needs it."""
-    return jax.lax.cond(_any_big(t2), _half_any, _half_small, t2)
+    return _cond(_any_big(t2), _half_any, _half_small, t2)
 
 
 def quat_matrix(q, dtype):
@@ -283,7 +283,7 @@ def half_angle_jr(t2):
                       (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
         return c, k, b
 
-    return jax.lax.cond(_any_big(t2), big, small, t2)
+    return _cond(_any_big(t2), big, small, t2)
 
 
 def exp_jr(phi: V3, half=None):
@@ -331,8 +331,22 @@ def _stage(pred, fn, *args):
     conditional's outputs, so a value read by several fusions is computed once (XLA CPU has
     no multi-output fusion and otherwise recomputes it inside every consumer fusion, and twice
     for a transposed read). ``pred`` must be a runtime value (any): with a constant one XLA
-    inlines the conditional and the boundary disappears."""
-    return jax.lax.cond(pred, fn, fn, *args)
+    inlines the conditional and the boundary disappears. On an accelerator the plain call:
+    XLA:GPU fuses with several outputs, and a conditional there waits for its predicate on
+    the host at every step."""
+    return _cond(pred, fn, fn, *args)
+
+
+def _cond(pred, true_fn, false_fn, *args):
+    """``lax.cond`` on the CPU; ``true_fn(*args)`` on an accelerator, where a conditional
+    copies its predicate to the host and waits for it (each step of a scan then costs a
+    round trip). Only for conds whose ``true_fn`` is right for every input (the range-reduced
+    branch, a stage's identical branches)."""
+    from jaximu import _dispatch
+
+    if _dispatch.backend() != _dispatch.CPU:
+        return true_fn(*args)
+    return jax.lax.cond(pred, true_fn, false_fn, *args)
 
 
 # ----------------------------------------------------------------------------- autodiff blocks
@@ -493,7 +507,12 @@ one kernel (:func:`one_kernel`) a block's state then stays in L1/L2 (docs/DESIGN
 
 
 def block_lanes(dtype):
-    """Lanes per batch block for ``dtype``."""
+    """Lanes per batch block for ``dtype``: :data:`BLOCK_BYTES` of them on the CPU, a
+    whole GPU's worth on an accelerator (:data:`jaximu._dispatch.ACCELERATOR_LANES`)."""
+    from jaximu import _dispatch
+
+    if _dispatch.backend() != _dispatch.CPU:
+        return _dispatch.ACCELERATOR_LANES
     return BLOCK_BYTES // jnp.dtype(dtype).itemsize
 
 

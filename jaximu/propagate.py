@@ -133,18 +133,41 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     return states, locked
 
 
-def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):
-    """The final state of a few long sequences, cut into ``C`` time chunks that run side by
-    side as lanes.
+def _compose_deltas(a, b):
+    """Chunk ``a`` then chunk ``b``, each as its deltas ``(ΔR, Δp, Δv, Δt)`` (quaternion
+    ``(..., 4)``, vectors ``(..., 3)``, ``Δt`` ``(...)``) in its start frame: preintegration's
+    composition ``(ΔR_a ΔR_b, Δp_a + Δv_a Δt_b + ΔR_a Δp_b, Δv_a + ΔR_a Δv_b, Δt_a + Δt_b)``,
+    associative (so the chunks compose as a tree or a parallel prefix scan)."""
+    qa, pa, va, ta = a
+    qb, pb, vb, tb = b
+    return (so3.quat_normalize(so3.quat_mul(qa, qb)),
+            pa + va * tb[..., None] + so3.quat_rotate(qa, pb),
+            va + so3.quat_rotate(qa, vb), ta + tb)
+
+
+def _apply_deltas(q, p, v, g, d):
+    """The state ``(q, p, v)`` moved by deltas ``d`` (:func:`_compose_deltas`) under gravity
+    ``g``: ``R ΔR``, ``p + v Δt + ½ g Δt² + R Δp``, ``v + g Δt + R Δv``."""
+    dq, dp, dv, t = d
+    t = t[..., None]
+    return (so3.quat_normalize(so3.quat_mul(q, dq)),
+            p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp), v + g * t + so3.quat_rotate(q, dv))
+
+
+def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False):
+    """The states of a few long sequences, cut into ``C`` time chunks that run side by side
+    as lanes.
 
     Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
     known relative to its start, and its acceleration weights sum to ``h`` (in v) and
     ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
-    exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The deltas are
-    composed in sequence (``C`` cheap steps: ``R ΔR``, ``v + g Δt + R Δv``,
-    ``p + v Δt + ½ g Δt² + R Δp``). Equal to the plain scan to rounding. (Every state stored
-    would run the chunks twice, from the composed starts: the one-lane kernel is faster,
-    docs/DESIGN.md "Dispatch".)
+    exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The deltas
+    compose associatively (:func:`_compose_deltas`): the final state applies their product,
+    reduced as a tree (``log2 C`` levels, not ``C`` sequential steps). ``save_all``: a
+    parallel prefix scan of the deltas gives every chunk's start state, and the chunks run
+    again from those starts, storing their states (twice the arithmetic, for ``C`` times
+    fewer sequential steps: the accelerator's choice, docs/DESIGN.md "Dispatch"). Equal to
+    the plain scan to rounding.
     """
     sch = get_scheme(scheme)
     n = n_steps(gyro, dt)
@@ -162,7 +185,8 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):
         dt_f = jnp.pad(dt_f, ((0, 0), (0, pad)))
         gyro_f, accel_f = (jnp.pad(x, ((0, 0), (0, pad), (0, 0)), mode="edge")
                            for x in (gyro_f, accel_f))
-    # chunk c holds steps [cL, cL + L) and, for sample k+1 schemes, sample cL + L too
+    # chunk c holds steps [cL, cL + L) and, for sample k+1 schemes, sample cL + L too;
+    # lane b*C + c is chunk c of sequence b
     idx = np.arange(C)[:, None] * L + np.arange(L + extra)[None, :]
     lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])  # noqa: E731
     gyro_c, accel_c = lanes(gyro_f), lanes(accel_f)
@@ -173,24 +197,37 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch):
     dq, dp, dv = _fast.propagate_mean(sch, q_id, z, z, rep(b_g), rep(b_a), gyro_c, accel_c,
                                       dt_c, jnp.zeros(3, dtype), False)
     unlane = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), 1, 0)  # noqa: E731
-    t_c = unlane(jnp.sum(dt_c, axis=-1))  # (C, B)
+    deltas = (unlane(dq), unlane(dp), unlane(dv), unlane(jnp.sum(dt_c, axis=-1)))  # (C, B, .)
     g_b = jnp.broadcast_to(g_f, (B, 3))
-
-    def compose(carry, x):
-        q0, p0, v0 = carry
-        dq_c, dp_c, dv_c, t = x
-        tt = t[:, None]
-        q1 = so3.quat_normalize(so3.quat_mul(q0, dq_c))
-        v1 = v0 + g_b * tt + so3.quat_rotate(q0, dv_c)
-        p1 = p0 + v0 * tt + 0.5 * g_b * tt * tt + so3.quat_rotate(q0, dp_c)
-        return (q1, p1, v1), None
-
-    (qf, pf, vf), _ = jax.lax.scan(compose, (q, p, v),
-                                   (unlane(dq), unlane(dp), unlane(dv), t_c))
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    states = NavState(unflat(qf), unflat(pf), unflat(vf),
-                      jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
-                      jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+    ident = (q_id[:B, None], z[:B, None], z[:B, None], jnp.zeros((B, 1), dtype))  # (B, 1, .)
+    ident = tuple(jnp.moveaxis(x, 1, 0) for x in ident)  # a chunk of no steps, (1, B, .)
+    if not save_all:
+        while deltas[0].shape[0] > 1:  # pairwise, log2(C) levels
+            if deltas[0].shape[0] % 2:  # an identity chunk pads to an even count
+                deltas = tuple(jnp.concatenate([d, e]) for d, e in zip(deltas, ident))
+            deltas = _compose_deltas(tuple(d[0::2] for d in deltas),
+                                     tuple(d[1::2] for d in deltas))
+        qf, pf, vf = _apply_deltas(q, p, v, g_b, tuple(d[0] for d in deltas))
+        states = NavState(unflat(qf), unflat(pf), unflat(vf),
+                          jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+                          jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+        return states, jnp.zeros(batch, bool)
+    # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
+    before = ident
+    if C > 1:
+        prefix = jax.lax.associative_scan(_compose_deltas, tuple(d[:-1] for d in deltas))
+        before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
+    starts = _apply_deltas(q, p, v, g_b, before)
+    relane = lambda x: jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:])  # noqa: E731
+    q_s, p_s, v_s = (relane(x) for x in starts)
+    out = _fast.propagate_mean(sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c,
+                               rep(g_b), True)
+    seq = lambda x: unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n])  # noqa: E731
+    q_t, p_t, v_t = (seq(x) for x in out[:3])
+    bshape = q_t.shape[:-1] + (3,)
+    states = NavState(q_t, p_t, v_t, jnp.broadcast_to(state.b_g[..., None, :], bshape),
+                      jnp.broadcast_to(state.b_a[..., None, :], bshape))
     return states, jnp.zeros(batch, bool)
 
 
@@ -265,7 +302,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
                                coriolis, attitude)
     if kernel == "soa_mean_chunked":
-        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch)
+        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
     body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, coriolis)

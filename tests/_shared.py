@@ -1,5 +1,8 @@
 """Helpers shared by several test files (each still checks against its own reference)."""
 
+import contextlib
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -48,3 +51,21 @@ def random_inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
         gyro[: B // 3] *= 400.0
     accel = rng.normal(size=(B, T, 3)) * 2 + [0, 0, 9.81]
     return state, jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)
+
+
+@contextlib.contextmanager
+def dispatch_as(backend):
+    """Run the engine's dispatch as on ``backend`` (``"cpu"`` or ``"accelerator"``) whatever
+    device runs it: the table's rows, the batch blocks, the stage conditionals
+    (jaximu._dispatch.backend). The jit caches are cleared around it: a traced entry does not
+    key on the backend."""
+    from jaximu import _dispatch
+
+    saved = _dispatch.backend
+    _dispatch.backend = lambda: backend
+    jax.clear_caches()
+    try:
+        yield
+    finally:
+        _dispatch.backend = saved
+        jax.clear_caches()

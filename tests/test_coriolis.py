@@ -237,7 +237,7 @@ def test_rotating_world_mean_on_the_soa_kernel_equals_the_generic_kernel(
     from jaximu.propagate import _propagate
 
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", lanes=64,
-                            rotating=True) == "soa_mean"
+                            rotating=True, on=_dispatch.CPU) == "soa_mean"
     rng = np.random.default_rng(1)
     # 32 lanes: the SoA row's minimum
     x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 32, 25, lane_dt, lane_omega)
@@ -267,7 +267,7 @@ def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
 
     row = "soa_cov_" + jacobians
     assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
-                            lanes=4, rotating=True) == row
+                            lanes=4, rotating=True, on=_dispatch.CPU) == row
     rng = np.random.default_rng(2)
     x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 4, 15, lane_dt, lane_omega)
     A = rng.normal(size=(4, 15, 15))

@@ -11,6 +11,8 @@ import pytest
 import jaximu
 from jaximu import _dispatch
 
+from _shared import dispatch_as
+
 DESIGN = pathlib.Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
 
 
@@ -20,7 +22,7 @@ def documented_table():
     rows = []
     for line in section.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 11 and cells[0] in ("mean", "covariance", "preintegrate"):
+        if len(cells) == 12 and cells[0] in ("mean", "covariance", "preintegrate"):
             rows.append(cells)
     return rows
 
@@ -33,7 +35,8 @@ def test_design_notes_table_is_the_code_table():
     assert len(doc) == len(_dispatch.TABLE)
     stored = {"final": False, "all": True}
     for cells, row in zip(doc, _dispatch.TABLE):
-        entry, schemes, attitude, jac, save, lanes, steps, dtypes, rotating, lever, kernel = cells
+        (entry, schemes, attitude, jac, save, lanes, steps, dtypes, rotating, lever, backends,
+         kernel) = cells
         assert entry == row.entry
         assert words(schemes) == row.schemes
         assert words(attitude) == (row.attitudes or ())
@@ -44,6 +47,7 @@ def test_design_notes_table_is_the_code_table():
         assert words(dtypes) == row.dtypes
         assert tuple({"no": False, "yes": True}[w] for w in words(rotating)) == row.rotating
         assert tuple({"no": False, "yes": True}[w] for w in words(lever)) == (row.lever or ())
+        assert words(backends) == row.backends
         assert kernel == row.kernel
 
 
@@ -56,17 +60,21 @@ def test_every_citation_of_the_design_notes_points_at_the_file():
         p.read_text(encoding="utf-8") for p in (root / "jaximu").rglob("*.py"))
 
 
-@pytest.mark.parametrize("B,T,expect", [(2, 160, "parallel"), (3, 40, "sequential")])
-def test_auto_method_equals_both_methods(B, T, expect):
+@pytest.mark.parametrize("B,T,backend,expect", [
+    (2, 160, "cpu", "parallel"), (3, 40, "cpu", "sequential"),
+    # an accelerator's block holds every lane: 40 windows are few there
+    (40, 100, "accelerator", "parallel")])
+def test_auto_method_equals_both_methods(B, T, backend, expect):
     rng = np.random.default_rng(7)
     gyro = rng.normal(size=(B, T, 3))
     accel = rng.normal(size=(B, T, 3)) + [0, 0, 9.81]
     dt = rng.uniform(0.004, 0.006, size=(B, T))
     bias = jaximu.ImuBias(np.array([0.01, -0.02, 0.005]), np.array([0.1, 0.0, -0.05]))
     noise = jaximu.ImuNoise.euroc()
-    assert _dispatch.preint_method("auto", B, T, np.float64) == expect
-    out = {m: jaximu.preintegrate(gyro, accel, dt, bias, noise, method=m)
-           for m in ("auto", "sequential", "parallel")}
+    with dispatch_as(backend):
+        assert _dispatch.preint_method("auto", B, T, np.float64) == expect
+        out = {m: jaximu.preintegrate(gyro, accel, dt, bias, noise, method=m)
+               for m in ("auto", "sequential", "parallel")}
     for m in ("sequential", "parallel"):
         for a, b in zip(jax.tree_util.tree_leaves(out["auto"]), jax.tree_util.tree_leaves(out[m])):
             scale = max(1.0, float(np.abs(b).max()))

@@ -56,8 +56,9 @@ def covariance(state, P0, gyro, accel, dt, omega, lever, *, attitude, scheme, ja
 
 def test_dispatch_of_the_attitude_forms():
     """The matrix and the first-order quaternion run the SoA kernels (closed forms only for
-    the exact exponential); Euler angles too for the mean, their covariance stays generic."""
-    k = _dispatch.kernel
+    the exact exponential); Euler angles too for the mean, their covariance stays generic
+    (the CPU's rows)."""
+    k = functools.partial(_dispatch.kernel, on=_dispatch.CPU)
     for att in ("matrix", "quaternion_first_order"):
         assert k("mean", "rk4", attitude=att, lanes=40) == "soa_mean"
         assert k("mean", "euler", attitude=att, lanes=1, steps=10**5,

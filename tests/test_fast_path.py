@@ -13,7 +13,7 @@ from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 
-from _shared import random_inputs as inputs
+from _shared import dispatch_as, random_inputs as inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 
@@ -118,37 +118,68 @@ def test_half_angle_kernels_match_trig(dtype):
     np.testing.assert_allclose(ks, k_ref[small], rtol=0, atol=4 * eps)
 
 
+@pytest.mark.parametrize("backend", [_dispatch.CPU, _dispatch.ACCELERATOR])
 @pytest.mark.parametrize("B,T,scheme,save_all,intervals", [
     (1, 2051, "euler", False, False), (1, 2051, "midpoint", False, False),
     (2, 2050, "rk4", False, True),  # rk4: 2049 steps, padded to whole chunks (dt = 0)
     (1, 2051, "euler", True, False), (2, 2050, "rk4", True, True)])
-def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals):
+def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals,
+                                                            backend):
     """The final state of a few long float64 sequences runs as time chunks side by side
-    (deltas from the identity, composed); every state stored runs the one-lane kernel. Both:
-    the plain generic scan's states to rounding, for every scheme, with per-sample dt and
-    with dt of length T-1 (samples at the ends of the intervals)."""
+    (deltas from the identity, composed as a tree); every state stored runs the one-lane
+    kernel on the CPU, and on an accelerator the chunks again from the starts a prefix scan
+    of their deltas gives. Each: the plain generic scan's states to rounding, for every
+    scheme, with per-sample dt and with dt of length T-1 (samples at the ends of the
+    intervals). The accelerator's dispatch runs here on the CPU (tests/_shared.dispatch_as)."""
     state, gyro, accel = inputs(B, T, seed=8)
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
+    chunked = backend == _dispatch.ACCELERATOR or not save_all
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all, lanes=B,
-                            steps=steps) == ("soa_mean" if save_all else "soa_mean_chunked")
-    fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
+                            steps=steps, on=backend) == ("soa_mean_chunked" if chunked
+                                                         else "soa_mean")
+    with dispatch_as(backend):
+        fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
 
 
-@pytest.mark.parametrize("scheme,B,intervals,jac,save_all", [
-    ("euler", 3, False, "autodiff", True), ("midpoint", 2, True, "autodiff", True),
-    ("rk4", 2, False, "autodiff", False), ("midpoint", 3, False, "analytic", False),
-    ("rk4", 2, True, "analytic", True)])
-def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac, save_all):
+@pytest.mark.parametrize("save_all", [False, True])
+def test_long_float32_sequence_in_time_chunks_on_an_accelerator(save_all):
+    """On an accelerator a long float32 sequence runs as time chunks too (there a sequential
+    step costs a launch): its states are the float64 scan's to float32 rounding over 2051
+    steps (2e-4 of the largest value; the plain float32 scan is off by ~1e-5 here)."""
+    state, gyro, accel = inputs(1, 2051, seed=12)
+    dt = jnp.full((2051,), 0.005)
+    f32 = lambda x: jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)  # noqa: E731
+    assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=save_all,
+                            lanes=1, steps=2051, dtype="float32",
+                            on=_dispatch.ACCELERATOR) == "soa_mean_chunked"
+    with dispatch_as(_dispatch.ACCELERATOR):
+        fast = mean(*f32((state, gyro, accel, dt, G_W)), save_all=save_all, fast=True,
+                    scheme="midpoint")
+    ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme="midpoint")
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
+        assert a.dtype == jnp.float32 and a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=2e-4 * max(1.0, np.abs(b).max()))
+
+
+@pytest.mark.parametrize("scheme,B,intervals,jac,save_all,backend", [
+    ("euler", 3, False, "autodiff", True, "cpu"), ("midpoint", 2, True, "autodiff", True, "cpu"),
+    ("rk4", 2, False, "autodiff", False, "cpu"), ("midpoint", 3, False, "analytic", False, "cpu"),
+    ("rk4", 2, True, "analytic", True, "cpu"),
+    ("midpoint", 2, True, "autodiff", False, "accelerator"),
+    ("rk4", 3, False, "analytic", True, "accelerator")])
+def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac, save_all,
+                                                           backend):
     """soa_cov_autodiff (blocks by jax.linearize of the SoA step, 9 directions) and
     soa_cov_analytic (Scheme.blocks on the SoA layout) against the generic kernel with the
     closed-form blocks on arrays: same mean and covariance to rounding, final or after every
-    step (``save_all``)."""
+    step (``save_all``); as the accelerator runs them too (one block, no stage conditionals,
+    the range-reduced half angle on every lane: tests/_shared.dispatch_as)."""
     T = 25
     state, gyro, accel = inputs(B, T, seed=10, big_angles=True)
     rng = np.random.default_rng(11)
@@ -163,8 +194,10 @@ def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals,
             save_all=save_all, fast=fast)[:2])(state, P0, gyro, accel, dt)
 
     assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jac,
-                            save_all=save_all, lanes=B) == f"soa_cov_{jac}"
-    (s1, P1), (s2, P2) = run(jac, True), run("analytic", False)
+                            save_all=save_all, lanes=B, on=backend) == f"soa_cov_{jac}"
+    with dispatch_as(backend):
+        s1, P1 = run(jac, True)
+    s2, P2 = run("analytic", False)
     assert P1.shape == P2.shape == (B,) + (dt.shape[-1:] if save_all else ()) + (15, 15)
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
     if scheme == "euler":  # float32 in, float32 out, close to float64
