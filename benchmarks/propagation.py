@@ -595,9 +595,12 @@ def machine_info() -> dict:
 
 
 def machine_slug(info: dict) -> str:
-    """``<cpu model>-<n>cpu`` (e.g. ``amd-epyc-2cpu``); the hostname if the CPU is unknown."""
+    """``<cpu model>-<n>cpu`` (e.g. ``amd-epyc-2cpu``); the hostname if the CPU is unknown;
+    on an accelerator its device kind (e.g. ``nvidia-h100-80gb-hbm3``)."""
     model = info["cpu_model"]
-    if not model or model == "unknown":
+    if info.get("backend", "cpu") != "cpu":
+        base = info["device_kind"] or info["backend"]
+    elif not model or model == "unknown":
         base = info["hostname"] or "unknown"
     else:
         base = re.sub(r"\((r|tm)\)|\bcpu\b|\bprocessor\b|@.*$", "", model, flags=re.I)
