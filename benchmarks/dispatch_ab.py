@@ -39,7 +39,8 @@ import jaximu._dispatch as dsp  # noqa: E402
 
 TABLE0 = dsp.TABLE
 SOA_TABLE = tuple(
-    r._replace(backends=("cpu", "accelerator"), min_lanes=min(r.min_lanes, 32) if r.entry == "mean" else 1)
+    r._replace(backends=("cpu", "accelerator"),
+               min_lanes=min(r.min_lanes, 32) if r.entry == "mean" else 1)
     for r in TABLE0 if not (r.kernel == "soa_mean_chunked" and "cpu" in r.backends)
     and not (r.entry == "covariance" and r.backends == ("accelerator",)))
 # the accelerator's chunked row first among the mean rows after the 32-lane one

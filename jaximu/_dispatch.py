@@ -116,10 +116,11 @@ GENERIC = "generic"
 def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
            dtype="float64", fast=True, rotating=False, lever=False, on=None) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
-    and ``steps`` time steps on the backend ``on`` (default :func:`backend`); ``rotating``: a world rotation rate (``omega_coriolis``) is
-    given (the rows that implement it say so in their ``rotating`` column); ``lever``: the
-    samples are a sensor's at a lever arm, whose Jacobians couple the gyro into the specific
-    force (column "lever arm (Jacobians)" of docs/DESIGN.md)."""
+    and ``steps`` time steps on the backend ``on`` (default :func:`backend`, JAX's default
+    backend when the entry is traced); ``rotating``: a world rotation rate
+    (``omega_coriolis``) is given (the rows that implement it say so in their ``rotating``
+    column); ``lever``: the samples are a sensor's at a lever arm, whose Jacobians couple the
+    gyro into the specific force (column "lever arm (Jacobians)" of docs/DESIGN.md)."""
     if not fast:
         return GENERIC
     on = on or backend()

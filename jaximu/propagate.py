@@ -151,7 +151,8 @@ def _apply_deltas(q, p, v, g, d):
     dq, dp, dv, t = d
     t = t[..., None]
     return (so3.quat_normalize(so3.quat_mul(q, dq)),
-            p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp), v + g * t + so3.quat_rotate(q, dv))
+            p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
+            v + g * t + so3.quat_rotate(q, dv))
 
 
 def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False):
