@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from jax.experimental.xla_metadata import set_xla_metadata
 import numpy as np
 
-from jaximu import so3
+from jaximu import _dispatch, so3
 from jaximu._blocks import Layout
 from jaximu._vec import V3
 
@@ -342,8 +342,6 @@ def _cond(pred, true_fn, false_fn, *args):
     copies its predicate to the host and waits for it (each step of a scan then costs a
     round trip). Only for conds whose ``true_fn`` is right for every input (the range-reduced
     branch, a stage's identical branches)."""
-    from jaximu import _dispatch
-
     if _dispatch.backend() != _dispatch.CPU:
         return true_fn(*args)
     return jax.lax.cond(pred, true_fn, false_fn, *args)
@@ -509,8 +507,6 @@ one kernel (:func:`one_kernel`) a block's state then stays in L1/L2 (docs/DESIGN
 def block_lanes(dtype):
     """Lanes per batch block for ``dtype``: :data:`BLOCK_BYTES` of them on the CPU, a
     whole GPU's worth on an accelerator (:data:`jaximu._dispatch.ACCELERATOR_LANES`)."""
-    from jaximu import _dispatch
-
     if _dispatch.backend() != _dispatch.CPU:
         return _dispatch.ACCELERATOR_LANES
     return BLOCK_BYTES // jnp.dtype(dtype).itemsize

@@ -202,8 +202,9 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     deltas = (unlane(dq), unlane(dp), unlane(dv), unlane(jnp.sum(dt_c, axis=-1)))  # (C, B, .)
     g_b = jnp.broadcast_to(g_f, (B, 3))
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    ident = (q_id[:B, None], z[:B, None], z[:B, None], jnp.zeros((B, 1), dtype))  # (B, 1, .)
-    ident = tuple(jnp.moveaxis(x, 1, 0) for x in ident)  # a chunk of no steps, (1, B, .)
+    # a chunk of no steps, (1, B, .)
+    ident = (jnp.zeros((1, B, 4), dtype).at[..., 0].set(1), jnp.zeros((1, B, 3), dtype),
+             jnp.zeros((1, B, 3), dtype), jnp.zeros((1, B), dtype))
     if not save_all and dispatch.backend() == dispatch.CPU:
         # C cheap steps in sequence: on XLA:CPU the tree below compiles 3-4x longer (1 ->
         # 3.4-4.5 s for 1 x 10^5 float64) and runs 8% slower
