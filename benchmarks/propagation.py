@@ -134,6 +134,7 @@ CASE_ORDER = [
     "cov analytic euler final matrix",
     "cov autodiff euler final",
     "cov autodiff euler final quaternion_first_order",
+    "cov autodiff euler final euler_angles",
     "cov analytic midpoint final",
     "cov autodiff midpoint final",
     "cov analytic rk4 final",
@@ -229,8 +230,9 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                                       jac="analytic", lever=True))
                     cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
                                       jac="analytic", attitude="matrix"))
-                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
-                                      jac="autodiff", attitude="quaternion_first_order"))
+                    cases += [case("cov", "cov", "euler", "final", B, T, dtype,
+                                   jac="autodiff", attitude=a)
+                              for a in ("quaternion_first_order", "euler_angles")]
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]

@@ -65,16 +65,14 @@ class Row(NamedTuple):
     backends: tuple = (CPU, ACCELERATOR)  # where the row applies (backend())
 
 
-LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix")
-"""The attitude forms whose mean and covariance the structure-of-arrays kernels carry
-(:data:`jaximu._soa.LANE_FORMS`); Euler angles too, for the mean (:data:`MEAN_ATTITUDES`):
-their covariance runs the generic kernels."""
-
-MEAN_ATTITUDES = LANE_ATTITUDES + ("euler_angles",)
+LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
+"""Every attitude form: each runs on the structure-of-arrays kernels as its own lanes
+(:data:`jaximu._soa.LANE_FORMS`), the mean and the autodiff covariance (the closed forms:
+the exact exponentials only)."""
 
 TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
-    Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 32, 1,
+    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # the final state of a few long sequences in float64: time chunks side by side as lanes
     # (mean_chunks), composed (the lanes can then also be split over devices). Every state
@@ -92,14 +90,14 @@ TABLE = (
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples). On an accelerator the generic kernel's step over all
     # lanes is as fast (float64) or 2x faster (float32, 1024 lanes)
-    Row("mean", ("euler", "midpoint", "rk4"), MEAN_ATTITUDES, None, (False, True), 1, 1,
+    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
     # SoA layout; the exact-exponential forms have them); on an accelerator too (2.6-8x the
     # generic kernel on an H100)
     Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion", "matrix"), ("analytic",),
         (False, True), 1, 1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
-    # the same with blocks by autodiff of the SoA step, every lane attitude form
+    # the same with blocks by autodiff of the SoA step, every attitude form
     Row("covariance", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, ("autodiff",),
         (False, True), 1, 1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
     # preintegration, final i→j (min_lanes: see preintegrate_kernel): closed-form blocks or

@@ -251,8 +251,10 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     shared_r = lever is None or lever.ndim == 1
     shared_n = qc_params.ndim == 1
     # final covariance in a still world: the rotation error runs in the world frame (for a
-    # quaternion form: its map in and out normalises q, which a matrix cannot be)
+    # quaternion form: its map in and out normalises q, which a matrix cannot be; Euler
+    # angles' step is no right multiplication of R, so their Φ_θθ would not be I there)
     world_error = omega is None and not save_all and form.size == 4
+    euler = form.name == "euler_angles"
 
     def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever):
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
@@ -261,6 +263,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
         if world_error:
             carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
+        if euler:  # and the locked flag of each lane
+            carry = carry + ((jnp.zeros(q.shape[:1], bool),),)
 
         def step(c, w, a, h, consts):
             bg, ba, gv, ln, wv, rv = consts
@@ -272,9 +276,17 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             # the step's inputs in memory: read through the scan's dynamic slice inside the
             # 3-D block fusions they stop LLVM from vectorising them
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
-            return cov_step_blocks(scheme, jacobians, c, omega0, f0, omega1, f1, h, V3(*gv), qc,
-                                   None if wv is None else V3(*wv), coriolis,
-                                   None if rv is None else V3(*rv), world_error, form)
+            out = cov_step_blocks(scheme, jacobians, c[:4], omega0, f0, omega1, f1, h, V3(*gv),
+                                  qc, None if wv is None else V3(*wv), coriolis,
+                                  None if rv is None else V3(*rv), world_error, form)
+            if not euler:
+                return out
+            # the pitch singularity as the mean's kernel (propagate_mean): the state is NaN
+            # from the step that reaches it; the covariance follows from the next step's
+            # blocks, as the generic kernel's
+            locked = c[4][0] | (_sincos(out[0][1])[1] < GIMBAL_LOCK_COS)
+            nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
+            return nan(out[0]), nan(out[1]), nan(out[2]), out[3], (locked,)
 
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at
@@ -283,14 +295,16 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             return ((_stack_last(c[0]), _stack_last(c[1]), _stack_last(c[2]))
                     + tuple(jnp.moveaxis(X, -1, 0).reshape(-1, 9) for X in c[3]))
 
-        (q, p, v, Pb), bufs = _time_chunks(step, carry, gyro, accel, dt, consts,
-                                           save if save_all else None,
-                                           next_sample=scheme.uses_next_sample)
+        carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts,
+                                   save if save_all else None,
+                                   next_sample=scheme.uses_next_sample)
+        q, p, v, Pb = carry[:4]
+        locked = (carry[4][0],) if euler else ()  # (Bc,): by the last step
         if save_all:
-            return bufs
+            return tuple(bufs) + locked
         if world_error:
             Pb = world_error_blocks(Pb, q, inverse=True)
-        return _stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)
+        return (_stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)) + locked
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
     out = run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,
@@ -298,5 +312,5 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
                       whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r))
     if not save_all:
         return out
-    blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:])}
-    return out[0], out[1], out[2], _blocks.blocks_to_dense(blocks)
+    blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:3 + len(UPPER)])}
+    return (out[0], out[1], out[2], _blocks.blocks_to_dense(blocks)) + tuple(out[3 + len(UPPER):])

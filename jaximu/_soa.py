@@ -766,8 +766,37 @@ def _euler_rotate_left(chi, dth):
     return tuple(chi1[..., i] for i in range(3))
 
 
-def _euler_no_autodiff(*args):
-    raise NotImplementedError("the Euler-angle form's covariance runs the generic kernels")
+def _euler_rates_to_body(chi, d, trig=None):
+    """``W(χ) δχ = E(χ)⁻¹ δχ``: the body-frame rotation of an angle change ``δχ`` (the
+    inverse of :func:`_euler_rate`: ``[[1, 0, -sp], [0, cr, sr cp], [0, -sr, cr cp]]``;
+    ``chi`` lanes, ``d`` components broadcasting against them)."""
+    (sr, cr), (sp, cp) = (_euler_trig(chi) if trig is None else trig)[:2]
+    return (d[0] - sp * d[2], cr * d[1] + (sr * cp) * d[2], (-sr) * d[1] + (cr * cp) * d[2])
+
+
+def _euler_tangents(chi, world=False):
+    """The tangents of the angles of ``R(χ) Exp(δθ)`` in the 3 directions of ``δθ``:
+    ``E(χ) e_j``, 3 lanes of ``(3, *lanes)`` — the derivative the generic kernels take
+    through ``quat_to_euler_zyx`` (periodic in roll and yaw, so the same for angles carried
+    past ±π). Body frame only: the angles' step is no right multiplication of ``R``, so the
+    world-frame error's ``Φ_θθ`` is not the identity the kernels' world frame assumes
+    (:func:`jaximu._fast.blocks_autodiff`)."""
+    if world:
+        raise NotImplementedError("Euler angles keep the body-frame rotation error")
+    dtype, lanes = chi[0].dtype, chi[0].shape
+    trig = _euler_trig(chi)
+    cols = [_euler_rate(chi, tuple(float(x) for x in np.eye(3)[j]), trig) for j in range(3)]
+    onehot = lane_directions(np.eye(3), dtype, lanes)
+    return tuple(sum(onehot[j] * cols[j][i][None] for j in range(3)) for i in range(3))
+
+
+def _euler_rows(tchi1, chi1, world=False):
+    """The rotation error's rows from a tangent ``δχ⁺`` of the angles ``χ⁺``: ``W(χ⁺) δχ⁺``,
+    the tangent of ``Log(R̂⁺ᵀ R⁺)`` (body frame only, as :func:`_euler_tangents`)."""
+    if world:
+        raise NotImplementedError("Euler angles keep the body-frame rotation error")
+    trig = tuple((s[None], c[None]) for s, c in _euler_trig(chi1))
+    return _euler_rates_to_body(None, tchi1, trig)
 
 
 def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
@@ -812,13 +841,13 @@ LANE_FORMS = {
                                        **_QUAT),
     "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate, _lanes_matrix,
                        _matrix_tangents, _matrix_rows, _matrix_rotate_left),
-    # the mean only (no closed-form Jacobian; the covariance runs the generic kernels), with
-    # the pitch singularity reported by the kernel (jaximu._fast.propagate_mean)
+    # no closed-form Jacobian (autodiff blocks only), the pitch singularity reported by the
+    # kernels (jaximu._fast.propagate_mean, propagate_cov)
     "euler_angles": LaneForm(
         "euler_angles", 3, _euler_advance,
         lambda chi, f: _matrix_rotate(_euler_matrix(chi), f),
-        lambda chi, dtype: _lanes_matrix(_euler_matrix(chi), dtype), _euler_no_autodiff,
-        _euler_no_autodiff, _euler_rotate_left),
+        lambda chi, dtype: _lanes_matrix(_euler_matrix(chi), dtype), _euler_tangents,
+        _euler_rows, _euler_rotate_left),
 }
 """The attitude forms the structure-of-arrays kernels run, each as its own lanes."""
 

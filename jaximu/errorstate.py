@@ -376,16 +376,18 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     if lever is not None and lever.ndim > 1:  # a lever arm per batch element
         lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
     form = _soa.lane_form(attitude)
-    x, p, v, P = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f, gyro_f,
-                                     accel_f, dt_f, g_f, qc_fn, var, get_scheme(scheme),
-                                     jacobians, omega, coriolis, lever, save_all, form)
+    x, p, v, P, *locked = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f,
+                                              gyro_f, accel_f, dt_f, g_f, qc_fn, var,
+                                              get_scheme(scheme), jacobians, omega, coriolis,
+                                              lever, save_all, form)
     q = _soa.to_quat(form, x)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
     st = NavState(unflat(q), unflat(p), unflat(v),
                   jnp.broadcast_to(state.b_g[..., None, :] if save_all else state.b_g, lead + (3,)),
                   jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)))
-    return st, unflat(P), jnp.zeros(batch, bool)
+    # Euler angles: the lanes that reached the pitch singularity (by the last step)
+    return st, unflat(P), unflat(locked[0]) if locked else jnp.zeros(batch, bool)
 
 
 NOISE = ArgSpec(1, lambda args, batched: 3)  # a density: scalar (isotropic) or (..., 3)

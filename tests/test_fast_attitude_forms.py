@@ -1,7 +1,7 @@
 """The structure-of-arrays kernels in the attitude forms other than the exact quaternion:
 the rotation matrix (exact exponential, closed-form and autodiff Jacobians), the
-first-order quaternion (autodiff Jacobians) and, for the mean, Euler angles (their pitch
-singularity reported), against the generic kernels (``fast=False``), which carry the same
+first-order quaternion (autodiff Jacobians) and Euler angles (autodiff Jacobians, their
+pitch singularity reported), against the generic kernels (``fast=False``), which carry the same
 forms as ``(..., 3, 3)`` / ``(..., 4)`` / ``(..., 3)`` arrays and differentiate the
 quaternion state with ``jax.jacfwd`` (jaximu/errorstate.py)."""
 
@@ -55,9 +55,8 @@ def covariance(state, P0, gyro, accel, dt, omega, lever, *, attitude, scheme, ja
 
 
 def test_dispatch_of_the_attitude_forms():
-    """The matrix and the first-order quaternion run the SoA kernels (closed forms only for
-    the exact exponential); Euler angles too for the mean, their covariance stays generic
-    (the CPU's rows)."""
+    """Every attitude form runs the SoA kernels (closed forms only for the exact
+    exponential; the CPU's rows)."""
     k = functools.partial(_dispatch.kernel, on=_dispatch.CPU)
     for att in ("matrix", "quaternion_first_order"):
         assert k("mean", "rk4", attitude=att, lanes=40) == "soa_mean"
@@ -71,7 +70,9 @@ def test_dispatch_of_the_attitude_forms():
              lanes=3) == "generic"
     assert k("mean", "rk4", attitude="euler_angles", lanes=40) == "soa_mean"
     assert k("covariance", "euler", attitude="euler_angles", jacobians="autodiff",
-             lanes=3) == "generic"
+             lanes=3) == "soa_cov_autodiff"
+    assert k("covariance", "euler", attitude="euler_angles", jacobians="analytic",
+             lanes=3) == "generic"  # which raises: no closed form
 
 
 @pytest.mark.parametrize("attitude,scheme,save_all,rotating", [
@@ -210,3 +211,44 @@ def test_mean_in_euler_angles_equals_generic_and_reports_the_singularity(scheme,
     with pytest.raises(ValueError, match="gimbal lock"):
         jaximu.propagate_final(jax.tree_util.tree_map(lambda x: x[:5], state), gyro[:5],
                                accel[:5], dt[:5], scheme, attitude="euler_angles")
+
+
+@pytest.mark.parametrize("scheme,save_all,extra", [
+    ("euler", False, None), ("midpoint", True, "lever"), ("rk4", False, "rotating")])
+def test_covariance_in_euler_angles_equals_generic_and_reports_the_singularity(scheme, save_all,
+                                                                               extra):
+    """Euler angles' covariance on the SoA kernel (autodiff blocks from the angles' own
+    tangents ``E(χ) e_j`` and rows ``W(χ⁺) δχ⁺``) against the generic kernel, which
+    differentiates through ``quat_to_euler_zyx``: the same locked lanes, NaN in the same
+    places of the states and covariances, the other lanes' values at 1e-12 (a quarter of
+    the lanes turn past π a step, so roll and yaw leave (-π, π]); an eager call raises."""
+    B, T = 8, 23
+    state, gyro, accel, dt = inputs(B, T, seed=10, big_angles=True)
+    # two lanes start level and pitch up at 40 rad/s: they reach ±90° within the run
+    gyro = gyro.at[:2, :, 1].set(40.0)
+    state = state.replace(q=state.q.at[:2].set(jnp.asarray([1.0, 0.0, 0.0, 0.0])))
+    if scheme != "euler":
+        dt = dt[:, :-1]
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(15, 15)) * 0.02
+    P0 = jnp.asarray(A @ A.T + 1e-6 * np.eye(15))
+    omega = 1e3 * EARTH if extra == "rotating" else None
+    lever = jnp.asarray([0.3, -0.2, 0.15]) if extra == "lever" else None
+    kw = dict(attitude="euler_angles", scheme=scheme, jacobians="autodiff", save_all=save_all)
+    (s1, P1, l1), (s2, P2, l2) = [
+        jax.jit(lambda *a, fast=fast: _propagate_covariance(*a, G_W, NOISE, omega, lever,
+                                                            fast=fast, **kw))(
+            state, P0, gyro, accel, dt) for fast in (True, False)]
+    np.testing.assert_array_equal(l1, l2)
+    if extra != "rotating":
+        assert np.all(np.asarray(l1)[:2]) and not np.any(np.asarray(l1)[2:])
+        assert np.any(np.isnan(P1[:2])) and not np.any(np.isnan(P1[2:]))
+    np.testing.assert_array_equal(np.isnan(P1), np.isnan(P2))
+    np.testing.assert_allclose(P1[2:], P2[2:], rtol=0, atol=1e-12 * np.abs(P2[2:]).max())
+    for a, b in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        assert_close(a[2:], b[2:])
+    with pytest.raises(ValueError, match="gimbal lock"):
+        jaximu.propagate_covariance_final(
+            jax.tree_util.tree_map(lambda x: x[:2], state), P0, gyro[:2], accel[:2], dt[:2],
+            NOISE, scheme, attitude="euler_angles")
