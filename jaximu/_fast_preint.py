@@ -501,6 +501,29 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
     return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
 
 
+def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
+    """Each of the B sequences as ``C`` time chunks of ``L = ceil(T / C)`` steps side by side
+    as lanes (the parallel method): gyro, accel ``(B, T, k)`` -> ``(B C, L, k)``, dt
+    ``(B, T)`` -> ``(B C, L)``, zero-padded at the end (``h = 0`` steps: the kernels'
+    ``guard`` makes them identities); ``edge`` ``(B, T, m)``: per-step values appended to
+    ``accel``, padded with their last one; ``per_sequence``: ``(B, ·)`` arrays repeated per
+    chunk (a ``(·,)`` one shared by all, or ``None``, passes). Returns
+    ``((gyro, accel, dt, per_sequence), guard)``, ``guard``: some steps are padding."""
+    B, T = dt.shape
+    L = -(-T // C)
+    pad = C * L - T
+    if pad:
+        padw = lambda x, **kw: jnp.pad(  # noqa: E731
+            x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2), **kw)
+        gyro, accel, dt = padw(gyro), padw(accel), padw(dt)
+        edge = None if edge is None else padw(edge, mode="edge")
+    if edge is not None:
+        accel = jnp.concatenate([accel, edge], -1)
+    lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
+    rep = [x if x is None or x.ndim == 1 else jnp.repeat(x, C, axis=0) for x in per_sequence]
+    return (lanes(gyro), lanes(accel), lanes(dt), tuple(rep)), bool(pad)
+
+
 def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
                           jacobians="analytic"):
     """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
@@ -525,21 +548,10 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
         q_last = incl[:, -1]
         dR = jnp.concatenate([jnp.broadcast_to(so3.quat_identity((), dtype), (B, 1, 4)),
                               incl[:, :-1]], 1)
-        L = -(-T // C)
-        pad = C * L - T
-        if pad:  # padded steps: h = 0 at a unit rotation (autodiff normalises through it)
-            padw = lambda x: jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
-            gyro, accel, hT = padw(gyro), padw(accel), padw(hT)
-            dR = jnp.pad(dR, ((0, 0), (0, pad), (0, 0)), mode="edge")
-            guard = True
-        accel = jnp.concatenate([accel, dR], -1)  # (B, T, 10): the rotation rides along
-        lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
-        gyro, accel, dt = lanes(gyro), lanes(accel), lanes(hT)
-        rep = lambda x: jnp.repeat(x, C, axis=0)  # noqa: E731
-        b_g = b_g if b_g.ndim == 1 else rep(b_g)
-        b_a = b_a if b_a.ndim == 1 else rep(b_a)
-        var = var if var.ndim == 1 else rep(var)
-        lever = lever if lever is None or lever.ndim == 1 else rep(lever)
+        # the rotation rides along with the specific force (B, T, 10); padded steps sit at
+        # a unit rotation (autodiff normalises through it)
+        (gyro, accel, dt, (b_g, b_a, var, lever)), guard = _as_chunks(
+            C, gyro, accel, hT, (b_g, b_a, var, lever), edge=dR)
 
     def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]
@@ -752,20 +764,8 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians=
     dtype = gyro.dtype
     guard = False
     if C > 1:
-        L = -(-T // C)
-        pad = C * L - T
-        dtf = jnp.broadcast_to(dt, (B, T))
-        if pad:
-            padw = lambda x: jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
-            gyro, accel, dtf = padw(gyro), padw(accel), padw(dtf)
-            guard = True
-        lanes = lambda x: x.reshape((B * C, L) + x.shape[2:])  # noqa: E731
-        gyro, accel, dt = lanes(gyro), lanes(accel), lanes(dtf)
-        rep = lambda x: None if x is None else jnp.repeat(x, C, axis=0)  # noqa: E731
-        b_g = b_g if b_g.ndim == 1 else rep(b_g)
-        b_a = b_a if b_a.ndim == 1 else rep(b_a)
-        var = var if var.ndim == 1 else rep(var)
-        lever = lever if lever is None or lever.ndim == 1 else rep(lever)
+        (gyro, accel, dt, (b_g, b_a, var, lever)), guard = _as_chunks(
+            C, gyro, accel, jnp.broadcast_to(dt, (B, T)), (b_g, b_a, var, lever))
 
     def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]
