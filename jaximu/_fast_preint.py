@@ -44,7 +44,7 @@ from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components
                          block_lanes, direction_block, jvp_directions, lane_directions,
                          quat_matrix, rotation_rows, rotation_tangents, run_blocked)
 from jaximu._vec import V3
-from jaximu.integrators import get_scheme
+from jaximu.integrators import compose_deltas, get_scheme
 
 MIN_CHUNK = 16  # shortest time chunk per lane
 
@@ -667,24 +667,24 @@ def _combine(a, b, rotate=True):
     :func:`jaximu.preintegration.compose`: ``b`` is moved to ``a``'s frame by
     ``T = blockdiag(R, R, R, I, I)`` (``θ'``, p, v all rotate) and composed. With
     ``rotate=False`` both are already in the same frame (plain composition)."""
-    from jaximu.so3 import quat_mul, quat_normalize, quat_to_matrix
+    from jaximu.so3 import quat_to_matrix
 
-    mv = lambda M, x: jnp.einsum("...ij,...j->...i", M, x)  # noqa: E731
+    deltas = lambda s: (s["q"], s["dp"], s["dv"], s["t"])  # noqa: E731
     if rotate:
         R = quat_to_matrix(a["q"])
         T = _frame(R, 15, 3)
         T9 = T[..., :9, :9]
         Fb = T @ b["Phi"] @ _t(T)
         Qb15, Qb9 = T @ b["Q15"] @ _t(T), T9 @ b["Q9"] @ _t(T9)
-        dvb, dpb = mv(R, b["dv"]), mv(R, b["dp"])
-        q = quat_normalize(quat_mul(a["q"], b["q"]))
-    else:
-        Fb, Qb15, Qb9, dvb, dpb, q = b["Phi"], b["Q15"], b["Q9"], b["dv"], b["dp"], a["q"]
+        q, dp, dv, t = compose_deltas(deltas(a), deltas(b),
+                                      lambda x: jnp.einsum("...ij,...j->...i", R, x))
+    else:  # the same frame: the sums of compose_deltas without a rotation
+        Fb, Qb15, Qb9, q = b["Phi"], b["Q15"], b["Q9"], a["q"]
+        dv, dp, t = (a["dv"] + b["dv"], (a["dp"] + a["dv"] * b["t"][..., None]) + b["dp"],
+                     a["t"] + b["t"])
     F9 = Fb[..., :9, :9]
-    return dict(
-        q=q, dv=a["dv"] + dvb, dp=(a["dp"] + a["dv"] * b["t"][..., None]) + dpb,
-        t=a["t"] + b["t"], Phi=Fb @ a["Phi"], Q15=_sym(Fb @ a["Q15"] @ _t(Fb) + Qb15),
-        Q9=_sym(F9 @ a["Q9"] @ _t(F9) + Qb9))
+    return dict(q=q, dv=dv, dp=dp, t=t, Phi=Fb @ a["Phi"],
+                Q15=_sym(Fb @ a["Q15"] @ _t(Fb) + Qb15), Q9=_sym(F9 @ a["Q9"] @ _t(F9) + Qb9))
 
 
 def _identity_summary(like):

@@ -386,6 +386,21 @@ def stage_sum(points, x, x_end, advance, rotate, p: V3, v: V3, h, g: V3):
     return p1, v1
 
 
+def compose_deltas(a, b, rotate=None):
+    """Interval ``a`` then interval ``b``, each as its deltas ``(Δq, Δp, Δv, Δt)`` in its own
+    start frame (quaternion ``(..., 4)``, vectors ``(..., 3)``, ``Δt`` ``(...)``), gravity
+    free: ``(Δq_a ⊗ Δq_b, Δp_a + Δv_a Δt_b + ΔR_a Δp_b, Δv_a + ΔR_a Δv_b, Δt_a + Δt_b)``, the
+    product normalised. The composition of preintegrated intervals (Forster et al. 2017), and
+    of the time chunks of a long sequence; associative, so it reduces as a tree or a
+    parallel prefix scan. ``rotate``: ``x -> ΔR_a x`` when the caller holds ``ΔR_a`` as a
+    matrix anyway (default: the rotation by ``Δq_a``)."""
+    qa, pa, va, ta = a
+    qb, pb, vb, tb = b
+    rot = rotate or (lambda x: so3.quat_rotate(qa, x))
+    return (so3.quat_normalize(so3.quat_mul(qa, qb)), pa + va * tb[..., None] + rot(pb),
+            va + rot(vb), ta + tb)
+
+
 def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, noise=None):
     """One step on a :class:`NavState` (quaternion in, quaternion out), with optional noise.
 

@@ -51,7 +51,7 @@ from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks, mm
 from jaximu._vec import V3
 from jaximu.errorstate import blocks_analytic
-from jaximu.integrators import get_scheme
+from jaximu.integrators import compose_deltas, get_scheme
 from jaximu.noise import ImuNoise
 from jaximu.state import ImuBias, NavState
 
@@ -883,12 +883,10 @@ def compose(pim_ab: Preintegrated, pim_bc: Preintegrated) -> Preintegrated:
 
     acc = _combine(_Acc(Phi_ab, ab_blocks(pim_ab.cov15, 15), ab_blocks(pim_ab.cov, 9)),
                    _Acc(F, conj(bc.cov15, 15), conj(bc.cov, 9)))
-    return _finish(
-        pim_ab.delta_t + bc.delta_t,
-        so3.quat_mul(pim_ab.delta_q, bc.delta_q),
-        pim_ab.delta_v + mv(R, bc.delta_v),
-        pim_ab.delta_p + pim_ab.delta_v * bc.delta_t[..., None] + mv(R, bc.delta_p),
-        acc, pim_ab.bias_hat)
+    dq, dp, dv, dt = compose_deltas(
+        (pim_ab.delta_q, pim_ab.delta_p, pim_ab.delta_v, pim_ab.delta_t),
+        (bc.delta_q, bc.delta_p, bc.delta_v, bc.delta_t), lambda x: mv(R, x))
+    return _finish(dt, dq, dv, dp, acc, pim_ab.bias_hat)
 
 
 def _gravity(gravity, dtype):

@@ -20,7 +20,8 @@ from jaximu import sensor
 from jaximu import so3
 from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
+from jaximu.integrators import (GIMBAL_LOCK_COS, check_scheme, compose_deltas, get_attitude,
+                                get_scheme, step)
 from jaximu.state import NavState
 
 __all__ = ["propagate", "propagate_final"]
@@ -133,20 +134,8 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     return states, locked
 
 
-def _compose_deltas(a, b):
-    """Chunk ``a`` then chunk ``b``, each as its deltas ``(ΔR, Δp, Δv, Δt)`` (quaternion
-    ``(..., 4)``, vectors ``(..., 3)``, ``Δt`` ``(...)``) in its start frame: preintegration's
-    composition ``(ΔR_a ΔR_b, Δp_a + Δv_a Δt_b + ΔR_a Δp_b, Δv_a + ΔR_a Δv_b, Δt_a + Δt_b)``,
-    associative (so the chunks compose as a tree or a parallel prefix scan)."""
-    qa, pa, va, ta = a
-    qb, pb, vb, tb = b
-    return (so3.quat_normalize(so3.quat_mul(qa, qb)),
-            pa + va * tb[..., None] + so3.quat_rotate(qa, pb),
-            va + so3.quat_rotate(qa, vb), ta + tb)
-
-
 def _apply_deltas(q, p, v, g, d):
-    """The state ``(q, p, v)`` moved by deltas ``d`` (:func:`_compose_deltas`) under gravity
+    """The state ``(q, p, v)`` moved by deltas ``d`` (:func:`compose_deltas`) under gravity
     ``g``: ``R ΔR``, ``p + v Δt + ½ g Δt² + R Δp``, ``v + g Δt + R Δv``."""
     dq, dp, dv, t = d
     t = t[..., None]
@@ -164,7 +153,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
     exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The final
     state applies them in sequence on the CPU (``C`` cheap steps); they compose
-    associatively (:func:`_compose_deltas`), so on an accelerator their product is reduced
+    associatively (:func:`jaximu.integrators.compose_deltas`), so on an accelerator their product is reduced
     as a tree (``log2 C`` launches, not ``C``). ``save_all``: a
     parallel prefix scan of the deltas gives every chunk's start state, and the chunks run
     again from those starts, storing their states (twice the arithmetic, for ``C`` times
@@ -214,7 +203,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
         while deltas[0].shape[0] > 1:  # pairwise, log2(C) levels
             if deltas[0].shape[0] % 2:  # an identity chunk pads to an even count
                 deltas = tuple(jnp.concatenate([d, e]) for d, e in zip(deltas, ident))
-            deltas = _compose_deltas(tuple(d[0::2] for d in deltas),
+            deltas = compose_deltas(tuple(d[0::2] for d in deltas),
                                      tuple(d[1::2] for d in deltas))
         qf, pf, vf = _apply_deltas(q, p, v, g_b, tuple(d[0] for d in deltas))
     if not save_all:
@@ -225,7 +214,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
     before = ident
     if C > 1:
-        prefix = jax.lax.associative_scan(_compose_deltas, tuple(d[:-1] for d in deltas))
+        prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
         before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
     starts = _apply_deltas(q, p, v, g_b, before)
     relane = lambda x: jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:])  # noqa: E731
