@@ -214,7 +214,7 @@ def test_mean_in_euler_angles_equals_generic_and_reports_the_singularity(scheme,
 
 
 @pytest.mark.parametrize("scheme,save_all,extra", [
-    ("euler", False, None), ("midpoint", True, "lever"), ("rk4", False, "rotating")])
+    ("euler", False, "rotating"), ("midpoint", True, "lever"), ("rk4", False, None)])
 def test_covariance_in_euler_angles_equals_generic_and_reports_the_singularity(scheme, save_all,
                                                                                extra):
     """Euler angles' covariance on the SoA kernel (autodiff blocks from the angles' own
@@ -248,7 +248,8 @@ def test_covariance_in_euler_angles_equals_generic_and_reports_the_singularity(s
     for a, b in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
         np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
         assert_close(a[2:], b[2:])
-    with pytest.raises(ValueError, match="gimbal lock"):
-        jaximu.propagate_covariance_final(
-            jax.tree_util.tree_map(lambda x: x[:2], state), P0, gyro[:2], accel[:2], dt[:2],
-            NOISE, scheme, attitude="euler_angles")
+    if scheme == "midpoint":  # the eager error (one scheme: each call compiles a kernel)
+        with pytest.raises(ValueError, match="gimbal lock"):
+            jaximu.propagate_covariance_final(
+                jax.tree_util.tree_map(lambda x: x[:2], state), P0, gyro[:2], accel[:2],
+                dt[:2], NOISE, scheme, attitude="euler_angles")
