@@ -48,6 +48,16 @@ def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3
     return _leave_world(q, p, v, h, g, omega, coriolis, form)
 
 
+def _lock(locked, q, p, v):
+    """The Euler-angle form's pitch ±90° singularity on lanes (as the generic kernels'
+    :func:`jaximu.propagate.mean_body`): ``locked`` ``(B,)`` grows by the lanes whose new
+    pitch reaches it, and their state ``(q, p, v)`` is NaN from that step on, never a silently
+    wrong attitude. Returns ``(q, p, v, (locked,))``, the kernels' carry."""
+    locked = locked | (_sincos(q[1])[1] < GIMBAL_LOCK_COS)
+    nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
+    return nan(q), nan(p), nan(v), (locked,)
+
+
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
                    coriolis="exact", form: LaneForm = QUATERNION):
     """Flat batch: q ``(B, form.size)`` (the attitude form's state, :data:`LANE_FORMS`: a
@@ -84,13 +94,7 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             else:
                 q, p, v = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv,
                                     form=form)
-            if not euler:
-                return q, p, v
-            # the pitch ±90° singularity: NaN from the first step that reaches it, never a
-            # silently wrong attitude (jaximu.propagate.mean_body, on lanes)
-            locked = c[3][0] | (_sincos(q[1])[1] < GIMBAL_LOCK_COS)
-            nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
-            return nan(q), nan(p), nan(v), (locked,)
+            return _lock(c[3][0], q, p, v) if euler else (q, p, v)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
@@ -281,12 +285,10 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
                                   None if rv is None else V3(*rv), world_error, form)
             if not euler:
                 return out
-            # the pitch singularity as the mean's kernel (propagate_mean): the state is NaN
-            # from the step that reaches it; the covariance follows from the next step's
-            # blocks, as the generic kernel's
-            locked = c[4][0] | (_sincos(out[0][1])[1] < GIMBAL_LOCK_COS)
-            nan = lambda t: tuple(jnp.where(locked, jnp.nan, x) for x in t)  # noqa: E731
-            return nan(out[0]), nan(out[1]), nan(out[2]), out[3], (locked,)
+            # the covariance follows the NaN state from the next step's blocks, as the
+            # generic kernel's
+            q, p, v, locked = _lock(c[4][0], *out[:3])
+            return q, p, v, out[3], locked
 
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at

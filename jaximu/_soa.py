@@ -769,11 +769,11 @@ def _euler_rotate_left(chi, dth):
     return tuple(chi1[..., i] for i in range(3))
 
 
-def _euler_rates_to_body(chi, d, trig=None):
+def _euler_rates_to_body(trig, d):
     """``W(χ) δχ = E(χ)⁻¹ δχ``: the body-frame rotation of an angle change ``δχ`` (the
     inverse of :func:`_euler_rate`: ``[[1, 0, -sp], [0, cr, sr cp], [0, -sr, cr cp]]``;
-    ``chi`` lanes, ``d`` components broadcasting against them)."""
-    (sr, cr), (sp, cp) = (_euler_trig(chi) if trig is None else trig)[:2]
+    ``trig`` the angles' :func:`_euler_trig`, ``d`` components broadcasting against it)."""
+    (sr, cr), (sp, cp) = trig[:2]
     return (d[0] - sp * d[2], cr * d[1] + (sr * cp) * d[2], (-sr) * d[1] + (cr * cp) * d[2])
 
 
@@ -799,7 +799,7 @@ def _euler_rows(tchi1, chi1, world=False):
     if world:
         raise NotImplementedError("Euler angles keep the body-frame rotation error")
     trig = tuple((s[None], c[None]) for s, c in _euler_trig(chi1))
-    return _euler_rates_to_body(None, tchi1, trig)
+    return _euler_rates_to_body(trig, tchi1)
 
 
 def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):

@@ -153,9 +153,9 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
     exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The final
     state applies them in sequence on the CPU (``C`` cheap steps); they compose
-    associatively (:func:`jaximu.integrators.compose_deltas`), so on an accelerator their product is reduced
-    as a tree (``log2 C`` launches, not ``C``). ``save_all``: a
-    parallel prefix scan of the deltas gives every chunk's start state, and the chunks run
+    associatively (:func:`jaximu.integrators.compose_deltas`), so on an accelerator their
+    product is reduced as a tree (``log2 C`` launches, not ``C``). ``save_all``: a parallel
+    prefix scan of the deltas gives every chunk's start state, and the chunks run
     again from those starts, storing their states (twice the arithmetic, for ``C`` times
     fewer sequential steps: the accelerator's choice, docs/DESIGN.md "Dispatch"). Equal to
     the plain scan to rounding.
