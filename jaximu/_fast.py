@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks, sensor, world
+from jaximu import _blocks, sensor, so3, world
 from jaximu._blocks import UPPER, Blocks, block, structured_update
 from jaximu._soa import (LANE_FORMS, SOA, LaneForm, _bmm, _bt, _components, _materialise,
                          _quat_normalize, _sincos, _stack_last, _time_chunks, block_lanes,
@@ -59,7 +59,8 @@ def _lock(locked, q, p, v):
 
 
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
-                   coriolis="exact", form: LaneForm = QUATERNION):
+                   coriolis="exact", form: LaneForm = QUATERNION, pose=None, tangential=True,
+                   n_samples=None):
     """Flat batch: q ``(B, form.size)`` (the attitude form's state, :data:`LANE_FORMS`: a
     quaternion ``(B, 4)``, a matrix ``(B, 9)`` row-major, Euler angles ``(B, 3)``),
     p/v/b_g/b_a ``(B, 3)``, gyro/accel
@@ -68,15 +69,23 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     world, :mod:`jaximu.world`) ``None``, ``(3,)`` or ``(B, 3)``. Returns final ``(q, p, v)``
     (B, ·) or, with save_all, the ``(B, T, ·)`` trajectories, ``q`` in the form; for Euler
     angles a 4th output, the lanes that reached the pitch singularity (``(B, 1)`` or
-    ``(B, T, 1)`` bool: from that step on their states are NaN, as the generic kernel's)."""
+    ``(B, T, 1)`` bool: from that step on their states are NaN, as the generic kernel's).
+
+    ``pose``: ``None``, or the samples are a sensor's at ``(q_BS, p_BS)`` (``(4,)``, ``(3,)``
+    shared or ``(B, ·)``) and ``b_g``, ``b_a`` the biases in the body frame: the samples
+    move into the body frame in the kernel's time chunks (:func:`jaximu.sensor.chunk_to_body`;
+    ``tangential`` as :func:`jaximu.sensor.to_body`, ``n_samples`` the samples the user gave)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
     euler = form.name == "euler_angles"
+    moved = pose is not None
+    pose_q, pose_p = pose if moved else (None, None)
+    shared_pose = not moved or pose_q.ndim == 1
 
-    def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega):
+    def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega, pose_q, pose_p):
         consts = (_components(b_g), _components(b_a), _components(g),
                   _components(omega) if rotating else ())
         carry = (_components(q), _components(p), _components(v))
@@ -97,15 +106,20 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             return _lock(c[3][0], q, p, v) if euler else (q, p, v)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
+        samples = None
+        if moved:
+            samples = sensor.chunk_to_body(so3.quat_to_matrix(pose_q), V3(*consts[0]),
+                                           V3(*_components(pose_p)), n_samples, tangential)
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
-                                   next_sample=scheme.uses_next_sample)
+                                   next_sample=scheme.uses_next_sample, samples=samples)
         if save_all:
             return bufs
         return tuple(_stack_last(x) for x in carry)
 
-    # dt, g and omega shared by all lanes are read whole by every block
+    # dt, g, omega and a pose shared by all lanes are read whole by every block
     return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, gyro, accel, dt,
-                       g, omega, whole=(False,) * 7 + (shared_dt, shared_g, shared_w))
+                       g, omega, pose_q, pose_p,
+                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + (shared_pose,) * 2)
 
 
 def dense_to_blocks(P):

@@ -39,6 +39,10 @@ from jaximu._blocks import Layout
 from jaximu._vec import V3
 
 _CHUNK = (64, 16)  # preferred largest / smallest time chunk
+HALO = 2
+"""Samples before a time chunk that :func:`_time_chunks` gives its ``samples`` function
+(two: the held last sample of a next-sample scheme takes the derivative of the one before
+it)."""
 
 # ----------------------------------------------------------------------------- half angle
 
@@ -425,26 +429,60 @@ def _chunk_size(T):
     return 32  # remainder handled by a second (shorter) segment
 
 
-def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
+def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False, samples=None):
     """Scan ``step(carry, w, a, h, consts) -> carry`` over time for one batch block.
 
-    gyro, accel: ``(Bc, T, 3)``; dt: ``(T,)`` or ``(Bc, T)``. Inputs are transposed to
+    gyro, accel: ``(Bc, T, 3)`` (or more samples); dt: ``(T,)`` or ``(Bc, T)``, the T steps.
+    Inputs are transposed to
     time-major ``(K, Bc)`` components one chunk of K samples at a time (cache-resident).
     With ``next_sample`` the inputs hold ``T + 1`` samples and ``w``, ``a`` are 6-tuples:
     samples k and k+1, both read from the same chunk (no paired copy of the inputs).
     ``save(carry) -> tuple of (Bc, n)`` arrays written at every sample into ``(Bc, T, n)``
     buffers (or ``None``).
+
+    ``samples(w, a, hw, k) -> (w, a)``: the chunk's samples changed before the steps read
+    them (a sensor's into the body's, :func:`jaximu.sensor.chunk_to_body`), on the chunk in
+    cache rather than as a pass over the whole input. ``w``, ``a`` are 3-tuples of
+    ``(n + 3, Bc)`` components: the chunk's ``n`` samples (``L``, or ``L + 1`` with
+    ``next_sample``) with :data:`HALO` neighbours before and one after (at the sequence's
+    ends they repeat the end sample); ``hw`` the ``n + 2`` spacings between them
+    (``dt`` of the interval starting at each, the index clamped into ``dt``), ``(n + 2,)``
+    or ``(n + 2, Bc)``; ``k`` the chunk samples' indices ``(n,)``. It returns the ``n``
+    chunk samples.
     """
-    Bc, T = gyro.shape[0], gyro.shape[1] - int(next_sample)
+    # steps: dt's length (the samples may hold one more that only ``samples`` reads)
+    Bc, T = gyro.shape[0], dt.shape[-1]
     K = _chunk_size(T)
     nC, rem = divmod(T, K)
 
+    def window(x, t0, n, axis, after):
+        """``n`` entries of ``x`` from ``t0`` along ``axis``; with ``samples``, with
+        :data:`HALO` before and ``after`` after (indices clamped into ``x``)."""
+        main = jax.lax.dynamic_slice_in_dim(x, t0, n, axis=axis)
+        if samples is None:
+            return main
+        size = x.shape[axis]
+        at = lambda i: jax.lax.dynamic_slice_in_dim(  # noqa: E731
+            x, jnp.clip(i, 0, size - 1), 1, axis=axis)
+        return jnp.concatenate([at(t0 - HALO + j) for j in range(HALO)] + [main]
+                               + [at(t0 + n + j) for j in range(after)], axis=axis)
+
     def comps(x, t0, L):
-        c = jax.lax.dynamic_slice_in_dim(x, t0, L + int(next_sample), axis=1)  # (Bc, L(+1), 3)
-        ct = _materialise(jnp.transpose(c, (2, 1, 0)))  # (3, L(+1), Bc), transposed once
-        if next_sample:
-            return tuple(ct[i, :L] for i in range(3)) + tuple(ct[i, 1:] for i in range(3))
+        c = window(x, t0, L + int(next_sample), 1, 1)
+        ct = _materialise(jnp.transpose(c, (2, 1, 0)))  # (3, ·, Bc), transposed once
         return tuple(ct[i] for i in range(ct.shape[0]))
+
+    def both(t0, L):
+        w, a = comps(gyro, t0, L), comps(accel, t0, L)
+        if samples is not None:  # changed once per chunk, in cache
+            n = L + int(next_sample)
+            hw = window(dt, t0, L, dt.ndim - 1, int(next_sample))  # n + HALO spacings
+            hw = hw if dt.ndim == 1 else jnp.transpose(hw)  # (n + 2, Bc)
+            w, a = _materialise(tuple(tuple(x) for x in samples(w, a, hw, t0 + jnp.arange(n))))
+        if next_sample:
+            return (tuple(c[:L] for c in w) + tuple(c[1:] for c in w),
+                    tuple(c[:L] for c in a) + tuple(c[1:] for c in a))
+        return w, a
 
     def hs(t0, L):
         if dt.ndim == 1:
@@ -463,7 +501,7 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False):
                              for b, y in zip(bufs, save(c)))
             return (c, bufs), None
 
-        xs = (t0 + jnp.arange(L), comps(gyro, t0, L), comps(accel, t0, L), hs(t0, L))
+        xs = (t0 + jnp.arange(L),) + both(t0, L) + (hs(t0, L),)
         return jax.lax.scan(body, (carry, bufs), xs)[0]
 
     bufs = ()

@@ -111,14 +111,27 @@ def kernel_samples(scheme, gyro, accel, dt):
 
 
 def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
-                    coriolis="exact", attitude="quaternion"):
-    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
+                    coriolis="exact", attitude="quaternion", pose=None, tangential=True):
+    """The ``soa_mean`` kernel; ``pose``: the samples are a sensor's there and ``state``'s
+    biases the body's (:func:`_propagate`): they move into the body frame in the kernel."""
+    n_samples = gyro.shape[-2]
+    samples = kernel_samples(scheme, gyro, accel, dt)
+    if pose is not None and not get_scheme(scheme).uses_next_sample:
+        # Euler over the intervals between samples: the derivative at the last step's sample
+        # reads the sample after it
+        samples = (gyro, accel, samples[2])
+    gyro, accel, dt = samples
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
-    if omega is not None and omega.ndim > 1:  # a world rate per batch element
-        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((-1, 3))
+    flat = lambda x: x if x.ndim == 1 else \
+        jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]).reshape((-1, x.shape[-1]))  # noqa: E731
+    if omega is not None:  # a world rate shared, or per batch element
+        omega = flat(omega)
+    if pose is not None:
+        pose = (flat(pose.q), flat(pose.p))
     form = _soa.lane_form(attitude)  # the attitude form's state on lanes, and back after
     out = _fast.propagate_mean(get_scheme(scheme), _soa.from_quat(form, q), p, v, b_g, b_a,
-                               gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form)
+                               gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form,
+                               pose, tangential, n_samples)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q, p, v = (unflat(x) for x in (_soa.to_quat(form, out[0]),) + tuple(out[1:3]))
     # Euler angles: the lanes that reached the pitch singularity (by the last step)
@@ -285,20 +298,33 @@ def mean_body(scheme, att, b_g, b_a, g, omega=None, coriolis="exact"):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast",
-                                             "coriolis"))
-def _propagate(state, gyro, accel, dt, g, omega=None, *, scheme, attitude, save_all, fast=True,
-               coriolis="exact"):
+                                             "coriolis", "tangential"))
+def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, attitude, save_all,
+               fast=True, coriolis="exact", tangential=True):
+    """The mean's engine. ``pose``: ``None``, or a checked :class:`jaximu.SensorPose`: the
+    samples are the sensor's and ``state``'s biases are in its frame (:mod:`jaximu.sensor`);
+    the structure-of-arrays kernel moves the samples into the body frame in its time chunks,
+    the others read them moved (:func:`jaximu.sensor.to_body`). The returned states' biases
+    are then the body's."""
     att = get_attitude(attitude)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1],
-                                 *(() if omega is None else (omega.shape[:-1],)))
+                                 *(() if omega is None else (omega.shape[:-1],)),
+                                 *(() if pose is None else (pose.q.shape[:-1],
+                                                            pose.p.shape[:-1])))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
+    if pose is not None:
+        if kernel != "soa_mean":
+            gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g,
+                                         tangential=tangential)
+        state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
+                         sensor.bias_to_body(pose, state.b_a))
     if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
-                               coriolis, attitude)
+                               coriolis, attitude, pose, tangential)
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
@@ -335,13 +361,14 @@ STEPS = ArgSpec(1, _n_steps_arg)
 VECTOR = ArgSpec(1)
 
 
-def routed_propagate(scheme, attitude, save_all, coriolis="exact"):
+def routed_propagate(scheme, attitude, save_all, coriolis="exact", tangential=True):
     """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`).
 
-    Its arguments: ``(state, gyro, accel, dt, g, omega)``, ``omega`` ``None`` or ``(..., 3)``."""
-    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR),
+    Its arguments: ``(state, gyro, accel, dt, g, omega, pose)``, ``omega`` ``None`` or
+    ``(..., 3)``, ``pose`` ``None`` or a :class:`jaximu.SensorPose`."""
+    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR, VECTOR),
                         (("attitude", attitude), ("save_all", save_all), ("scheme", scheme),
-                         ("coriolis", coriolis)))
+                         ("coriolis", coriolis), ("tangential", tangential)))
 
 
 def _report_gimbal_lock(locked, attitude):
@@ -379,18 +406,29 @@ SENSOR_ARGS_DOC = """
 """
 
 
-def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
-    """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
-    samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
+def _sensor_options(state, gyro, accel, body_P_sensor, tangential, omega_coriolis):
+    """The checked ``tangential``, ``ω_W`` (``omega_coriolis``) and ``body_P_sensor``
+    (``None`` each when not given)."""
     dtype = state.q.dtype
     tangential = val.check_bool("tangential", tangential)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2])
     omega = None if omega_coriolis is None else world.check_omega(omega_coriolis, dtype)
     if omega is not None:
         val.batch_shape(batch, omega.shape[:-1], names=("state and samples", "omega_coriolis"))
-    if body_P_sensor is None:
+    pose = None
+    if body_P_sensor is not None:
+        pose = sensor.check_pose(body_P_sensor, dtype, batch=batch,
+                                 batch_name="state and samples")
+    return tangential, omega, pose
+
+
+def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
+    """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
+    samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
+    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
+                                              omega_coriolis)
+    if pose is None:
         return state, gyro, accel, omega
-    pose = sensor.check_pose(body_P_sensor, dtype, batch=batch, batch_name="state and samples")
     gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
     state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
                      sensor.bias_to_body(pose, state.b_a))
@@ -409,10 +447,11 @@ def sensor_biases(states, state, per_step):
 def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity, body_P_sensor,
            tangential, omega_coriolis, coriolis):
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
-                                               omega_coriolis)
-    out, locked = routed_propagate(scheme, attitude, save_all, coriolis)(
-        inner, gyro, accel, dt, g, omega)
+    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
+                                              omega_coriolis)
+    # the samples move into the body frame inside the engine (in the kernel's time chunks)
+    out, locked = routed_propagate(scheme, attitude, save_all, coriolis, tangential)(
+        state, gyro, accel, dt, g, omega, pose)
     if body_P_sensor is not None:
         out = sensor_biases(out, state, save_all)
     _report_gimbal_lock(locked, attitude)

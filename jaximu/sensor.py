@@ -5,8 +5,10 @@ estimated); the IMU's own frame S is rotated by ``R_BS`` and its origin sits at 
 arm ``r = p_BS`` (in B). A :class:`SensorPose` ``(q, p)`` holds ``q_BS`` (Hamilton
 ``[w, x, y, z]``) and ``p_BS`` [m].
 
-**Measurements into the body frame** (:func:`to_body`), a pure transformation applied before
-any kernel, so every scheme, fast kernel and the ``vmap`` routing run unchanged:
+**Measurements into the body frame** (:func:`to_body`), a pure transformation of the
+samples, so every scheme and kernel runs unchanged on the body's samples (the mean's
+structure-of-arrays kernel applies it inside its time chunks, :func:`chunk_to_body`: a pass
+over the whole input costs as much as that kernel):
 
     ω_B = R_BS ω_S,      f_B = R_BS f_S - α_B × r - ω_B × (ω_B × r),
 
@@ -182,12 +184,54 @@ def _angular_acceleration(omega: V3, dt) -> V3:
         d = jnp.diff(x, axis=-1) / h  # (..., T-1) forward differences
         if T == 2:
             return jnp.concatenate([d, d], axis=-1)
-        h1, h2 = h[..., :-1], h[..., 1:]
-        # weighted mean of the neighbouring slopes: exact for a quadratic rate
-        mid = (h2 * d[..., :-1] + h1 * d[..., 1:]) / (h1 + h2)
+        mid = _central(d[..., :-1], d[..., 1:], h[..., :-1], h[..., 1:])
         return jnp.concatenate([d[..., :1], mid, d[..., -1:]], axis=-1)
 
     return V3(*(one(c) for c in omega))
+
+
+def _central(d_before, d_after, h_before, h_after):
+    """The rate's derivative at a sample from the slopes of the intervals before and after it
+    (lengths ``h_before``, ``h_after``): their weighted mean, exact for a quadratic rate."""
+    return (h_after * d_before + h_before * d_after) / (h_before + h_after)
+
+
+def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
+    """:func:`to_body` inside a kernel's time chunks: the ``samples`` function of
+    :func:`jaximu._soa._time_chunks` (its ``w``, ``a``, ``hw``, ``k``), on time-major
+    components ``(n + 3, Bc)`` with ``HALO`` samples before the chunk and one after.
+
+    ``R``: ``R_BS`` ``(Bc, 3, 3)`` or ``(3, 3)``; ``b_g``: the gyro bias in the body frame
+    (``R_BS b_g``) and ``r`` the lever arm, components ``(Bc,)`` or scalars;
+    ``n_samples``: the samples the user gave (a next-sample scheme's kernel holds the last
+    one once more: it gets the derivative of the last). The derivative ``α`` is
+    :func:`angular_acceleration`'s: central inside, one-sided at the first and last sample.
+    """
+    from jaximu._soa import HALO
+
+    def samples(w, a, hw, k):
+        n = k.shape[0]
+        gyro_b = matvec_v3(R, V3(*w))  # (n + 3, Bc)
+        own = lambda x: V3(*(c[HALO:HALO + n] for c in x))  # noqa: E731
+        alpha = None
+        if tangential and n_samples > 1:
+            h = hw[:, None] if hw.ndim == 1 else hw
+            d = V3(*((c[1:] - c[:-1]) / h for c in gyro_b))  # slopes, (n + 2, Bc)
+            at = lambda j: V3(*(c[j:j + n] for c in d))  # noqa: E731 (interval k - HALO + j)
+            before, after, held = at(HALO - 1), at(HALO), at(HALO - 2)
+            mid = V3(*(_central(b, f, h[HALO - 1:HALO - 1 + n], h[HALO:HALO + n])
+                       for b, f in zip(before, after)))
+            kk = k[:, None]
+            pick = lambda c0, cb, ch, cm: jnp.where(  # noqa: E731
+                kk == 0, c0, jnp.where(kk == n_samples - 1, cb,
+                                       jnp.where(kk >= n_samples, ch, cm)))
+            alpha = V3(*(pick(*c) for c in zip(after, before, held, mid)))
+        gyro_b = own(gyro_b)
+        omega = gyro_b - b_g
+        accel_b = matvec_v3(R, own(V3(*a))) - _lever_arm_acceleration(omega, alpha, r)
+        return tuple(gyro_b), tuple(accel_b)
+
+    return samples
 
 
 def lever_arm_acceleration(omega, alpha, r):
