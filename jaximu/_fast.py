@@ -58,6 +58,16 @@ def _lock(locked, q, p, v):
     return nan(q), nan(p), nan(v), (locked,)
 
 
+def _sensor_samples(pose_q, pose_p, b_g, n_samples, tangential):
+    """The ``samples`` hook of :func:`jaximu._soa._time_chunks` for a block's lanes of a
+    sensor at ``(q_BS, p_BS)`` (``None``: no sensor pose), ``b_g`` the body-frame gyro bias's
+    components (:func:`jaximu.sensor.chunk_to_body`)."""
+    if pose_q is None:
+        return None
+    return sensor.chunk_to_body(so3.quat_to_matrix(pose_q), V3(*b_g), V3(*_components(pose_p)),
+                                n_samples, tangential)
+
+
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
                    coriolis="exact", form: LaneForm = QUATERNION, pose=None, tangential=True,
                    n_samples=None):
@@ -81,9 +91,8 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
     euler = form.name == "euler_angles"
-    moved = pose is not None
-    pose_q, pose_p = pose if moved else (None, None)
-    shared_pose = not moved or pose_q.ndim == 1
+    pose_q, pose_p = (None, None) if pose is None else pose
+    shared_pose = pose is None or pose_q.ndim == 1
 
     def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega, pose_q, pose_p):
         consts = (_components(b_g), _components(b_a), _components(g),
@@ -106,12 +115,10 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             return _lock(c[3][0], q, p, v) if euler else (q, p, v)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
-        samples = None
-        if moved:
-            samples = sensor.chunk_to_body(so3.quat_to_matrix(pose_q), V3(*consts[0]),
-                                           V3(*_components(pose_p)), n_samples, tangential)
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
-                                   next_sample=scheme.uses_next_sample, samples=samples)
+                                   next_sample=scheme.uses_next_sample,
+                                   samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples,
+                                                           tangential))
         if save_all:
             return bufs
         return tuple(_stack_last(x) for x in carry)
@@ -250,7 +257,7 @@ def world_error_blocks(Pb, q, inverse=False):
 
 def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
                   jacobians, omega=None, coriolis="exact", lever=None, save_all=False,
-                  form: LaneForm = QUATERNION):
+                  form: LaneForm = QUATERNION, pose=None, tangential=True, n_samples=None):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
     after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
     discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
@@ -260,7 +267,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
     ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of a sensor's samples
     (:func:`cov_step_blocks`); ``form``: the attitude form of ``q`` ``(B, form.size)``
-    (:data:`LANE_FORMS`), which the outputs keep."""
+    (:data:`LANE_FORMS`), which the outputs keep; ``pose``, ``tangential``, ``n_samples``:
+    a sensor's samples, moved in the time chunks (:func:`propagate_mean`)."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -273,8 +281,11 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     # angles' step is no right multiplication of R, so their Φ_θθ would not be I there)
     world_error = omega is None and not save_all and form.size == 4
     euler = form.name == "euler_angles"
+    pose_q, pose_p = (None, None) if pose is None else pose
+    shared_pose = pose is None or pose_q.ndim == 1
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever):
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever, pose_q,
+              pose_p):
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
                   (_components(omega) if rotating else None),
                   (None if lever is None else _components(lever)))
@@ -313,7 +324,9 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
 
         carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts,
                                    save if save_all else None,
-                                   next_sample=scheme.uses_next_sample)
+                                   next_sample=scheme.uses_next_sample,
+                                   samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples,
+                                                           tangential))
         q, p, v, Pb = carry[:4]
         locked = (carry[4][0],) if euler else ()  # (Bc,): by the last step
         if save_all:
@@ -324,8 +337,9 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
     out = run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,
-                      dt, g, qc_params, omega, lever,
-                      whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r))
+                      dt, g, qc_params, omega, lever, pose_q, pose_p,
+                      whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r)
+                      + (shared_pose,) * 2)
     if not save_all:
         return out
     blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:3 + len(UPPER)])}

@@ -48,8 +48,8 @@ from jaximu._vec import V3
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
-                              flatten_batch, kernel_samples, mean_body, n_steps, prepare,
-                              time_major)
+                              flatten_batch, lane_values, mean_body, n_steps, prepare,
+                              sensor_engine_inputs, soa_samples, time_major)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -293,23 +293,30 @@ def _resolve_jacobians(jacobians, att):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
-                                             "coriolis"))
-def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, lever=None, *,
-                          scheme, attitude, jacobians, save_all, fast=True, coriolis="exact"):
+                                             "coriolis", "tangential"))
+def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, lever=None,
+                          pose=None, *, scheme, attitude, jacobians, save_all, fast=True,
+                          coriolis="exact", tangential=True):
+    """The covariance's engine. ``pose``: ``None``, or the samples are a sensor's there and
+    ``state``'s biases the sensor's (:func:`jaximu.propagate.sensor_engine_inputs`; ``P0``,
+    ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
         g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
-        *(() if omega is None else (omega.shape[:-1],)),
-        *(() if lever is None else (lever.shape[:-1],)))
+        *(nb(x) for x in (omega, lever) if x is not None),
+        *(() if pose is None else (nb(pose.q), nb(pose.p))))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
                              save_all=save_all, lanes=lanes, fast=fast,
                              rotating=omega is not None, lever=lever is not None)
-    if kernel in ("soa_cov_analytic", "soa_cov_autodiff"):
+    soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
+    state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
+    if soa:
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians, omega, coriolis, lever, save_all, attitude)
+                                          jacobians, omega, coriolis, lever, save_all, attitude,
+                                          pose, tangential)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -355,12 +362,13 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
 
 def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
                                omega=None, coriolis="exact", lever=None, save_all=False,
-                               attitude="quaternion"):
+                               attitude="quaternion", pose=None, tangential=True):
     """Mean and covariance (final, or after every step with ``save_all``) on the
     :mod:`jaximu._fast` layout, any scheme with closed-form or autodiff blocks
     (:func:`jaximu._fast.cov_step_blocks`), the attitude form's state on lanes
-    (:data:`jaximu._soa.LANE_FORMS`); the block-structured update."""
-    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
+    (:data:`jaximu._soa.LANE_FORMS`); the block-structured update. ``pose``: the samples are
+    a sensor's, moved into the body frame in the kernel's time chunks."""
+    gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     B = gyro_f.shape[0]
     P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
@@ -371,15 +379,14 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
         return var / (h[..., None] if jnp.ndim(h) else h)
 
-    if omega is not None and omega.ndim > 1:  # a world rate per batch element
-        omega = jnp.broadcast_to(omega, tuple(batch) + (3,)).reshape((B, 3))
-    if lever is not None and lever.ndim > 1:  # a lever arm per batch element
-        lever = jnp.broadcast_to(lever, tuple(batch) + (3,)).reshape((B, 3))
+    # a world rate and a lever arm shared by every lane, or one per batch element
+    omega, lever = (None if x is None else lane_values(x, batch) for x in (omega, lever))
     form = _soa.lane_form(attitude)
     x, p, v, P, *locked = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f,
                                               gyro_f, accel_f, dt_f, g_f, qc_fn, var,
                                               get_scheme(scheme), jacobians, omega, coriolis,
-                                              lever, save_all, form)
+                                              lever, save_all, form, pose, tangential,
+                                              n_samples)
     q = _soa.to_quat(form, x)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
@@ -398,22 +405,23 @@ def _steps_of(args, batched):
     return args[2].shape[-2]  # gyro is argument 2
 
 
-def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact"):
+def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact",
+                      tangential=True):
     """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels;
-    arguments ``(state, P0, gyro, accel, dt, g, noise, omega, lever)`` (``omega`` and
-    ``lever`` may be ``None``)."""
+    arguments ``(state, P0, gyro, accel, dt, g, noise, omega, lever, pose)`` (``omega``,
+    ``lever`` and ``pose`` may be ``None``)."""
     return leading_axes(
         _propagate_covariance,
         (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR,
-         VECTOR),
+         VECTOR, VECTOR),
         (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
-         ("scheme", scheme), ("coriolis", coriolis)))
+         ("scheme", scheme), ("coriolis", coriolis), ("tangential", tangential)))
 
 
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
                       coriolis="exact"):
-    from jaximu.propagate import _report_gimbal_lock, _sensor_inputs, sensor_biases
+    from jaximu.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     dtype = state.q.dtype
@@ -422,17 +430,17 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     val.batch_shape(batch, P0.shape[:-2],
                     *(x.shape[:-1] for x in jax.tree_util.tree_leaves(noise) if x.ndim))
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
-    inner, gyro, accel, omega = _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential,
-                                               omega_coriolis)
+    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
+                                              omega_coriolis)
     lever = None
-    if body_P_sensor is not None:  # bias errors in S outside, in B inside (jaximu/sensor.py)
-        pose = sensor.check_pose(body_P_sensor, dtype)
+    if pose is not None:  # bias errors in S outside, in B inside (jaximu/sensor.py)
         T = sensor.bias_transform(pose)
         P0 = sensor.congruence(T, P0)
         noise = sensor.noise_to_body(pose, noise)
         lever = sensor.lever_of(pose)
-    states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis)(
-        inner, P0, gyro, accel, dt, g, noise, omega, lever)
+    # the samples move into the body frame inside the engine
+    states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis, tangential)(
+        state, P0, gyro, accel, dt, g, noise, omega, lever, pose)
     if body_P_sensor is not None:
         states = sensor_biases(states, state, save_all)
         P = sensor.congruence(T[..., None, :, :] if save_all else T, P, inverse=True)

@@ -110,24 +110,51 @@ def kernel_samples(scheme, gyro, accel, dt):
     return gyro[..., :n, :], accel[..., :n, :], dt
 
 
+def sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential):
+    """An engine's inputs for a sensor at ``pose`` (``None``: unchanged), ``state``'s biases
+    the sensor's: the state with the body's biases, and the samples moved into the body frame
+    (:func:`jaximu.sensor.to_body`) unless the kernel is a structure-of-arrays one (``soa``),
+    which moves them in its time chunks. Returns ``(state, gyro, accel)``."""
+    if pose is None:
+        return state, gyro, accel
+    if not soa:
+        gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
+    state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
+                     sensor.bias_to_body(pose, state.b_a))
+    return state, gyro, accel
+
+
+def soa_samples(scheme, gyro, accel, dt, pose, batch):
+    """:func:`kernel_samples` for a structure-of-arrays kernel that may move a sensor's
+    samples (``pose``, see :func:`sensor_engine_inputs`) in its time chunks. Returns
+    ``(gyro, accel, dt, pose, n_samples)``: the pose as ``(q_BS, p_BS)`` flattened to the
+    lanes (``(4,)``, ``(3,)`` when shared), ``n_samples`` the samples given."""
+    n_samples = gyro.shape[-2]
+    g_k, a_k, dt = kernel_samples(scheme, gyro, accel, dt)
+    if pose is None:
+        return g_k, a_k, dt, None, n_samples
+    if get_scheme(scheme).uses_next_sample:
+        gyro, accel = g_k, a_k
+    # (Euler over the intervals between samples keeps the last sample: the derivative at the
+    # last step's sample reads it)
+    return gyro, accel, dt, tuple(lane_values(x, batch) for x in (pose.q, pose.p)), n_samples
+
+
+def lane_values(x, batch):
+    """A ``(..., n)`` value shared by every lane (``(n,)``, kept) or one per lane (flattened
+    to ``(B, n)``)."""
+    if x.ndim == 1:
+        return x
+    return jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]).reshape((-1, x.shape[-1]))
+
+
 def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
                     coriolis="exact", attitude="quaternion", pose=None, tangential=True):
-    """The ``soa_mean`` kernel; ``pose``: the samples are a sensor's there and ``state``'s
-    biases the body's (:func:`_propagate`): they move into the body frame in the kernel."""
-    n_samples = gyro.shape[-2]
-    samples = kernel_samples(scheme, gyro, accel, dt)
-    if pose is not None and not get_scheme(scheme).uses_next_sample:
-        # Euler over the intervals between samples: the derivative at the last step's sample
-        # reads the sample after it
-        samples = (gyro, accel, samples[2])
-    gyro, accel, dt = samples
+    """The ``soa_mean`` kernel (``pose``: :func:`sensor_engine_inputs`)."""
+    gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
-    flat = lambda x: x if x.ndim == 1 else \
-        jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]).reshape((-1, x.shape[-1]))  # noqa: E731
     if omega is not None:  # a world rate shared, or per batch element
-        omega = flat(omega)
-    if pose is not None:
-        pose = (flat(pose.q), flat(pose.p))
+        omega = lane_values(omega, batch)
     form = _soa.lane_form(attitude)  # the attitude form's state on lanes, and back after
     out = _fast.propagate_mean(get_scheme(scheme), _soa.from_quat(form, q), p, v, b_g, b_a,
                                gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form,
@@ -316,12 +343,8 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
-    if pose is not None:
-        if kernel != "soa_mean":
-            gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g,
-                                         tangential=tangential)
-        state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
-                         sensor.bias_to_body(pose, state.b_a))
+    state, gyro, accel = sensor_engine_inputs(kernel == "soa_mean", pose, state, gyro, accel,
+                                              dt, tangential)
     if kernel == "soa_mean":
         return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
                                coriolis, attitude, pose, tangential)

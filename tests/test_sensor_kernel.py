@@ -14,6 +14,7 @@ import pytest
 
 import jaximu
 from jaximu import _dispatch
+from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate, _sensor_inputs
 from jaximu.sensor import SensorPose
 
@@ -114,3 +115,25 @@ def test_gradients_through_the_pose_and_samples_equal_the_reference():
     for a, b in zip(got, want):
         assert np.all(np.isfinite(np.asarray(a)))
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * float(np.abs(b).max()))
+
+
+@pytest.mark.parametrize("scheme,jacobians,save_all", [("rk4", "analytic", False),
+                                                       ("midpoint", "autodiff", True)])
+def test_covariance_with_samples_moved_in_the_kernel_equals_the_samples_moved_first(
+        scheme, jacobians, save_all):
+    """The covariance kernels read the moved samples too (their Jacobians take the lever arm
+    as before): a pose per lane, 77 steps (chunks and a remainder), n = T."""
+    state, gyro, accel, dt, pose = case_inputs((3,), 77, 77, False, True, np.float64, seed=2)
+    P0 = jnp.asarray(np.diag(np.linspace(1e-4, 1e-2, 15)))
+    noise = jaximu.ImuNoise.euroc()
+    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
+                            save_all=save_all, lanes=3, lever=True).startswith("soa_cov")
+    kw = dict(scheme=scheme, attitude="quaternion", jacobians=jacobians, save_all=save_all)
+    got = _propagate_covariance(state, P0, gyro, accel, dt, G_W, noise, None, pose.p, pose,
+                                **kw)
+    inner, g_b, a_b, _ = _sensor_inputs(state, gyro, accel, dt, pose, True, None)
+    want = _propagate_covariance(inner, P0, g_b, a_b, dt, G_W, noise, None, pose.p, fast=False,
+                                 **kw)
+    assert_close(got[0], want[0], 1e-12)
+    np.testing.assert_allclose(got[1], want[1], rtol=0,
+                               atol=1e-12 * float(np.abs(want[1]).max()))
