@@ -10,6 +10,8 @@ the dtype (``dt = 1e30`` in float32), and that is reported, never returned as Na
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,10 +32,33 @@ def _first_bad(mask: np.ndarray) -> str:
     return "[" + ", ".join(str(int(i)) for i in idx) + "]"
 
 
+def _kind(x) -> str:
+    """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ...): Python scalars
+    and lists by what numpy makes of them; ``"O"`` when it makes nothing of them."""
+    if isinstance(x, bool):
+        return "b"
+    if isinstance(x, (int, float)):
+        return "f"
+    d = getattr(x, "dtype", None)
+    if d is None:
+        try:
+            d = np.asarray(x).dtype
+        except (TypeError, ValueError):
+            return "O"
+    return getattr(d, "kind", "O")
+
+
 def _cast(x, dtype, name: str | None = None):
     """``jnp.asarray(x, dtype)`` without numpy's overflow warning (the callers report it).
     With ``name``, an input that is not numbers (``None``, a string, a ragged list) raises a
     ``ValueError`` naming it instead of JAX's own ``TypeError``."""
+    if name is not None and not isinstance(x, jax.core.Tracer):
+        kind = _kind(x)
+        if kind == "c":  # its imaginary part would be dropped
+            raise ValueError(f"{name} is complex ({np.asarray(x).dtype.name}); pass real numbers "
+                             "(its real part, x.real, if that is what you mean)")
+        if kind == "b":  # True is not a 1 s step nor a 1 rad/s rate
+            raise ValueError(f"{name} must be an array of numbers, got booleans; pass floats")
     try:
         if name is not None and (isinstance(x, (str, bytes)) or getattr(
                 getattr(x, "dtype", None), "kind", "f") in "USOV"):
@@ -100,15 +125,29 @@ def float_dtype(*xs):
     """The floating dtype of the computation: the promotion of the inputs' dtypes, at least
     float32. Integer inputs and half precision (float16, bfloat16: 3 significant digits,
     which lose every position increment below 1/1000 of the position) are computed in
-    float32; the outputs are then float32. The inputs themselves are not changed."""
+    float32; the outputs are then float32. The inputs themselves are not changed.
+
+    Every input counts (a float64 ``dt``, ``P0`` or ``state.p`` beside float32 samples makes
+    the computation float64 under ``jax_enable_x64``, as JAX's own promotion does: casting it
+    down would lose what the user gave). The library's records (a :class:`jaximu.NavState`,
+    ``ImuNoise``, ``ImuBias``, ``SensorPose``: dataclasses) count by their fields; ``None``
+    counts for nothing; Python scalars are weak (``dt=0.005`` keeps float32 samples float32)."""
     def numeric(x):  # text, None, ragged lists: left to to_dtype, which names the argument
+        if isinstance(x, (int, float)) and not isinstance(x, bool):
+            return x  # weakly typed, as in JAX
         try:
             a = x if hasattr(x, "dtype") else np.asarray(x)
         except (TypeError, ValueError):
             return None
-        return a if getattr(a.dtype, "kind", "f") in "biufc" else None
+        return a if getattr(a.dtype, "kind", "f") in "iufc" else None
 
-    arrays = [a for a in map(numeric, xs) if a is not None]
+    leaves = []
+    for x in xs:
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            leaves.extend(getattr(x, f.name) for f in dataclasses.fields(x))
+        elif x is not None:
+            leaves.append(x)
+    arrays = [a for a in map(numeric, leaves) if a is not None]
     dt = jnp.result_type(*arrays) if arrays else jnp.result_type(jnp.float32)
     if not jnp.issubdtype(dt, jnp.floating) or jnp.dtype(dt).itemsize < 4:
         dt = jnp.result_type(jnp.float32)

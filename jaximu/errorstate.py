@@ -177,9 +177,9 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     check_scheme(scheme)
     att = get_attitude(attitude)
     val.require_navstate(state)
-    dtype = val.float_dtype(state.q, gyro, accel)
+    dtype = val.float_dtype(state, gyro, accel, dt, gyro_next, accel_next)
     state = val.check_state(state, dtype)
-    w0, a0 = jnp.asarray(gyro, dtype), jnp.asarray(accel, dtype)
+    w0, a0 = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
     w1 = w0 if gyro_next is None else val.to_dtype("gyro_next", gyro_next, dtype)
     a1 = a0 if accel_next is None else val.to_dtype("accel_next", accel_next, dtype)
     for name, x in (("gyro", w0), ("accel", a0), ("gyro_next", w1), ("accel_next", a1)):
@@ -423,7 +423,8 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
                       coriolis="exact"):
     from jaximu.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
 
-    state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
+    state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
+                                               (P0, noise, body_P_sensor, omega_coriolis))
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = val.check_noise(noise, dtype)

@@ -137,7 +137,7 @@ class Preintegrated:
         its bias blocks are reordered and their cross terms change sign:
         ``T = blockdiag(I, ΔRᵀ, ΔRᵀ, [[0, -I], [-I, 0]])``.
         """
-        P = self.cov15 if combined else self.cov
+        P = self.cov15 if val.check_bool("combined", combined) else self.cov
         if chart == "additive":
             return P
         if chart != "gtsam":
@@ -692,7 +692,9 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
     if jacobians not in ("analytic", "autodiff"):
         raise ValueError(f"unknown jacobians {jacobians!r}; choose 'analytic' or 'autodiff'")
-    dtype = val.float_dtype(gyro, accel)
+    prefixes = val.check_bool("prefixes", prefixes)
+    tangential = val.check_bool("tangential", tangential)
+    dtype = val.float_dtype(gyro, accel, dt, bias, noise, body_P_sensor)
     gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     bias = _check_bias(bias, dtype)
     if noise is not None:
@@ -1066,7 +1068,7 @@ def bias_jacobians_autodiff(gyro, accel, dt, bias: ImuBias | None = None,
     """
     if scheme not in SCHEMES:
         raise ValueError(f"unknown preintegration scheme {scheme!r}; choose one of {SCHEMES}")
-    dtype = val.float_dtype(gyro, accel)
+    dtype = val.float_dtype(gyro, accel, dt, bias)
     gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     bias = _check_bias(bias, dtype)
     return _bias_jacobians_autodiff(gyro, accel, dt, bias, scheme=scheme)

@@ -1,0 +1,99 @@
+"""The computation dtype promotes over every input, and inputs that are not real numbers are
+refused (both found by trying the API as a new user would, session 15).
+
+* A float64 ``state.p``, ``dt``, ``P0`` or bias beside float32 samples was cast down to
+  float32 without a word (``p = 1e6 + 0.123`` came back as ``1.0000001e6``): the README says
+  the computation runs in the inputs' promoted dtype. The reference is the same call with
+  every input float64 (the suite runs with ``jax_enable_x64``); a Python scalar ``dt`` stays
+  weak, as in JAX, and keeps float32 samples float32.
+* Complex samples lost their imaginary part with only a warning; ``dt=True`` ran as 1 s.
+* ``preintegrate``'s ``prefixes`` / ``tangential`` and ``Preintegrated.covariance``'s
+  ``combined`` were decided by their truth value (``"no"`` is true).
+
+Compile cost: a handful of tiny eager calls (T = 4).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaximu
+from jaximu import ImuBias, ImuNoise, NavState
+from jaximu.errors import Fix, InputError
+
+T = 4
+F32 = np.float32
+Q32 = np.array([1.0, 0, 0, 0], F32)
+Z32 = np.zeros(3, F32)
+GYRO = np.tile(np.array([0.1, -0.2, 0.3], F32), (T, 1))
+ACCEL = np.tile(np.array([0.0, 0.0, 9.81], F32), (T, 1))
+
+
+def as64(tree):
+    return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), tree)
+
+
+def test_a_float64_state_field_beside_float32_samples_computes_in_float64():
+    state = NavState(Q32, np.array([1e6 + 0.123, 0.0, 0.0]), Z32, Z32, Z32)  # p float64
+    got = jaximu.propagate_final(state, GYRO, ACCEL, 0.01)
+    want = jaximu.propagate_final(as64(state), GYRO.astype(np.float64),
+                                  ACCEL.astype(np.float64), 0.01)
+    assert got.p.dtype == jnp.float64
+    np.testing.assert_array_equal(got.p, want.p)
+    assert abs(float(got.p[0]) - (1e6 + 0.123)) < 1e-3  # the 0.123 m kept
+
+
+def test_a_float64_dt_or_covariance_or_bias_promotes_and_a_python_scalar_does_not():
+    s32 = NavState(Q32, Z32, Z32, Z32, Z32)
+    assert jaximu.propagate_final(s32, GYRO, ACCEL, 0.01).p.dtype == jnp.float32
+    assert jaximu.propagate_final(s32, GYRO, ACCEL, np.full(T, 0.01)).p.dtype == jnp.float64
+    P0 = np.eye(15) * 1e-6  # numpy float64
+    _, P = jaximu.propagate_covariance_final(s32, P0, GYRO, ACCEL, 0.01, ImuNoise.euroc())
+    assert P.dtype == jnp.float64
+    _, P = jaximu.propagate_covariance_final(s32, P0.astype(F32), GYRO, ACCEL, 0.01,
+                                             ImuNoise.euroc())
+    assert P.dtype == jnp.float32
+    bias = ImuBias(np.full(3, 1 + 1e-9), np.zeros(3))
+    pim = jaximu.preintegrate(GYRO, ACCEL, 0.01, bias=bias)
+    assert pim.delta_p.dtype == jnp.float64
+    np.testing.assert_array_equal(pim.bias_hat.b_g, bias.b_g)  # not rounded to 1.0
+
+
+@pytest.mark.parametrize("name", ["gyro", "accel", "state.p"])
+def test_complex_inputs_are_refused_naming_them(name):
+    s = NavState(Q32, Z32, Z32, Z32, Z32)
+    gyro, accel = GYRO, ACCEL
+    if name == "gyro":
+        gyro = GYRO + 1j
+    elif name == "accel":
+        accel = ACCEL + 0j
+    else:
+        s = NavState(Q32, Z32 + 1j, Z32, Z32, Z32)
+    with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')}.*complex"):
+        jaximu.propagate(s, gyro, accel, 0.01)
+
+
+@pytest.mark.parametrize("name", ["dt", "gyro"])
+def test_booleans_are_not_numbers(name):
+    s = NavState(Q32, Z32, Z32, Z32, Z32)
+    kw = dict(gyro=GYRO, dt=0.01)
+    kw[name] = True if name == "dt" else np.zeros((T, 3), bool)
+    with pytest.raises(ValueError, match=rf"{name} must be an array of numbers, got booleans"):
+        jaximu.propagate(s, kw["gyro"], ACCEL, kw["dt"])
+
+
+@pytest.mark.parametrize("option", ["prefixes", "tangential"])
+def test_preintegrate_options_are_bools_not_truth_values(option):
+    with pytest.raises(InputError, match=f"{option} must be True or False") as e:
+        jaximu.preintegrate(GYRO, ACCEL, 0.01, **{option: "no"})
+    assert tuple(e.value.fixes) == (Fix(option, False),)
+
+
+def test_the_combined_covariance_option_is_a_bool():
+    pim = jaximu.preintegrate(GYRO, ACCEL, 0.01, noise=ImuNoise.euroc())
+    with pytest.raises(InputError, match="combined must be True or False"):
+        pim.covariance(combined="no")
+    assert pim.covariance(combined=False).shape == (9, 9)
