@@ -31,7 +31,10 @@ argument) compiles, so shapes come from small fixed sets (``T`` in {0, 1, 2, 3},
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -560,19 +563,40 @@ def test_overflow_from_finite_inputs_is_a_value_error_not_nan():
 
 def test_values_that_do_not_fit_the_computation_dtype_are_named():
     """dt = 1e300 and 1e-300 are inf and 0 in float32 (they used to pass the dt check and give
-    NaN, or a numpy overflow warning); a float64 value in a float32 computation likewise."""
+    NaN, or a numpy overflow warning). A Python scalar is weak (the samples' float32 stays);
+    a float64 array makes the computation float64 (test_bad_input_dtypes.py), so a float64
+    value in a float32 computation happens without jax_enable_x64: checked in a child
+    process."""
     s32 = NavState.identity((), jnp.float32)
     w = np.zeros((2, 3), np.float32)
-    with pytest.raises(ValueError, match=r"dt must be positive and finite; dt\[1\] = 1e\+300, "
+    with pytest.raises(ValueError, match=r"dt must be positive and finite; dt = 1e\+300, "
                                          r"which is inf in the computation dtype float32"):
-        jaximu.propagate(s32, w, w, np.array([0.01, 1e300]))
+        jaximu.propagate(s32, w, w, 1e300)
     with pytest.raises(ValueError, match=r"dt = 1e-300, which is 0.0 in the computation dtype"):
         jaximu.preintegrate(w, w, 1e-300)
-    with pytest.raises(ValueError, match=r"state\.p\[1\] = 1e\+300 is too large for the "
-                                         r"computation dtype float32"):
-        jaximu.propagate(s32.replace(p=np.array([0, 1e300, 0])), w, w, 0.01)
-    with pytest.raises(ValueError, match=r"P0\[0, 0\] = 1e\+300 is too large"):
-        jaximu.propagate_covariance(s32, np.eye(15) * 1e300, w, w, 0.01, ImuNoise.euroc())
+    code = """if True:
+        import numpy as np, jax.numpy as jnp, jaximu
+        s32 = jaximu.NavState.identity((), jnp.float32)
+        w = np.zeros((2, 3), np.float32)
+        cases = [lambda: jaximu.propagate(s32, w, w, np.array([0.01, 1e300])),
+                 lambda: jaximu.propagate(s32.replace(p=np.array([0, 1e300, 0])), w, w, 0.01),
+                 lambda: jaximu.propagate_covariance(s32, np.eye(15) * 1e300, w, w, 0.01,
+                                                     jaximu.ImuNoise.euroc())]
+        for case in cases:
+            try:
+                case()
+            except ValueError as e:
+                print(e)
+    """
+    env = {**os.environ, "JAX_ENABLE_X64": "0"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=300).stdout.splitlines()
+    assert len(out) == 3, out
+    assert re.search(r"dt must be positive and finite; dt\[1\] = 1e\+300, which is inf in the "
+                     r"computation dtype float32", out[0]), out[0]
+    assert re.search(r"state\.p\[1\] = 1e\+300 is too large for the computation dtype "
+                     r"float32", out[1]), out[1]
+    assert re.search(r"P0\[0, 0\] = 1e\+300 is too large", out[2]), out[2]
 
 
 def test_batch_and_type_errors_name_the_problem():
