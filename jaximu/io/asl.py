@@ -57,7 +57,7 @@ def _read_asl(path, groundtruth, prefer, options):
             raise DataError(f"{gt_path}, line {g_lines[0]}: expected p (3) and q (4) after the "
                             f"stamp, got {cols} values")
         g_stamps, g_values = _parse(g_rows, g_lines, 0, range(1, cols + 1), "ns", gt_path)
-        gt = (g_stamps, g_values, g_lines, cols)
+        gt = (g_stamps, g_values, g_lines, cols, f"ground truth {gt_path}")
     source = str(imu_path) + (f" + {gt_path}" if gt_path else "")
     return make(stamps, values[:, 0:3], values[:, 3:6], lines=lines, ground_truth=gt,
                  source=source, **options)
