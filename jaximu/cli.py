@@ -134,6 +134,9 @@ def _load(args):
                   drop_nonfinite=args.drop_nonfinite, allow_gaps=args.allow_gaps,
                   max_gap=args.max_gap, check_units=not args.no_unit_check)
     units = dict(gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    if args.topic is not None and fmt != "rosbag":
+        raise UsageError(f"--topic names a ROS bag's topic; {path} is read as {fmt}: drop "
+                         "--topic (or pass --format rosbag for a bag)")
     if args.time_unit is not None and fmt not in ("csv", "npz"):
         raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
     if fmt in ("euroc", "tumvi"):  # SI by definition; the units flags for other ASL folders
@@ -674,6 +677,12 @@ def cmd_allan(args):
         print(f"note: the gyro's 1 s means vary by {100 * moving:.0f}% of its sample spread: the "
               "recording does not look static, so the densities below include motion")
     print(f"Allan deviation of {len(data)} samples ({data.duration:.1f} s at {1 / dt:.1f} Hz)")
+    for name, y in (("gyro", data.gyro), ("accelerometer", data.accel)):
+        flat = np.flatnonzero(np.ptp(y, axis=0) == 0)
+        if len(flat):
+            raise UsageError(f"the {name}'s {'xyz'[flat[0]]} axis is constant in {args.file} "
+                             f"({y[0, flat[0]]:g} in every sample): the Allan deviation measures "
+                             "noise, and this signal has none (a simulated or quantised file?)")
     results = {}
     for name, y, unit in (("gyroscope", data.gyro, "rad/s"), ("accelerometer", data.accel, "m/s²")):
         taus, adev = allan.allan_deviation(y, dt)

@@ -353,3 +353,28 @@ def test_cli_propagate_prints_no_jax_warning_in_float32(tmp_path):
     assert r.returncode == 2
     assert r.stderr.splitlines() == [f"jaximu propagate: error: no such file or directory: "
                                      f"{tmp_path / 'no.csv'}"], r.stderr
+
+
+def test_not_an_npz_file_gives_no_pickle_advice(capsys, tmp_path):
+    """numpy's text advised allow_pickle= / pickle.load() (unsafe, and not the fix)."""
+    path = tmp_path / "x.npz"
+    path.write_text("t,a\n1,2\n")
+    line, _ = one_line_error(capsys, "propagate", path)
+    assert "is not a NumPy .npz file" in line and "pickle" not in line, line
+
+
+def test_allan_of_a_constant_signal_names_the_file(capsys, tmp_path):
+    """Said 'adev must be positive ... at index [0, 0]' (an internal, not the file)."""
+    path = tmp_path / "c.npz"
+    np.savez(path, t=np.arange(2000) * 0.005, gyro=np.zeros((2000, 3)),
+             accel=np.zeros((2000, 3)) + [0, 0, 9.81])
+    line, _ = one_line_error(capsys, "allan", path)
+    assert f"gyro's x axis is constant in {path}" in line, line
+
+
+def test_topic_for_a_file_that_is_not_a_bag_is_refused(capsys, tmp_path):
+    """--topic was ignored for a CSV without a word."""
+    path = tmp_path / "c.npz"
+    np.savez(path, t=T, gyro=G, accel=A)
+    line, _ = one_line_error(capsys, "allan", path, "--topic", "/imu0")
+    assert "--topic names a ROS bag's topic" in line, line

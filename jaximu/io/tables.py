@@ -121,5 +121,7 @@ def read_npz(path, *, t="t", gyro="gyro", accel="accel", **kwargs) -> ImuData:
     except (OSError, ValueError) as e:
         if isinstance(e, DataError):
             raise
-        raise DataError(f"{path} is not a NumPy .npz file ({e})") from None
+        # numpy's own text advises allow_pickle / pickle.load(): unsafe, and not the fix
+        raise DataError(f"{path} is not a NumPy .npz file (an archive of arrays written by "
+                        "np.savez); check the file, or its format") from None
     return from_arrays(*arrays, source=str(path), **kwargs)
