@@ -378,3 +378,12 @@ def test_topic_for_a_file_that_is_not_a_bag_is_refused(capsys, tmp_path):
     np.savez(path, t=T, gyro=G, accel=A)
     line, _ = one_line_error(capsys, "allan", path, "--topic", "/imu0")
     assert "--topic names a ROS bag's topic" in line, line
+
+
+@pytest.mark.parametrize("which", ["t", "gyro", "accel"])
+def test_from_arrays_refuses_complex(which):
+    """The imaginary part was dropped with only a ComplexWarning."""
+    arrays = {"t": T, "gyro": G, "accel": A}
+    arrays[which] = arrays[which] + 0j
+    with pytest.raises(ValueError, match=f"^{which} must be real numbers"):
+        io.from_arrays(**arrays)
