@@ -792,7 +792,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     return CalibrationProblem(
         gyro=as_d(grp(win_gyro)), accel=as_d(grp(win_accel)), dt=as_d(grp(win_dt)),
         t_start=as_d(grp(t[idx[:-1]] - t0)), t_end=as_d(grp(t[idx[1:]] - t0)),
-        window=grp(np.arange(K)), weight=as_d(grp(np.ones(K))),
+        window=grp(np.arange(K)),
+        weight=as_d(np.concatenate([np.ones(K), np.zeros(pad)]).reshape(G, C)),  # padding: 0
         sqrt_info=as_d(grp(sqrt_info)), ref_t=as_d(rt - t0), ref_q=as_d(rq), ref_p=as_d(rp),
         ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
         diagnostics={k: as_d(v) for k, v in diagnostics.items()},
