@@ -441,12 +441,11 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
 
 def _batch_shape(batch_shape):
     """``batch_shape`` as a tuple of non-negative ints; an int ``n`` is refused with the fix
-    ``(n,)`` (a bare int is not a shape)."""
-    from jaximu.errors import Fix, InputError
-
+    ``(n,)`` in words (a bare int is not a shape; the command has no such option, so no
+    :class:`jaximu.errors.Fix`)."""
     if isinstance(batch_shape, (int, np.integer)) and not isinstance(batch_shape, bool):
-        raise InputError(f"batch_shape must be a tuple of ints, got the int {batch_shape}",
-                         [Fix("batch_shape", (int(batch_shape),))])
+        raise ValueError(f"batch_shape must be a tuple of ints, got the int {batch_shape}; "
+                         f"pass batch_shape=({int(batch_shape)},)")
     try:
         dims = tuple(batch_shape)
     except TypeError:

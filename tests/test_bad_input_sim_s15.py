@@ -14,7 +14,7 @@ import pytest
 
 from jaximu import ImuNoise, allan
 from jaximu import simulate as sim
-from jaximu.errors import Fix, InputError
+from jaximu.errors import InputError
 
 N = ImuNoise.euroc()
 KEY = jax.random.PRNGKey(0)
@@ -121,7 +121,8 @@ def test_complex_inputs_are_refused(call, message):
      r"gyro_misalignment must be an array of numbers"),
     (lambda: sim.add_noise(KEY, G.astype(str), A, 0.01, N), r"gyro must be an array of numbers"),
     (lambda: sim.add_noise(KEY, G, A, "0.01", N), r"dt must be an array of numbers"),
-    (lambda: sim.add_noise(KEY, G, A, True, N), r"dt must be sample periods in seconds, got a bool"),
+    (lambda: sim.add_noise(KEY, G, A, True, N),
+     r"dt must be sample periods in seconds, got a bool"),
     (lambda: sim.ideal_imu(TRAJ, "0.1"), r"t must be an array of numbers, got str"),
     (lambda: sim.true_states(TRAJ, [0.0, "0.1"]), r"t must be an array of numbers"),
     (lambda: sim.circle(speed="2"), r"speed must be a number, got str"),
@@ -136,10 +137,9 @@ def test_simulate_names_the_bad_argument(call, message):
 
 
 def test_batch_shape_int_gets_the_fix():
-    with pytest.raises(InputError, match=r"batch_shape must be a tuple of ints, got the int 3; "
-                                         r"pass batch_shape=\(3,\)") as e:
+    with pytest.raises(ValueError, match=r"batch_shape must be a tuple of ints, got the int 3; "
+                                         r"pass batch_shape=\(3,\)"):
         sim.add_noise(KEY, G, A, 0.01, N, batch_shape=3)
-    assert e.value.fixes == (Fix("batch_shape", (3,)),)
 
 
 # --------------------------------------------------------------------------- allan (item 12, 14)
