@@ -15,13 +15,19 @@ exactly the Kalibr parameters of :class:`jaximu.ImuNoise` (``*_noise_density``,
 
 from __future__ import annotations
 
+import numbers
 from typing import NamedTuple
 
 import numpy as np
 
 from jaximu.errors import Fix, InputError
 
-__all__ = ["allan_deviation", "fit_noise", "NoiseFit", "check_units", "GYRO_WHITE_MAX"]
+__all__ = ["allan_deviation", "fit_noise", "NoiseFit", "check_units", "GYRO_WHITE_MAX",
+           "VISIBLE"]
+
+VISIBLE = 0.1
+"""The share of the fitted ``σ²(τ)`` that a term must reach at some τ of the fit to count as
+determined by :func:`fit_noise` (below it, the term is returned as 0: not determined)."""
 
 GYRO_WHITE_MAX = 2e-3
 """Largest plausible gyro white-noise density [rad/s/√Hz] (0.11 °/s/√Hz: four times the
@@ -32,21 +38,27 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
     """Overlapping Allan deviation of rate samples.
 
     Args:
-        y: ``(N,)`` or ``(N, d)`` samples (e.g. the three gyro axes), constant rate ``1/dt``.
+        y: ``(N,)`` or ``(N, d)`` real samples (e.g. the three gyro axes), constant rate
+            ``1/dt``.
         dt: sample period [s].
-        taus: cluster times [s] (rounded to whole samples); default log-spaced from ``dt`` to
-            ``N·dt/10`` (at least ~10 independent clusters at the longest τ).
+        taus: cluster times [s], strictly increasing (an unsorted or repeated list is
+            refused: the output follows their order). Each is rounded to a whole number of
+            samples, at least one, and the returned ``taus`` are those used (one per given
+            τ, in order; compare them with yours: a τ below ``dt`` comes back as ``dt``).
+            Default: log-spaced from ``dt`` to ``N·dt/10`` (at least ~10 independent
+            clusters at the longest τ).
         points_per_decade: density of the default τ grid.
 
     Returns:
         ``(taus, adev)``: ``(M,)`` and ``(M,)`` or ``(M, d)``, finite.
 
     Raises:
-        ValueError: on a wrong shape, fewer than 10 samples, non-finite samples, a ``dt`` or
-            ``τ`` that is not positive and finite, a ``τ`` of half the recording or more, or a
-            result that overflows float64 (samples near the float64 limit).
+        ValueError: on a wrong shape, fewer than 10 samples, non-finite, complex or text
+            samples, a ``dt`` or ``τ`` that is not positive and finite, ``taus`` not strictly
+            increasing, a ``τ`` of half the recording or more, or a result that overflows
+            float64 (samples near the float64 limit).
     """
-    y = np.asarray(y, np.float64)
+    y = _real_array("y", y)
     if y.ndim not in (1, 2):
         raise ValueError(f"y must have shape (N,) or (N, d), got {y.shape}")
     squeeze = y.ndim == 1
@@ -56,6 +68,8 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         raise ValueError(f"need at least 10 samples, got {n}")
     if np.ndim(dt) != 0:
         raise ValueError(f"dt must be a scalar sample period, got shape {np.shape(dt)}")
+    if isinstance(dt, (str, bytes, bool, np.bool_)) or np.iscomplexobj(dt):
+        raise ValueError(f"dt must be a real number of seconds, got {type(dt).__name__} {dt!r}")
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be positive and finite, got {dt}")
     if not np.all(np.isfinite(y)):
@@ -63,20 +77,32 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         raise ValueError(f"y contains non-finite values (NaN or inf), first at sample {bad[0]}"
                          + ("" if squeeze else f", column {bad[1]}"))
     if taus is None:
+        if not isinstance(points_per_decade, numbers.Real) or isinstance(points_per_decade, bool):
+            raise ValueError(f"points_per_decade must be a positive number, got "
+                             f"{points_per_decade!r}")
         if not points_per_decade > 0:
             raise ValueError(f"points_per_decade must be positive, got {points_per_decade}")
         m_max = max(1, n // 10)
         ms = np.unique(np.round(np.logspace(0, np.log10(m_max),
                                             int(np.log10(m_max) * points_per_decade) + 1)).astype(int))
     else:
-        taus = np.asarray(taus, float)
+        taus = _real_array("taus", taus)
+        if taus.ndim > 1:
+            raise ValueError(f"taus must be a 1-D list of cluster times, got shape {taus.shape}")
+        taus = np.atleast_1d(taus)
         if not np.all(np.isfinite(taus) & (taus > 0)):
             raise ValueError(f"every τ must be positive and finite, got {taus}")
+        down = np.flatnonzero(np.diff(taus) <= 0)
+        if down.size:
+            i = int(down[0])
+            raise ValueError(f"taus must be strictly increasing (the output follows their "
+                             f"order), but taus[{i}] = {taus[i]:g} and taus[{i + 1}] = "
+                             f"{taus[i + 1]:g}; pass np.unique(taus)")
         with np.errstate(over="ignore"):
             ms = np.maximum(1, np.round(taus / dt))
         if np.any(2 * ms >= n):
             raise ValueError("every τ must be shorter than half the recording")
-        ms = np.unique(ms.astype(int))
+        ms = ms.astype(int)
     # Overflow (|y| or dt near the float64 limits) is reported below, not warned about.
     with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
         theta = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0) * dt])
@@ -94,8 +120,35 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
     return taus, (adev[:, 0] if squeeze else adev)
 
 
+def _real_array(name, x) -> np.ndarray:
+    """``x`` as a float64 array; complex (its imaginary part would be dropped), bool, text
+    (never parsed for you) or ragged input raises a ``ValueError`` naming ``name``."""
+    kind = getattr(getattr(x, "dtype", None), "kind", None)
+    if kind is None:
+        try:
+            kind = np.asarray(x).dtype.kind
+        except (TypeError, ValueError):
+            kind = "O"
+    if kind == "c":
+        raise ValueError(f"{name} must be real, got a complex array (its imaginary part would be "
+                         f"dropped); pass {name}.real if that is what you mean")
+    if kind not in "fiu":
+        shown = repr(x)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
+        raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} {shown}")
+    return np.asarray(x, np.float64)
+
+
 class NoiseFit(NamedTuple):
     """White-noise density and random-walk density fitted to an Allan deviation.
+
+    A density of exactly 0 means **not determined**, not "no noise": the data did not show
+    a term of that slope (its least-squares coefficient came out negative, or the term
+    stayed below :data:`VISIBLE` of the fitted ``σ²`` at every τ: motion in the recording,
+    or one too short for the random walk to show), so the fit dropped it.
+    :attr:`white_determined` and :attr:`random_walk_determined` flag those entries; do not
+    use them as densities (an :class:`jaximu.ImuNoise` with a 0 density claims a perfect
+    sensor).
 
     Attributes:
         white: ``σ_w`` [unit/√Hz] (``gyroscope_noise_density`` or ``accelerometer_noise_density``).
@@ -104,6 +157,16 @@ class NoiseFit(NamedTuple):
 
     white: np.ndarray
     random_walk: np.ndarray
+
+    @property
+    def white_determined(self) -> np.ndarray:
+        """``False`` where the fit could not determine :attr:`white` (returned as 0)."""
+        return np.asarray(self.white) > 0
+
+    @property
+    def random_walk_determined(self) -> np.ndarray:
+        """``False`` where the fit could not determine :attr:`random_walk` (returned as 0)."""
+        return np.asarray(self.random_walk) > 0
 
     def model(self, taus):
         """The fitted ``σ(τ)``."""
@@ -116,7 +179,11 @@ def fit_noise(taus, adev) -> NoiseFit:
 
     Weighted least squares on the relative error of ``σ²``, weighted by ``τ^(-1/2)``: the
     relative uncertainty of an overlapping Allan variance grows like ``√(τ/T)`` (fewer
-    independent clusters), so long τ count less. Both coefficients are kept non-negative.
+    independent clusters), so long τ count less. Both coefficients are kept non-negative:
+    a term whose coefficient comes out negative, or that stays below :data:`VISIBLE` of the
+    fitted ``σ²(τ)`` at every τ, is dropped (the other refitted alone) and returned as
+    exactly 0, which means *not determined* (see :class:`NoiseFit`, whose
+    ``white_determined`` and ``random_walk_determined`` flag it).
 
     Args:
         taus: ``(n,)`` cluster times [s], positive and finite, at least 2.
@@ -126,8 +193,8 @@ def fit_noise(taus, adev) -> NoiseFit:
     Raises:
         ValueError: naming ``taus`` or ``adev`` when they are outside that domain.
     """
-    taus = np.asarray(taus, float)
-    adev = np.asarray(adev, float)
+    taus = _real_array("taus", taus)
+    adev = _real_array("adev", adev)
     if taus.ndim != 1 or len(taus) < 2:
         raise ValueError(f"taus must be a 1-D array of at least 2 cluster times, got shape "
                          f"{taus.shape}")
@@ -152,15 +219,19 @@ def fit_noise(taus, adev) -> NoiseFit:
     A = np.stack([1 / taus, taus / 3], axis=1)
     for col in adev.T:
         w = 1 / (col**2 * np.sqrt(taus))
+
+        def alone(j):  # the fit with term j only (the other absent), and its cost
+            c = np.zeros(2)
+            c[j] = max(np.sum(A[:, j] * col**2 * w * w) / np.sum((A[:, j] * w) ** 2), 0.0)
+            return np.sum(((A @ c) * w - col**2 * w) ** 2), c
+
         coef, *_ = np.linalg.lstsq(A * w[:, None], col**2 * w, rcond=None)
         if coef[0] < 0 or coef[1] < 0:  # one term absent: fit the other alone
-            cands = []
-            for j in (0, 1):
-                c = np.sum(A[:, j] * col**2 * w * w) / np.sum((A[:, j] * w) ** 2)
-                cc = np.zeros(2)
-                cc[j] = max(c, 0.0)
-                cands.append((np.sum(((A @ cc) * w - col**2 * w) ** 2), cc))
-            coef = min(cands, key=lambda x: x[0])[1]
+            coef = min((alone(0), alone(1)), key=lambda x: x[0])[1]
+        share = (A * coef) / np.maximum(A @ coef, np.finfo(float).tiny)[:, None]
+        hidden = np.flatnonzero(share.max(axis=0) < VISIBLE)
+        if hidden.size == 1:  # a term never visible in the curve: not determined
+            coef = alone(1 - int(hidden[0]))[1]
         white.append(np.sqrt(max(coef[0], 0.0)))
         walk.append(np.sqrt(max(coef[1], 0.0)))
     white, walk = np.array(white), np.array(walk)
@@ -174,12 +245,17 @@ def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
 
     Raises :class:`jaximu.errors.InputError` (a ``ValueError``) whose fixes are
     ``gyro_unit='deg/s'`` (the readers' option) or ``check_units=False``, when the median
-    white-noise density over the axes exceeds :data:`GYRO_WHITE_MAX`. A gyro in deg/s that
-    is quieter than 3.5e-5 rad/s/√Hz (tactical grade) is not caught; motion in a recording
+    white-noise density over the axes exceeds :data:`GYRO_WHITE_MAX` (over the axes whose
+    density was determined; with none determined there is nothing to judge). A gyro in deg/s
+    that is quieter than 3.5e-5 rad/s/√Hz (tactical grade) is not caught; motion in a recording
     that is not static inflates the densities and can trip the check.
     """
     del accel  # the accelerometer's unit is judged by the readers (gravity's magnitude)
-    white = float(np.median(np.atleast_1d(np.asarray(gyro.white, float))))
+    white = np.atleast_1d(np.asarray(gyro.white, float))
+    white = white[white > 0]  # the axes whose density was determined
+    if white.size == 0:
+        return
+    white = float(np.median(white))
     if white > GYRO_WHITE_MAX:
         raise InputError(
             f"the gyro white-noise density {white:.3g} rad/s/√Hz is implausible for an IMU in "

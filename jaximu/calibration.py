@@ -27,6 +27,12 @@ reference's own noise), ``loss = ½ Σ_k |L_k⁻¹ r_k|²``. The whitening is co
 start (it depends on the samples, not on the parameters). Where the reference has no
 velocities, the keyframe velocities are estimated with the parameters (nuisance).
 
+The reference is not interpolated across its dropouts (motion capture loses the body for
+tenths of a second): a window with a keyframe inside a reference gap longer than
+``GAP_FACTOR`` × the reference's median interval (:meth:`jaximu.io.GroundTruth.interpolate`'s
+rule) is left out of the fit (weight 0: nothing of it reaches the loss or its gradient), and
+:attr:`CalibrationProblem.skip_note` says how many and which gaps.
+
 Windows are evaluated in groups under :func:`jax.checkpoint`, so reverse-mode memory is
 that of one group plus one scalar per group: gradients through 10⁶ samples fit in a laptop's
 memory (``benchmarks/calibration.py`` measures it).
@@ -65,6 +71,7 @@ import optax
 
 from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
+from jaximu.io._common import GAP_FACTOR
 from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, _preintegrate, residual
@@ -224,7 +231,8 @@ class CalibrationProblem:
             ``(G, C, W)`` the intervals between them [s].
         t_start, t_end: ``(G, C)`` IMU times of each window's keyframes [s].
         window: ``(G, C)`` index of each window (its velocity is ``velocities[window]``).
-        weight: ``(G, C)`` 1 for a real window, 0 for padding.
+        weight: ``(G, C)`` 1 for a window in the fit; 0 for padding and for a window left
+            out because a keyframe of it falls inside a reference gap (see ``skipped``).
         sqrt_info: ``(G, C, 9, 9)`` ``L⁻¹`` of each residual covariance.
         ref_t, ref_q, ref_p, ref_v: the reference (``ref_v`` zeros when it has none).
         velocities: ``(K + 1, 3)`` keyframe velocities (reference or finite differences).
@@ -239,6 +247,13 @@ class CalibrationProblem:
         sample_density2: ``(2, 3)`` ``σ_g², σ_a²`` per axis; reference_var: ``(G, C, 9)``
             the reference's part of each residual's variance (for re-whitening).
         omega_coriolis: ``(3,)`` the world's rotation rate, or ``None``.
+        max_gap: the longest reference interval interpolated across [s]: ``GAP_FACTOR`` × the
+            reference's median interval, the rule of :meth:`jaximu.io.GroundTruth.interpolate`
+            (static).
+        skipped: the reference gaps that left windows out, ``((t, length, windows), ...)``:
+            each gap's start on the reference clock [s], its length [s] and the number of
+            windows with a keyframe inside it (static). :attr:`n_skipped` counts the windows
+            left out, :attr:`skip_note` says it in words.
     """
 
     gyro: jax.Array
@@ -264,10 +279,27 @@ class CalibrationProblem:
     sample_density2: jax.Array | None = None
     reference_var: jax.Array | None = None
     omega_coriolis: jax.Array | None = None
+    max_gap: float = dataclasses.field(metadata=dict(static=True), default=float("inf"))
+    skipped: tuple = dataclasses.field(metadata=dict(static=True), default=())
 
     @property
     def n_samples(self) -> int:
         return self.n_windows * self.dt.shape[-1]
+
+    @property
+    def kept(self) -> np.ndarray:
+        """``(K,)`` whether each window is in the fit (not left out for a reference gap)."""
+        return np.asarray(self.weight).reshape(-1)[: self.n_windows] > 0
+
+    @property
+    def n_skipped(self) -> int:
+        """How many of the ``n_windows`` windows are left out for reference gaps."""
+        return int(self.n_windows - np.count_nonzero(self.kept))
+
+    @property
+    def skip_note(self) -> str:
+        """The windows left out and the gaps that did it, in one line ("" when none)."""
+        return _skip_note(self.n_skipped, self.n_windows, self.max_gap, self.skipped)
 
 
 def _interp(problem_t, ref_t, ref_q, ref_p, ref_v):
@@ -383,7 +415,8 @@ def _preintegrate_mean(gyro, accel, dt, scheme):
 
 def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
                           velocities=None):
-    """``(K, 9)`` whitened residuals ``L_k⁻¹ [r_θ, r_p, r_v]_k`` of every window."""
+    """``(K, 9)`` whitened residuals ``L_k⁻¹ [r_θ, r_p, r_v]_k`` of every window (zero for
+    a window left out for a reference gap: :attr:`CalibrationProblem.kept`)."""
     v = problem.velocities if velocities is None else velocities
     G = problem.gyro.shape[0]
     r = jax.vmap(lambda g: _window_residuals(problem, calib, v, g))(jnp.arange(G))
@@ -596,6 +629,51 @@ def _check_initial(initial):
                          f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])")
 
 
+def _in_reference_gap(s, rt):
+    """Which reference times ``s`` fall strictly inside a reference interval longer than
+    ``GAP_FACTOR`` × the median interval (:meth:`jaximu.io.GroundTruth.interpolate`'s rule:
+    such an interval is a dropout, not bridged). Returns ``(inside, gap, max_gap)``: ``(n,)``
+    booleans, ``(n,)`` the index ``i`` of the interval ``[rt[i], rt[i+1]]`` holding each
+    time, and the limit [s]."""
+    d = np.diff(rt)
+    limit = GAP_FACTOR * float(np.median(d))
+    i = np.clip(np.searchsorted(rt, s, side="right") - 1, 0, len(rt) - 2)
+    return (d[i] > limit) & (s > rt[i]) & (s < rt[i + 1]), i, limit
+
+
+def _gap_list(gaps, limit=4) -> str:
+    """``0.483 s at t = 45.183 s, ...`` of ``((t, length, windows), ...)``."""
+    shown = ", ".join(f"{length:.3f} s at t = {t:.3f} s" for t, length, _ in gaps[:limit])
+    return shown + (f", … ({len(gaps)} gaps in all)" if len(gaps) > limit else "")
+
+
+def _skip_note(n_skipped, n_windows, max_gap, gaps) -> str:
+    if not n_skipped:
+        return ""
+    return (f"left out {n_skipped} of {n_windows} keyframe windows with a keyframe inside a "
+            f"reference gap longer than {max_gap:.4g} s ({GAP_FACTOR:g} × its median interval; "
+            f"the reference is not interpolated across gaps): {_gap_list(gaps)}")
+
+
+def _velocities_from_positions(p, t, good):
+    """Keyframe velocities by differences of the keyframe positions ``p`` at times ``t``
+    (``np.gradient``: central inside, one-sided at the ends) using only keyframes where
+    ``good``; a keyframe with no good neighbour gets 0 (its windows are left out)."""
+    v = np.gradient(p, t, axis=0)
+    if good.all():
+        return v
+    n = len(t)
+    for k in range(n):
+        lo_ok = k > 0 and good[k - 1]
+        hi_ok = k < n - 1 and good[k + 1]
+        if not good[k]:
+            v[k] = 0.0
+        elif not (lo_ok and hi_ok):
+            lo, hi = (k - 1 if lo_ok else k), (k + 1 if hi_ok else k)
+            v[k] = (p[hi] - p[lo]) / (t[hi] - t[lo]) if hi > lo else 0.0
+    return v
+
+
 def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
                         keyframe_interval: float = 0.5, scheme: str = "euler",
                         model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
@@ -608,6 +686,13 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         t: ``(N,)`` IMU times [s] (IMU clock); gyro, accel: ``(N, 3)`` raw samples [rad/s],
             [m/s²]. Their dtype is the computation's.
         reference: the :class:`Reference` (reference clock). Keyframes lie where both exist.
+            It is not interpolated across its gaps (dropouts): intervals longer than
+            ``GAP_FACTOR`` × its median interval, the rule of
+            :meth:`jaximu.io.GroundTruth.interpolate`. A window with a keyframe strictly
+            inside one is left out of the fit (weight 0; :attr:`CalibrationProblem.skip_note`
+            says how many and where); a gap between two keyframes of a window does not
+            matter (the residual reads the reference at the keyframes only). A
+            :class:`CalibrationError` names the gaps when they leave no window.
         noise: :class:`ImuNoise` of the IMU (whitening of the residuals).
         keyframe_interval: seconds between keyframes, positive, at least one sample interval
             (rounded to whole samples).
@@ -703,7 +788,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if W < 1:
         raise InputError(f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
                          f"interval ({period:.3g} s): keyframes are whole samples apart "
-                         "(typically 0.1–1 s)", [Fix("keyframe_interval", phrase=f"{{}} ≥ {period:.3g}")])
+                         "(typically 0.1–1 s)",
+                         [Fix("keyframe_interval", phrase=f"{{}} ≥ {period:.3g}")])
     inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
     if len(inside) < W + 2:
         raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
@@ -712,6 +798,23 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if K < 1:
         raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
     idx = first + W * np.arange(K + 1)
+    # Keyframes inside a reference dropout: their windows are left out (weight 0), never
+    # fitted to a pose interpolated across the gap.
+    in_gap, gap_of, max_gap = _in_reference_gap(t[idx] + td0, rt)
+    kept = ~(in_gap[:-1] | in_gap[1:])
+    gap_windows = {}  # gap index -> windows with a keyframe inside it
+    for k in np.flatnonzero(~kept):
+        for end in (k, k + 1):
+            if in_gap[end]:
+                gap_windows[gap_of[end]] = gap_windows.get(gap_of[end], 0) + 1
+    skipped = tuple((float(rt[i]), float(rt[i + 1] - rt[i]), n)
+                    for i, n in sorted(gap_windows.items()))
+    if not kept.any():
+        raise CalibrationError(
+            f"every one of the {K} keyframe windows has a keyframe inside a reference gap "
+            f"(an interval longer than {max_gap:.4g} s, {GAP_FACTOR:g} × the reference's median "
+            f"interval), and the reference is not interpolated across gaps: "
+            f"{_gap_list(skipped)}. Calibrate on a stretch the reference covers")
     # Each window holds the W + 1 samples from keyframe to keyframe and the W intervals
     # between them (the midpoint rule uses both ends; Euler leaves the last one unused).
     sl = idx[:-1, None] + np.arange(W + 1)  # (K, W + 1)
@@ -724,7 +827,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
         jnp.asarray(rp), jnp.asarray(rv)))
     if not has_v:
-        vk = np.gradient(pk, t[idx], axis=0)
+        vk = _velocities_from_positions(pk, t[idx], ~in_gap)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
     g_c, a_c = (np.asarray(x) for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype),
@@ -761,6 +864,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
+        # the checks judge the windows of the fit only
+        phi_imu, phi_ref, dv_imu, dv_ref = (x[kept] for x in (phi_imu, phi_ref, dv_imu, dv_ref))
         found = {}
         if extrinsics:
             theta, stat, source = _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref,
@@ -776,7 +881,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                      "q_BS0_statistic": stat}
             phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
         if check:
-            diagnostics = _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt,
+            diagnostics = _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt[kept],
                                              reference_sigma)
         diagnostics.update(found)
 
@@ -792,7 +897,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     return CalibrationProblem(
         gyro=as_d(grp(win_gyro)), accel=as_d(grp(win_accel)), dt=as_d(grp(win_dt)),
         t_start=as_d(grp(t[idx[:-1]] - t0)), t_end=as_d(grp(t[idx[1:]] - t0)),
-        window=grp(np.arange(K)), weight=as_d(grp(np.ones(K))),
+        window=grp(np.arange(K)),
+        weight=as_d(np.concatenate([kept, np.zeros(pad)]).reshape(G, C)),  # padding: 0
         sqrt_info=as_d(grp(sqrt_info)), ref_t=as_d(rt - t0), ref_q=as_d(rq), ref_p=as_d(rp),
         ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
         diagnostics={k: as_d(v) for k, v in diagnostics.items()},
@@ -803,7 +909,8 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             for s in ("gyroscope", "accelerometer")])),
         reference_var=as_d(grp(extra)),
         omega_coriolis=None if omega_coriolis is None else world.check_omega(
-            omega_coriolis, dtype))
+            omega_coriolis, dtype),
+        max_gap=float(max_gap), skipped=skipped)
 
 
 # --------------------------------------------------------------------------- fitting
@@ -1000,12 +1107,16 @@ class CalibrationResult:
             ``free`` (each field's components in turn), physical units.
         free: names of the estimated fields.
         velocities: ``(K + 1, 3)`` keyframe velocities used (estimated if the reference
-            had none).
+            had none); NaN at a keyframe that bounds no window of the fit (reference gaps).
         loss_history: the loss at the start, after each (accepted, for ``"lm"``) step, and
             at the estimate.
         chi2, dof, reduced_chi2: ``2·loss`` at the estimate, its degrees of freedom
-            (9K - parameters) and their ratio (≈ 1 when the noise model is right).
+            (9 × the windows in the fit - parameters) and their ratio (≈ 1 when the noise
+            model is right).
         converged: whether the stopping rule was met before ``steps``.
+        n_windows: the windows in the fit; skipped_windows: those left out because a
+            keyframe of theirs falls inside a reference gap; note: why, in words
+            (:attr:`CalibrationProblem.skip_note`; "" when none was left out).
     """
 
     calibration: ImuCalibration
@@ -1018,6 +1129,9 @@ class CalibrationResult:
     dof: int
     reduced_chi2: float
     converged: bool
+    n_windows: int = 0
+    skipped_windows: int = 0
+    note: str = ""
 
 
 def _optax_loop(z, problem, init_vec, layout, optimizer, learning_rate, steps, tol, dtype):
@@ -1168,7 +1282,15 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
                 f"(> {EXCITATION[name]:.3g} {unit}); a lever arm shows in the specific force only "
                 "as ω×(ω×r) + α×r: turn the body faster, about more axes", RuntimeWarning,
                 stacklevel=2)
-    dof = max(len(r) - n - n_v, 1)
+    # Windows left out (reference gaps) add zero rows; a keyframe velocity that bounds none of
+    # the fit's windows has a zero column and is no parameter.
+    kept = problem.kept
+    k = np.asarray(problem.window).reshape(-1)[: problem.n_windows][kept]
+    used = np.zeros(len(problem.velocities), bool)
+    used[k] = used[k + 1] = True
+    n_v_used = 3 * int(used.sum()) if n_v else 0
+    dof = max(9 * int(kept.sum()) - n - n_v_used, 1)
+    v = np.where(used[:, None], np.asarray(v), np.nan)
     red = chi2 / dof
     if max_reduced_chi2 is not None and red > max_reduced_chi2:
         warnings.warn(
@@ -1177,5 +1299,6 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
             " the noise densities)", RuntimeWarning, stacklevel=2)
     return CalibrationResult(
         calibration=calib, std=ImuCalibration(**std), covariance=cov,
-        free=free, velocities=np.asarray(v), loss_history=np.asarray(history), chi2=chi2,
-        dof=dof, reduced_chi2=red, converged=converged)
+        free=free, velocities=v, loss_history=np.asarray(history), chi2=chi2,
+        dof=dof, reduced_chi2=red, converged=converged, n_windows=int(kept.sum()),
+        skipped_windows=problem.n_skipped, note=problem.skip_note)

@@ -19,6 +19,7 @@ import os
 import pathlib
 import sys
 import time
+import warnings
 
 import numpy as np
 
@@ -133,12 +134,13 @@ def _load(args):
                   drop_nonfinite=args.drop_nonfinite, allow_gaps=args.allow_gaps,
                   max_gap=args.max_gap, check_units=not args.no_unit_check)
     units = dict(gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    if args.topic is not None and fmt != "rosbag":
+        raise UsageError(f"--topic names a ROS bag's topic; {path} is read as {fmt}: drop "
+                         "--topic (or pass --format rosbag for a bag)")
     if args.time_unit is not None and fmt not in ("csv", "npz"):
         raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
-    if fmt in ("euroc", "tumvi"):
-        if args.gyro_unit != "rad/s" or args.accel_unit != "m/s^2":
-            raise UsageError(f"--gyro-unit/--accel-unit do not apply to {fmt} (SI by definition)")
-        data = (io.read_euroc if fmt == "euroc" else io.read_tumvi)(path, **repair)
+    if fmt in ("euroc", "tumvi"):  # SI by definition; the units flags for other ASL folders
+        data = (io.read_euroc if fmt == "euroc" else io.read_tumvi)(path, **units, **repair)
     elif fmt == "csv":
         cols = [c.strip() for c in args.columns.split(",")]
         if len(cols) != 7:
@@ -223,14 +225,38 @@ def _bias(text):
 # --------------------------------------------------------------------------- propagation
 
 
-def _check_gravity(g):
+def _check_gravity(g, dtype):
     """``--gravity``: a finite magnitude ≥ 0, checked before the work (the propagation runs
-    under ``jit``, where the library's own check cannot run)."""
+    under ``jit``, where the library's own check cannot run), in the computation ``dtype``
+    (float64 without x64 would be truncated, with a JAX warning)."""
     from jaximu import _validation as val
 
     if not np.isfinite(g):
         raise UsageError(f"--gravity must be a finite magnitude ≥ 0 [m/s²], got {g}")
-    val.gravity_vector(g, np.float64)  # a negative magnitude: an error whose fix is a flag
+    val.gravity_vector(g, dtype)  # a negative magnitude: an error whose fix is a flag
+
+
+def _start_at_groundtruth(data, gt, flag=None):
+    """The samples from where the ground truth begins; a window that ends before it, or
+    starts after it ends, is an error that says so (``flag``: the option that needs the
+    ground truth, if one does)."""
+    from jaximu import io
+
+    tol = io.CLOCK_TOLERANCE
+    drop = f", or drop {flag}" if flag else ""
+    inside = (data.t >= gt.t[0] - tol) & (data.t <= gt.t[-1] + tol)
+    if inside.sum() >= 2:
+        return data if data.t[0] >= gt.t[0] - tol else data.window(gt.t[0] - tol)
+    span = f"[{data.t[0]:.3f}, {data.t[-1]:.3f}] s"
+    if data.t[-1] < gt.t[0]:
+        raise UsageError(f"the ground truth starts at {gt.t[0]:.3f} s, after the samples used "
+                         f"({span}) end: pass --start ≥ {gt.t[0]:.3f} or a longer --duration"
+                         f"{drop}")
+    if data.t[0] > gt.t[-1]:
+        raise UsageError(f"the ground truth ends at {gt.t[-1]:.3f} s, before the samples used "
+                         f"({span}) start: pass --start < {gt.t[-1]:.3f}{drop}")
+    raise UsageError(f"the ground truth ([{gt.t[0]:.3f}, {gt.t[-1]:.3f}] s) and the samples "
+                     f"used ({span}) share fewer than 2 samples; pass a longer --duration{drop}")
 
 
 def _report_drift(err, t_start, out=None):
@@ -258,18 +284,17 @@ def cmd_propagate(args):
 
     from jaximu import io
 
-    _check_gravity(args.gravity)
+    dtype = _dtype(args)
+    _check_gravity(args.gravity, dtype)
     if not args.still > 0:
         raise UsageError(f"--still must be positive (seconds of still samples), got {args.still}")
     _check_outputs(out=args.out, states=args.states, plot=args.plot)
     data = _load(args)
-    dtype = _dtype(args)
     if args.init_from_groundtruth:
         gt = data.ground_truth
         if gt is None:
             raise UsageError(f"{args.file} has no ground truth: drop --init-from-groundtruth")
-        if data.t[0] < gt.t[0] - io.CLOCK_TOLERANCE:
-            data = data.window(gt.t[0] - io.CLOCK_TOLERANCE)  # start where the truth starts
+        data = _start_at_groundtruth(data, gt, "--init-from-groundtruth")
     state0, how = io.initial_state(data, from_groundtruth=args.init_from_groundtruth,
                                    still_seconds=args.still, bias=_bias(args.bias))
     print(how)
@@ -331,6 +356,18 @@ def cmd_demo(args):
 
 
 # --------------------------------------------------------------------------- preintegration
+
+
+def _in_groundtruth_gap(gt, t):
+    """Which of the times ``t`` (inside the ground truth) fall in one of its gaps, by the
+    rule :meth:`jaximu.io.GroundTruth.interpolate` refuses them with (default ``max_gap``)."""
+    from jaximu import io
+
+    d = np.diff(gt.t)
+    limit = io.GAP_FACTOR * np.median(d)
+    tc = np.clip(t, gt.t[0], gt.t[-1])
+    k = np.clip(np.searchsorted(gt.t, tc, side="right") - 1, 0, len(gt.t) - 2)
+    return (d[k] > limit) & (tc > gt.t[k]) & (tc < gt.t[k + 1])
 
 
 def cmd_preintegrate(args):
@@ -395,17 +432,27 @@ def cmd_preintegrate(args):
     inside = np.ones(K, bool) if gt is None else (
         (ti >= gt.t[0] - io.CLOCK_TOLERANCE) & (tj <= gt.t[-1] + io.CLOCK_TOLERANCE))
     if gt is not None and gt.v is not None and inside.any():
-        ti, tj = ti[inside], tj[inside]
+        # windows with an end in a ground-truth gap (a mocap dropout) are left out: the
+        # ground truth there would be interpolated across the gap
+        in_gap = inside & (_in_groundtruth_gap(gt, ti) | _in_groundtruth_gap(gt, tj))
+        use = inside & ~in_gap
+        skipped = (f"; {int(in_gap.sum())} window(s) with an end in a ground-truth gap left "
+                   "out" if in_gap.any() else "")
+        if not use.any():
+            print(f"\nno comparison with the ground truth: each of the {int(inside.sum())} "
+                  "windows inside it has an end in one of its gaps")
+            return 0
+        ti, tj = ti[use], tj[use]
         states = []
         for tt in (ti, tj):
             q, p, v = gt.interpolate(tt)
             states.append(jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v)),
                                           b.b_g, b.b_a))
-        sel = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(inside)], pim)
+        sel = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(use)], pim)
         r = np.asarray(jaximu.residual(states[0], states[1], sel, omega_coriolis=omega),
                        np.float64)
-        print(f"\nresiduals against the ground truth (median over the {int(inside.sum())} "
-              f"windows inside it): rotation "
+        print(f"\nresiduals against the ground truth (median over the {int(use.sum())} "
+              f"windows inside it{skipped}): rotation "
               f"{np.rad2deg(np.median(np.linalg.norm(r[:, 0:3], axis=1))):.3f}°, position "
               f"{np.median(np.linalg.norm(r[:, 3:6], axis=1)):.4f} m, velocity "
               f"{np.median(np.linalg.norm(r[:, 6:9], axis=1)):.4f} m/s")
@@ -503,6 +550,25 @@ def cmd_montecarlo(args):
 # --------------------------------------------------------------------------- calibration
 
 
+class _warnings_as_lines:
+    """The library's warnings (a χ²/dof above its limit, a rotation the motion does not
+    determine) as one ``warning:`` line each on stderr, without Python's file and source
+    lines."""
+
+    def __enter__(self):
+        self._ctx = warnings.catch_warnings(record=True)
+        self._caught = self._ctx.__enter__()
+        for category in (RuntimeWarning, UserWarning):  # shown once each, as a line
+            warnings.simplefilter("always", category)
+        return self
+
+    def __exit__(self, *exc):
+        self._ctx.__exit__(*exc)
+        for w in self._caught:
+            print(f"warning: {w.message}", file=sys.stderr)
+        return False
+
+
 def cmd_calibrate(args):
     import jax.numpy as jnp
 
@@ -524,6 +590,7 @@ def cmd_calibrate(args):
         raise UsageError(f"unknown field(s) {unknown} in --estimate; fields: {', '.join(cal.FIELDS)}")
     dtype = _dtype(args)
     ref = cal.Reference(gt.t, gt.q, gt.p, gt.v)
+    _start_at_groundtruth(data, gt)  # a window outside the ground truth: say where it is
     inside = (data.t >= gt.t[0]) & (data.t <= gt.t[-1])
     d = data.select(np.flatnonzero(inside))
     pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
@@ -532,12 +599,13 @@ def cmd_calibrate(args):
     if pose is not None:
         initial = cal.ImuCalibration.default(dtype=dtype, q_BS=np.asarray(pose.q),
                                              p_BS=np.asarray(pose.p))
-    problem = cal.calibration_problem(jnp.asarray(d.t, dtype), jnp.asarray(d.gyro, dtype),
-                                      jnp.asarray(d.accel, dtype), ref,
-                                      yaml_noise or _noise(args.noise),
-                                      keyframe_interval=args.keyframe_interval,
-                                      scheme=args.scheme, extrinsics=extrinsics,
-                                      omega_coriolis=omega)
+    with _warnings_as_lines():
+        problem = cal.calibration_problem(jnp.asarray(d.t, dtype), jnp.asarray(d.gyro, dtype),
+                                          jnp.asarray(d.accel, dtype), ref,
+                                          yaml_noise or _noise(args.noise),
+                                          keyframe_interval=args.keyframe_interval,
+                                          scheme=args.scheme, extrinsics=extrinsics,
+                                          omega_coriolis=omega)
     if "q_BS0" in problem.diagnostics:
         angle = float(np.degrees(np.asarray(problem.diagnostics["q_BS0_angle"])))
         print(f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
@@ -553,8 +621,9 @@ def cmd_calibrate(args):
           + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
           + ")…", flush=True)
     tic = time.perf_counter()
-    res = cal.calibrate(problem, initial, estimate=estimate, optimizer=args.optimizer,
-                        steps=args.steps)
+    with _warnings_as_lines():
+        res = cal.calibrate(problem, initial, estimate=estimate, optimizer=args.optimizer,
+                            steps=args.steps)
     print(f"done in {time.perf_counter() - tic:.2f} s ({len(res.loss_history) - 1} steps, "
           f"{'converged' if res.converged else 'not converged'}); χ²/dof = {res.reduced_chi2:.3g}")
     out = {}
@@ -608,6 +677,12 @@ def cmd_allan(args):
         print(f"note: the gyro's 1 s means vary by {100 * moving:.0f}% of its sample spread: the "
               "recording does not look static, so the densities below include motion")
     print(f"Allan deviation of {len(data)} samples ({data.duration:.1f} s at {1 / dt:.1f} Hz)")
+    for name, y in (("gyro", data.gyro), ("accelerometer", data.accel)):
+        flat = np.flatnonzero(np.ptp(y, axis=0) == 0)
+        if len(flat):
+            raise UsageError(f"the {name}'s {'xyz'[flat[0]]} axis is constant in {args.file} "
+                             f"({y[0, flat[0]]:g} in every sample): the Allan deviation measures "
+                             "noise, and this signal has none (a simulated or quantised file?)")
     results = {}
     for name, y, unit in (("gyroscope", data.gyro, "rad/s"), ("accelerometer", data.accel, "m/s²")):
         taus, adev = allan.allan_deviation(y, dt)

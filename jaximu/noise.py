@@ -60,28 +60,33 @@ class ImuNoise:
         return cls(0.00016, 0.0028, 2.2e-05, 0.00086)
 
     def _per_axis(self, dtype):
-        fields = (
-            self.gyroscope_noise_density,
-            self.accelerometer_noise_density,
-            self.gyroscope_random_walk,
-            self.accelerometer_random_walk,
-        )
+        """The four densities as ``dtype`` arrays ``(..., 3)``, checked as the propagation
+        entries check them (numbers, not text or complex; finite and ``≥ 0`` when concrete)."""
+        from jaximu import _validation as val
+
+        for name in _FIELDS:
+            _real(f"noise.{name}", getattr(self, name))
+        checked = val.check_noise(self, dtype)
         out = []
-        for f in fields:
-            f = jnp.asarray(f, dtype)
+        for name in _FIELDS:
+            f = getattr(checked, name)
             out.append(jnp.broadcast_to(f[..., None], f.shape + (3,)) if f.ndim == 0 else f)
         return out
 
     def sample_std(self, dt, dtype=None):
         """Per-sample standard deviations for a sample held over ``dt`` [s] (``> 0``, finite;
-        checked on eager calls).
+        checked on eager calls; a ``bool`` is refused).
+
+        Computed in ``dtype`` (float32 or float64) if given, else in ``dt``'s floating dtype
+        (an integer ``dt`` in the default float dtype, half precision in float32), never in
+        an integer dtype. The densities are checked as :func:`jaximu.propagate_covariance`
+        checks them (finite, ``≥ 0``).
 
         Returns:
             ``(gyro_white, accel_white, gyro_bias_step, accel_bias_step)``, each ``(..., 3)``:
             ``σ/√dt`` for the white noises and ``σ_rw·√dt`` for the bias steps.
         """
-        _check_dt(dt)
-        dt = jnp.asarray(dt, dtype)
+        dt = _dt_array(dt, dtype)
         sg, sa, sbg, sba = self._per_axis(dt.dtype)
         root = jnp.sqrt(dt)[..., None]
         return sg / root, sa / root, sbg * root, sba * root
@@ -89,14 +94,19 @@ class ImuNoise:
     def discrete_covariance(self, dt, dtype=None):
         """``Q_c``: the ``(..., 12, 12)`` covariance of the step noise ``[n_g, n_a, n_wg, n_wa]``.
 
-        Diagonal ``[σ_g², σ_a², σ_bg², σ_ba²] / dt`` (each over 3 axes); ``dt > 0``, finite.
+        Diagonal ``[σ_g², σ_a², σ_bg², σ_ba²] / dt`` (each over 3 axes); ``dt > 0``, finite;
+        dtypes as :meth:`sample_std`.
         """
         var = self.discrete_variances(dt, dtype)
         return var[..., None] * jnp.eye(12, dtype=var.dtype)
 
     def variances(self, dtype=None):
-        """``[σ_g², σ_a², σ_bg², σ_ba²]`` per axis, ``(..., 12)`` (densities squared)."""
-        parts = [s * s for s in self._per_axis(jnp.result_type(dtype or float))]
+        """``[σ_g², σ_a², σ_bg², σ_ba²]`` per axis, ``(..., 12)`` (densities squared), in
+        ``dtype`` (float32 or float64; default: JAX's default float dtype)."""
+        from jaximu import _validation as val
+
+        dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
+        parts = [s * s for s in self._per_axis(dtype)]
         shape = jnp.broadcast_shapes(*(x.shape for x in parts))
         return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
 
@@ -104,10 +114,62 @@ class ImuNoise:
         """Diagonal of :meth:`discrete_covariance`: :meth:`variances` ``/ dt``, ``(..., 12)``.
 
         ``dt > 0`` and finite (a ``ValueError`` on eager calls: ``dt = 0`` would give inf,
-        then NaN in ``G Q Gᵀ``)."""
-        _check_dt(dt)
-        dt = jnp.asarray(dt, dtype)
+        then NaN in ``G Q Gᵀ``); dtypes as :meth:`sample_std`."""
+        dt = _dt_array(dt, dtype)
         return self.variances(dt.dtype) / dt[..., None]
+
+
+_FIELDS = ("gyroscope_noise_density", "accelerometer_noise_density",
+           "gyroscope_random_walk", "accelerometer_random_walk")
+
+
+def _kind(x):
+    """The numpy dtype kind of ``x`` (``"f"``, ``"i"``, ``"b"``, ``"c"``, ``"U"``...)."""
+    d = getattr(x, "dtype", None)
+    if d is None:
+        try:
+            d = np.asarray(x).dtype
+        except (TypeError, ValueError):  # ragged lists: left to the caller's cast
+            return "O"
+    return np.dtype(d).kind
+
+
+def _real(name, x):
+    """Refuse a complex or bool ``x``: a float cast would drop the imaginary part, or read
+    ``True`` as 1."""
+    kind = _kind(x)
+    if kind == "c":
+        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
+                         f"be dropped); pass {name}.real if that is what you mean")
+    if kind == "b":
+        raise ValueError(f"{name} must be a number, got a bool")
+
+
+def _dt_array(dt, dtype):
+    """``dt`` as an array of the computation dtype: ``dtype`` (float32 or float64) if given,
+    else ``dt``'s float dtype (at least float32), else JAX's default float dtype; positive
+    and finite before and after the cast, when concrete."""
+    from jaximu import _validation as val
+
+    kind = _kind(dt)
+    if kind == "b":
+        raise ValueError("dt must be a time step in seconds, got a bool (True would be 1 s)")
+    _real("dt", dt)
+    if dtype is not None:
+        dtype = val.compute_dtype("dtype", dtype)
+    elif kind == "f":
+        dtype = val.float_dtype(dt)  # its own float dtype; half precision → float32
+    else:  # integer steps: the default float dtype (text and ragged lists: refused below)
+        dtype = jnp.result_type(float)
+    arr = val.to_dtype("dt", dt, dtype)  # names dt if it is text, None or ragged
+    _check_dt(dt)
+    try:
+        _check_dt(arr)
+    except ValueError:  # positive in the input, 0 in the computation dtype (1e-300 in float32)
+        raise ValueError(f"dt must be positive and finite in the computation dtype "
+                         f"{jnp.dtype(dtype).name}; dt = {np.asarray(dt).min()} is 0 in it; "
+                         "pass float64 (with jax_enable_x64) or a larger dt") from None
+    return arr
 
 
 def _check_dt(dt):

@@ -60,10 +60,15 @@ class Trajectory:
 
 
 def _finite(name, x, positive=False, shape=None):
-    """A trajectory parameter: finite (and > 0 with ``positive``; of ``shape`` if given)."""
-    arr = np.asarray(x, float) if not isinstance(x, jax.core.Tracer) else None
-    if arr is None:
+    """A trajectory parameter: numbers (not text, complex or bool), finite (and > 0 with
+    ``positive``; of ``shape`` if given)."""
+    if isinstance(x, jax.core.Tracer):
         return x
+    _real(name, x)
+    if _kind(x) in "bUSOV":  # text is never parsed for you; True is not 1
+        what = "a number" if shape is None else f"numbers of shape {shape}"
+        raise ValueError(f"{name} must be {what}, got {type(x).__name__} {x!r}")
+    arr = np.asarray(x, float)
     if shape is not None and arr.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
     if not np.all(np.isfinite(arr)) or (positive and not np.all(arr > 0)):
@@ -75,13 +80,34 @@ def _check_traj(traj, t):
     if not isinstance(traj, Trajectory):
         raise ValueError(f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got "
                          f"{type(traj).__name__}")
-    t = jnp.asarray(t)
+    _real("t", t)
+    t = val.to_dtype("t", t, None)  # text, None, ragged lists: a ValueError naming t
     if t.ndim != 1:
         raise ValueError(f"t must be a 1-D array of times (T,), got shape {tuple(t.shape)}")
-    if not jnp.issubdtype(t.dtype, jnp.floating):
-        t = t.astype(val.float_dtype(t))
+    if t.dtype == jnp.bool_:
+        raise ValueError("t must be times in seconds, got a bool array")
+    if not jnp.issubdtype(t.dtype, jnp.floating) or jnp.dtype(t.dtype).itemsize < 4:
+        t = t.astype(val.float_dtype(t))  # integers and half precision: float32 (README)
     val.check_finite("t", t)
     return t
+
+
+def _kind(x):
+    """The numpy dtype kind of ``x`` (``"c"`` complex, ``"U"`` text, ``"O"`` not numbers)."""
+    d = getattr(x, "dtype", None)
+    if d is None:
+        try:
+            d = np.asarray(x).dtype
+        except (TypeError, ValueError):  # ragged lists: left to the casts, which name them
+            return "O"
+    return np.dtype(d).kind
+
+
+def _real(name, x):
+    """Refuse a complex ``x``: a cast to float would drop its imaginary part."""
+    if _kind(x) == "c":
+        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
+                         f"be dropped); pass {name}.real if that is what you mean")
 
 
 def _yaw_pitch_roll_quat(yaw, pitch, roll):
@@ -294,6 +320,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         (of the sensor frame S with ``body_P_sensor``).
     """
     t = _check_traj(traj, t)
+    _real("gravity", gravity)
     g = val.gravity_vector(gravity, t.dtype)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
@@ -303,6 +330,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         pose = check_pose(body_P_sensor, t.dtype)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     if omega_coriolis is not None:
+        _real("omega_coriolis", omega_coriolis)
         from jaximu.sensor import lever_arm_acceleration
         from jaximu.world import check_omega
 
@@ -348,42 +376,83 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         ``(gyro_m, accel_m, errors)`` with :class:`ImuErrors`. The bias during sample k is
         the turn-on bias plus the sum of the random-walk steps before k.
     """
-    gyro, accel = jnp.asarray(gyro), jnp.asarray(accel)
+    for name, x in (("gyro", gyro), ("accel", accel), ("dt", dt), ("b_g0", b_g0),
+                    ("b_a0", b_a0), ("gyro_misalignment", gyro_misalignment),
+                    ("accel_misalignment", accel_misalignment)):
+        _real(name, x)
+    if _kind(dt) == "b":
+        raise ValueError("dt must be sample periods in seconds, got a bool (True would be 1 s)")
+    dtype = val.float_dtype(gyro, accel)
+    gyro, accel = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
     val.check_vector("gyro", gyro)
     val.check_vector("accel", accel)
     if gyro.shape[-2] != accel.shape[-2]:
         raise ValueError(f"gyro and accel have different numbers of samples: {gyro.shape[-2]} "
                          f"and {accel.shape[-2]}")
+    T = gyro.shape[-2]
+    if T == 0:
+        raise ValueError("gyro and accel hold no samples (T = 0)")
     val.check_finite("gyro", gyro)
     val.check_finite("accel", accel)
-    dtype = val.float_dtype(gyro, accel)
-    gyro, accel = gyro.astype(dtype), accel.astype(dtype)
     noise = val.check_noise(noise, dtype)
+    batch_shape = _batch_shape(batch_shape)
+    mis = {}
     for name, M in (("gyro_misalignment", gyro_misalignment),
                     ("accel_misalignment", accel_misalignment)):
-        if M is not None and jnp.shape(M) != (3, 3):
-            raise ValueError(f"{name} must have shape (3, 3) or be None, got {jnp.shape(M)}")
-    T = gyro.shape[-2]
-    dt = jnp.broadcast_to(jnp.asarray(dt, dtype), (T,))
-    sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each
-    z = jax.random.normal(key, tuple(batch_shape) + (T, 12), dtype)
+        if M is None:
+            continue
+        M = val.to_dtype(name, M, dtype)
+        if M.shape != (3, 3):
+            raise ValueError(f"{name} must have shape (3, 3) or be None, got {tuple(M.shape)}")
+        val.check_finite(name, M)
+        mis[name] = M
+    dt = val.to_dtype("dt", dt, dtype)
+    if dt.ndim > 1 or (dt.ndim == 1 and dt.shape[0] != T):
+        raise ValueError(f"dt must be a scalar or have shape (T,) = ({T},) (one period per "
+                         f"sample), got {tuple(dt.shape)}")
+    dt = jnp.broadcast_to(dt, (T,))
+    sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each; checks dt > 0
+    bias0 = {}
+    for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
+        b = val.to_dtype(name, b, dtype)
+        if b.ndim and b.shape[-1] != 3:
+            raise ValueError(f"{name} must be a scalar or have shape (..., 3), got "
+                             f"{tuple(b.shape)}")
+        val.check_finite(name, b)
+        bias0[name] = b[..., None, :] if b.ndim else b
+    b_g0, b_a0 = bias0["b_g0"], bias0["b_a0"]
+    z = jax.random.normal(key, batch_shape + (T, 12), dtype)
     walk_g = jnp.cumsum(z[..., 6:9] * sbg, axis=-2)
     walk_a = jnp.cumsum(z[..., 9:12] * sba, axis=-2)
 
     def before(walk):  # sum of the steps before each sample
         return jnp.concatenate([jnp.zeros_like(walk[..., :1, :]), walk[..., :-1, :]], axis=-2)
 
-    for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
-        if jnp.ndim(b) and jnp.shape(b)[-1] != 3:
-            raise ValueError(f"{name} must be a scalar or have shape (..., 3), got {jnp.shape(b)}")
-        val.check_finite(name, b)
-    b_g0 = jnp.asarray(b_g0, dtype)[..., None, :] if jnp.ndim(b_g0) else jnp.asarray(b_g0, dtype)
-    b_a0 = jnp.asarray(b_a0, dtype)[..., None, :] if jnp.ndim(b_a0) else jnp.asarray(b_a0, dtype)
     b_g, b_a = b_g0 + before(walk_g), b_a0 + before(walk_a)
-    w = gyro if gyro_misalignment is None else gyro + gyro @ jnp.asarray(gyro_misalignment, dtype).T
-    f = accel if accel_misalignment is None else accel + accel @ jnp.asarray(accel_misalignment, dtype).T
+    Mg, Ma = mis.get("gyro_misalignment"), mis.get("accel_misalignment")
+    w = gyro if Mg is None else gyro + gyro @ Mg.T
+    f = accel if Ma is None else accel + accel @ Ma.T
     gyro_m = w + b_g + z[..., 0:3] * sg
     accel_m = f + b_a + z[..., 3:6] * sa
     errors = ImuErrors(b_g, b_a, (b_g0 + walk_g[..., -1:, :])[..., 0, :],
                        (b_a0 + walk_a[..., -1:, :])[..., 0, :])
     return gyro_m, accel_m, errors
+
+
+def _batch_shape(batch_shape):
+    """``batch_shape`` as a tuple of non-negative ints; an int ``n`` is refused with the fix
+    ``(n,)`` in words (a bare int is not a shape; the command has no such option, so no
+    :class:`jaximu.errors.Fix`)."""
+    if isinstance(batch_shape, (int, np.integer)) and not isinstance(batch_shape, bool):
+        raise ValueError(f"batch_shape must be a tuple of ints, got the int {batch_shape}; "
+                         f"pass batch_shape=({int(batch_shape)},)")
+    try:
+        dims = tuple(batch_shape)
+    except TypeError:
+        raise ValueError(f"batch_shape must be a tuple of non-negative ints, got "
+                         f"{type(batch_shape).__name__} {batch_shape!r}") from None
+    for d in dims:
+        if isinstance(d, (bool, np.bool_)) or not isinstance(d, (int, np.integer)) or d < 0:
+            raise ValueError(f"batch_shape must be a tuple of non-negative ints, got "
+                             f"{batch_shape!r}")
+    return tuple(int(d) for d in dims)

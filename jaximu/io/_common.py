@@ -30,6 +30,28 @@ class DataError(InputError):
     :attr:`fixes` holds the options that repair it (:class:`jaximu.errors.InputError`)."""
 
 
+def _seconds(name, x, *, positive=False, allow_inf=False) -> float:
+    """A time option [s] as a ``float``: a real number (not text, not a bool), not NaN,
+    finite unless ``allow_inf``, and ``> 0`` if ``positive``; else a ``ValueError`` naming
+    ``name``."""
+    if isinstance(x, (bool, np.bool_, str, bytes)) or np.ndim(x) != 0:
+        raise ValueError(f"{name} must be a number of seconds, got {type(x).__name__} {x!r}")
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of seconds, got {type(x).__name__} "
+                         f"{x!r}") from None
+    if math.isnan(v) or (math.isinf(v) and not allow_inf) or (positive and not v > 0):
+        kind = "a positive" if positive else "a finite"
+        raise ValueError(f"{name} must be {kind} number of seconds, got {x!r}")
+    return v
+
+
+def _max_gap(x):
+    """``max_gap``: ``None`` (the default threshold) or seconds ``> 0`` (``inf``: no limit)."""
+    return None if x is None else _seconds("max_gap", x, positive=True, allow_inf=True)
+
+
 def _rows(labels, idx, limit=5) -> str:
     idx = np.asarray(idx).ravel()
     shown = ", ".join(str(labels[i]) for i in idx[:limit])

@@ -24,9 +24,17 @@ def _split(line, delimiter):
     return [p.strip() for p in parts]
 
 
+def _float(s):
+    """``float(s)`` for a decimal number as written in a file: Python's digit separators
+    (``1_0``) are refused, not read as 10."""
+    if "_" in s:
+        raise ValueError(f"not a number: {s!r}")
+    return float(s)
+
+
 def _is_number(s):
     try:
-        float(s)
+        _float(s)
         return True
     except ValueError:
         return False
@@ -74,8 +82,14 @@ def _read_table(path, delimiter=None, comment="#"):
 
 
 def _column(header, spec, path):
-    if isinstance(spec, (int, np.integer)):
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        if spec < 0:
+            raise ValueError(f"column indices count from 0 (the first column); got {spec}: "
+                             "name the column by its index from the left or its header name")
         return int(spec)
+    if not isinstance(spec, str):
+        raise ValueError(f"a column is an index (int ≥ 0) or a header name, got "
+                         f"{type(spec).__name__} {spec!r}")
     if header is None:
         raise DataError(f"{path} has no header line: give columns by index, not {spec!r}")
     norm = lambda s: s.split("[")[0].strip().lower()  # noqa: E731  "w_RS_S_x [rad s^-1]"
@@ -88,6 +102,8 @@ def _column(header, spec, path):
 def _to_ns(text, unit_ns, label):
     """Exact integer nanoseconds from a decimal string (no float rounding)."""
     try:
+        if "_" in text:  # Decimal reads Python's digit separators: "1_0" would be 10
+            raise InvalidOperation
         exact = Decimal(text) * unit_ns
         ns = int(exact.to_integral_value())
     except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
@@ -112,7 +128,7 @@ def _parse(rows, lines, time_col, value_cols, time_unit, path):
                             f"got {len(fields)}")
         stamps[r] = _to_ns(fields[time_col], unit_ns, f"{path}, line {k}")
         try:
-            values[r] = [float(fields[c]) for c in value_cols]
+            values[r] = [_float(fields[c]) for c in value_cols]
         except ValueError:
             bad = next(fields[c] for c in value_cols if not _is_number(fields[c]))
             raise DataError(f"{path}, line {k}: {bad!r} is not a number") from None

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pathlib
 
-from jaximu.io._common import DataError, with_repair_doc
-from jaximu.io._text import _parse, _read_table
+from jaximu.io._common import _ACCEL_UNITS, _GYRO_UNITS, DataError, with_repair_doc
+from jaximu.io._text import _check_unit, _parse, _read_table
 from jaximu.io.containers import ImuData
 from jaximu.io.validation import make
 
@@ -45,7 +45,9 @@ def _asl_paths(path, groundtruth, prefer):
     return imu, gt
 
 
-def _read_asl(path, groundtruth, prefer, options):
+def _read_asl(path, groundtruth, prefer, options, gyro_unit="rad/s", accel_unit="m/s^2"):
+    w_scale = _check_unit("gyro_unit", gyro_unit, _GYRO_UNITS)
+    a_scale = _check_unit("accel_unit", accel_unit, _ACCEL_UNITS)
     imu_path, gt_path = _asl_paths(path, groundtruth, prefer)
     _, rows, lines = _read_table(imu_path, ",")
     stamps, values = _parse(rows, lines, 0, range(1, 7), "ns", imu_path)
@@ -57,14 +59,15 @@ def _read_asl(path, groundtruth, prefer, options):
             raise DataError(f"{gt_path}, line {g_lines[0]}: expected p (3) and q (4) after the "
                             f"stamp, got {cols} values")
         g_stamps, g_values = _parse(g_rows, g_lines, 0, range(1, cols + 1), "ns", gt_path)
-        gt = (g_stamps, g_values, g_lines, cols)
+        gt = (g_stamps, g_values, g_lines, cols, f"ground truth {gt_path}")
     source = str(imu_path) + (f" + {gt_path}" if gt_path else "")
-    return make(stamps, values[:, 0:3], values[:, 3:6], lines=lines, ground_truth=gt,
-                 source=source, **options)
+    return make(stamps, values[:, 0:3] * w_scale, values[:, 3:6] * a_scale, lines=lines,
+                ground_truth=gt, source=source, **options)
 
 
 @with_repair_doc
-def read_euroc(path, *, groundtruth=True, **options) -> ImuData:
+def read_euroc(path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2",
+               **options) -> ImuData:
     """Read a EuRoC MAV sequence (ASL layout).
 
     Args:
@@ -73,18 +76,22 @@ def read_euroc(path, *, groundtruth=True, **options) -> ImuData:
             (the excerpts bundled in ``jaximu/data``).
         groundtruth: ``True`` to load ``state_groundtruth_estimate0/data.csv`` when present
             (p, q ``[w, x, y, z]`` of ``R_WB``, v, b_g, b_a), a path, or ``False``.
+        gyro_unit, accel_unit: ``"rad/s"`` or ``"deg/s"``; ``"m/s^2"`` or ``"g"``
+            (converted to SI). EuRoC's and TUM-VI's own files are SI (the default); these
+            are for other recordings stored in the ASL layout.
         options: {repair}
 
     Returns:
         :class:`ImuData` with int64 stamps exactly as in the file.
     """
-    return _read_asl(path, groundtruth, "euroc", options)
+    return _read_asl(path, groundtruth, "euroc", options, gyro_unit, accel_unit)
 
 
-def read_tumvi(path, *, groundtruth=True, **options) -> ImuData:
+def read_tumvi(path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2",
+               **options) -> ImuData:
     """Read a TUM-VI sequence (ASL layout: ``mav0/imu0/data.csv``, motion capture in
     ``mav0/mocap0/data.csv``: pose only, 120 Hz with dropouts; the IMU's intervals vary).
 
     Args as :func:`read_euroc`.
     """
-    return _read_asl(path, groundtruth, "tumvi", options)
+    return _read_asl(path, groundtruth, "tumvi", options, gyro_unit, accel_unit)

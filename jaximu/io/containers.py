@@ -6,7 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError
+from jaximu import _validation as val
+from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError, _max_gap, _seconds
 
 
 def _qmul(a, b):
@@ -50,6 +51,19 @@ class GroundTruth:
     b_g: np.ndarray | None = None
     b_a: np.ndarray | None = None
 
+    def __post_init__(self):
+        M = np.shape(self.t)[0] if np.ndim(self.t) == 1 else None
+        if M is None:
+            raise ValueError(f"GroundTruth.t must have shape (M,), got {np.shape(self.t)}")
+        for name, width in (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3)):
+            x = getattr(self, name)
+            if x is not None and np.shape(x) != (M, width):
+                raise ValueError(f"GroundTruth.{name} must have shape ({M}, {width}) (one row "
+                                 f"per time in t), got {np.shape(x)}")
+        if M < 2:
+            raise DataError(f"the ground truth has {M} row(s); at least 2 are needed to "
+                            "interpolate it")
+
     def __len__(self):
         return len(self.t)
 
@@ -65,8 +79,14 @@ class GroundTruth:
 
         Returns:
             ``(q, p, v)``: ``(K, 4)`` unit quaternions, ``(K, 3)``, ``(K, 3)`` or ``None``.
+
+        Raises:
+            ValueError: ``t`` not finite numbers; ``max_gap`` not a positive number.
+            DataError: ``t`` outside the ground truth, or inside a gap.
         """
-        t = np.atleast_1d(np.asarray(t, np.float64))
+        max_gap = _max_gap(max_gap)
+        t = np.atleast_1d(val.as_numbers("t", t))
+        val.check_finite("t", t)
         if t.min() < self.t[0] - CLOCK_TOLERANCE or t.max() > self.t[-1] + CLOCK_TOLERANCE:
             raise DataError(
                 f"ground truth covers [{self.t[0]:.6f}, {self.t[-1]:.6f}] s, asked for "
@@ -141,21 +161,42 @@ class ImuData:
         return float(self.t[-1] - self.t[0])
 
     def select(self, index) -> ImuData:
-        """The samples at ``index`` (a slice or indices); times stay relative to ``t0_ns``."""
+        """The samples at ``index`` (a slice, integer indices or an ``(N,)`` boolean mask);
+        times stay relative to ``t0_ns``."""
+        if not isinstance(index, slice):
+            idx = np.asarray(index)
+            n = len(self)
+            if idx.dtype == bool:
+                if idx.shape != (n,):
+                    raise ValueError(f"index: a boolean mask must have shape ({n},) (one entry "
+                                     f"per sample), got {idx.shape}")
+            elif idx.dtype.kind not in "iu" and idx.size:
+                raise ValueError(f"index must be a slice, integer indices or a boolean mask, "
+                                 f"got {idx.dtype.name} {index!r}"[:200])
+            elif idx.size and (idx.min() < -n or idx.max() >= n):
+                raise ValueError(f"index holds {int(idx.min() if idx.min() < -n else idx.max())}"
+                                 f", outside the {n} samples")
+            else:
+                index = idx.astype(np.intp)
         return dataclasses.replace(self, stamps_ns=self.stamps_ns[index], t=self.t[index],
                                    gyro=self.gyro[index], accel=self.accel[index])
 
     def window(self, start: float = 0.0, duration: float | None = None) -> ImuData:
-        """Samples with ``start ≤ t ≤ start + duration`` [s since ``t0_ns``]."""
-        end = np.inf if duration is None else start + duration
+        """Samples with ``start ≤ t ≤ start + duration`` [s since ``t0_ns``]
+        (``duration``: ``> 0``; ``None``: to the end)."""
+        start = _seconds("start", start)
+        end = np.inf if duration is None else start + _seconds("duration", duration,
+                                                                positive=True)
         keep = (self.t >= start - 1e-12) & (self.t <= end + 1e-12)
         if keep.sum() < 2:
-            raise DataError(f"the window [{start}, {end}] s holds fewer than 2 samples "
+            shown = "the end" if end == np.inf else f"{end:.6g} s"
+            raise DataError(f"the window [{start:.6g} s, {shown}] holds fewer than 2 samples "
                             f"(the recording spans [{self.t[0]:.3f}, {self.t[-1]:.3f}] s)")
         return self.select(np.flatnonzero(keep))
 
     def gaps(self, max_gap: float | None = None) -> np.ndarray:
         """Indices ``i`` with ``t[i+1] - t[i] > max_gap`` (default ``GAP_FACTOR`` × median)."""
+        max_gap = _max_gap(max_gap)
         d = self.dt
         limit = max_gap if max_gap is not None else GAP_FACTOR * float(np.median(d))
         return np.flatnonzero(d > limit)

@@ -7,9 +7,10 @@ import math
 
 import numpy as np
 
-from jaximu.io._common import CLOCK_TOLERANCE, DataError
+from jaximu import _validation as val
+from jaximu.io._common import CLOCK_TOLERANCE, DataError, _seconds
 from jaximu.io.containers import GroundTruth, ImuData, _qmul
-from jaximu.io.writers import _pose_arrays
+from jaximu.io.writers import _check_cov, _check_times, _pose_arrays, _sigma
 
 
 def gravity_alignment(accel_mean) -> np.ndarray:
@@ -47,12 +48,12 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     """
     from jaximu.state import NavState  # noqa: PLC0415
 
-    if not (np.isfinite(still_seconds) and still_seconds > 0):
-        raise ValueError(f"still_seconds must be positive and finite, got {still_seconds}")
-    if bias is not None and (np.shape(bias) != (6,) or not np.all(np.isfinite(bias))):
+    from_groundtruth = val.check_bool("from_groundtruth", from_groundtruth)
+    still_seconds = _seconds("still_seconds", still_seconds, positive=True)
+    b = np.zeros(6) if bias is None else val.as_numbers("bias", bias)
+    if b.shape != (6,) or not np.all(np.isfinite(b)):
         raise ValueError(f"bias must be six finite numbers [b_g (rad/s), b_a (m/s²)], got "
-                         f"shape {np.shape(bias)}")
-    b = np.zeros(6) if bias is None else np.asarray(bias, np.float64).reshape(6)
+                         f"shape {b.shape}" + ("" if b.shape != (6,) else " with NaN or inf"))
     t0 = data.t[:1]
     if from_groundtruth:
         gt = data.ground_truth
@@ -74,7 +75,11 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
         raise DataError(f"fewer than 2 samples in the first {still_seconds} s")
     f = data.accel[still].mean(0) - b[3:]
     spread = float(np.linalg.norm(data.gyro[still] - data.gyro[still].mean(0), axis=1).max())
-    how = (f"initial attitude from gravity alignment of the first {still_seconds:g} s "
+    span = f"{still_seconds:g} s"
+    if data.t[-1] < data.t[0] + still_seconds:
+        span = (f"{data.duration:.3g} s (the whole recording: it is shorter than "
+                f"still_seconds = {still_seconds:g} s)")
+    how = (f"initial attitude from gravity alignment of the first {span} "
            f"(|f| = {np.linalg.norm(f):.3f} m/s², yaw set to 0); position and velocity zero; "
            f"biases {'given' if bias is not None else 'zero'}")
     if spread > 0.1:
@@ -117,11 +122,41 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
 
     Args:
         t: ``(T,)`` times of the states [s, the ground truth's clock]; states: a
-            :class:`jaximu.NavState` with ``(T, ·)`` fields; cov: ``(T, 15, 15)`` or ``None``.
+            :class:`jaximu.NavState` with ``(T, ·)`` fields (``q`` unit quaternions, as the
+            propagation returns them); cov: ``(T, 15, 15)`` or ``None`` (finite, no negative
+            variance).
+
+    Raises:
+        ValueError: shapes that do not match, non-finite values, ``t`` not increasing, a
+            non-unit ``states.q`` or a negative variance in ``cov``.
     """
     q, p = _pose_arrays(states)
-    t = np.asarray(t, np.float64)
-    v = np.asarray(states.v, np.float64)
+    T = len(q)
+    t = _check_times(t, T)
+    if T < 2:
+        raise ValueError(f"states hold {T} state(s); at least 2 are needed to compare a "
+                         "trajectory")
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if len(back):
+        i = int(back[0])
+        raise ValueError(f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
+                         f"t[{i}] = {t[i]:.9g} s; pass the states in time order")
+    norm = np.linalg.norm(q, axis=1)
+    tol = 1e-4  # rounding (float32 propagations keep |q| within a few ε of 1) passes
+    off = np.flatnonzero(np.abs(norm - 1) > tol)
+    if len(off):
+        i = int(off[0])
+        raise ValueError(
+            f"states.q[{i}] has norm {norm[i]:.6g}: not a unit quaternion ({len(off)} of {T} "
+            f"off by more than {tol:g}), and trajectory_errors does not normalise it for you; "
+            "pass unit quaternions (q / |q|) if the norm is only rounding, else check where "
+            "states.q came from")
+    v = val.as_numbers("states.v", states.v)
+    if v.shape != (T, 3):
+        raise ValueError(f"states.v must have shape ({T}, 3), got {v.shape}")
+    val.check_finite("states.v", v)
+    if cov is not None:
+        cov = _check_cov(cov, T)
     est = GroundTruth(t=t, q=q, p=p, v=v)
     gt = ground_truth
     inside = (gt.t >= t[0] - CLOCK_TOLERANCE) & (gt.t <= t[-1] + CLOCK_TOLERANCE)
@@ -138,8 +173,7 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
     vel = None if gt.v is None else v_hat - gt.v[inside]
     sigma = None
     if cov is not None:
-        var = np.diagonal(np.asarray(cov, np.float64), axis1=1, axis2=2)
-        sigma = np.sqrt(np.clip(np.stack([np.interp(tk, t, var[:, j]) for j in range(15)], 1),
-                                0, None))
+        var = np.diagonal(cov, axis1=1, axis2=2)
+        sigma = _sigma(np.stack([np.interp(tk, t, var[:, j]) for j in range(15)], 1))
     return TrajectoryErrors(t=tk, position=p_hat - gt.p[inside], rotation=rot, velocity=vel,
                             sigma=sigma)

@@ -8,6 +8,7 @@ import pathlib
 
 import numpy as np
 
+from jaximu import _validation as val
 from jaximu.errors import Fix
 from jaximu.io._common import (_ACCEL_UNITS, _GYRO_UNITS, _TIME_UNITS, DataError, _labels, _rows,
                                with_repair_doc)
@@ -71,8 +72,15 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
     unit_ns = _check_unit("time_unit", time_unit, _TIME_UNITS)
     w_scale = _check_unit("gyro_unit", gyro_unit, _GYRO_UNITS)
     a_scale = _check_unit("accel_unit", accel_unit, _ACCEL_UNITS)
-    t = np.asarray(t)
-    gyro, accel = np.asarray(gyro), np.asarray(accel)
+    for name, x in (("t", t), ("gyro", gyro), ("accel", accel)):
+        if np.iscomplexobj(x):  # numpy would drop the imaginary part with a warning
+            raise ValueError(f"{name} must be real numbers, got a complex array; pass its "
+                             "real part if that is what you mean")
+    t = val.as_numbers("t", t, None)
+    gyro, accel = val.as_numbers("gyro", gyro), val.as_numbers("accel", accel)
+    if t.dtype.kind not in "iuf":
+        raise ValueError(f"t must be an array of real numbers (times in {time_unit}), got "
+                         f"{t.dtype.name}")
     if t.ndim != 1:
         raise DataError(f"t must have shape (N,), got {t.shape}")
     if gyro.shape != (len(t), 3) or accel.shape != (len(t), 3):
@@ -117,5 +125,7 @@ def read_npz(path, *, t="t", gyro="gyro", accel="accel", **kwargs) -> ImuData:
     except (OSError, ValueError) as e:
         if isinstance(e, DataError):
             raise
-        raise DataError(f"{path} is not a NumPy .npz file ({e})") from None
+        # numpy's own text advises allow_pickle / pickle.load(): unsafe, and not the fix
+        raise DataError(f"{path} is not a NumPy .npz file (an archive of arrays written by "
+                        "np.savez); check the file, or its format") from None
     return from_arrays(*arrays, source=str(path), **kwargs)

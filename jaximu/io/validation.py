@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaximu import _validation as val
 from jaximu.errors import Fix
 from jaximu.io._common import (_ACCEL_MEDIAN_RANGE, _DT_RANGE, _GYRO_MAX, _GYRO_MEDIAN_MAX,
-                               GAP_FACTOR, DataError, _labels, _rows)
+                               GAP_FACTOR, DataError, _labels, _max_gap, _rows)
 from jaximu.io.containers import GroundTruth, ImuData
 
 
@@ -33,10 +34,17 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
 
     Raises:
         DataError: naming the rows and the option that repairs the problem.
+        ValueError: an option of the wrong kind (``sort="no"``: the options are bools).
     """
-    stamps_ns = np.asarray(stamps_ns)
-    gyro = np.asarray(gyro, np.float64)
-    accel = np.asarray(accel, np.float64)
+    sort = val.check_bool("sort", sort)
+    drop_duplicates = val.check_bool("drop_duplicates", drop_duplicates)
+    drop_nonfinite = val.check_bool("drop_nonfinite", drop_nonfinite)
+    allow_gaps = val.check_bool("allow_gaps", allow_gaps)
+    check_units = val.check_bool("check_units", check_units)
+    max_gap = _max_gap(max_gap)
+    stamps_ns = val.as_numbers("stamps_ns", stamps_ns, None)
+    gyro = val.as_numbers("gyro", gyro)
+    accel = val.as_numbers("accel", accel)
     n = len(stamps_ns)
     if gyro.shape != (n, 3) or accel.shape != (n, 3):
         raise DataError(f"gyro and accel must have shape (N, 3) with N = {n} stamps; got "
@@ -139,14 +147,18 @@ def _validate_groundtruth(stamps_ns, values, lines, label):
 
 
 def make(stamps_ns, gyro, accel, *, lines=None, ground_truth=None, source="", **options):
-    stamps_ns = np.asarray(stamps_ns, np.int64)
+    stamps_ns = val.as_numbers("stamps_ns", stamps_ns, np.int64)
     idx, repairs = validate_imu(stamps_ns, gyro, accel, lines=lines, **options)
     stamps = stamps_ns[idx]
     t0 = int(stamps[0])
     gt = None
     if ground_truth is not None:
-        gt_ns, gt_values, gt_lines, cols = ground_truth
-        _validate_groundtruth(gt_ns, gt_values, gt_lines, "ground truth")
+        gt_ns, gt_values, gt_lines, cols = ground_truth[:4]
+        label = ground_truth[4] if len(ground_truth) > 4 else "ground truth"
+        if len(gt_ns) < 2:
+            raise DataError(f"{label}: the ground truth has {len(gt_ns)} row(s); at least 2 "
+                            "are needed to interpolate it")
+        _validate_groundtruth(gt_ns, gt_values, gt_lines, label)
         t_gt = (gt_ns - t0) * 1e-9
         get = lambda i: gt_values[:, i:i + 3].copy() if gt_values.shape[1] >= i + 3 else None  # noqa: E731
         gt = GroundTruth(t=t_gt, p=gt_values[:, 0:3].copy(), q=gt_values[:, 3:7].copy(),

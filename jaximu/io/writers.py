@@ -6,13 +6,79 @@ import pathlib
 
 import numpy as np
 
+from jaximu import _validation as val
 from jaximu.io._common import DataError
 from jaximu.io._text import _parse, _read_table
 
+_INT64_MAX = np.iinfo(np.int64).max
+# a variance below -_COV_TOL × the largest entry of its matrix is negative, not rounding
+# (60 ε of float32: covariances computed in float32 pass)
+_COV_TOL = 60 * float(np.finfo(np.float32).eps)
+
+
+def _check_t0_ns(t0_ns) -> int:
+    """``t0_ns`` as an ``int``: an integer number of nanoseconds (never parsed, rounded or
+    truncated for the user)."""
+    if isinstance(t0_ns, (bool, np.bool_)) or not isinstance(t0_ns, (int, np.integer)):
+        hint = ("; pass an int such as data.t0_ns" if not isinstance(t0_ns, (float, np.floating))
+                else ": a float cannot hold epoch nanoseconds exactly; pass data.t0_ns")
+        raise ValueError(f"t0_ns must be an integer number of nanoseconds, got "
+                         f"{type(t0_ns).__name__} {t0_ns!r}{hint}")
+    t0 = int(t0_ns)
+    if abs(t0) > _INT64_MAX:
+        raise ValueError(f"t0_ns = {t0} is beyond int64 nanoseconds")
+    return t0
+
+
+def _check_times(t, T=None) -> np.ndarray:
+    """``t`` as a finite ``(T,)`` float64 array of seconds."""
+    arr = val.as_numbers("t", t)
+    if arr.ndim != 1 or (T is not None and len(arr) != T):
+        want = "(T,)" if T is None else f"({T},) (one time per state)"
+        raise ValueError(f"t must have shape {want}, got {arr.shape}")
+    val.check_finite("t", arr)
+    return arr
+
 
 def _stamps(t, t0_ns):
-    """Absolute int64 ns stamps from seconds since ``t0_ns`` (exact for ns-grid times)."""
-    return int(t0_ns) + np.round(np.asarray(t, np.float64) * 1e9).astype(np.int64)
+    """Absolute int64 ns stamps from seconds since ``t0_ns`` (exact for ns-grid times);
+    ``t`` must be finite (:func:`_check_times`) and the stamps inside int64."""
+    t0 = _check_t0_ns(t0_ns)
+    ns = np.round(np.asarray(t, np.float64) * 1e9)
+    total = ns + float(t0)
+    bad = np.abs(total) > 9.2e18  # int64 holds ±9.22e18 (t0_ns + ns could wrap)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"t[{i}] = {float(t[i]):.6g} s is beyond int64 nanoseconds (with t0_ns = {t0}): "
+            "t is seconds since t0_ns; pass data.t, not stamps_ns")
+    return t0 + ns.astype(np.int64)
+
+
+def _check_cov(cov, T, name="cov") -> np.ndarray:
+    """``cov`` ``(T, 15, 15)``, finite, with no negative variance (judged relative to the
+    largest entry of each matrix); returns it as float64."""
+    cov = val.as_numbers(name, cov)
+    if cov.shape != (T, 15, 15):
+        raise ValueError(f"{name} must have shape ({T}, 15, 15) (one 15×15 covariance per "
+                         f"state), got {cov.shape}")
+    val.check_finite(name, cov)
+    diag = np.diagonal(cov, axis1=1, axis2=2)
+    scale = np.abs(cov).max(axis=(1, 2))
+    neg = diag < -_COV_TOL * scale[:, None]
+    if neg.any():
+        k, j = (int(i) for i in np.argwhere(neg)[0])
+        raise ValueError(
+            f"{name}[{k}, {j}, {j}] = {diag[k, j]:.3g} is a negative variance "
+            f"({int(neg.sum())} in all): variances are σ² ≥ 0; pass the covariance the "
+            "propagation returned, not a difference of covariances")
+    return cov
+
+
+def _sigma(var):
+    """Standard deviations of variances checked by :func:`_check_cov`: those within
+    rounding below zero (``-60 ε`` of their matrix's largest entry) are read as 0."""
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def _seconds_text(ns):
@@ -22,11 +88,13 @@ def _seconds_text(ns):
 
 
 def _pose_arrays(states):
-    q = np.asarray(states.q, np.float64)
-    p = np.asarray(states.p, np.float64)
-    if q.ndim != 2 or p.ndim != 2:
+    q = val.as_numbers("states.q", states.q)
+    p = val.as_numbers("states.p", states.p)
+    if q.ndim != 2 or p.ndim != 2 or q.shape[1] != 4 or p.shape[1] != 3 or len(q) != len(p):
         raise ValueError(f"states must hold one trajectory: q (T, 4), p (T, 3); got "
                          f"{q.shape}, {p.shape}")
+    val.check_finite("states.q", q)
+    val.check_finite("states.p", p)
     return q, p
 
 
@@ -44,8 +112,7 @@ def write_tum(path, t, states, *, t0_ns: int = 0) -> None:
         t0_ns: the epoch of ``t = 0`` [ns] (:attr:`ImuData.t0_ns`).
     """
     q, p = _pose_arrays(states)
-    if len(t) != len(q):
-        raise ValueError(f"t has {len(t)} entries, states {len(q)}")
+    t = _check_times(t, len(q))
     stamps = _stamps(t, t0_ns)
     with open(path, "w") as f:
         f.write("# timestamp tx ty tz qx qy qz qw (jaximu: W z-up, q of R_WB)\n")
@@ -88,19 +155,22 @@ def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: 
         fields; cov: ``(T, 15, 15)`` or ``None``.
     """
     path = pathlib.Path(path)
-    arrays = {name: np.asarray(getattr(states, name), np.float64) for name, _ in _STATE_FIELDS}
-    T = len(arrays["q"])
+    full_covariance = val.check_bool("full_covariance", full_covariance)
+    arrays = {name: val.as_numbers(f"states.{name}", getattr(states, name))
+              for name, _ in _STATE_FIELDS}
+    T = len(arrays["q"]) if arrays["q"].ndim else 0
     if np.ndim(t) != 1 or len(t) != T or any(a.ndim != 2 or len(a) != T for a in arrays.values()):
         raise ValueError(f"t (T,) and states with (T, ·) fields expected; got t {np.shape(t)}, "
                          + ", ".join(f"{k} {a.shape}" for k, a in arrays.items()))
+    for name, a in arrays.items():
+        val.check_finite(f"states.{name}", a)
+    t = _check_times(t, T)
     if cov is not None:
-        cov = np.asarray(cov, np.float64)
-        if cov.shape != (T, 15, 15):
-            raise ValueError(f"cov must have shape ({T}, 15, 15), got {cov.shape}")
+        cov = _check_cov(cov, T)
     stamps = _stamps(t, t0_ns)
     if path.suffix == ".npz":
         extra = {} if cov is None else {"cov": cov}
-        np.savez(path, stamps_ns=stamps, t=np.asarray(t, np.float64), t0_ns=np.int64(t0_ns),
+        np.savez(path, stamps_ns=stamps, t=t, t0_ns=np.int64(t0_ns),
                  **arrays, **extra)
         return
     if path.suffix != ".csv":
@@ -109,7 +179,7 @@ def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: 
     block = [np.asarray(t, np.float64)[:, None]] + [arrays[n] for n, _ in _STATE_FIELDS]
     if cov is not None:
         cols += [f"sigma_{n}" for n in _ERROR_NAMES]
-        block.append(np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None)))
+        block.append(_sigma(np.diagonal(cov, axis1=1, axis2=2)))
         if full_covariance:
             iu = np.triu_indices(15)
             cols += [f"P_{i}_{j}" for i, j in zip(*iu)]
