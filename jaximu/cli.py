@@ -611,6 +611,8 @@ def cmd_calibrate(args):
         print(f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
               f"form): {angle:.2f}°, q_BS0 = "
               f"{np.array2string(np.asarray(problem.diagnostics['q_BS0']), precision=5)}")
+    if problem.n_skipped:  # keyframes inside a dropout of the reference: left out of the fit
+        print(f"note: {problem.skip_note}")
     print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s "
           f"(keyframes every {args.keyframe_interval:g} s, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
@@ -690,11 +692,19 @@ def cmd_allan(args):
         results[name] = (taus, adev, fit, unit)
     if static and not args.no_unit_check:  # motion would inflate the densities
         allan.check_units(results["gyroscope"][2], results["accelerometer"][2])
+    def shown(values, determined):  # a density the fit could not determine is no 0
+        pairs = zip(np.atleast_1d(values), np.atleast_1d(determined))
+        return "[" + " ".join(f"{v:.4g}" if ok else "not-determined" for v, ok in pairs) + "]"
+
     for name, (taus, adev, fit, unit) in results.items():
-        print(f"{name}_noise_density: {np.array2string(np.asarray(fit.white), precision=4)}"
+        print(f"{name}_noise_density: {shown(fit.white, fit.white_determined)}"
               f"   # {unit}/√Hz (x, y, z)")
-        print(f"{name}_random_walk:   {np.array2string(np.asarray(fit.random_walk), precision=4)}"
+        print(f"{name}_random_walk:   {shown(fit.random_walk, fit.random_walk_determined)}"
               f"   # {unit}·√Hz")
+    if not all(np.all(f.white_determined) and np.all(f.random_walk_determined)
+               for _, _, f, _ in results.values()):
+        print("note: not-determined: the Allan deviation does not show that term on that axis "
+              "(motion, or too short a recording); no density is given for it")
     if data.duration < 600:
         print("note: random walks need a long static recording (hours); this one is "
               f"{data.duration:.0f} s, so they are rough")
