@@ -92,7 +92,8 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     shared_w = not rotating or omega.ndim == 1
     euler = form.name == "euler_angles"
     pose_q, pose_p = (None, None) if pose is None else pose
-    shared_pose = pose is None or pose_q.ndim == 1
+    # the pose's rotation and lever arm are each shared or per lane (a vmap over lever arms)
+    shared_pose = tuple(x is None or x.ndim == 1 for x in (pose_q, pose_p))
 
     def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega, pose_q, pose_p):
         consts = (_components(b_g), _components(b_a), _components(g),
@@ -126,7 +127,7 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     # dt, g, omega and a pose shared by all lanes are read whole by every block
     return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, gyro, accel, dt,
                        g, omega, pose_q, pose_p,
-                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + (shared_pose,) * 2)
+                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + shared_pose)
 
 
 def dense_to_blocks(P):
@@ -282,7 +283,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     world_error = omega is None and not save_all and form.size == 4
     euler = form.name == "euler_angles"
     pose_q, pose_p = (None, None) if pose is None else pose
-    shared_pose = pose is None or pose_q.ndim == 1
+    # the pose's rotation and lever arm are each shared or per lane (a vmap over lever arms)
+    shared_pose = tuple(x is None or x.ndim == 1 for x in (pose_q, pose_p))
 
     def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever, pose_q,
               pose_p):
@@ -339,7 +341,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     out = run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,
                       dt, g, qc_params, omega, lever, pose_q, pose_p,
                       whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r)
-                      + (shared_pose,) * 2)
+                      + shared_pose)
     if not save_all:
         return out
     blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:3 + len(UPPER)])}

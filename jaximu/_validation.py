@@ -127,14 +127,22 @@ def float_dtype(*xs):
     which lose every position increment below 1/1000 of the position) are computed in
     float32; the outputs are then float32. The inputs themselves are not changed.
 
-    Every input counts (a float64 ``dt``, ``P0`` or ``state.p`` beside float32 samples makes
-    the computation float64 under ``jax_enable_x64``, as JAX's own promotion does: casting it
-    down would lose what the user gave). The library's records (a :class:`jaximu.NavState`,
-    ``ImuNoise``, ``ImuBias``, ``SensorPose``: dataclasses) count by their fields; ``None``
-    counts for nothing; Python scalars are weak (``dt=0.005`` keeps float32 samples float32)."""
+    The callers pass their data (a float64 ``dt``, ``P0`` or ``state.p`` beside float32
+    samples makes the computation float64 under ``jax_enable_x64``, as JAX's own promotion
+    does: casting it down would lose what the user gave); the model's constants (gravity,
+    noise densities, a sensor pose) then take that dtype. The library's records (a
+    :class:`jaximu.NavState`, ``ImuBias``: dataclasses) count by their fields; ``None``
+    counts for nothing; Python scalars and lists of them are weak (``dt=0.005`` keeps float32
+    samples float32)."""
     def numeric(x):  # text, None, ragged lists: left to to_dtype, which names the argument
         if isinstance(x, (int, float)) and not isinstance(x, bool):
             return x  # weakly typed, as in JAX
+        if isinstance(x, (list, tuple)):  # Python numbers: weak too (a gravity [0, 0, -9.81])
+            try:
+                kind = np.asarray(x).dtype.kind
+            except (TypeError, ValueError):
+                return None
+            return 0.0 if kind in "iuf" else None
         try:
             a = x if hasattr(x, "dtype") else np.asarray(x)
         except (TypeError, ValueError):

@@ -71,7 +71,7 @@ import optax
 
 from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
-from jaximu.io._common import GAP_FACTOR
+from jaximu.io._common import GAP_FACTOR, in_gap
 from jaximu import so3
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, _preintegrate, residual
@@ -635,10 +635,7 @@ def _in_reference_gap(s, rt):
     such an interval is a dropout, not bridged). Returns ``(inside, gap, max_gap)``: ``(n,)``
     booleans, ``(n,)`` the index ``i`` of the interval ``[rt[i], rt[i+1]]`` holding each
     time, and the limit [s]."""
-    d = np.diff(rt)
-    limit = GAP_FACTOR * float(np.median(d))
-    i = np.clip(np.searchsorted(rt, s, side="right") - 1, 0, len(rt) - 2)
-    return (d[i] > limit) & (s > rt[i]) & (s < rt[i + 1]), i, limit
+    return in_gap(rt, s)
 
 
 def _gap_list(gaps, limit=4) -> str:

@@ -361,13 +361,9 @@ def cmd_demo(args):
 def _in_groundtruth_gap(gt, t):
     """Which of the times ``t`` (inside the ground truth) fall in one of its gaps, by the
     rule :meth:`jaximu.io.GroundTruth.interpolate` refuses them with (default ``max_gap``)."""
-    from jaximu import io
+    from jaximu.io._common import in_gap
 
-    d = np.diff(gt.t)
-    limit = io.GAP_FACTOR * np.median(d)
-    tc = np.clip(t, gt.t[0], gt.t[-1])
-    k = np.clip(np.searchsorted(gt.t, tc, side="right") - 1, 0, len(gt.t) - 2)
-    return (d[k] > limit) & (tc > gt.t[k]) & (tc < gt.t[k + 1])
+    return in_gap(gt.t, np.clip(t, gt.t[0], gt.t[-1]))[0]
 
 
 def cmd_preintegrate(args):

@@ -424,7 +424,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     from jaximu.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
-                                               (P0, noise, body_P_sensor, omega_coriolis))
+                                               (P0,))
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = val.check_noise(noise, dtype)

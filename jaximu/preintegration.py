@@ -694,7 +694,8 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         raise ValueError(f"unknown jacobians {jacobians!r}; choose 'analytic' or 'autodiff'")
     prefixes = val.check_bool("prefixes", prefixes)
     tangential = val.check_bool("tangential", tangential)
-    dtype = val.float_dtype(gyro, accel, dt, bias, noise, body_P_sensor)
+    # the data's dtype; the noise densities and a sensor pose (constants) take it
+    dtype = val.float_dtype(gyro, accel, dt, bias)
     gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     bias = _check_bias(bias, dtype)
     if noise is not None:

@@ -29,12 +29,16 @@ __all__ = ["propagate", "propagate_final"]
 
 def prepare(state, gyro, accel, dt, gravity, scheme, attitude, others=()):
     """Validate the public inputs; returns arrays in one float dtype and the batch shape.
-    The dtype is the promotion of all of them and of ``others`` (the entry's further inputs:
-    a covariance, noise densities, a sensor pose, ...; :func:`jaximu._validation.float_dtype`)."""
+
+    The dtype is the promotion of the data: the state, the samples, ``dt`` and ``others``
+    (an entry's further data: the covariance ``P0``; :func:`jaximu._validation.float_dtype`).
+    Constants of the model (gravity, noise densities, a sensor pose, the world's rate) take
+    the data's dtype, as a Python constant does: a float64 ``earth_rate()`` beside float32
+    samples must not turn the computation into float64."""
     check_scheme(scheme)
     get_attitude(attitude)
     val.require_navstate(state)
-    dtype = val.float_dtype(state, gyro, accel, dt, gravity, *others)
+    dtype = val.float_dtype(state, gyro, accel, dt, *others)
     state = val.check_state(state, dtype)
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
@@ -471,8 +475,7 @@ def sensor_biases(states, state, per_step):
 
 def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity, body_P_sensor,
            tangential, omega_coriolis, coriolis):
-    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
-                                           (body_P_sensor, omega_coriolis))
+    state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
                                               omega_coriolis)
     # the samples move into the body frame inside the engine (in the kernel's time chunks)

@@ -6,9 +6,9 @@ arm ``r = p_BS`` (in B). A :class:`SensorPose` ``(q, p)`` holds ``q_BS`` (Hamilt
 ``[w, x, y, z]``) and ``p_BS`` [m].
 
 **Measurements into the body frame** (:func:`to_body`), a pure transformation of the
-samples, so every scheme and kernel runs unchanged on the body's samples (the mean's
-structure-of-arrays kernel applies it inside its time chunks, :func:`chunk_to_body`: a pass
-over the whole input costs as much as that kernel):
+samples, so every scheme and kernel runs unchanged on the body's samples (the mean's and
+the covariance's structure-of-arrays kernels apply it inside their time chunks,
+:func:`chunk_to_body`: a pass over the whole input costs as much as the mean's kernel):
 
     ω_B = R_BS ω_S,      f_B = R_BS f_S - α_B × r - ω_B × (ω_B × r),
 

@@ -49,6 +49,7 @@ def test_a_float64_state_field_beside_float32_samples_computes_in_float64():
 def test_a_float64_dt_or_covariance_or_bias_promotes_and_a_python_scalar_does_not():
     s32 = NavState(Q32, Z32, Z32, Z32, Z32)
     assert jaximu.propagate_final(s32, GYRO, ACCEL, 0.01).p.dtype == jnp.float32
+    assert jaximu.propagate_final(s32, GYRO, ACCEL, [0.01] * T).p.dtype == jnp.float32  # weak
     assert jaximu.propagate_final(s32, GYRO, ACCEL, np.full(T, 0.01)).p.dtype == jnp.float64
     P0 = np.eye(15) * 1e-6  # numpy float64
     _, P = jaximu.propagate_covariance_final(s32, P0, GYRO, ACCEL, 0.01, ImuNoise.euroc())
@@ -97,3 +98,19 @@ def test_the_combined_covariance_option_is_a_bool():
     with pytest.raises(InputError, match="combined must be True or False"):
         pim.covariance(combined="no")
     assert pim.covariance(combined=False).shape == (9, 9)
+
+
+def test_the_models_constants_take_the_datas_dtype():
+    """Gravity, a sensor pose, the world's rate and noise densities given as float64 arrays
+    leave a float32 run float32 (a float64 ``earth_rate()`` must not double its cost)."""
+    s32 = NavState(Q32, Z32, Z32, Z32, Z32)
+    pose = jaximu.SensorPose(np.array([1.0, 0, 0, 0]), np.array([0.1, 0.0, 0.0]))
+    out = jaximu.propagate_final(s32, GYRO, ACCEL, 0.01, gravity=np.array([0.0, 0.0, -9.81]),
+                                 body_P_sensor=pose,
+                                 omega_coriolis=np.asarray(jaximu.earth_rate(48.0), np.float64))
+    assert out.p.dtype == jnp.float32
+    noise = ImuNoise(np.full(3, 1e-3), np.full(3, 1e-2), 1e-5, 1e-4)
+    _, P = jaximu.propagate_covariance_final(s32, np.eye(15, dtype=F32), GYRO, ACCEL, 0.01,
+                                             noise)
+    assert P.dtype == jnp.float32
+    assert jaximu.preintegrate(GYRO, ACCEL, 0.01, noise=noise).cov.dtype == jnp.float32

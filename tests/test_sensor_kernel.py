@@ -137,3 +137,16 @@ def test_covariance_with_samples_moved_in_the_kernel_equals_the_samples_moved_fi
     assert_close(got[0], want[0], 1e-12)
     np.testing.assert_allclose(got[1], want[1], rtol=0,
                                atol=1e-12 * float(np.abs(want[1]).max()))
+
+
+@pytest.mark.parametrize("dtype,per_lane", [(np.float64, "p"), (np.float32, "q")])
+def test_a_pose_half_shared_over_several_blocks(dtype, per_lane):
+    """130 lanes (several blocks of the kernel), the lever arm per lane and the rotation
+    shared (what a vmap over lever arms makes), or the other way round."""
+    B = 130
+    state, gyro, accel, dt, pose = case_inputs((B,), 20, 20, False, True, dtype, seed=3)
+    pose = SensorPose(pose.q[0], pose.p) if per_lane == "p" else SensorPose(pose.q, pose.p[0])
+    kw = dict(scheme="euler", save_all=False, tangential=True, attitude="quaternion")
+    got = in_kernel(state, gyro, accel, dt, pose, None, **kw)
+    want = moved_first(state, gyro, accel, dt, pose, None, **kw)
+    assert_close(got, want, 1e-12 if dtype == np.float64 else 2e-5)

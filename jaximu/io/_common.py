@@ -22,6 +22,19 @@ _GYRO_MEDIAN_MAX = 10.0
 _ACCEL_MEDIAN_RANGE = (3.0, 60.0)
 _DT_RANGE = (1e-5, 1.0)  # 1 Hz … 100 kHz
 GAP_FACTOR = 5.0  # default gap threshold: this many median intervals
+
+
+def in_gap(t_ref, t, max_gap=None):
+    """Which times ``t`` (within ``[t_ref[0], t_ref[-1]]``) fall strictly inside an interval
+    of the sorted reference times ``t_ref`` longer than ``max_gap`` (default
+    :data:`GAP_FACTOR` × the median interval): a dropout, which interpolation must not
+    bridge (the one rule of :meth:`GroundTruth.interpolate`, the calibration's windows and
+    the command's comparisons). Returns ``(inside, k, limit)``: ``(n,)`` booleans, the index
+    ``k`` of the interval ``[t_ref[k], t_ref[k + 1]]`` holding each time, and the limit [s]."""
+    d = np.diff(t_ref)
+    limit = max_gap if max_gap is not None else GAP_FACTOR * float(np.median(d))
+    k = np.clip(np.searchsorted(t_ref, t, side="right") - 1, 0, len(t_ref) - 2)
+    return (d[k] > limit) & (t > t_ref[k]) & (t < t_ref[k + 1]), k, limit
 CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant
 
 

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from jaximu import _validation as val
-from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError, _max_gap, _seconds
+from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError, _max_gap, _seconds, in_gap
 
 
 def _qmul(a, b):
@@ -93,9 +93,7 @@ class GroundTruth:
                 f"[{t.min():.6f}, {t.max():.6f}] s")
         t = np.clip(t, self.t[0], self.t[-1])
         gaps = np.diff(self.t)
-        limit = max_gap if max_gap is not None else GAP_FACTOR * np.median(gaps)
-        k = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 2)
-        across = (gaps[k] > limit) & (t > self.t[k]) & (t < self.t[k + 1])
+        across, k, limit = in_gap(self.t, t, max_gap)
         if across.any():
             i = int(np.argmax(across))
             raise DataError(
