@@ -32,9 +32,10 @@ def _first_bad(mask: np.ndarray) -> str:
     return "[" + ", ".join(str(int(i)) for i in idx) + "]"
 
 
-def _kind(x) -> str:
-    """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ...): Python scalars
-    and lists by what numpy makes of them; ``"O"`` when it makes nothing of them."""
+def kind_of(x) -> str:
+    """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ``"U"``, ...): Python
+    scalars and lists by what numpy makes of them; ``"O"`` when it makes nothing of them
+    (a ragged list: left to the casts, which name it)."""
     if isinstance(x, bool):
         return "b"
     if isinstance(x, (int, float)):
@@ -48,16 +49,21 @@ def _kind(x) -> str:
     return getattr(d, "kind", "O")
 
 
+def check_real(name: str, x):
+    """Refuse a complex ``x`` naming it: a cast to float would drop its imaginary part (numpy
+    and JAX only warn)."""
+    if not isinstance(x, jax.core.Tracer) and kind_of(x) == "c":
+        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
+                         f"be dropped); pass {name}.real if that is what you mean")
+
+
 def _cast(x, dtype, name: str | None = None):
     """``jnp.asarray(x, dtype)`` without numpy's overflow warning (the callers report it).
     With ``name``, an input that is not numbers (``None``, a string, a ragged list) raises a
     ``ValueError`` naming it instead of JAX's own ``TypeError``."""
     if name is not None and not isinstance(x, jax.core.Tracer):
-        kind = _kind(x)
-        if kind == "c":  # its imaginary part would be dropped
-            raise ValueError(f"{name} is complex ({np.asarray(x).dtype.name}); pass real numbers "
-                             "(its real part, x.real, if that is what you mean)")
-        if kind == "b":  # True is not a 1 s step nor a 1 rad/s rate
+        check_real(name, x)
+        if kind_of(x) == "b":  # True is not a 1 s step nor a 1 rad/s rate
             raise ValueError(f"{name} must be an array of numbers, got booleans; pass floats")
     try:
         if name is not None and (isinstance(x, (str, bytes)) or getattr(
@@ -424,7 +430,9 @@ def compute_dtype(name: str, dtype):
 
 def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
     """``x`` as a numpy array of ``dtype``; text, ``None`` or a ragged list raise a
-    ``ValueError`` naming ``name`` (never parsed or guessed for the user)."""
+    ``ValueError`` naming ``name`` (never parsed or guessed for the user), and so does a
+    complex one (:func:`check_real`)."""
+    check_real(name, x)
     kind = getattr(getattr(x, "dtype", None), "kind", "f")
     try:
         if x is None or isinstance(x, (str, bytes)) or kind in "USOV":

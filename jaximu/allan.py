@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
 
 __all__ = ["allan_deviation", "fit_noise", "NoiseFit", "check_units", "GYRO_WHITE_MAX",
@@ -123,16 +124,8 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
 def _real_array(name, x) -> np.ndarray:
     """``x`` as a float64 array; complex (its imaginary part would be dropped), bool, text
     (never parsed for you) or ragged input raises a ``ValueError`` naming ``name``."""
-    kind = getattr(getattr(x, "dtype", None), "kind", None)
-    if kind is None:
-        try:
-            kind = np.asarray(x).dtype.kind
-        except (TypeError, ValueError):
-            kind = "O"
-    if kind == "c":
-        raise ValueError(f"{name} must be real, got a complex array (its imaginary part would be "
-                         f"dropped); pass {name}.real if that is what you mean")
-    if kind not in "fiu":
+    val.check_real(name, x)
+    if val.kind_of(x) not in "fiu":
         shown = repr(x)
         shown = shown if len(shown) <= 60 else shown[:57] + "..."
         raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} {shown}")

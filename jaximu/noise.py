@@ -64,9 +64,7 @@ class ImuNoise:
         entries check them (numbers, not text or complex; finite and ``≥ 0`` when concrete)."""
         from jaximu import _validation as val
 
-        for name in _FIELDS:
-            _real(f"noise.{name}", getattr(self, name))
-        checked = val.check_noise(self, dtype)
+        checked = val.check_noise(self, dtype)  # refuses complex and bool too (to_dtype)
         out = []
         for name in _FIELDS:
             f = getattr(checked, name)
@@ -123,38 +121,16 @@ _FIELDS = ("gyroscope_noise_density", "accelerometer_noise_density",
            "gyroscope_random_walk", "accelerometer_random_walk")
 
 
-def _kind(x):
-    """The numpy dtype kind of ``x`` (``"f"``, ``"i"``, ``"b"``, ``"c"``, ``"U"``...)."""
-    d = getattr(x, "dtype", None)
-    if d is None:
-        try:
-            d = np.asarray(x).dtype
-        except (TypeError, ValueError):  # ragged lists: left to the caller's cast
-            return "O"
-    return np.dtype(d).kind
-
-
-def _real(name, x):
-    """Refuse a complex or bool ``x``: a float cast would drop the imaginary part, or read
-    ``True`` as 1."""
-    kind = _kind(x)
-    if kind == "c":
-        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
-                         f"be dropped); pass {name}.real if that is what you mean")
-    if kind == "b":
-        raise ValueError(f"{name} must be a number, got a bool")
-
-
 def _dt_array(dt, dtype):
     """``dt`` as an array of the computation dtype: ``dtype`` (float32 or float64) if given,
     else ``dt``'s float dtype (at least float32), else JAX's default float dtype; positive
     and finite before and after the cast, when concrete."""
     from jaximu import _validation as val
 
-    kind = _kind(dt)
+    kind = val.kind_of(dt)
     if kind == "b":
         raise ValueError("dt must be a time step in seconds, got a bool (True would be 1 s)")
-    _real("dt", dt)
+    val.check_real("dt", dt)
     if dtype is not None:
         dtype = val.compute_dtype("dtype", dtype)
     elif kind == "f":

@@ -64,8 +64,8 @@ def _finite(name, x, positive=False, shape=None):
     ``positive``; of ``shape`` if given)."""
     if isinstance(x, jax.core.Tracer):
         return x
-    _real(name, x)
-    if _kind(x) in "bUSOV":  # text is never parsed for you; True is not 1
+    val.check_real(name, x)
+    if val.kind_of(x) in "bUSOV":  # text is never parsed for you; True is not 1
         what = "a number" if shape is None else f"numbers of shape {shape}"
         raise ValueError(f"{name} must be {what}, got {type(x).__name__} {x!r}")
     arr = np.asarray(x, float)
@@ -80,7 +80,7 @@ def _check_traj(traj, t):
     if not isinstance(traj, Trajectory):
         raise ValueError(f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got "
                          f"{type(traj).__name__}")
-    _real("t", t)
+    val.check_real("t", t)
     t = val.to_dtype("t", t, None)  # text, None, ragged lists: a ValueError naming t
     if t.ndim != 1:
         raise ValueError(f"t must be a 1-D array of times (T,), got shape {tuple(t.shape)}")
@@ -90,24 +90,6 @@ def _check_traj(traj, t):
         t = t.astype(val.float_dtype(t))  # integers and half precision: float32 (README)
     val.check_finite("t", t)
     return t
-
-
-def _kind(x):
-    """The numpy dtype kind of ``x`` (``"c"`` complex, ``"U"`` text, ``"O"`` not numbers)."""
-    d = getattr(x, "dtype", None)
-    if d is None:
-        try:
-            d = np.asarray(x).dtype
-        except (TypeError, ValueError):  # ragged lists: left to the casts, which name them
-            return "O"
-    return np.dtype(d).kind
-
-
-def _real(name, x):
-    """Refuse a complex ``x``: a cast to float would drop its imaginary part."""
-    if _kind(x) == "c":
-        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
-                         f"be dropped); pass {name}.real if that is what you mean")
 
 
 def _yaw_pitch_roll_quat(yaw, pitch, roll):
@@ -320,7 +302,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         (of the sensor frame S with ``body_P_sensor``).
     """
     t = _check_traj(traj, t)
-    _real("gravity", gravity)
+    val.check_real("gravity", gravity)
     g = val.gravity_vector(gravity, t.dtype)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
@@ -330,7 +312,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         pose = check_pose(body_P_sensor, t.dtype)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     if omega_coriolis is not None:
-        _real("omega_coriolis", omega_coriolis)
+        val.check_real("omega_coriolis", omega_coriolis)
         from jaximu.sensor import lever_arm_acceleration
         from jaximu.world import check_omega
 
@@ -379,8 +361,8 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     for name, x in (("gyro", gyro), ("accel", accel), ("dt", dt), ("b_g0", b_g0),
                     ("b_a0", b_a0), ("gyro_misalignment", gyro_misalignment),
                     ("accel_misalignment", accel_misalignment)):
-        _real(name, x)
-    if _kind(dt) == "b":
+        val.check_real(name, x)
+    if val.kind_of(dt) == "b":
         raise ValueError("dt must be sample periods in seconds, got a bool (True would be 1 s)")
     dtype = val.float_dtype(gyro, accel)
     gyro, accel = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)

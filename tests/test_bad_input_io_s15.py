@@ -385,5 +385,5 @@ def test_from_arrays_refuses_complex(which):
     """The imaginary part was dropped with only a ComplexWarning."""
     arrays = {"t": T, "gyro": G, "accel": A}
     arrays[which] = arrays[which] + 0j
-    with pytest.raises(ValueError, match=f"^{which} must be real numbers"):
+    with pytest.raises(ValueError, match=f"^{which} must be real, got a complex value"):
         io.from_arrays(**arrays)

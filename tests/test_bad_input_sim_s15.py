@@ -62,7 +62,7 @@ def test_bool_dt_and_integer_dtype_are_refused():
     (float("nan"), r"noise\.gyroscope_noise_density contains non-finite"),
     ("0.1", r"noise\.gyroscope_noise_density must be an array of numbers, got str"),
     (0.1 + 1j, r"noise\.gyroscope_noise_density must be real, got a complex"),
-    (True, r"noise\.gyroscope_noise_density must be a number, got a bool"),
+    (True, r"noise\.gyroscope_noise_density must be an array of numbers, got booleans"),
 ])
 def test_densities_are_checked(bad, message):
     n = ImuNoise(bad, 1.0)
@@ -148,7 +148,7 @@ Y = np.random.default_rng(0).normal(size=(400, 3))
 
 
 @pytest.mark.parametrize("kwargs,message", [
-    ({"y": Y + 1j}, r"y must be real, got a complex array"),
+    ({"y": Y + 1j}, r"y must be real, got a complex value"),
     ({"y": Y.astype(str)}, r"y must be an array of numbers"),
     ({"dt": "0.005"}, r"dt must be a real number of seconds, got str"),
     ({"dt": 0.005 + 0j}, r"dt must be a real number of seconds, got complex"),

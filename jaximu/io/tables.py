@@ -72,11 +72,7 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
     unit_ns = _check_unit("time_unit", time_unit, _TIME_UNITS)
     w_scale = _check_unit("gyro_unit", gyro_unit, _GYRO_UNITS)
     a_scale = _check_unit("accel_unit", accel_unit, _ACCEL_UNITS)
-    for name, x in (("t", t), ("gyro", gyro), ("accel", accel)):
-        if np.iscomplexobj(x):  # numpy would drop the imaginary part with a warning
-            raise ValueError(f"{name} must be real numbers, got a complex array; pass its "
-                             "real part if that is what you mean")
-    t = val.as_numbers("t", t, None)
+    t = val.as_numbers("t", t, None)  # as_numbers refuses complex arrays too
     gyro, accel = val.as_numbers("gyro", gyro), val.as_numbers("accel", accel)
     if t.dtype.kind not in "iuf":
         raise ValueError(f"t must be an array of real numbers (times in {time_unit}), got "
