@@ -456,11 +456,7 @@ def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_cori
     samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
                                               omega_coriolis)
-    if pose is None:
-        return state, gyro, accel, omega
-    gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
-    state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
-                     sensor.bias_to_body(pose, state.b_a))
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
     return state, gyro, accel, omega
 
 

@@ -81,6 +81,9 @@ def test_writers_refuse_a_t0_ns_that_is_not_an_integer(tmp_path, t0):
         io.write_tum(tmp_path / "x.tum", np.array([0.0, 1.0]), states(2), t0_ns=t0)
     io.write_tum(tmp_path / "x.tum", np.array([0.0, 1.0]), states(2), t0_ns=np.int64(7))
     assert io.read_tum(tmp_path / "x.tum")[0].tolist() == [7, 1_000_000_007]
+    # a 0-d integer array (np.load(...)["t0_ns"]) is an integer too
+    io.write_tum(tmp_path / "x.tum", np.array([0.0, 1.0]), states(2), t0_ns=np.array(9))
+    assert io.read_tum(tmp_path / "x.tum")[0].tolist() == [9, 1_000_000_009]
 
 
 def test_write_tum_refuses_a_column_of_times(tmp_path):

@@ -19,6 +19,8 @@ _COV_TOL = 60 * float(np.finfo(np.float32).eps)
 def _check_t0_ns(t0_ns) -> int:
     """``t0_ns`` as an ``int``: an integer number of nanoseconds (never parsed, rounded or
     truncated for the user)."""
+    if isinstance(t0_ns, np.ndarray) and t0_ns.ndim == 0 and t0_ns.dtype.kind in "iu":
+        t0_ns = t0_ns[()]  # a 0-d integer array (np.load(...)["t0_ns"])
     if isinstance(t0_ns, (bool, np.bool_)) or not isinstance(t0_ns, (int, np.integer)):
         hint = ("; pass an int such as data.t0_ns" if not isinstance(t0_ns, (float, np.floating))
                 else ": a float cannot hold epoch nanoseconds exactly; pass data.t0_ns")
