@@ -227,9 +227,7 @@ def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
                                        jnp.where(kk >= n_samples, ch, cm)))
             alpha = V3(*(pick(*c) for c in zip(after, before, held, mid)))
         gyro_b = own(gyro_b)
-        omega = gyro_b - b_g
-        accel_b = matvec_v3(R, own(V3(*a))) - _lever_arm_acceleration(omega, alpha, r)
-        return tuple(gyro_b), tuple(accel_b)
+        return tuple(gyro_b), tuple(_body_specific_force(R, own(V3(*a)), gyro_b - b_g, alpha, r))
 
     return samples
 
@@ -290,8 +288,14 @@ def to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool = True):
     omega = gyro_b - V3(*(c[..., None] for c in matvec_v3(pose.R, V3.of(b_g))))
     alpha = _angular_acceleration(gyro_b, dt) if tangential else None
     r = V3(*(c[..., None] for c in V3.of(pose.p)))
-    accel_b = matvec_v3(R, V3.of(accel)) - _lever_arm_acceleration(omega, alpha, r)
-    return gyro_b.stack(), accel_b.stack()
+    return gyro_b.stack(), _body_specific_force(R, V3.of(accel), omega, alpha, r).stack()
+
+
+def _body_specific_force(R, accel: V3, omega: V3, alpha, r: V3) -> V3:
+    """``f_B = R_BS f_S - α×r - ω×(ω×r)`` on components: the raw sensor specific force
+    ``accel`` as the body's (its bias then ``R_BS b_a``), at the bias-corrected body rate
+    ``omega`` (``alpha`` ``None``: no tangential term)."""
+    return matvec_v3(R, accel) - _lever_arm_acceleration(omega, alpha, r)
 
 
 def lever_of(pose: SensorPose):
