@@ -36,10 +36,6 @@ def kind_of(x) -> str:
     """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ``"U"``, ...): Python
     scalars and lists by what numpy makes of them; ``"O"`` when it makes nothing of them
     (a ragged list: left to the casts, which name it)."""
-    if isinstance(x, bool):
-        return "b"
-    if isinstance(x, (int, float)):
-        return "f"
     d = getattr(x, "dtype", None)
     if d is None:
         try:
