@@ -629,15 +629,6 @@ def _check_initial(initial):
                          f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])")
 
 
-def _in_reference_gap(s, rt):
-    """Which reference times ``s`` fall strictly inside a reference interval longer than
-    ``GAP_FACTOR`` × the median interval (:meth:`jaximu.io.GroundTruth.interpolate`'s rule:
-    such an interval is a dropout, not bridged). Returns ``(inside, gap, max_gap)``: ``(n,)``
-    booleans, ``(n,)`` the index ``i`` of the interval ``[rt[i], rt[i+1]]`` holding each
-    time, and the limit [s]."""
-    return in_gap(rt, s)
-
-
 def _gap_list(gaps, limit=4) -> str:
     """``0.483 s at t = 45.183 s, ...`` of ``((t, length, windows), ...)``."""
     shown = ", ".join(f"{length:.3f} s at t = {t:.3f} s" for t, length, _ in gaps[:limit])
@@ -797,12 +788,12 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     idx = first + W * np.arange(K + 1)
     # Keyframes inside a reference dropout: their windows are left out (weight 0), never
     # fitted to a pose interpolated across the gap.
-    in_gap, gap_of, max_gap = _in_reference_gap(t[idx] + td0, rt)
-    kept = ~(in_gap[:-1] | in_gap[1:])
+    inside, gap_of, max_gap = in_gap(rt, t[idx] + td0)  # the keyframes on the reference clock
+    kept = ~(inside[:-1] | inside[1:])
     gap_windows = {}  # gap index -> windows with a keyframe inside it
     for k in np.flatnonzero(~kept):
         for end in (k, k + 1):
-            if in_gap[end]:
+            if inside[end]:
                 gap_windows[gap_of[end]] = gap_windows.get(gap_of[end], 0) + 1
     skipped = tuple((float(rt[i]), float(rt[i + 1] - rt[i]), n)
                     for i, n in sorted(gap_windows.items()))
@@ -824,7 +815,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
         jnp.asarray(rp), jnp.asarray(rv)))
     if not has_v:
-        vk = _velocities_from_positions(pk, t[idx], ~in_gap)
+        vk = _velocities_from_positions(pk, t[idx], ~inside)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
     g_c, a_c = (np.asarray(x) for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype),
