@@ -130,14 +130,13 @@ def _dt_array(dt, dtype):
     kind = val.kind_of(dt)
     if kind == "b":
         raise ValueError("dt must be a time step in seconds, got a bool (True would be 1 s)")
-    val.check_real("dt", dt)
     if dtype is not None:
         dtype = val.compute_dtype("dtype", dtype)
     elif kind == "f":
         dtype = val.float_dtype(dt)  # its own float dtype; half precision → float32
     else:  # integer steps: the default float dtype (text and ragged lists: refused below)
         dtype = jnp.result_type(float)
-    arr = val.to_dtype("dt", dt, dtype)  # names dt if it is text, None or ragged
+    arr = val.to_dtype("dt", dt, dtype)  # names dt if it is complex, text, None or ragged
     _check_dt(dt)
     try:
         _check_dt(arr)

@@ -80,8 +80,7 @@ def _check_traj(traj, t):
     if not isinstance(traj, Trajectory):
         raise ValueError(f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got "
                          f"{type(traj).__name__}")
-    val.check_real("t", t)
-    t = val.to_dtype("t", t, None)  # text, None, ragged lists: a ValueError naming t
+    t = val.to_dtype("t", t, None)  # text, complex, None, ragged lists: an error naming t
     if t.ndim != 1:
         raise ValueError(f"t must be a 1-D array of times (T,), got shape {tuple(t.shape)}")
     if t.dtype == jnp.bool_:
@@ -302,8 +301,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         (of the sensor frame S with ``body_P_sensor``).
     """
     t = _check_traj(traj, t)
-    val.check_real("gravity", gravity)
-    g = val.gravity_vector(gravity, t.dtype)
+    g = val.gravity_vector(gravity, t.dtype)  # refuses a complex gravity (to_dtype)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
     else:
@@ -312,7 +310,6 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         pose = check_pose(body_P_sensor, t.dtype)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     if omega_coriolis is not None:
-        val.check_real("omega_coriolis", omega_coriolis)
         from jaximu.sensor import lever_arm_acceleration
         from jaximu.world import check_omega
 
@@ -358,10 +355,7 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         ``(gyro_m, accel_m, errors)`` with :class:`ImuErrors`. The bias during sample k is
         the turn-on bias plus the sum of the random-walk steps before k.
     """
-    for name, x in (("gyro", gyro), ("accel", accel), ("dt", dt), ("b_g0", b_g0),
-                    ("b_a0", b_a0), ("gyro_misalignment", gyro_misalignment),
-                    ("accel_misalignment", accel_misalignment)):
-        val.check_real(name, x)
+    # (complex inputs are refused by to_dtype below, naming them)
     if val.kind_of(dt) == "b":
         raise ValueError("dt must be sample periods in seconds, got a bool (True would be 1 s)")
     dtype = val.float_dtype(gyro, accel)
