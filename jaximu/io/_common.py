@@ -22,6 +22,10 @@ _GYRO_MEDIAN_MAX = 10.0
 _ACCEL_MEDIAN_RANGE = (3.0, 60.0)
 _DT_RANGE = (1e-5, 1.0)  # 1 Hz … 100 kHz
 GAP_FACTOR = 5.0  # default gap threshold: this many median intervals
+QUATERNION_NORM_TOLERANCE = 1e-2
+"""How far from 1 a stored quaternion's norm may be (files round it: EuRoC's ground truth is
+off by up to 1.5e-4); beyond it the numbers are not a unit quaternion (a wrong column, a
+scaled q), refused rather than normalised."""
 
 
 def in_gap(t_ref, t, max_gap=None):

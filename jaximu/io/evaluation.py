@@ -8,7 +8,8 @@ import math
 import numpy as np
 
 from jaximu import _validation as val
-from jaximu.io._common import CLOCK_TOLERANCE, DataError, _seconds
+from jaximu.io._common import (CLOCK_TOLERANCE, QUATERNION_NORM_TOLERANCE, DataError,
+                                _seconds)
 from jaximu.io.containers import GroundTruth, ImuData, _qmul
 from jaximu.io.writers import _check_cov, _check_times, _pose_arrays, _sigma
 
@@ -142,9 +143,7 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
         raise ValueError(f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
                          f"t[{i}] = {t[i]:.9g} s; pass the states in time order")
     norm = np.linalg.norm(q, axis=1)
-    # the readers' tolerance: rounding (EuRoC's ground truth is off by up to 1.5e-4) passes,
-    # a q that is not a rotation does not
-    tol = 1e-2
+    tol = QUATERNION_NORM_TOLERANCE  # the readers': rounding passes, a scaled q does not
     off = np.flatnonzero(np.abs(norm - 1) > tol)
     if len(off):
         i = int(off[0])

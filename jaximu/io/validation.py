@@ -8,7 +8,8 @@ import numpy as np
 from jaximu import _validation as val
 from jaximu.errors import Fix
 from jaximu.io._common import (_ACCEL_MEDIAN_RANGE, _DT_RANGE, _GYRO_MAX, _GYRO_MEDIAN_MAX,
-                               GAP_FACTOR, DataError, _labels, _max_gap, _rows)
+                               GAP_FACTOR, QUATERNION_NORM_TOLERANCE, DataError, _labels,
+                               _max_gap, _rows)
 from jaximu.io.containers import GroundTruth, ImuData
 
 
@@ -140,7 +141,7 @@ def _validate_groundtruth(stamps_ns, values, lines, label):
     if len(nonincr):
         raise DataError(f"{label}: timestamps not increasing at {_rows(labels, nonincr)}")
     qn = np.linalg.norm(values[:, 3:7], axis=1)
-    off = np.flatnonzero(np.abs(qn - 1) > 1e-2)
+    off = np.flatnonzero(np.abs(qn - 1) > QUATERNION_NORM_TOLERANCE)
     if len(off):
         raise DataError(f"{label}: quaternion norm {qn[off[0]]:.4g} at {_rows(labels, off)}: "
                         "not [w, x, y, z] unit quaternions")
