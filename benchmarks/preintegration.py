@@ -13,7 +13,11 @@ and bias Jacobians always computed):
   squared norm on the 4096 windows' measurements (windows/s).
 
 jaximu computes the deltas, all five bias Jacobians (the full 15×15 transition), the 9×9
-covariance and the 15×15 one with the bias random walk. The GTSAM baseline is
+covariance and the 15×15 one with the bias random walk. The rows "auto, 9×9 + bias
+Jacobians" time a jitted program that returns only the deltas, the 9×9 covariance and the
+transition (what the C++ reference, GTSAM's Manifold class, Basalt and VINS-Mono compute):
+the 15×15 recursion is then not run (``jaximu._batching``'s dead-code rule); their numbers
+are checked equal to the whole result's. The GTSAM baseline is
 ``PreintegratedImuMeasurementsManifold`` (9×9 covariance and bias Jacobians; the Manifold
 class is the one that equals exact Euler preintegration) fed sample by sample from Python,
 and ``PreintegratedCombinedMeasurementsManifold`` (15×15) for reference. Reported: samples/s
@@ -75,12 +79,24 @@ def best_time(fn, reps=3, min_time=0.3):
     return min(times)
 
 
-def bench_jaximu(data, bias, dtype, method, scheme="euler", jacobians="analytic"):
+# what the C++ reference, Basalt and VINS-Mono compute: the deltas, the 9×9 covariance and
+# the bias Jacobians (the rows of the transition); a jitted program that reads only these
+# does not compute the 15×15 cov15 (jaximu._batching's dead-code rule)
+NINE = ("delta_t", "delta_q", "delta_v", "delta_p", "cov", "transition")
+
+
+def bench_jaximu(data, bias, dtype, method, scheme="euler", jacobians="analytic", fields=None):
+    """``fields``: the result's fields the jitted program returns (``None``: the whole
+    :class:`jaximu.Preintegrated`, ``cov15`` included)."""
     gyro, accel, dt = (jnp.asarray(x, dtype) for x in data)
     b = jaximu.ImuBias(jnp.asarray(bias[0], dtype), jnp.asarray(bias[1], dtype))
     noise = jaximu.ImuNoise.euroc()
-    fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, scheme, method,
-                                                     jacobians=jacobians))
+
+    def run(g, a, d):
+        pim = jaximu.preintegrate(g, a, d, b, noise, scheme, method, jacobians=jacobians)
+        return pim if fields is None else {k: getattr(pim, k) for k in fields}
+
+    fn = jax.jit(run)
     mesh = lane_mesh()  # --devices N: windows split over the devices, a long one's chunks too
     if mesh is not None:
         gyro, accel, dt = place((gyro, accel, dt), gyro.shape[0], mesh)
@@ -223,6 +239,23 @@ def main(argv=None):
                 rows.append(row)
                 print(f"jaximu {row['dtype']} {name} {method}: {row['rate'] / 1e6:.3f} M "
                       f"samples/s (compile {comp:.1f} s)", flush=True)
+                if method != "auto":
+                    continue
+                # the C++ reference's outputs only (no cov15): the same numbers, checked
+                nine, run9, comp9 = bench_jaximu(data, bias, dtype, method, fields=NINE)
+                diff = max(float(jnp.max(jnp.abs(nine[k] - getattr(out, k)))) for k in NINE)
+                scale = max(float(jnp.max(jnp.abs(getattr(out, k)))) for k in NINE)
+                if diff > 1e-12 * scale:
+                    raise AssertionError(f"the 9×9 program differs from the whole result by "
+                                         f"{diff:.2e}")
+                row = dict(row, method="auto, 9×9 + bias Jacobians", run_s=run9,
+                           compile_s=comp9, rate=n / run9)
+                if name in gtsam_rate:
+                    row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
+                rows.append(row)
+                print(f"jaximu {row['dtype']} {name} {row['method']}: "
+                      f"{row['rate'] / 1e6:.3f} M samples/s (compile {comp9:.1f} s)",
+                      flush=True)
 
     # the other schemes and Jacobian options a user can pick, on the windows (defaults
     # otherwise): VINS-Mono's midpoint, and autodiff Jacobians (Euler's run its kernel;

@@ -30,8 +30,9 @@ from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Primitive, jaxpr_as_fun
+from jax.extend.core import ClosedJaxpr, Primitive, jaxpr_as_fun, new_jaxpr_eqn
 from jax.interpreters import ad, batching, mlir
+from jax.interpreters import partial_eval as pe
 
 __all__ = ["leading_axes", "ArgSpec"]
 
@@ -115,25 +116,46 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         if not any(isinstance(x, jax.core.Tracer) for x in leaves):
             return traced(*leaves), out_tree[0]
         jaxpr = jax.make_jaxpr(traced)(*leaves)
-        return prim.bind(*leaves, in_tree=in_tree, jaxpr=jaxpr), out_tree[0]
+        return prim.bind(*leaves, in_tree=in_tree, jaxpr=jaxpr, kept=None), out_tree[0]
 
     prim = Primitive(f"jaximu_{fn.__name__.lstrip('_')}")
     prim.multiple_results = True
 
-    def evaluate(*leaves, in_tree, jaxpr):
+    def evaluate(*leaves, in_tree, jaxpr, kept):
         return jaxpr_as_fun(jaxpr)(*leaves)
 
     prim.def_impl(evaluate)
-    prim.def_abstract_eval(lambda *avals, in_tree, jaxpr: jaxpr.out_avals)
+    prim.def_abstract_eval(lambda *avals, in_tree, jaxpr, kept: jaxpr.out_avals)
     mlir.register_lowering(prim, mlir.lower_fun(evaluate, multiple_results=True))
 
-    def _jvp(primals, tangents, *, in_tree, jaxpr):
+    def _jvp(primals, tangents, *, in_tree, jaxpr, kept):
         tangents = tuple(ad.instantiate_zeros(t) for t in tangents)
         return jax.jvp(jaxpr_as_fun(jaxpr), tuple(primals), tangents)
 
     ad.primitive_jvps[prim] = _jvp
 
-    def _batch(args, dims, *, in_tree, jaxpr):
+    def _dce(used_outputs, eqn):
+        """Dead-code elimination: outputs the program never reads are not computed. The
+        carried jaxpr is pruned (through the kernels' maps, calls, conds and scans, whose
+        own rules drop a carry nothing used reads: a preintegration whose ``cov15`` is
+        unused skips the 15×15 recursion); ``kept`` records which of the entry's outputs
+        remain, for the batching rule, which binds the whole entry again."""
+        if not any(used_outputs) and not pe.has_effects(eqn):
+            return [False] * len(eqn.invars), None
+        if all(used_outputs) or eqn.effects:
+            return [True] * len(eqn.invars), eqn
+        jaxpr = eqn.params["jaxpr"]
+        pruned, _ = pe.dce_jaxpr(jaxpr.jaxpr, list(used_outputs), instantiate=True)
+        kept = eqn.params["kept"] or tuple(range(len(used_outputs)))
+        params = dict(eqn.params, jaxpr=ClosedJaxpr(pruned, jaxpr.consts),
+                      kept=tuple(k for k, u in zip(kept, used_outputs) if u))
+        outvars = [v for v, u in zip(eqn.outvars, used_outputs) if u]
+        return [True] * len(eqn.invars), new_jaxpr_eqn(
+            list(eqn.invars), outvars, prim, params, eqn.effects, eqn.source_info, eqn.ctx)
+
+    pe.dce_rules[prim] = _dce
+
+    def _batch(args, dims, *, in_tree, jaxpr, kept):
         size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
         leaves = [x if d is None else jnp.moveaxis(x, d, 0)
                   for x, d in zip(args, dims)]
@@ -143,6 +165,8 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         moved = _to_leading(size, tree_flags, tree_args, specs)
         new_leaves, new_tree = jax.tree_util.tree_flatten(moved)
         out, _ = bind(new_leaves, new_tree)
+        if kept is not None:  # a pruned call (_dce): its remaining outputs
+            out = [out[k] for k in kept]
         return out, [0] * len(out)
 
     batching.primitive_batchers[prim] = _batch
