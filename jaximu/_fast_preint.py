@@ -42,7 +42,8 @@ from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components
                          _diag_row, _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
                          _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
                          block_lanes, direction_block, jvp_directions, lane_directions,
-                         quat_matrix, rotation_rows, rotation_tangents, run_blocked)
+                         quat_matrix, rotation_rows, rotation_tangents, run_blocked,
+                         whole_chunks)
 from jaximu._vec import V3
 from jaximu.integrators import compose_deltas, get_scheme
 
@@ -510,7 +511,7 @@ def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
     chunk (a ``(·,)`` one shared by all, or ``None``, passes). Returns
     ``((gyro, accel, dt, per_sequence), guard)``, ``guard``: some steps are padding."""
     B, T = dt.shape
-    L = -(-T // C)
+    L = whole_chunks(-(-T // C))
     pad = C * L - T
     if pad:
         padw = lambda x, **kw: jnp.pad(  # noqa: E731

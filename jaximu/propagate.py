@@ -8,6 +8,7 @@ the same batched kernels (section 4), and :mod:`jaximu._dispatch` picks the kern
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -200,18 +201,19 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The final
     state applies them in sequence on the CPU (``C`` cheap steps); they compose
     associatively (:func:`jaximu.integrators.compose_deltas`), so on an accelerator their
-    product is reduced as a tree (``log2 C`` launches, not ``C``). ``save_all``: a parallel
-    prefix scan of the deltas gives every chunk's start state, and the chunks run
-    again from those starts, storing their states (twice the arithmetic, for ``C`` times
-    fewer sequential steps: the accelerator's choice, docs/DESIGN.md "Dispatch"). Equal to
-    the plain scan to rounding.
+    product is reduced as a tree (``log2 C`` launches, not ``C``). ``save_all``: a prefix
+    of the deltas gives every chunk's start state (in sequence on the CPU, a parallel prefix
+    scan on an accelerator), and the chunks run again from those starts, storing their
+    states (twice the arithmetic, for ``C`` times fewer sequential steps; docs/DESIGN.md
+    "Dispatch"). Equal to the plain scan to rounding.
     """
     sch = get_scheme(scheme)
     n = n_steps(gyro, dt)
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
-    C = dispatch.mean_chunks(B, n)
-    L = -(-n // C)
+    mesh, axes = _soa._mesh_axes((gyro,))  # the lanes split over a mesh's devices
+    C = dispatch.mean_chunks(B, n, dtype, math.prod(mesh.shape[a] for a in axes) if axes else 1)
+    L = _soa.whole_chunks(-(-n // C))
     pad = C * L - n
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
@@ -258,11 +260,15 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
                           jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
         return states, jnp.zeros(batch, bool)
     # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
-    before = ident
-    if C > 1:
-        prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
-        before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
-    starts = _apply_deltas(q, p, v, g_b, before)
+    if dispatch.backend() == dispatch.CPU:  # C cheap steps in sequence, as the final state
+        starts = jax.lax.scan(lambda s, d: (_apply_deltas(*s, g_b, d), s), (q, p, v),
+                              deltas)[1]
+    else:
+        before = ident
+        if C > 1:
+            prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
+            before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
+        starts = _apply_deltas(q, p, v, g_b, before)
     relane = lambda x: jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:])  # noqa: E731
     q_s, p_s, v_s = (relane(x) for x in starts)
     out = _fast.propagate_mean(sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c,

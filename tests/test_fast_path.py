@@ -129,20 +129,19 @@ def test_half_angle_kernels_match_trig(dtype):
     (1, 2051, "euler", True, False, "accelerator"), (2, 2050, "rk4", True, True, "accelerator")])
 def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals,
                                                             backend):
-    """The final state of a few long float64 sequences runs as time chunks side by side
-    (deltas from the identity, composed as a tree); every state stored runs the one-lane
-    kernel on the CPU, and on an accelerator the chunks again from the starts a prefix scan
-    of their deltas gives. Each: the plain generic scan's states to rounding, for every
-    scheme, with per-sample dt and with dt of length T-1 (samples at the ends of the
-    intervals). The accelerator's dispatch runs here on the CPU (tests/_shared.dispatch_as)."""
+    """A few long float64 sequences run as time chunks side by side (deltas from the
+    identity, composed: in sequence on the CPU, as a tree on an accelerator); every state
+    stored runs the chunks again from the starts a prefix of their deltas gives (a
+    sequential scan on the CPU, a parallel prefix scan on an accelerator). Each: the plain
+    generic scan's states to rounding, for every scheme, with per-sample dt and with dt of
+    length T-1 (samples at the ends of the intervals). The accelerator's dispatch runs here
+    on the CPU (tests/_shared.dispatch_as)."""
     state, gyro, accel = inputs(B, T, seed=8)
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
-    chunked = backend == _dispatch.ACCELERATOR or not save_all
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all, lanes=B,
-                            steps=steps, on=backend) == ("soa_mean_chunked" if chunked
-                                                         else "soa_mean")
+                            steps=steps, on=backend) == "soa_mean_chunked"
     with dispatch_as(backend):
         fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
