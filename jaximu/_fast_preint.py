@@ -162,14 +162,18 @@ def _lever_rk(R, omega, lever):
     return _bmm(R, sensor.centripetal_jacobian(V3(*omega), V3(*lever), SOA))
 
 
-def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic"):
+def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
+         isotropic_accel=False):
     """One Euler step in the rotated coordinates. ``s``: 12-tuple of ``σ²`` per axis
     (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities.
     ``lever`` (a 3-tuple, or ``None``): samples moved from a sensor at that lever arm; the
     gyro bias and noise then reach v (and p) through ``Dk = h R K`` (:func:`_lever_rk`),
     F''s b_g column and the gyro noise's (they enter alike). ``jacobians``: the step's
     blocks in closed form (``"analytic"``) or by autodiff (:func:`_autodiff_blocks`); the
-    covariance update after them is the same."""
+    covariance update after them is the same. ``isotropic_accel``: the accelerometer's white
+    noise is the same on every axis (a scalar density), so its block
+    ``Ev diag(σ_a²/h) Evᵀ = h σ_a² R Rᵀ`` is ``h σ_a² I`` (R a rotation: to rounding),
+    one product fewer a step."""
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
     (q1, dv1, dp1, t1), lane = _cond(
@@ -190,7 +194,12 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic"):
     else:
         Ev, Bk, Cv, Dk = _stage(ok, lambda *a: _autodiff_blocks(*a, lever), q, dv, dp, omega,
                                 fsp, h)
-    Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
+    if isotropic_accel:  # var[3] = σ_a²/h: Qv = h² var[3] I
+        Qth = _stage(ok, lambda Bk, sg: _bmm(Bk * _diag_row(sg, Bk.dtype), _bt(Bk)), Bk,
+                     var[0:3])
+        Qv = jnp.asarray(_E3, Bk.dtype)[:, :, None] * _lane(h * h * var[3])
+    else:
+        Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
     hb = _lane(h)
     half = 0.5 * hb
     if lever is not None:  # F'_vbg = Dk; the gyro noise column is [Bk, h/2 Dk, Dk]
@@ -526,9 +535,11 @@ def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
 
 
 def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
-                          jacobians="analytic"):
+                          jacobians="analytic", isotropic_accel=False):
     """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
-    samples k and k+1 side by side. Returns the generic code's outputs.
+    samples k and k+1 side by side. Returns the generic code's outputs. ``isotropic_accel``
+    is not used: the end sample's rotation comes from VINS-Mono's unnormalised quaternion,
+    so ``R_1 D R_1ᵀ`` is not ``σ² I`` (the accelerometer blocks stay products).
 
     With ``C > 1`` chunks (the parallel method): as the generic code, the rotations ``ΔR_ik``
     come first from an associative scan of the normalised increments; each chunk then runs in
@@ -757,11 +768,14 @@ def num_chunks(B, T, method, dtype):
     return C
 
 
-def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians="analytic"):
+def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians="analytic",
+                       isotropic_accel=False):
     """Flat batch: gyro, accel ``(B, T, 3)``; dt ``(T,)`` or ``(B, T)``; b_g, b_a ``(3,)`` or
     ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence;
     ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of samples moved from a sensor;
-    ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`step`).
+    ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`step`); ``isotropic_accel``: the
+    accelerometer's white-noise variances (``var[..., 3:6]``) are equal on every axis
+    (:func:`step`).
 
     Returns ``(t, q, dv, dp, Φ, Q15, Q9)`` with leading axis B, as the generic code."""
     B, T, _ = gyro.shape
@@ -779,7 +793,7 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians=
         def st(c, w, a, h, consts):
             omega = tuple(w[i] - bg[i] for i in range(3))
             f = tuple(a[i] - ba[i] for i in range(3))
-            return step(c, omega, f, h, s, guard, r, jacobians)
+            return step(c, omega, f, h, s, guard, r, jacobians, isotropic_accel)
 
         carry, _ = _time_chunks(st, _zero_carry(Bc, dtype), gyro, accel, dt, None, None)
         return _to_summary(carry)

@@ -526,8 +526,10 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     if lever is not None and lever.ndim > 1:
         lever = flat(lever, (3,))
     C = _fast_preint.num_chunks(B, n, method, dtype)
+    # a scalar accelerometer density: the same noise on every axis (the kernel's R D Rᵀ = σ² I)
+    iso = noise is None or jnp.ndim(noise.accelerometer_noise_density) == 0
     t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
-                                            jacobians)
+                                            jacobians, iso)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
         delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),

@@ -201,3 +201,23 @@ def test_midpoint_fast_path_float32():
     args = inputs((9,), 300, seed=8, dtype=np.float32)
     assert_same(pre(*args, method="sequential", fast=True, scheme="midpoint"),
                 pre(*args, method="sequential", fast=False, scheme="midpoint"), 3e-5)
+
+
+@pytest.mark.parametrize("jacobians", ["analytic", "autodiff"])
+def test_fast_path_per_axis_accelerometer_noise(jacobians):
+    """A scalar accelerometer density lets the Euler kernel write its noise block as
+    ``h σ_a² I`` (``R D Rᵀ`` of a rotation); a density per axis keeps the product
+    ``Ev D Evᵀ``: both equal the generic recursion, and the per-axis one differs from the
+    scalar one by as much as the densities differ."""
+    g, a, dt, bias, _ = inputs((3,), 80, seed=11)
+    per_axis = jaximu.ImuNoise(2e-4, jnp.asarray([1e-3, 4e-3, 2e-3]), 2e-5, 3e-3)
+    scalar = jaximu.ImuNoise(2e-4, 2e-3, 2e-5, 3e-3)
+    for method in ("sequential", "parallel"):
+        for noise in (per_axis, scalar):
+            assert_same(pre(g, a, dt, bias, noise, method=method, fast=True,
+                            jacobians=jacobians),
+                        pre(g, a, dt, bias, noise, method="sequential", fast=False), 1e-12)
+    d = pre(g, a, dt, bias, per_axis, method="sequential", fast=True).cov - pre(
+        g, a, dt, bias, scalar, method="sequential", fast=True).cov
+    assert np.abs(np.asarray(d)).max() > 0.1 * np.abs(np.asarray(
+        pre(g, a, dt, bias, scalar, method="sequential", fast=True).cov)).max()
