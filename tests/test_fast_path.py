@@ -150,6 +150,25 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
 
 
+def test_long_sequence_every_state_gradient_equals_generic():
+    """The gradient through the CPU's chunked every-state path (two kernel passes and the
+    sequential prefix of the chunk deltas) equals the generic scan's, for a loss on all
+    states of one float64 sequence of 2100 steps (over LONG_STEPS)."""
+    state, gyro, accel = inputs(1, 2100, seed=13)
+    dt = jnp.full((2100,), 0.005)
+    assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=True, lanes=1,
+                            steps=2100, on=_dispatch.CPU) == "soa_mean_chunked"
+    w = jnp.asarray(np.random.default_rng(14).normal(size=(2100, 3)))
+
+    def loss(scale, fast):
+        s = mean(state, gyro * scale, accel, dt, G_W, save_all=True, fast=fast,
+                 scheme="midpoint")
+        return jnp.sum(s.p[0] * w) * 1e-3 + jnp.sum(s.q[0] * w[:, :1])
+
+    np.testing.assert_allclose(jax.grad(loss)(1.1, True), jax.grad(loss)(1.1, False),
+                               rtol=1e-10)
+
+
 def test_long_float32_sequence_in_time_chunks_on_an_accelerator():
     """On an accelerator a long float32 sequence runs as time chunks too (there a sequential
     step costs a launch): its states, every one stored, are the float64 scan's to float32
