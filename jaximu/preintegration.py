@@ -708,7 +708,8 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
     dens = [(n, x.shape[:-1]) for n, x in dens if x.ndim]
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1], *(s for _, s in dens),
-                    names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a") + tuple(n for n, _ in dens))
+                    names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a")
+                    + tuple(n for n, _ in dens))
     if body_P_sensor is not None:
         return _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
                                     jacobians, body_P_sensor, tangential)

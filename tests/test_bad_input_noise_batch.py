@@ -1,4 +1,4 @@
-"""Probe s16: preintegrate's batch check names the noise densities.
+"""preintegrate's batch check names the noise densities.
 
 A noise density with batch axes that do not broadcast with the samples' batch used to reach
 the engine and fail there with JAX's raw "Incompatible shapes for broadcasting: shapes=[...]",
