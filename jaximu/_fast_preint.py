@@ -751,15 +751,14 @@ def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
                        var, lever, whole=(False, False) + shared)
 
 
-def num_chunks(B, T, method, dtype, devices=1):
+def num_chunks(B, T, method, dtype):
     """Time chunks per sequence: 1 for ``"sequential"``; for ``"parallel"`` enough to fill
-    about one batch block of lanes per device (``devices``: :func:`jaximu._soa.mesh_devices`),
-    each chunk at least :data:`MIN_CHUNK` samples long (a divisor of T within 1/16 of that,
-    so that no padding is needed). A block's step costs
+    about one batch block of lanes, each chunk at least :data:`MIN_CHUNK` samples long (a
+    divisor of T within 1/16 of that, so that no padding is needed). A block's step costs
     nearly as much with fewer lanes: the padded steps of a full block cost less than
     lanes left empty (one window of 10^5 float64 samples: 64 chunks with 32 padded steps
     9.9 M samples/s, 50 chunks of 2000 9.1 M)."""
-    lanes = block_lanes(dtype) * devices
+    lanes = block_lanes(dtype)
     if method != "parallel" or B >= lanes or T < 2 * MIN_CHUNK:
         return 1
     C = int(max(1, min(-(-lanes // B), T // MIN_CHUNK)))

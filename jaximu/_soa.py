@@ -543,13 +543,6 @@ def _mesh_axes(args):
     return mesh, axes
 
 
-def mesh_devices(args) -> int:
-    """Devices the lanes of ``args`` split over in :func:`run_blocked` (1 without a mesh):
-    what the time-chunked paths fill with lanes, one block per device."""
-    mesh, axes = _mesh_axes(args)
-    return math.prod(mesh.shape[a] for a in axes) if axes else 1
-
-
 ONE_KERNEL = {"xla_cpu_small_call": "true", "inlineable": "false"}
 """XLA frontend attributes that make XLA:CPU compile a call as one kernel (docs/DESIGN.md,
 "One kernel per block")."""

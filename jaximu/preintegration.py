@@ -42,7 +42,7 @@ import numpy as np
 
 from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
-from jaximu import _fast_preint, _soa
+from jaximu import _fast_preint
 from jaximu import _validation as val
 from jaximu import sensor
 from jaximu import so3
@@ -525,7 +525,7 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
         var = var if var.ndim == 1 else flat(var, (12,))
     if lever is not None and lever.ndim > 1:
         lever = flat(lever, (3,))
-    C = _fast_preint.num_chunks(B, n, method, dtype, _soa.mesh_devices((gyro_f,)))
+    C = _fast_preint.num_chunks(B, n, method, dtype)
     # a scalar accelerometer density: the same noise on every axis (the kernel's R D Rᵀ = σ² I)
     iso = noise is None or jnp.ndim(noise.accelerometer_noise_density) == 0
     t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
