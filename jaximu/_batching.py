@@ -140,7 +140,7 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         own rules drop a carry nothing used reads: a preintegration whose ``cov15`` is
         unused skips the 15×15 recursion); ``kept`` records which of the entry's outputs
         remain, for the batching rule, which binds the whole entry again."""
-        if not any(used_outputs) and not pe.has_effects(eqn):
+        if not any(used_outputs) and not eqn.effects:
             return [False] * len(eqn.invars), None
         if all(used_outputs) or eqn.effects:
             return [True] * len(eqn.invars), eqn

@@ -39,8 +39,8 @@ sequences aim to fill there: a launch over 65536 lanes fills a GPU (an H100 hold
 270 000 threads), and every block or chunk fewer is a sequential step fewer."""
 
 LONG_STEPS = 2048
-"""From this many steps the final state of a float64 sequence of a small batch is computed in
-time chunks (mean)."""
+"""From this many steps the mean of a float64 sequence of a small batch (its final state; every
+state of a single sequence) is computed in time chunks."""
 
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
@@ -59,6 +59,7 @@ class Row(NamedTuple):
     rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
     lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
     backends: tuple = (CPU, ACCELERATOR)  # where the row applies (backend())
+    max_lanes: int | None = None  # more batch elements than this: the row does not apply
 
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
@@ -70,14 +71,19 @@ TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
-    # a few long sequences in float64: time chunks side by side as the lanes of one block
-    # (mean_chunks), composed (the lanes can then also be split over devices); every state
-    # stored runs the chunks again from their composed starts (1 x 10^5: 20.9 against
-    # 16.7 M samples/s on one lane, compiled in 0.9 against 0.3 s). float32 keeps the
-    # one-lane kernel: the chunk deltas, which carry the specific force without gravity
-    # cancelling it, round 4x worse in float32
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
+    # the final state of a few long sequences in float64: time chunks side by side as the
+    # lanes of one block (mean_chunks), composed (the lanes can then also be split over
+    # devices). float32 keeps the one-lane kernel: the chunk deltas, which carry the
+    # specific force without gravity cancelling it, round 4x worse in float32
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False,), 1,
         LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,)),
+    # every state of one long float64 sequence: the chunks run again from their composed
+    # starts (1 x 10^5: 20.9 against 16.7 M samples/s on one lane, compiled in 0.9 against
+    # 0.3 s). From two sequences on, the lanes they already fill win (T = 8192: 2
+    # sequences 13.9 M chunked against 17.0 M, 16 sequences 11.7 against 15.8 M)
+    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (True,), 1,
+        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,),
+        max_lanes=1),
     # on an accelerator a sequential step costs a launch whatever the lanes: long sequences
     # run as time chunks in both dtypes, every state stored too (the chunks run twice, from
     # the composed starts)
@@ -124,6 +130,7 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
+                and (row.max_lanes is None or lanes <= row.max_lanes)
                 and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
                 and rotating in row.rotating and (row.lever is None or lever in row.lever)
                 and on in row.backends):
@@ -131,17 +138,18 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
     return GENERIC
 
 
-def mean_chunks(lanes, steps, dtype, devices=1) -> int:
+def mean_chunks(lanes, steps, dtype) -> int:
     """Time chunks per sequence for ``soa_mean_chunked``, each at least
     :data:`MIN_CHUNK_STEPS` steps long: on the CPU enough to fill one batch block of lanes
-    per device (a block's step costs nearly as much with fewer lanes, and each block more is
-    a sequential pass: 1 x 10^5 float64 samples, final state, as 64 chunks 59.6 M samples/s
-    compiled in 0.8 s, as 1024 chunks 53.7 M/s in 1.2 s); on an accelerator
-    :data:`ACCELERATOR_LANES`."""
+    (a block's step costs nearly as much with fewer lanes, and each block more is a
+    sequential pass: 1 x 10^5 float64 samples, final state, as 64 chunks 59.6 M samples/s
+    compiled in 0.8 s, as 1024 chunks 53.7 M/s in 1.2 s; under a mesh of two devices 64
+    chunks ran the final state faster than 128, docs/DESIGN.md section 5); on an
+    accelerator :data:`ACCELERATOR_LANES`."""
     if backend() == CPU:
         from jaximu._soa import block_lanes
 
-        fill = block_lanes(jnp.dtype(dtype)) * devices
+        fill = block_lanes(jnp.dtype(dtype))
     else:
         fill = ACCELERATOR_LANES
     return int(max(1, min(-(-fill // lanes), steps // MIN_CHUNK_STEPS)))

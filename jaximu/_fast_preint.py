@@ -109,9 +109,11 @@ def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
 
 
 def _noise_blocks(Bk, Ev, sg, sa):
-    """Stage 2c: ``Qθ = B' diag(σ_g²/h) B'ᵀ``, ``Qv = Ev diag(σ_a²/h) Evᵀ``."""
+    """Stage 2c: ``Qθ = B' diag(σ_g²/h) B'ᵀ``, ``Qv = Ev diag(σ_a²/h) Evᵀ``; with ``Ev =
+    None`` (an isotropic accelerometer, :func:`step`) only ``Qθ``."""
     dtype = Bk.dtype
-    return (_bmm(Bk * _diag_row(sg, dtype), _bt(Bk)), _bmm(Ev * _diag_row(sa, dtype), _bt(Ev)))
+    Qth = _bmm(Bk * _diag_row(sg, dtype), _bt(Bk))
+    return Qth if Ev is None else (Qth, _bmm(Ev * _diag_row(sa, dtype), _bt(Ev)))
 
 
 # blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4)
@@ -195,8 +197,7 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
         Ev, Bk, Cv, Dk = _stage(ok, lambda *a: _autodiff_blocks(*a, lever), q, dv, dp, omega,
                                 fsp, h)
     if isotropic_accel:  # var[3] = σ_a²/h: Qv = h² var[3] I
-        Qth = _stage(ok, lambda Bk, sg: _bmm(Bk * _diag_row(sg, Bk.dtype), _bt(Bk)), Bk,
-                     var[0:3])
+        Qth = _stage(ok, _noise_blocks, Bk, None, var[0:3], None)
         Qv = jnp.asarray(_E3, Bk.dtype)[:, :, None] * _lane(h * h * var[3])
     else:
         Qth, Qv = _stage(ok, _noise_blocks, Bk, Ev, var[0:3], var[3:6])
@@ -512,8 +513,9 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
 
 
 def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
-    """Each of the B sequences as ``C`` time chunks of ``L = ceil(T / C)`` steps side by side
-    as lanes (the parallel method): gyro, accel ``(B, T, k)`` -> ``(B C, L, k)``, dt
+    """Each of the B sequences as ``C`` time chunks of ``L`` steps side by side as lanes
+    (the parallel method; ``L``: ``ceil(T / C)`` rounded up to whole kernel time chunks,
+    :func:`jaximu._soa.whole_chunks`): gyro, accel ``(B, T, k)`` -> ``(B C, L, k)``, dt
     ``(B, T)`` -> ``(B C, L)``, zero-padded at the end (``h = 0`` steps: the kernels'
     ``guard`` makes them identities); ``edge`` ``(B, T, m)``: per-step values appended to
     ``accel``, padded with their last one; ``per_sequence``: ``(B, ·)`` arrays repeated per
@@ -754,10 +756,11 @@ def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
 def num_chunks(B, T, method, dtype):
     """Time chunks per sequence: 1 for ``"sequential"``; for ``"parallel"`` enough to fill
     about one batch block of lanes, each chunk at least :data:`MIN_CHUNK` samples long (a
-    divisor of T within 1/16 of that, so that no padding is needed). A block's step costs
+    divisor of T within 1/16 of that is preferred: less padding). A block's step costs
     nearly as much with fewer lanes: the padded steps of a full block cost less than
-    lanes left empty (one window of 10^5 float64 samples: 64 chunks with 32 padded steps
-    9.9 M samples/s, 50 chunks of 2000 9.1 M)."""
+    lanes left empty (one window of 10^5 float64 samples, measured before chunks were
+    padded to whole kernel time chunks: 64 chunks with 32 padded steps 9.9 M samples/s,
+    50 chunks of 2000 9.1 M)."""
     lanes = block_lanes(dtype)
     if method != "parallel" or B >= lanes or T < 2 * MIN_CHUNK:
         return 1

@@ -435,8 +435,7 @@ def whole_chunks(L):
     remainder chunk is a second loop body in the kernel, which LLVM compiles again (the
     final state of 1 × 10^5 float64 samples as 64 chunks of 1563 steps compiled in 1.3 s,
     of 1568 in 0.8 s). Callers that cut a sequence into chunks of their own pad to it."""
-    hi, lo = _CHUNK
-    while L > hi and all(L % K for K in range(hi, lo - 1, -1)):
+    while L % _chunk_size(L):
         L += 1
     return L
 

@@ -8,7 +8,6 @@ the same batched kernels (section 4), and :mod:`jaximu._dispatch` picks the kern
 from __future__ import annotations
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -211,8 +210,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     n = n_steps(gyro, dt)
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
-    mesh, axes = _soa._mesh_axes((gyro,))  # the lanes split over a mesh's devices
-    C = dispatch.mean_chunks(B, n, dtype, math.prod(mesh.shape[a] for a in axes) if axes else 1)
+    C = dispatch.mean_chunks(B, n, dtype)
     L = _soa.whole_chunks(-(-n // C))
     pad = C * L - n
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)

@@ -110,3 +110,22 @@ def test_gradient_through_a_pruned_program():
     eps = 1e-6
     fd = (loss(1.0 + eps, generic) - loss(1.0 - eps, generic)) / (2 * eps)
     np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_an_unread_call_is_dropped():
+    """A program that reads nothing of an entry's call drops the call (its equation is gone
+    after dead-code elimination) and still compiles and runs."""
+    gyro, accel, dt, bias = windows(2, seed=3)
+
+    def f(g, a, d, b):
+        jaximu.preintegrate(g, a, d, b, NOISE)
+        jaximu.propagate_final(jaximu.NavState(jnp.array([1.0, 0, 0, 0]), *(jnp.zeros(3),) * 4),
+                               g[0], a[0], d[0])
+        return jnp.sum(g)
+
+    closed = jax.make_jaxpr(f)(gyro, accel, dt, bias)
+    assert entry_eqns(closed.jaxpr, "jaximu_preintegrate")
+    pruned, _ = pe.dce_jaxpr(closed.jaxpr, [True])
+    assert not entry_eqns(pruned, "jaximu_preintegrate")
+    assert not entry_eqns(pruned, "jaximu_propagate")
+    np.testing.assert_allclose(jax.jit(f)(gyro, accel, dt, bias), np.sum(gyro), rtol=1e-12)

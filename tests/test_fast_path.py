@@ -123,6 +123,8 @@ def test_half_angle_kernels_match_trig(dtype):
     # rk4: 2049 steps, padded to whole chunks (dt = 0)
     (2, 2050, "rk4", False, True, "cpu"),
     (1, 2051, "euler", True, False, "cpu"), (2, 2050, "rk4", True, True, "cpu"),
+    # 64 chunks of 67 steps padded to 68 (whole kernel time chunks): the last all padding
+    (1, 4229, "rk4", True, True, "cpu"),
     # the accelerator's: the final state's deltas reduced as a tree (65 chunks: odd counts
     # padded), every state from a prefix scan of them
     (1, 2080, "midpoint", False, False, "accelerator"),
@@ -132,7 +134,8 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
     """A few long float64 sequences run as time chunks side by side (deltas from the
     identity, composed: in sequence on the CPU, as a tree on an accelerator); every state
     stored runs the chunks again from the starts a prefix of their deltas gives (a
-    sequential scan on the CPU, a parallel prefix scan on an accelerator). Each: the plain
+    sequential scan on the CPU, for one sequence; a parallel prefix scan on an
+    accelerator). Each: the plain
     generic scan's states to rounding, for every scheme, with per-sample dt and with dt of
     length T-1 (samples at the ends of the intervals). The accelerator's dispatch runs here
     on the CPU (tests/_shared.dispatch_as)."""
@@ -140,14 +143,26 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
+    # every state: in chunks for one sequence on the CPU (more fill the lanes themselves)
+    chunked = backend == _dispatch.ACCELERATOR or not save_all or B == 1
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all, lanes=B,
-                            steps=steps, on=backend) == "soa_mean_chunked"
+                            steps=steps, on=backend) == ("soa_mean_chunked" if chunked
+                                                         else "soa_mean")
     with dispatch_as(backend):
         fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
+
+
+def test_whole_chunks_are_cut_without_a_remainder():
+    """A chunk length from ``_soa.whole_chunks`` is the shortest at least as long that the
+    kernel's time chunks divide (no second loop body to compile)."""
+    for L in range(1, 3000):
+        W = _soa.whole_chunks(L)
+        assert W >= L and W % _soa._chunk_size(W) == 0
+        assert all(x % _soa._chunk_size(x) for x in range(L, W))
 
 
 def test_long_sequence_every_state_gradient_equals_generic():
