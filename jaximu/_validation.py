@@ -308,6 +308,17 @@ def gravity_vector(gravity, dtype):
     return g
 
 
+def noise_batches(noise):
+    """``[(name, batch shape)]`` of the densities of a checked :class:`ImuNoise` (or
+    ``None``) that have batch axes (a scalar density has none; a per-axis one ``(..., 3)``),
+    named as the user wrote them (``noise.accelerometer_noise_density``), for
+    :func:`batch_shape`."""
+    if noise is None:
+        return []
+    return [(f"noise.{f.name}", getattr(noise, f.name).shape[:-1])
+            for f in dataclasses.fields(noise) if jnp.ndim(getattr(noise, f.name))]
+
+
 def batch_shape(*shapes, names=None):
     """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
     each after its argument's name) when they do not broadcast."""

@@ -428,8 +428,9 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = val.check_noise(noise, dtype)
-    val.batch_shape(batch, P0.shape[:-2],
-                    *(x.shape[:-1] for x in jax.tree_util.tree_leaves(noise) if x.ndim))
+    dens = val.noise_batches(noise)  # the densities' batch axes too, each named
+    val.batch_shape(batch, P0.shape[:-2], *(s for _, s in dens),
+                    names=("state and samples", "P0") + tuple(n for n, _ in dens))
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
                                               omega_coriolis)

@@ -702,10 +702,7 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
     bias = _check_bias(bias, dtype)
     if noise is not None:
         noise = val.check_noise(noise, dtype)
-    # the noise densities' batch axes too (a scalar has none), each named
-    dens = [] if noise is None else [(f"noise.{f.name}", getattr(noise, f.name))
-                                     for f in dataclasses.fields(noise)]
-    dens = [(n, x.shape[:-1]) for n, x in dens if x.ndim]
+    dens = val.noise_batches(noise)  # the densities' batch axes too, each named
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1], *(s for _, s in dens),
                     names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a")
@@ -828,7 +825,8 @@ def needs_reintegration(pim: Preintegrated, bias: ImuBias, gyro_threshold: float
     if not isinstance(bias, ImuBias):
         raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
     bias = _check_bias(bias, val.float_dtype(bias.b_g, bias.b_a))
-    val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch)
+    val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch,
+                    names=("bias.b_g", "bias.b_a", "pim"))
     for name, x in (("gyro_threshold", gyro_threshold), ("accel_threshold", accel_threshold)):
         if val.is_concrete(x):
             val.check_positive(name, x, allow_zero=True)
@@ -947,7 +945,7 @@ def predict(state_i: NavState, pim: Preintegrated, gravity=9.81, *, omega_coriol
     {coriolis}"""
     batch = (_check_state_arg("state_i", state_i), _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    batch = val.batch_shape(*batch, g.shape[:-1])
+    batch = val.batch_shape(*batch, g.shape[:-1], names=("state_i", "pim", "gravity"))
     omega = _world(omega_coriolis, pim.delta_v.dtype, batch, coriolis_exact,
                    coriolis_second_order)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
@@ -986,7 +984,7 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
     batch = (_check_state_arg("state_i", state_i), _check_state_arg("state_j", state_j),
              _check_pim(pim))
     g = _gravity(gravity, pim.delta_v.dtype)
-    batch = val.batch_shape(*batch, g.shape[:-1])
+    batch = val.batch_shape(*batch, g.shape[:-1], names=("state_i", "state_j", "pim", "gravity"))
     omega = _world(omega_coriolis, pim.delta_v.dtype, batch, coriolis_exact,
                    coriolis_second_order)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
