@@ -11,6 +11,14 @@ a hash of the source, the flags and the compiler version), runs it on the given 
 and returns its timings and results. Without a compiler or Eigen it prints why and returns
 ``None``; it never raises.
 
+Basalt itself (the peer the issue names) is timed on the same samples when its headers are
+given: ``BASALT_HEADERS_DIR`` set to a checkout of basalt-headers with its submodules
+(``git clone --recursive https://gitlab.com/VladyslavUsenko/basalt-headers``; it needs
+``include/basalt`` and ``thirdparty/Sophus``, or Sophus in ``SOPHUS_INCLUDE_DIR``). The
+program is then built with ``-DJAXIMU_WITH_BASALT`` and has a third kernel, ``"basalt"``:
+``basalt::IntegratedImuMeasurement<double>::integrate`` sample by sample. Without them that
+kernel is skipped with the reason printed.
+
 Run as a script it times both workloads of ``benchmarks/preintegration.py`` (the same
 samples, from its ``make_inputs``), runs ``jaximu.preintegrate(..., scheme="euler")`` in
 float64 on them, and prints the C++ speed and the agreement of every output with jaximu.
@@ -72,26 +80,48 @@ def find_toolchain():
     return None, None, "Eigen not found (apt-get install libeigen3-dev, or set EIGEN3_INCLUDE_DIR)"
 
 
+def find_basalt():
+    """``(include flags, None)`` for Basalt's headers and Sophus, or ``(None, reason)``.
+
+    ``BASALT_HEADERS_DIR``: a basalt-headers checkout with ``include/basalt`` and, unless
+    ``SOPHUS_INCLUDE_DIR`` names Sophus elsewhere, its submodule ``thirdparty/Sophus``."""
+    root = os.environ.get("BASALT_HEADERS_DIR")
+    if not root:
+        return None, "BASALT_HEADERS_DIR is not set (a basalt-headers checkout, see above)"
+    inc = os.path.join(root, "include")
+    if not os.path.isfile(os.path.join(inc, "basalt", "imu", "preintegration.h")):
+        return None, f"no include/basalt/imu/preintegration.h under BASALT_HEADERS_DIR={root}"
+    sophus = os.environ.get("SOPHUS_INCLUDE_DIR") or os.path.join(root, "thirdparty", "Sophus")
+    if not os.path.isfile(os.path.join(sophus, "sophus", "so3.hpp")):
+        return None, (f"Sophus not found in {sophus} (clone basalt-headers with --recursive, "
+                      "or set SOPHUS_INCLUDE_DIR)")
+    return ("-DJAXIMU_WITH_BASALT", f"-I{inc}", f"-I{sophus}"), None
+
+
 def build(verbose=True):
-    """``(path of the compiled program, compiler command)`` (compiled on first use), or
-    ``None`` with a printed reason."""
+    """``(path of the compiled program, compiler command, with_basalt)`` (compiled on first
+    use), or ``None`` with a printed reason. ``with_basalt``: the program has the
+    ``"basalt"`` kernel (:func:`find_basalt`)."""
     cxx, inc, reason = find_toolchain()
     if cxx is None:
         _say(f"skipped: {reason}", verbose)
         return None
     command = " ".join([os.path.basename(cxx), *FLAGS])
+    basalt, _ = find_basalt()
+    extra = basalt or ()
     try:
         version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
                                  timeout=30).stdout
         with open(SOURCE, "rb") as f:
             src = f.read()
-        key = hashlib.sha256(src + "\0".join((cxx, version, inc) + FLAGS).encode()).hexdigest()
+        key = hashlib.sha256(
+            src + "\0".join((cxx, version, inc) + FLAGS + extra).encode()).hexdigest()
         exe = os.path.join(BUILD_DIR, f"preintegrate_reference-{key[:16]}")
         if os.path.isfile(exe) and os.access(exe, os.X_OK):
-            return exe, command
+            return exe, command, basalt is not None
         os.makedirs(BUILD_DIR, exist_ok=True)
         tmp = f"{exe}.{os.getpid()}.tmp"
-        cmd = [cxx, *FLAGS, f"-I{inc}", SOURCE, "-o", tmp]
+        cmd = [cxx, *FLAGS, *extra, f"-I{inc}", SOURCE, "-o", tmp]
         _say("compiling: " + " ".join(cmd), verbose)
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
         if proc.returncode != 0:
@@ -99,7 +129,7 @@ def build(verbose=True):
             _say(f"skipped: compilation failed ({proc.returncode}):\n{err}", verbose)
             return None
         os.replace(tmp, exe)
-        return exe, command
+        return exe, command, basalt is not None
     except (OSError, subprocess.SubprocessError) as e:
         _say(f"skipped: build failed: {e}", verbose)
         return None
@@ -159,7 +189,9 @@ def run_cpp_reference(gyro, accel, dt, b_g, b_a, noise, workload=None, *, kernel
         noise: :class:`jaximu.ImuNoise` or ``(σ_g, σ_a)`` densities (scalars or per axis).
         workload: a label for messages (e.g. ``"long"``, ``"windows"``).
         kernels: which covariance kernels to time: ``"blocked"`` (block-structured 3×3
-            updates) and/or ``"dense"`` (9×9 ``F P Fᵀ + G Q Gᵀ``).
+            updates), ``"dense"`` (9×9 ``F P Fᵀ + G Q Gᵀ``) and/or ``"basalt"`` (Basalt's
+            own class, when its headers are found: :func:`find_basalt`; otherwise left out,
+            with the reason printed).
         min_time: each kernel is repeated (≥ 3 runs) until its runs add up to this [s].
 
     Returns:
@@ -175,7 +207,12 @@ def run_cpp_reference(gyro, accel, dt, b_g, b_a, noise, workload=None, *, kernel
         built = build(verbose)
         if built is None:
             return None
-        exe, command = built
+        exe, command, with_basalt = built
+        if "basalt" in kernels and not with_basalt:
+            _say(f"Basalt skipped{label}: {find_basalt()[1]}", verbose)
+            kernels = tuple(k for k in kernels if k != "basalt")
+            if not kernels:
+                return None
         with tempfile.TemporaryDirectory(prefix="jaximu-cpp-") as tmp:
             inp = os.path.join(tmp, "input.bin")
             N, L = write_input(inp, gyro, accel, dt, b_g, b_a, noise)

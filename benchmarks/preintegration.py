@@ -183,11 +183,22 @@ def main(argv=None):
     # --- C++ Eigen reference (optional: needs g++ and Eigen; see cpp_reference.py) ---------
     from cpp_reference import run_cpp_reference  # same folder
 
-    cpp_rate = {}
+    cpp_rate, basalt_rate, basalt_out = {}, {}, {}
     for name, data in (("long", long), ("windows", windows)):
-        ref = run_cpp_reference(*data, *bias, jaximu.ImuNoise.euroc(), name, kernels=("blocked",))
+        ref = run_cpp_reference(*data, *bias, jaximu.ImuNoise.euroc(), name,
+                                kernels=("blocked", "basalt"))
         if ref is None:
             break
+        if "basalt" in ref["kernels"]:  # the peer itself (BASALT_HEADERS_DIR given)
+            kb = ref["kernels"]["basalt"]
+            basalt_rate[name], basalt_out[name] = kb["samples_per_s"], kb["result"]
+            rows.append(dict(tool="Basalt IntegratedImuMeasurement (1 core)", workload=name,
+                             dtype="float64", method="basalt", samples=ref["samples"],
+                             run_s=kb["best_s"], compile_s=0.0, rate=kb["samples_per_s"],
+                             us_per_sample=kb["us_per_sample"], command=ref["command"],
+                             compiler=ref["compiler"]))
+            print(f"Basalt {name}: {kb['samples_per_s'] / 1e6:.3f} M samples/s "
+                  f"({kb['us_per_sample']:.3f} µs/sample)", flush=True)
         k = ref["kernels"]["blocked"]
         cpp_rate[name] = k["samples_per_s"]
         row = dict(tool="C++ Eigen reference (1 core)", workload=name, dtype="float64",
@@ -212,7 +223,7 @@ def main(argv=None):
               f"({k['us_per_sample']:.3f} µs/sample)", flush=True)
     # ------------------------------------------------------------------------------------------
 
-    agreement = {}
+    agreement, pim_f64 = {}, {}
     for dtype in (jnp.float64, jnp.float32):
         for name, data in (("long", long), ("windows", windows)):
             for method in ("auto", "sequential", "parallel"):  # auto: the default
@@ -243,6 +254,8 @@ def main(argv=None):
                     continue
                 # the C++ reference's outputs only (no cov15): the same numbers, checked
                 nine, run9, comp9 = bench_jaximu(data, bias, dtype, method, fields=NINE)
+                if dtype == jnp.float64:
+                    pim_f64[name] = out
                 for k in NINE:  # each field against its own scale
                     diff = float(jnp.max(jnp.abs(nine[k] - getattr(out, k))))
                     if diff > 1e-12 * float(jnp.max(jnp.abs(getattr(out, k)))):
@@ -334,6 +347,29 @@ def main(argv=None):
             if r["tool"].startswith("jaximu") and r["workload"] in cpp_rate:
                 r["ratio_to_cpp"] = r["rate"] / cpp_rate[r["workload"]]
                 print(f"- {r['workload']} {r['dtype']} {r['method']}: {r['ratio_to_cpp']:.2f}")
+    # --- jaximu / Basalt ---------------------------------------------------------------------
+    if basalt_rate:
+        # Basalt rotates each step's specific force by the half-step rotation, so its Δv, Δp
+        # and their Jacobians differ from Euler's by O(|ω| h) relative; its ΔR and dR/dbg are
+        # the same mathematics (checked to rounding here, a check of the frame conversion)
+        from cpp_reference import agreement as cpp_agreement  # same folder
+        print("\nBasalt vs jaximu float64 Euler (max abs diff / max |value|):")
+        for name, res in basalt_out.items():
+            agree = cpp_agreement(res, pim_f64[name])
+            print("- " + name + ": " + ", ".join(f"{f} {d / max(m, 1e-300):.1e}"
+                                                 for f, (d, m) in agree.items()))
+            rot = max(agree[f][0] / agree[f][1] for f in ("delta_q", "dR_dbg"))
+            if rot > 1e-9:
+                raise AssertionError(f"Basalt's rotation differs from jaximu's by {rot:.1e} "
+                                     f"({name}): the frame conversion is wrong")
+        print("\njaximu / Basalt (Basalt on one core, float64; target ≥ 6× with covariance "
+              "and bias Jacobians):")
+        for r in rows:
+            if r["tool"].startswith("jaximu") and r["workload"] in basalt_rate:
+                r["ratio_to_basalt"] = r["rate"] / basalt_rate[r["workload"]]
+                if r["dtype"] == "float64" and r["method"].startswith("auto"):
+                    print(f"- {r['workload']} {r['dtype']} {r['method']}: "
+                          f"{r['ratio_to_basalt']:.2f}")
     # ------------------------------------------------------------------------------------------
     out_path = args.out or os.path.join(
         os.path.dirname(__file__), "results",

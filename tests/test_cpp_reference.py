@@ -51,3 +51,42 @@ def test_matches_jaximu_euler(shape):
         assert res["cov"].shape == np.shape(pim.cov)
         np.testing.assert_allclose(res["cov"], np.swapaxes(res["cov"], -1, -2), rtol=0,
                                    atol=1e-15 * np.abs(res["cov"]).max())
+
+
+def _basalt_means(gyro, accel, dt, b_g, b_a):
+    """Basalt's ``propagateState`` transcribed in numpy with scipy's rotations: the step's
+    specific force rotated by the half-step rotation ``ΔR Exp(φ/2)``."""
+    from scipy.spatial.transform import Rotation
+
+    R, v, p = Rotation.identity(), np.zeros(3), np.zeros(3)
+    for w, f, h in zip(gyro - b_g, accel - b_a, dt):
+        a = (R * Rotation.from_rotvec(0.5 * h * w)).apply(f)
+        p = p + v * h + 0.5 * a * h * h
+        v = v + a * h
+        R = R * Rotation.from_rotvec(h * w)
+    return v, p
+
+
+@pytest.mark.skipif(cpp_reference.find_basalt()[0] is None,
+                    reason="Basalt's headers not given (BASALT_HEADERS_DIR)")
+def test_basalt_kernel():
+    """The ``"basalt"`` kernel (Basalt's own class) in this program's layout: its rotation
+    and gyro-bias Jacobian of the rotation are Euler's (the same exponential), its Δv, Δp
+    those of its half-step scheme."""
+    gyro, accel, dt, b_g, b_a, noise = _inputs((2, 60))
+    dt = np.round(dt * 1e9) * 1e-9  # Basalt's timestamps are integer nanoseconds
+    ref = cpp_reference.run_cpp_reference(gyro, accel, dt, b_g, b_a, noise, min_time=0.0,
+                                          kernels=("basalt",), verbose=False)
+    res = ref["kernels"]["basalt"]["result"]
+    pim = jaximu.preintegrate(jnp.asarray(gyro), jnp.asarray(accel), jnp.asarray(dt),
+                              jaximu.ImuBias(jnp.asarray(b_g), jnp.asarray(b_a)), noise, "euler")
+    agree = cpp_reference.agreement(res, pim)
+    for name in ("delta_q", "dR_dbg"):
+        assert agree[name][0] <= 1e-12 * agree[name][1], (name, agree[name])
+    cov = np.asarray(pim.cov)[:, :3, :3]
+    np.testing.assert_allclose(res["cov"][:, :3, :3], cov, rtol=0,
+                               atol=1e-12 * np.abs(cov).max())
+    for i in range(2):
+        v, p = _basalt_means(gyro[i], accel[i], dt[i], b_g, b_a)
+        np.testing.assert_allclose(res["delta_v"][i], v, rtol=0, atol=1e-12 * np.abs(v).max())
+        np.testing.assert_allclose(res["delta_p"][i], p, rtol=0, atol=1e-12 * np.abs(p).max())

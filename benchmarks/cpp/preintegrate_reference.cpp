@@ -25,7 +25,18 @@
 //   "blocked": the six upper 3×3 blocks of P, using the zero/identity blocks of F;
 //   "dense":   the textbook dense update with a 9×9 F and a 9×6 G.
 //
-// Usage: preintegrate_reference INPUT [--min-time S] [--kernels blocked,dense] [--dump PREFIX]
+// A third, the peer itself, when compiled with -DJAXIMU_WITH_BASALT and Basalt's headers
+// (basalt-headers' include/ and its thirdparty/Sophus on the include path):
+//   "basalt":  basalt::IntegratedImuMeasurement<double>::integrate, sample by sample, as
+//              Basalt's VIO calls it (discrete noise variances σ²/h; timestamps in ns).
+//              Basalt rotates the step's specific force by the half-step rotation
+//              ΔR Exp(φ/2), not by ΔR, so its deltas differ from the Euler ones by O(|ω| h)
+//              relative; its error is [δp, δθ, δv] with the rotation error on the left
+//              (ΔR = Exp(δθ) ΔR̂). The dump converts it to this program's layout
+//              ([δθ, δp, δv], right error δθ_r = ΔRᵀ δθ_l) so the fields line up.
+//
+// Usage: preintegrate_reference INPUT [--min-time S] [--kernels blocked,dense[,basalt]]
+//                               [--dump PREFIX]
 //
 // INPUT (little-endian binary): 8 bytes "JXPI0001", int64 N (windows), int64 L (samples per
 // window), 12 doubles b_g[3], b_a[3], σ_g[3] (rad/s/√Hz), σ_a[3] (m/s²/√Hz), then N·L rows
@@ -36,6 +47,10 @@
 // JSON object with the timings and the result of window 0. With --dump, PREFIX_<kernel>.bin
 // holds every window's result, 137 doubles each: t, q (w x y z), Δv, Δp, cov (9×9), dR/dbg,
 // dp/dbg, dp/dba, dv/dbg, dv/dba (3×3 each); matrices row-major.
+
+#ifdef JAXIMU_WITH_BASALT
+#include <basalt/imu/preintegration.h>
+#endif
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
@@ -64,6 +79,11 @@ using Quat = Eigen::Quaterniond;
 
 constexpr int kRow = 7;        // gx gy gz ax ay az dt
 constexpr int kOutSize = 137;  // doubles per window in the dump
+#ifdef JAXIMU_WITH_BASALT
+const std::string kBasaltName = ", basalt";
+#else
+const std::string kBasaltName = "";  // built without Basalt's headers
+#endif
 
 struct Noise {
   Vec3 var_g;  // σ_g² per axis
@@ -231,6 +251,44 @@ void preintegrate(const double* rows, int64_t L, const Vec3& b_g, const Vec3& b_
   out.dv_dba = Jva;
 }
 
+#ifdef JAXIMU_WITH_BASALT
+// Basalt's own integration of one window (see the header comment), converted to Result.
+void basalt_window(const double* rows, int64_t L, const Vec3& b_g, const Vec3& b_a,
+                   const Noise& noise, Result& out) {
+  basalt::IntegratedImuMeasurement<double> imu(0, b_g, b_a);
+  basalt::ImuData<double> d;
+  int64_t t_ns = 0;
+  for (int64_t k = 0; k < L; ++k) {
+    const double* r = rows + k * kRow;
+    const double h = r[6];
+    t_ns += static_cast<int64_t>(std::llround(h * 1e9));
+    d.t_ns = t_ns;
+    d.gyro = Vec3(r[0], r[1], r[2]);
+    d.accel = Vec3(r[3], r[4], r[5]);
+    imu.integrate(d, noise.var_a / h, noise.var_g / h);  // Basalt's discrete σ²/h
+  }
+  const auto& s = imu.getDeltaState();
+  const Mat3 R = s.T_w_i.so3().matrix();
+  // Basalt [δp, δθ_l, δv] to [δθ_r, δp, δv]: T = [[0, Rᵀ, 0], [I, 0, 0], [0, 0, I]]
+  Mat9 T = Mat9::Zero();
+  T.block<3, 3>(0, 3) = R.transpose();
+  T.block<3, 3>(3, 0).setIdentity();
+  T.block<3, 3>(6, 6).setIdentity();
+  out.t = static_cast<double>(s.t_ns) * 1e-9;
+  out.q = Quat(s.T_w_i.so3().unit_quaternion());
+  out.dv = s.vel_w_i;
+  out.dp = s.T_w_i.translation();
+  out.cov = T * imu.get_cov() * T.transpose();
+  const Eigen::Matrix<double, 9, 3> Jg = T * imu.get_d_state_d_bg();
+  const Eigen::Matrix<double, 9, 3> Ja = T * imu.get_d_state_d_ba();
+  out.dR_dbg = Jg.block<3, 3>(0, 0);
+  out.dp_dbg = Jg.block<3, 3>(3, 0);
+  out.dv_dbg = Jg.block<3, 3>(6, 0);
+  out.dp_dba = Ja.block<3, 3>(3, 0);
+  out.dv_dba = Ja.block<3, 3>(6, 0);
+}
+#endif
+
 struct Input {
   int64_t n = 0, len = 0;
   Vec3 b_g, b_a;
@@ -351,7 +409,7 @@ Timing run_kernel(Kernel kernel, const Input& x, std::vector<Result>& out, doubl
 int main(int argc, char** argv) {
   if (argc < 2) {
     std::fprintf(stderr,
-                 "usage: %s INPUT [--min-time S] [--kernels blocked,dense] [--dump PREFIX]\n",
+                 "usage: %s INPUT [--min-time S] [--kernels blocked,dense[,basalt]] [--dump PREFIX]\n",
                  argv[0]);
     return 2;
   }
@@ -385,7 +443,10 @@ int main(int argc, char** argv) {
     Kernel kernel = nullptr;
     if (name == "blocked") kernel = preintegrate<false>;
     else if (name == "dense") kernel = preintegrate<true>;
-    else fail("unknown kernel " + name + " (blocked, dense)");
+#ifdef JAXIMU_WITH_BASALT
+    else if (name == "basalt") kernel = basalt_window;
+#endif
+    else fail("unknown kernel " + name + " (blocked, dense" + kBasaltName + ")");
     std::vector<Result> out(static_cast<size_t>(x.n));
     const Timing tm = run_kernel(kernel, x, out, min_time);
     char buf[256];
