@@ -455,15 +455,6 @@ def _sensor_options(state, gyro, accel, body_P_sensor, tangential, omega_corioli
     return tangential, omega, pose
 
 
-def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
-    """``body_P_sensor`` and ``omega_coriolis`` applied to the checked inputs: the body's
-    samples and the state with body-frame biases (:mod:`jaximu.sensor`), and ``ω_W``."""
-    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
-                                              omega_coriolis)
-    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
-    return state, gyro, accel, omega
-
-
 def sensor_biases(states, state, per_step):
     """``states`` with the (constant) biases of ``state`` (the sensor-frame ones) again."""
     def put(b, like):

@@ -15,10 +15,19 @@ import pytest
 import jaximu
 from jaximu import _dispatch
 from jaximu.errorstate import _propagate_covariance
-from jaximu.propagate import _propagate, _sensor_inputs
+from jaximu.propagate import _propagate, _sensor_options, sensor_engine_inputs
 from jaximu.sensor import SensorPose
 
 G_W = jnp.array([0.0, 0.0, -9.81])
+
+
+def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
+    """The samples moved into the body frame first, by the whole-array transform (the generic
+    kernel's inputs), the state with body-frame biases, and ``ω_W``."""
+    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
+                                              omega_coriolis)
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
+    return state, gyro, accel, omega
 
 
 def unit(x):
