@@ -319,6 +319,15 @@ def noise_batches(noise):
             for f in dataclasses.fields(noise) if jnp.ndim(getattr(noise, f.name))]
 
 
+def check_unbatched_noise(noise, what: str):
+    """Refuse batch axes on the densities of a checked :class:`ImuNoise`, naming the
+    density: ``what`` (a Monte Carlo study, ...) takes one noise model, scalars or ``(3,)``."""
+    for name, shape in noise_batches(noise):
+        if shape:
+            raise ValueError(f"{name} must be a scalar or (3,) for {what} (one noise model), "
+                             f"got shape {tuple(shape) + (3,)}")
+
+
 def batch_shape(*shapes, names=None):
     """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
     each after its argument's name) when they do not broadcast."""
@@ -438,7 +447,12 @@ def compute_dtype(name: str, dtype):
 def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
     """``x`` as a numpy array of ``dtype``; text, ``None`` or a ragged list raise a
     ``ValueError`` naming ``name`` (never parsed or guessed for the user), and so does a
-    complex one (:func:`check_real`)."""
+    complex one (:func:`check_real`). The callers work on the host, so a JAX tracer (the
+    function called inside ``jit``/``vmap``/``grad``) is refused naming ``name`` too."""
+    if isinstance(x, jax.core.Tracer):
+        raise ValueError(f"{name} must be concrete numbers, got a traced value: this function "
+                         "prepares its inputs on the host with numpy, so call it outside "
+                         "jax.jit, jax.vmap and jax.grad")
     check_real(name, x)
     kind = getattr(getattr(x, "dtype", None), "kind", "f")
     try:

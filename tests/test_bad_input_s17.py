@@ -66,3 +66,41 @@ def test_correct_names_the_batches_that_do_not_broadcast():
     pim = jaximu.preintegrate(gyro, gyro.at[..., 2].set(9.81), 0.01)
     with pytest.raises(ValueError, match=r"bias\.b_g \(3,\), bias\.b_a \(\), pim \(2,\)"):
         jaximu.correct(pim, jaximu.ImuBias(jnp.zeros((3, 3)), jnp.zeros(3)))
+
+
+# --------------------------------------------------------------------------- Monte Carlo
+
+MC = dict(n_runs=2, n_keep=0, chunk_size=2)
+
+
+def mc_study(**kw):
+    import jax
+
+    from jaximu import montecarlo, simulate
+    args = dict(trajectory=simulate.circle(), times=np.arange(5) * 0.01,
+                P0=1e-6 * np.eye(15), noise=jaximu.ImuNoise.euroc(), key=jax.random.key(0))
+    return montecarlo.monte_carlo(**(args | MC | kw))
+
+
+def test_monte_carlo_names_a_batched_density_before_the_work():
+    """A (2, 3) density reached numpy's IndexError after the reference propagation."""
+    noise = jaximu.ImuNoise(1.6e-4, np.full((2, 3), 2.8e-3), 2.2e-5, 8.6e-4)
+    with pytest.raises(ValueError, match=r"noise\.accelerometer_noise_density must be a scalar "
+                                         r"or \(3,\) for a Monte Carlo study.*\(2, 3\)"):
+        mc_study(noise=noise)
+
+
+def test_monte_carlo_with_a_singular_predicted_covariance_names_p0():
+    """P0 = 0 is positive semi-definite (accepted) but its first predicted covariance is
+    singular: numpy's bare LinAlgError "Matrix is not positive definite" came out."""
+    with pytest.raises(ValueError, match=r"covariance at times\[1\] = 0\.01 is singular.*"
+                                         r"give P0 positive variances"):
+        mc_study(P0=np.zeros((15, 15)))
+
+
+def test_host_side_inputs_under_jit_name_the_argument():
+    """monte_carlo under jit: "P0 must be an array of numbers, got DynamicJaxprTracer"."""
+    import jax
+    with pytest.raises(ValueError, match=r"P0 must be concrete numbers, got a traced value.*"
+                                         r"outside jax\.jit"):
+        jax.jit(lambda P: mc_study(P0=P).nees_mean)(jnp.eye(15) * 1e-6)
