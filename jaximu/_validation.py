@@ -319,6 +319,25 @@ def noise_batches(noise):
             for f in dataclasses.fields(noise) if jnp.ndim(getattr(noise, f.name))]
 
 
+def check_key(name: str, key):
+    """``key`` if it is one ``jax.random`` key: a typed key array of shape ``()``
+    (``jax.random.key(0)``) or a raw ``uint32`` key (``jax.random.PRNGKey(0)``); else a
+    ``ValueError`` naming ``name`` (JAX's own error names no argument)."""
+    d = getattr(key, "dtype", None)
+    if d is not None and jnp.issubdtype(d, jax.dtypes.prng_key):
+        if jnp.ndim(key):
+            raise ValueError(f"{name} must be one jax.random key, got an array of "
+                             f"{jnp.shape(key)} keys; pass one (jax.vmap over the keys for "
+                             "several)")
+        return key
+    if d is not None and d == jnp.uint32 and jnp.ndim(key) == 1:
+        return key
+    shown = repr(key)
+    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+    raise ValueError(f"{name} must be a jax.random key (e.g. jax.random.key(0)), got "
+                     f"{type(key).__name__} {shown}")
+
+
 def check_unbatched_noise(noise, what: str):
     """Refuse batch axes on the densities of a checked :class:`ImuNoise`, naming the
     density: ``what`` (a Monte Carlo study, ...) takes one noise model, scalars or ``(3,)``."""

@@ -104,3 +104,93 @@ def test_host_side_inputs_under_jit_name_the_argument():
     with pytest.raises(ValueError, match=r"P0 must be concrete numbers, got a traced value.*"
                                          r"outside jax\.jit"):
         jax.jit(lambda P: mc_study(P0=P).nees_mean)(jnp.eye(15) * 1e-6)
+
+
+# --------------------------------------------------------------------------- simulate
+
+T5 = np.arange(5) * 0.01
+
+
+def test_ideal_imu_refuses_a_batched_pose_gravity_or_world_rate():
+    """A batched sensor pose gave (T, B, 3) outputs, the batch after time (read as B samples
+    of T trajectories); a batched gravity or world rate raised JAX's broadcasting error."""
+    from jaximu import simulate as sim
+    poses = jaximu.SensorPose(jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (2, 1)), jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"body_P_sensor\.q must be one \(4,\) quaternion.*"
+                                         r"\(2, 4\); jax\.vmap over ideal_imu"):
+        sim.ideal_imu(sim.circle(), T5, body_P_sensor=poses)
+    with pytest.raises(ValueError, match=r"omega_coriolis must be one \(3,\) world rate"):
+        sim.ideal_imu(sim.circle(), T5, omega_coriolis=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"gravity must be one magnitude or \(3,\) vector"):
+        sim.ideal_imu(sim.circle(), T5, gravity=np.zeros((2, 3)))
+
+
+def test_a_trajectory_whose_pose_is_not_unit_or_not_finite_is_named():
+    """ω = 2 vec(q* ⊗ q̇) of a non-unit q is a wrong rate, returned silently (and NaN too)."""
+    from jaximu import simulate as sim
+    scaled = sim.Trajectory(lambda s: (jnp.asarray([2.0, 0, 0, 0]) * (1 + s), jnp.zeros(3)),
+                            "scaled")
+    with pytest.raises(ValueError, match=r"traj\.pose \(scaled\) gave a non-unit quaternion at "
+                                         r"t\[0\] = 0"):
+        sim.ideal_imu(scaled, T5)
+    with pytest.raises(ValueError, match=r"non-unit quaternion"):
+        sim.true_states(scaled, T5)
+    nan = sim.Trajectory(lambda s: (jnp.asarray([1.0, 0, 0, 0]), jnp.sqrt(s - 0.02) * jnp.ones(3)))
+    with pytest.raises(ValueError, match=r"traj\.pose \(trajectory\) gave non-finite values at "
+                                         r"t\[0\]"):
+        sim.ideal_imu(nan, T5)
+
+
+@pytest.mark.parametrize("kw, message", [
+    (dict(times=["a", "b"]), r"times must be an array of numbers, got list"),
+    (dict(times=[0.0, [1.0]]), r"times must be an array of numbers"),
+    (dict(times=[False, True]), r"times must be numbers, got booleans"),
+    (dict(positions=np.zeros((2, 3)) + 1j), r"positions must be real"),
+    (dict(positions=None), r"positions must be an array of numbers, got NoneType"),
+    (dict(quaternions=[[1.0, 0, 0, 0], [np.nan, 0, 0, 0]]), r"quaternions contains non-finite"),
+])
+def test_waypoints_name_what_is_not_numbers(kw, message):
+    """numpy's "could not convert string to float" (no name), a complex position's imaginary
+    part dropped with a warning, booleans and NaN quaternions accepted."""
+    from jaximu import simulate as sim
+    args = dict(times=[0.0, 1.0], positions=np.zeros((2, 3)), quaternions=None) | kw
+    with pytest.raises(ValueError, match=message):
+        sim.waypoints(**args)
+
+
+def test_add_noise_refuses_a_batch_beyond_batch_shape():
+    """gyro (2, T, 3) with batch_shape=() gave both elements the same noise draw, silently;
+    mismatched batches came back as outputs of different shapes."""
+    import jax
+
+    from jaximu import simulate as sim
+    key, noise = jax.random.key(0), jaximu.ImuNoise.euroc()
+    g = jnp.zeros((2, 5, 3))
+    with pytest.raises(ValueError, match=r"gyro has batch axes \(2,\) beyond batch_shape = \(\): "
+                                         r"every element would get the same noise draw; pass "
+                                         r"batch_shape=\(2,\)"):
+        sim.add_noise(key, g, g, 0.01, noise)
+    with pytest.raises(ValueError, match=r"do not broadcast: batch_shape \(\), gyro \(2,\), "
+                                         r"accel \(3,\)"):
+        sim.add_noise(key, g, jnp.zeros((3, 5, 3)), 0.01, noise)
+    with pytest.raises(ValueError, match=r"batch_shape \(2,\), gyro \(\), accel \(\), "
+                                         r"b_g0 \(3,\)"):
+        sim.add_noise(key, g[0], g[0], 0.01, noise, b_g0=np.zeros((3, 3)), batch_shape=(2,))
+    gm, _, err = sim.add_noise(key, g, g, 0.01, noise, batch_shape=(2,))
+    assert gm.shape == (2, 5, 3) and not np.allclose(gm[0], gm[1])
+
+
+def test_add_noise_names_key_and_density_and_keeps_float64_data():
+    import jax
+
+    from jaximu import simulate as sim
+    g = jnp.zeros((5, 3), jnp.float32)
+    noise = jaximu.ImuNoise.euroc()
+    with pytest.raises(ValueError, match=r"key must be a jax\.random key .*got int 0"):
+        sim.add_noise(0, g, g, 0.01, noise)
+    with pytest.raises(ValueError, match=r"do not broadcast: dt \(5,\), "
+                                         r"noise\.gyroscope_noise_density \(2,\)"):
+        sim.add_noise(jax.random.key(0), g, g, 0.01,
+                      jaximu.ImuNoise(np.full((2, 3), 1e-3), 1e-2, 1e-5, 1e-4))
+    _, _, err = sim.add_noise(jax.random.key(0), g, g, 0.01, noise, b_g0=np.full(3, 1e-3))
+    assert err.b_g.dtype == jnp.float64  # the float64 turn-on bias was rounded to float32
