@@ -194,3 +194,82 @@ def test_add_noise_names_key_and_density_and_keeps_float64_data():
                       jaximu.ImuNoise(np.full((2, 3), 1e-3), 1e-2, 1e-5, 1e-4))
     _, _, err = sim.add_noise(jax.random.key(0), g, g, 0.01, noise, b_g0=np.full(3, 1e-3))
     assert err.b_g.dtype == jnp.float64  # the float64 turn-on bias was rounded to float32
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+@pytest.fixture(scope="module")
+def cal_inputs():
+    from jaximu import calibration as cal
+    from jaximu import simulate as sim
+    traj, t = sim.circle(), np.arange(60) * 0.01
+    gyro, accel = sim.ideal_imu(traj, t)
+    s = sim.true_states(traj, t)
+    ref = cal.Reference(t, np.asarray(s.q), np.asarray(s.p), np.asarray(s.v))
+    return t, gyro, accel, ref
+
+
+def test_calibrate_refuses_estimate_given_as_a_string():
+    """tuple("b_g") is ('b', '_', 'g'): "unknown calibration fields ['b', '_', 'g']"; None
+    gave Python's "'NoneType' object is not iterable"."""
+    from jaximu import calibration as cal
+    with pytest.raises(ValueError, match=r"estimate must be a tuple of field names, got the "
+                                         r"string 'b_g,b_a'; pass estimate=\('b_g', 'b_a'\)"):
+        cal.calibrate(cal.CalibrationProblem(*[None] * 13), estimate="b_g,b_a")
+    with pytest.raises(ValueError, match=r"estimate must be a tuple of field names .*NoneType"):
+        cal.calibrate(None, estimate=None)
+
+
+def test_calibration_loss_names_its_arguments(cal_inputs):
+    """AttributeError "'NoneType' object has no attribute 'velocities'"."""
+    from jaximu import calibration as cal
+    t, gyro, accel, ref = cal_inputs
+    problem = cal.calibration_problem(t, gyro, accel, ref, jaximu.ImuNoise.euroc(),
+                                      keyframe_interval=0.2, check=False)
+    with pytest.raises(ValueError, match=r"problem must be a CalibrationProblem"):
+        cal.calibration_loss(None, cal.ImuCalibration.default())
+    with pytest.raises(ValueError, match=r"calib must be an ImuCalibration"):
+        cal.calibration_residuals(problem, None)
+    with pytest.raises(ValueError, match=r"velocities must have the shape \(3, 3\) of "
+                                         r"problem\.velocities"):
+        cal.calibration_loss(problem, cal.ImuCalibration.default(), jnp.zeros((2, 3)))
+
+
+def test_imu_calibration_default_names_its_arguments():
+    from jaximu import calibration as cal
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype .*'foo'"):
+        cal.ImuCalibration.default(dtype="foo")
+    with pytest.raises(ValueError, match=r"gravity must be an array of numbers, got str"):
+        cal.ImuCalibration.default(gravity="9.81")
+    with pytest.raises(ValueError, match=r"b_g must be an array of numbers, got str"):
+        cal.ImuCalibration.default(b_g="abc")
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(extrinsics="no"), r"extrinsics must be True or False, got the string 'no'; "
+                            r"pass extrinsics=False"),
+    (dict(check="no"), r"check must be True or False"),
+    (dict(omega_coriolis=np.zeros((2, 3))), r"omega_coriolis must be one \(3,\) world rate"),
+    (dict(noise=jaximu.ImuNoise(np.full((2, 3), 1e-3), 1e-2)),
+     r"noise\.gyroscope_noise_density must be a scalar or \(3,\) for a calibration problem"),
+    (dict(noise=jaximu.ImuNoise(0.0, 0.0), reference_sigma=(0, 0, 0)),
+     r"the residuals' covariance is singular.*give noise positive densities"),
+    (dict(t="abc"), r"t must be an array of numbers, got str"),
+    (dict(reference_t="abc"), r"reference\.t must be an array of numbers, got str"),
+    (dict(reference_t=np.nan), r"reference\.t contains non-finite values .* \[5\]"),
+])
+def test_calibration_problem_names_what_it_took_silently_or_raised_deep(cal_inputs, change,
+                                                                         message):
+    """extrinsics="no" and check="no" counted as True; a (2, 3) world rate was kept; a batched
+    density and text reached JAX's/numpy's own errors; zero densities numpy's LinAlgError; a
+    NaN reference time passed the order test."""
+    from jaximu import calibration as cal
+    t, gyro, accel, ref = cal_inputs
+    kw = dict(noise=jaximu.ImuNoise.euroc(), keyframe_interval=0.2, check=False) | change
+    rt = kw.pop("reference_t", ref.t)
+    if isinstance(rt, float):
+        rt = np.where(np.arange(len(ref.t)) == 5, rt, ref.t)
+    ref = cal.Reference(rt, ref.q, ref.p, ref.v)
+    with pytest.raises(ValueError, match=message):
+        cal.calibration_problem(kw.pop("t", t), gyro, accel, ref, **kw)
