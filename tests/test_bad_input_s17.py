@@ -273,3 +273,18 @@ def test_calibration_problem_names_what_it_took_silently_or_raised_deep(cal_inpu
     ref = cal.Reference(rt, ref.q, ref.p, ref.v)
     with pytest.raises(ValueError, match=message):
         cal.calibration_problem(kw.pop("t", t), gyro, accel, ref, **kw)
+
+
+# --------------------------------------------------------------------------- allan
+
+
+def test_allan_names_a_traced_input_and_a_wrong_fit():
+    """allan_deviation under jit raised JAX's TracerArrayConversionError; check_units(None)
+    an AttributeError."""
+    import jax
+
+    from jaximu import allan
+    with pytest.raises(ValueError, match=r"y must be concrete numbers, got a traced value"):
+        jax.jit(lambda y: allan.allan_deviation(y, 0.01)[1])(jnp.zeros((20, 3)))
+    with pytest.raises(ValueError, match=r"gyro must be the NoiseFit of the gyro"):
+        allan.check_units(None)
