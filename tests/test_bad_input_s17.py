@@ -288,3 +288,21 @@ def test_allan_names_a_traced_input_and_a_wrong_fit():
         jax.jit(lambda y: allan.allan_deviation(y, 0.01)[1])(jnp.zeros((20, 3)))
     with pytest.raises(ValueError, match=r"gyro must be the NoiseFit of the gyro"):
         allan.check_units(None)
+
+
+# --------------------------------------------------------------------------- command
+
+
+@pytest.mark.parametrize("estimate, fragment", [("", "no field in --estimate"),
+                                                ("foo", "unknown field(s) ['foo'] in --estimate")])
+def test_calibrate_estimate_is_checked_before_the_recording_is_read(capsys, estimate, fragment):
+    """An empty --estimate reached the library after the recording was read and the problem
+    built ("estimate names no field", no flag); an unknown one was named after reading."""
+    import pathlib
+
+    from jaximu import cli
+    folder = pathlib.Path(__file__).parent / "data" / "euroc_v1_02_medium"
+    code = cli.main(["calibrate", str(folder), "--estimate", estimate])
+    out, err = capsys.readouterr()
+    assert code == 2 and fragment in err, err
+    assert "read " not in out, out  # refused before the work
