@@ -319,6 +319,34 @@ def noise_batches(noise):
             for f in dataclasses.fields(noise) if jnp.ndim(getattr(noise, f.name))]
 
 
+def check_key(name: str, key):
+    """``key`` if it is one ``jax.random`` key: a typed key array of shape ``()``
+    (``jax.random.key(0)``) or a raw ``uint32`` key (``jax.random.PRNGKey(0)``); else a
+    ``ValueError`` naming ``name`` (JAX's own error names no argument)."""
+    d = getattr(key, "dtype", None)
+    if d is not None and jnp.issubdtype(d, jax.dtypes.prng_key):
+        if jnp.ndim(key):
+            raise ValueError(f"{name} must be one jax.random key, got an array of "
+                             f"{jnp.shape(key)} keys; pass one (jax.vmap over the keys for "
+                             "several)")
+        return key
+    if d is not None and d == jnp.uint32 and jnp.ndim(key) == 1:
+        return key
+    shown = repr(key)
+    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+    raise ValueError(f"{name} must be a jax.random key (e.g. jax.random.key(0)), got "
+                     f"{type(key).__name__} {shown}")
+
+
+def check_unbatched_noise(noise, what: str):
+    """Refuse batch axes on the densities of a checked :class:`ImuNoise`, naming the
+    density: ``what`` (a Monte Carlo study, ...) takes one noise model, scalars or ``(3,)``."""
+    for name, shape in noise_batches(noise):
+        if shape:
+            raise ValueError(f"{name} must be a scalar or (3,) for {what} (one noise model), "
+                             f"got shape {tuple(shape) + (3,)}")
+
+
 def batch_shape(*shapes, names=None):
     """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
     each after its argument's name) when they do not broadcast."""
@@ -438,7 +466,12 @@ def compute_dtype(name: str, dtype):
 def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
     """``x`` as a numpy array of ``dtype``; text, ``None`` or a ragged list raise a
     ``ValueError`` naming ``name`` (never parsed or guessed for the user), and so does a
-    complex one (:func:`check_real`)."""
+    complex one (:func:`check_real`). The callers work on the host, so a JAX tracer (the
+    function called inside ``jit``/``vmap``/``grad``) is refused naming ``name`` too."""
+    if isinstance(x, jax.core.Tracer):
+        raise ValueError(f"{name} must be concrete numbers, got a traced value: this function "
+                         "prepares its inputs on the host with numpy, so call it outside "
+                         "jax.jit, jax.vmap and jax.grad")
     check_real(name, x)
     kind = getattr(getattr(x, "dtype", None), "kind", "f")
     try:

@@ -129,7 +129,7 @@ def _real_array(name, x) -> np.ndarray:
         shown = repr(x)
         shown = shown if len(shown) <= 60 else shown[:57] + "..."
         raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} {shown}")
-    return np.asarray(x, np.float64)
+    return val.as_numbers(name, x)  # a JAX tracer: named too (this runs on the host)
 
 
 class NoiseFit(NamedTuple):
@@ -244,6 +244,9 @@ def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
     that is not static inflates the densities and can trip the check.
     """
     del accel  # the accelerometer's unit is judged by the readers (gravity's magnitude)
+    if not isinstance(gyro, NoiseFit):
+        raise ValueError(f"gyro must be the NoiseFit of the gyro (from allan.fit_noise), got "
+                         f"{type(gyro).__name__}")
     white = np.atleast_1d(np.asarray(gyro.white, float))
     white = white[white > 0]  # the axes whose density was determined
     if white.size == 0:

@@ -147,15 +147,16 @@ class ImuCalibration:
     @classmethod
     def default(cls, gravity=9.81, dtype=None, **fields) -> "ImuCalibration":
         """Zero biases, scale, misalignment and offset (unless given in ``fields``)."""
-        dtype = jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
+        dtype = val.compute_dtype("dtype", dtype) if dtype is not None else \
+            jnp.zeros(()).dtype
         vals = {name: jnp.zeros((_SIZES[name],) if _SIZES[name] > 1 else (), dtype)
                 for name in FIELDS}
-        vals["gravity"] = jnp.asarray(gravity, dtype)
+        vals["gravity"] = val.to_dtype("gravity", gravity, dtype)
         vals["q_BS"] = jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)
         for name, x in fields.items():
             if name not in vals:
                 raise ValueError(f"unknown calibration field {name!r}; fields are {FIELDS}")
-            vals[name] = jnp.asarray(x, dtype)
+            vals[name] = val.to_dtype(name, x, dtype)
         return cls(**vals)
 
     @property
@@ -413,11 +414,28 @@ def _preintegrate_mean(gyro, accel, dt, scheme):
                          cov=eye(9), bias_hat=ImuBias(zero, zero))
 
 
+def _check_loss_args(problem, calib, velocities):
+    """Types (and ``velocities``' shape) of :func:`calibration_loss`'s arguments: static,
+    so free inside ``jit``/``grad``. Returns the velocities to use."""
+    if not isinstance(problem, CalibrationProblem):
+        raise ValueError("problem must be a CalibrationProblem (from calibration_problem), got "
+                         f"{type(problem).__name__}")
+    if not isinstance(calib, ImuCalibration):
+        raise ValueError("calib must be an ImuCalibration (e.g. ImuCalibration.default()), got "
+                         f"{type(calib).__name__}")
+    if velocities is None:
+        return problem.velocities
+    if jnp.shape(velocities) != problem.velocities.shape:
+        raise ValueError(f"velocities must have the shape {problem.velocities.shape} of "
+                         f"problem.velocities (one per keyframe), got {jnp.shape(velocities)}")
+    return velocities
+
+
 def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
                           velocities=None):
     """``(K, 9)`` whitened residuals ``L_k⁻¹ [r_θ, r_p, r_v]_k`` of every window (zero for
     a window left out for a reference gap: :attr:`CalibrationProblem.kept`)."""
-    v = problem.velocities if velocities is None else velocities
+    v = _check_loss_args(problem, calib, velocities)
     G = problem.gyro.shape[0]
     r = jax.vmap(lambda g: _window_residuals(problem, calib, v, g))(jnp.arange(G))
     return r.reshape(-1, 9)[: problem.n_windows]
@@ -429,7 +447,7 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
     Groups of windows are scanned under :func:`jax.checkpoint`: reverse mode stores one
     group's intermediates at a time.
     """
-    v = problem.velocities if velocities is None else velocities
+    v = _check_loss_args(problem, calib, velocities)
 
     @jax.checkpoint
     def group(g):
@@ -730,10 +748,12 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if not isinstance(reference, Reference):
         raise ValueError(f"reference must be a jaximu.calibration.Reference, got "
                          f"{type(reference).__name__}")
+    check = val.check_bool("check", check)
+    extrinsics = val.check_bool("extrinsics", extrinsics)
     _check_initial(initial)
     dtype = val.float_dtype(gyro, accel)
-    t = np.asarray(t, np.float64)
-    gyro_np, accel_np = np.asarray(gyro), np.asarray(accel)
+    t = val.as_numbers("t", t)
+    gyro_np, accel_np = val.as_numbers("gyro", gyro, None), val.as_numbers("accel", accel, None)
     if t.ndim != 1 or gyro_np.shape != (len(t), 3) or accel_np.shape != (len(t), 3):
         raise ValueError(f"t, gyro, accel must have shapes (N,), (N, 3), (N, 3); got "
                          f"{t.shape}, {gyro_np.shape}, {accel_np.shape}")
@@ -747,12 +767,17 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     val.check_finite("gyro", gyro_np)
     val.check_finite("accel", accel_np)
     noise = val.check_noise(noise, dtype)
-    rt = np.asarray(reference.t, np.float64)
-    rq = np.asarray(reference.q, np.float64)
-    rp = np.asarray(reference.p, np.float64)
-    M = len(rt)
+    val.check_unbatched_noise(noise, "a calibration problem")
+    if omega_coriolis is not None:
+        omega_coriolis = world.check_omega(omega_coriolis, dtype)
+        if omega_coriolis.ndim != 1:
+            raise ValueError(f"omega_coriolis must be one (3,) world rate for a calibration "
+                             f"problem (one recording), got shape {omega_coriolis.shape}")
+    rt, rq, rp = (val.as_numbers(f"reference.{n}", getattr(reference, n)) for n in "tqp")
+    M = len(rt) if rt.ndim else 0
     if rt.ndim != 1 or rq.shape != (M, 4) or rp.shape != (M, 3) or M < 2:
         raise ValueError("reference t, q, p must have shapes (M,), (M, 4), (M, 3) with M ≥ 2")
+    val.check_finite("reference.t", rt)  # a NaN time passes the order test below
     if np.any(np.diff(rt) <= 0):
         i = int(np.argmax(np.diff(rt) <= 0))
         raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
@@ -764,7 +789,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
                          f" {norm_err.max():.3g} at row {int(np.argmax(norm_err))}")
     rq = rq / np.linalg.norm(rq, axis=-1, keepdims=True)
     has_v = reference.v is not None
-    rv = np.asarray(reference.v, np.float64) if has_v else np.zeros_like(rp)
+    rv = val.as_numbers("reference.v", reference.v) if has_v else np.zeros_like(rp)
     if rv.shape != (M, 3):
         raise ValueError(f"reference.v must have shape (M, 3), got {rv.shape}")
     val.check_finite("reference.v", rv)
@@ -838,7 +863,14 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     extra[:, 3:6] = (2 * s_p**2 + (s_v * Dt) ** 2)[:, None] if has_v else 2 * s_p**2
     extra[:, 6:9] = 2 * s_v**2 if has_v else 0.0
     cov = cov + extra[:, :, None] * np.eye(9)
-    L = np.linalg.cholesky(cov)
+    try:
+        L = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            "the residuals' covariance is singular, so they cannot be whitened: noise (its "
+            "white-noise densities) and reference_sigma leave some residual without variance; "
+            "give noise positive densities (its datasheet's or an Allan fit's) or "
+            "reference_sigma positive values") from None
     sqrt_info = np.linalg.inv(L)
 
     diagnostics = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
@@ -896,8 +928,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             getattr(noise, f"{s}_noise_density"), np.float64) ** 2, (3,))
             for s in ("gyroscope", "accelerometer")])),
         reference_var=as_d(grp(extra)),
-        omega_coriolis=None if omega_coriolis is None else world.check_omega(
-            omega_coriolis, dtype),
+        omega_coriolis=omega_coriolis,
         max_gap=float(max_gap), skipped=skipped)
 
 
@@ -1179,7 +1210,15 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     Returns:
         :class:`CalibrationResult`.
     """
-    estimate = tuple(estimate)
+    if isinstance(estimate, str):  # tuple("b_g") would be ('b', '_', 'g')
+        fix = tuple(n.strip() for n in estimate.split(",") if n.strip())
+        raise ValueError(f"estimate must be a tuple of field names, got the string "
+                         f"{estimate!r}; pass estimate={fix!r}")
+    try:
+        estimate = tuple(estimate)
+    except TypeError:
+        raise ValueError(f"estimate must be a tuple of field names from {FIELDS}, got "
+                         f"{type(estimate).__name__} {estimate!r}") from None
     unknown = [n for n in estimate if n not in FIELDS]
     if unknown:
         raise ValueError(f"unknown calibration fields {unknown}; fields are {FIELDS}")

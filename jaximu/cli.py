@@ -574,16 +574,17 @@ def cmd_calibrate(args):
         raise UsageError("--keyframe-interval must be positive")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be at least 1, got {args.steps}")
+    estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
+    unknown = [s for s in estimate if s not in cal.FIELDS]
+    if unknown or not estimate:
+        raise UsageError(f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
+                         f"--estimate; fields: {', '.join(cal.FIELDS)}")
     _check_outputs(out=args.out)
     data = _load(args)
     gt = data.ground_truth
     if gt is None:
         raise UsageError(f"{args.file} has no ground truth: calibration needs a reference "
                          "trajectory (EuRoC state_groundtruth_estimate0 or TUM-VI mocap0)")
-    estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
-    unknown = [s for s in estimate if s not in cal.FIELDS]
-    if unknown:
-        raise UsageError(f"unknown field(s) {unknown} in --estimate; fields: {', '.join(cal.FIELDS)}")
     dtype = _dtype(args)
     ref = cal.Reference(gt.t, gt.q, gt.p, gt.v)
     _start_at_groundtruth(data, gt)  # a window outside the ground truth: say where it is

@@ -189,6 +189,9 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     if val.is_concrete(h) and not np.all(np.isfinite(np.asarray(h)) & (np.asarray(h) > 0)):
         raise ValueError(f"dt must be positive and finite, got {np.asarray(h)}")
     g = val.gravity_vector(gravity, dtype)
+    val.batch_shape(state.batch_shape, w0.shape[:-1], a0.shape[:-1], w1.shape[:-1],
+                    a1.shape[:-1], h.shape, g.shape[:-1],
+                    names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"))
     if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
         return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
     if method == "analytic":
@@ -217,16 +220,25 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
         dt: scalar or ``(...,)`` step [s], ``> 0`` and finite.
 
     Returns:
-        ``(..., 15, 15)`` in ``G``'s dtype (float32 for integer or half-precision ``G``).
-        Shapes and types are checked always, values on eager calls.
+        ``(..., 15, 15)`` in the promoted dtype of ``G`` and ``dt`` (a float64 ``dt`` beside
+        a float32 ``G`` is not rounded to float32; a Python scalar is weak; float32 for
+        integer or half-precision data). Shapes, types and batch shapes (``G``'s, ``dt``'s
+        and the densities') are checked always, values on eager calls.
     """
-    dtype = val.float_dtype(G)
+    dtype = val.float_dtype(G, dt)
     G = val.to_dtype("G", G, dtype)
     if G.ndim < 2 or G.shape[-2:] != (15, 12):
         raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
                          f"{tuple(G.shape)}")
     val.check_finite("G", G)
     noise = val.check_noise(noise, dtype)
+    try:
+        dt_batch = jnp.shape(dt)
+    except (TypeError, ValueError):  # not numbers: discrete_variances names dt
+        dt_batch = ()
+    dens = val.noise_batches(noise)
+    val.batch_shape(G.shape[:-2], dt_batch, *(s for _, s in dens),
+                    names=("G", "dt") + tuple(n for n, _ in dens))
     qc = noise.discrete_variances(dt, dtype)
     return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
 
@@ -565,9 +577,7 @@ def ekf_update(state: NavState, P, residual, H, R):
         ValueError: naming the argument, for any of them outside the domain above.
     """
     val.require_navstate(state)
-    dtype = val.float_dtype(state.q, *(x if hasattr(x, "dtype") else val._cast(x, None, n)
-                                       for n, x in (("P", P), ("residual", residual),
-                                                    ("H", H), ("R", R))))
+    dtype = val.float_dtype(state, P, residual, H, R)  # every field of the state counts
     state = val.check_state(state, dtype)
     P = _check_cov(P, dtype, "P")
     residual, H, R = (val.to_dtype(n, x, dtype) for n, x in

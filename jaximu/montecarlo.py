@@ -550,6 +550,8 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     L0 = V * np.sqrt(np.clip(lam, 0, None))  # L0 L0ᵀ = P0, also if singular
     model_noise = val.check_noise(model_noise, dtype)
     draw_noise = val.check_noise(draw_noise, dtype)
+    val.check_unbatched_noise(model_noise, "a Monte Carlo study")
+    val.check_unbatched_noise(draw_noise, "a Monte Carlo study")
     g = val.gravity_vector(gravity, dtype)
     if g.ndim != 1:
         raise ValueError(f"gravity must be a magnitude or a (3,) vector, got shape {g.shape}")
@@ -581,7 +583,16 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                                     model_noise, scheme)
         P_rec = np.asarray(P, np.float64)[rec]
         # NEES = |W e|², W = L⁻¹, P = L Lᵀ
-        W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
+        try:
+            W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
+        except np.linalg.LinAlgError:
+            k = next((j for j in range(len(rec)) if not _factors(P_rec[j])), 0)
+            raise ValueError(
+                f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} is "
+                "singular, so the NEES (eᵀ P⁻¹ e) is undefined there: P0 (with the noise) "
+                "leaves some error direction without variance; give P0 positive variances "
+                "on every axis (e.g. P0 = diag(σ²), σ > 0), or record later "
+                "(record_every)") from None
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
     disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
@@ -595,10 +606,6 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                             draw_noise.accelerometer_noise_density,
                             draw_noise.gyroscope_random_walk,
                             draw_noise.accelerometer_random_walk))
-    for name, x in (("noise", sg), ("noise", sa), ("noise", sbg), ("noise", sba)):
-        if x.shape != (3,):
-            raise ValueError(f"{name} densities must be scalars or (3,) for a Monte Carlo study "
-                             f"(one noise model for every run), got shape {x.shape}")
     dt_s = np.r_[dt64, dt64[-1]]
     sd = np.concatenate([sg, sa])[None] / np.sqrt(dt_s)[:, None]  # (T+1, 6)
     sw = np.concatenate([sbg, sba])[None] * np.sqrt(dt64)[:, None]  # (T, 6)
@@ -615,6 +622,15 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                       meas_sd=jnp.asarray(meas_sd, dtype),
                       meas_R=jnp.asarray(np.diag(meas_sd**2), dtype))
     return _Study(consts, scheme, seg, rec, times[rec + 1], P_rec, disc, dtype, filt)
+
+
+def _factors(P) -> bool:
+    """Whether numpy's Cholesky factors ``P`` (positive definite to its rounding)."""
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------- accumulation

@@ -806,7 +806,8 @@ def correct(pim: Preintegrated, bias: ImuBias) -> Preintegrated:
     if not isinstance(bias, ImuBias):
         raise ValueError(f"bias must be a jaximu.ImuBias, got {type(bias).__name__}")
     bias = _check_bias(bias, val.float_dtype(bias.b_g, bias.b_a))
-    if tuple(val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch)) != tuple(batch):
+    if tuple(val.batch_shape(bias.b_g.shape[:-1], bias.b_a.shape[:-1], batch,
+                             names=("bias.b_g", "bias.b_a", "pim"))) != tuple(batch):
         raise ValueError(f"bias has batch shape {bias.b_g.shape[:-1]} / {bias.b_a.shape[:-1]}, "
                          f"which does not broadcast to the preintegrated batch shape {batch}")
     return _output("correct", _correct(pim, bias))

@@ -192,6 +192,14 @@ def _eval_spline(coeffs, t):
     return a[i] + s * (b[i] + s * (c[i] + s * d[i]))
 
 
+def _numbers(name, x) -> np.ndarray:
+    """A waypoint array as float64 numbers: text, ``None``, ragged lists, complex values
+    (whose imaginary part numpy drops with a warning) and booleans are refused, naming it."""
+    if not isinstance(x, jax.core.Tracer) and val.kind_of(x) == "b":
+        raise ValueError(f"{name} must be numbers, got booleans; pass floats")
+    return val.as_numbers(name, x)
+
+
 def waypoints(times, positions, quaternions=None) -> Trajectory:
     """A C2 trajectory through waypoints: natural cubic splines through the positions and
     through the rotation vectors of the orientations (unwrapped so that consecutive ones
@@ -205,8 +213,7 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
     The curve passes exactly through every waypoint; outside ``[t_0, t_K-1]`` the end
     polynomials extend it.
     """
-    times = np.asarray(times, float)
-    positions = np.asarray(positions, float)
+    times, positions = _numbers("times", times), _numbers("positions", positions)
     val.check_finite("times", times)
     val.check_finite("positions", positions)
     if times.ndim != 1 or len(times) < 2 or np.any(np.diff(times) <= 0):
@@ -216,9 +223,10 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
     if quaternions is None:
         rotvecs = np.zeros_like(positions)
     else:
-        quaternions = np.asarray(quaternions, float)
+        quaternions = _numbers("quaternions", quaternions)
         if quaternions.shape != (len(times), 4):
             raise ValueError(f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}")
+        val.check_finite("quaternions", quaternions)
         norms = np.linalg.norm(quaternions, axis=1)
         if np.any(np.abs(norms - 1) > 1e-6):
             raise ValueError("quaternions must be unit quaternions (normalise them first)")
@@ -253,10 +261,43 @@ def _kinematics_at(traj: Trajectory, t):
     return jax.vmap(lambda s: _kinematics(traj, s))(t)
 
 
+def _check_poses(traj: Trajectory, t, q, *derived):
+    """On eager calls: ``traj.pose`` gave unit quaternions (the body rate ``2 vec(q* ⊗ q̇)``
+    assumes them: a non-unit ``q`` gives a wrong rate, silently) and finite values, and
+    what was derived from them is finite; a ``ValueError`` naming ``traj.pose`` and the
+    first time otherwise."""
+    if not val.is_concrete(t, q, *derived):
+        return
+    tn = np.asarray(t)
+    for x in (q,) + derived:
+        bad = ~np.all(np.isfinite(np.asarray(x)), axis=-1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"traj.pose ({traj.name}) gave non-finite values at t[{i}] = "
+                             f"{tn[i]:g} (in its pose or their derivatives); it must be finite "
+                             "and twice differentiable at every t")
+    err = np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)
+    tol = val.unit_tolerance(q.dtype)
+    if np.any(err > tol):
+        i = int(np.argmax(err > tol))
+        raise ValueError(f"traj.pose ({traj.name}) gave a non-unit quaternion at t[{i}] = "
+                         f"{tn[i]:g} (| |q| - 1 | = {err[i]:.3g} > {tol:g}); return a unit q, "
+                         "e.g. normalised with jaximu.so3.quat_normalize inside pose")
+
+
+def _one(name, x, shape_of):
+    """``x`` (a checked gravity vector, world rate or sensor pose) of one trajectory: no
+    batch axes, which would land beside the time axis of the outputs."""
+    if len(shape_of) > 1:
+        raise ValueError(f"{name} must be one {x} for a trajectory's samples, got shape "
+                         f"{tuple(shape_of)}; jax.vmap over ideal_imu for several")
+
+
 def true_states(traj: Trajectory, t) -> NavState:
     """The exact states at times ``t`` ``(T,)`` (finite; zero biases): fields ``(T, ·)``."""
     t = _check_traj(traj, t)
     q, p, v, _, _ = _kinematics_at(traj, t)
+    _check_poses(traj, t, q, p, v)
     z = jnp.zeros_like(p)
     return NavState(q, p, v, z, z)
 
@@ -302,18 +343,25 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
     """
     t = _check_traj(traj, t)
     g = val.gravity_vector(gravity, t.dtype)  # refuses a complex gravity (to_dtype)
+    _one("gravity", "magnitude or (3,) vector", g.shape)
+    if omega_coriolis is not None:
+        from jaximu.world import check_omega
+
+        w = check_omega(omega_coriolis, t.dtype)
+        _one("omega_coriolis", "(3,) world rate", w.shape)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
     else:
         from jaximu.sensor import check_pose
 
         pose = check_pose(body_P_sensor, t.dtype)
+        _one("body_P_sensor.q", "(4,) quaternion", pose.q.shape)
+        _one("body_P_sensor.p", "(3,) lever arm", pose.p.shape)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
+    _check_poses(traj, t, q, p, v, omega, a)
     if omega_coriolis is not None:
         from jaximu.sensor import lever_arm_acceleration
-        from jaximu.world import check_omega
 
-        w = check_omega(omega_coriolis, t.dtype)
         omega = omega + so3.quat_rotate(so3.quat_conj(q), jnp.broadcast_to(w, omega.shape))
         # Coriolis, and ω×(ω×p): a point fixed in the turning world (on components)
         a = a + 2 * jnp.cross(w, v) + lever_arm_acceleration(w, None, p)
@@ -358,7 +406,8 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     # (complex inputs are refused by to_dtype below, naming them)
     if val.kind_of(dt) == "b":
         raise ValueError("dt must be sample periods in seconds, got a bool (True would be 1 s)")
-    dtype = val.float_dtype(gyro, accel)
+    key = val.check_key("key", key)
+    dtype = val.float_dtype(gyro, accel, dt, b_g0, b_a0)  # the data's; a float64 dt counts
     gyro, accel = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
     val.check_vector("gyro", gyro)
     val.check_vector("accel", accel)
@@ -387,6 +436,8 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         raise ValueError(f"dt must be a scalar or have shape (T,) = ({T},) (one period per "
                          f"sample), got {tuple(dt.shape)}")
     dt = jnp.broadcast_to(dt, (T,))
+    dens = val.noise_batches(noise)  # a density per sample broadcasts with dt's (T,)
+    val.batch_shape((T,), *(s for _, s in dens), names=("dt",) + tuple(n for n, _ in dens))
     sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each; checks dt > 0
     bias0 = {}
     for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
@@ -397,6 +448,18 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         val.check_finite(name, b)
         bias0[name] = b[..., None, :] if b.ndim else b
     b_g0, b_a0 = bias0["b_g0"], bias0["b_a0"]
+    # the outputs are batch_shape + (T, 3): a batch of the inputs beyond it would share one
+    # noise stream (the same noise in every element), so it is refused
+    given = (("gyro", gyro.shape[:-2]), ("accel", accel.shape[:-2]),
+             ("b_g0", b_g0.shape[:-2]), ("b_a0", b_a0.shape[:-2]))
+    full = val.batch_shape(batch_shape, *(s for _, s in given),
+                           names=("batch_shape",) + tuple(n for n, _ in given))
+    if tuple(full) != batch_shape:
+        name, shape = next((n, s) for n, s in given
+                           if jnp.broadcast_shapes(batch_shape, s) != batch_shape)
+        raise ValueError(f"{name} has batch axes {tuple(shape)} beyond batch_shape = "
+                         f"{batch_shape}: every element would get the same noise draw; pass "
+                         f"batch_shape={tuple(full)} (one independent stream each)")
     z = jax.random.normal(key, batch_shape + (T, 12), dtype)
     walk_g = jnp.cumsum(z[..., 6:9] * sbg, axis=-2)
     walk_a = jnp.cumsum(z[..., 9:12] * sba, axis=-2)
