@@ -347,6 +347,25 @@ def check_unbatched_noise(noise, what: str):
                              f"got shape {tuple(shape) + (3,)}")
 
 
+def check_batch_shape(batch_shape, name: str = "batch_shape"):
+    """``batch_shape`` as a tuple of non-negative ints; an int ``n`` is refused with the fix
+    ``(n,)`` in words (a bare int is not a shape; no command has such an option, so no
+    :class:`jaximu.errors.Fix`)."""
+    if isinstance(batch_shape, (int, np.integer)) and not isinstance(batch_shape, bool):
+        raise ValueError(f"{name} must be a tuple of ints, got the int {batch_shape}; "
+                         f"pass {name}=({int(batch_shape)},)")
+    try:
+        dims = tuple(batch_shape)
+    except TypeError:
+        raise ValueError(f"{name} must be a tuple of non-negative ints, got "
+                         f"{type(batch_shape).__name__} {batch_shape!r}") from None
+    for d in dims:
+        if isinstance(d, (bool, np.bool_)) or not isinstance(d, (int, np.integer)) or d < 0:
+            raise ValueError(f"{name} must be a tuple of non-negative ints, got "
+                             f"{batch_shape!r}")
+    return tuple(int(d) for d in dims)
+
+
 def batch_shape(*shapes, names=None):
     """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
     each after its argument's name) when they do not broadcast."""

@@ -420,7 +420,7 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     val.check_finite("gyro", gyro)
     val.check_finite("accel", accel)
     noise = val.check_noise(noise, dtype)
-    batch_shape = _batch_shape(batch_shape)
+    batch_shape = val.check_batch_shape(batch_shape)
     mis = {}
     for name, M in (("gyro_misalignment", gyro_misalignment),
                     ("accel_misalignment", accel_misalignment)):
@@ -476,22 +476,3 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     errors = ImuErrors(b_g, b_a, (b_g0 + walk_g[..., -1:, :])[..., 0, :],
                        (b_a0 + walk_a[..., -1:, :])[..., 0, :])
     return gyro_m, accel_m, errors
-
-
-def _batch_shape(batch_shape):
-    """``batch_shape`` as a tuple of non-negative ints; an int ``n`` is refused with the fix
-    ``(n,)`` in words (a bare int is not a shape; the command has no such option, so no
-    :class:`jaximu.errors.Fix`)."""
-    if isinstance(batch_shape, (int, np.integer)) and not isinstance(batch_shape, bool):
-        raise ValueError(f"batch_shape must be a tuple of ints, got the int {batch_shape}; "
-                         f"pass batch_shape=({int(batch_shape)},)")
-    try:
-        dims = tuple(batch_shape)
-    except TypeError:
-        raise ValueError(f"batch_shape must be a tuple of non-negative ints, got "
-                         f"{type(batch_shape).__name__} {batch_shape!r}") from None
-    for d in dims:
-        if isinstance(d, (bool, np.bool_)) or not isinstance(d, (int, np.integer)) or d < 0:
-            raise ValueError(f"batch_shape must be a tuple of non-negative ints, got "
-                             f"{batch_shape!r}")
-    return tuple(int(d) for d in dims)

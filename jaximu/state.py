@@ -64,7 +64,10 @@ class NavState:
     @classmethod
     def identity(cls, batch_shape=(), dtype=jnp.float32) -> NavState:
         """Identity attitude, zero position, velocity and biases."""
-        z = jnp.zeros(tuple(batch_shape) + (3,), dtype)
+        from jaximu._validation import check_batch_shape  # (it imports this module)
+
+        batch_shape = check_batch_shape(batch_shape)
+        z = jnp.zeros(batch_shape + (3,), dtype)
         return cls(so3.quat_identity(batch_shape, dtype), z, z, z, z)
 
     @property
@@ -109,7 +112,10 @@ class ImuBias:
 
     @classmethod
     def zeros(cls, batch_shape=(), dtype=jnp.float32) -> ImuBias:
-        z = jnp.zeros(tuple(batch_shape) + (3,), dtype)
+        """Zero gyro and accelerometer biases ``batch_shape + (3,)``."""
+        from jaximu._validation import check_batch_shape  # (it imports this module)
+
+        z = jnp.zeros(check_batch_shape(batch_shape) + (3,), dtype)
         return cls(z, z)
 
 

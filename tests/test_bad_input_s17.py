@@ -306,3 +306,18 @@ def test_calibrate_estimate_is_checked_before_the_recording_is_read(capsys, esti
     out, err = capsys.readouterr()
     assert code == 2 and fragment in err, err
     assert "read " not in out, out  # refused before the work
+
+
+# --------------------------------------------------------------------------- constructors
+
+
+@pytest.mark.parametrize("make", [jaximu.NavState.identity, jaximu.ImuBias.zeros])
+def test_constructors_name_a_bad_batch_shape(make):
+    """An int batch_shape raised Python's "'int' object is not iterable"; a negative or
+    non-int dimension JAX's shape error. Both are named, with the fix for the int."""
+    with pytest.raises(ValueError, match=r"batch_shape must be a tuple of ints, got the int 3; "
+                                         r"pass batch_shape=\(3,\)"):
+        make(3)
+    with pytest.raises(ValueError, match=r"batch_shape must be a tuple of non-negative ints"):
+        make((2, -1))
+    assert make((2,)).b_g.shape == (2, 3)
