@@ -579,12 +579,18 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
         C = -(-T // L)
         pad = C * L - T
 
-        def chunked(x):  # (T, ...) -> (L, C, ...), time k = c L + l
-            x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)], 0) if pad else x
+        def chunked(x, fill=None):  # (T, ...) -> (L, C, ...), time k = c L + l
+            if pad:
+                tail = (jnp.zeros((pad,) + x.shape[1:], x.dtype) if fill is None
+                        else jnp.broadcast_to(fill, (pad,) + x.shape[1:]))
+                x = jnp.concatenate([x, tail], 0)
             return jnp.swapaxes(x.reshape((C, L) + x.shape[1:]), 0, 1)
 
         mask = chunked(jnp.ones((T,) + batch, bool)) if pad else None
-        xs = tuple(chunked(x) for x in (dR, w0, a0, w1, a1, h)) + (mask,)
+        # padded steps are masked out, but their rotations are unit quaternions: the
+        # autodiff step normalises dR ⊗ dq, and a zero dR's NaN reached the reverse-mode
+        # gradient through the mask's where
+        xs = (chunked(dR, q_id),) + tuple(chunked(x) for x in (w0, a0, w1, a1, h)) + (mask,)
         final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, (C,) + batch, dtype,
                                  prefixes, lever=lever)
         # 3. an associative scan across the chunk summaries (dense: few, cheap to compile)

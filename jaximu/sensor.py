@@ -320,7 +320,14 @@ def noise_to_body(pose: SensorPose, noise: ImuNoise) -> ImuNoise:
 
     def rot(s):
         s = jnp.asarray(s)
-        return s if s.ndim == 0 else jnp.sqrt(matvec(RR, s * s))
+        if s.ndim == 0:
+            return s
+        # a body axis with no noise (a zero per-axis density, as zero random walks given as
+        # (3,) arrays are) has σ_B² = 0 at its minimum: its derivative is zero, and so is
+        # the square root's taken here (jnp.sqrt's at 0 is inf: NaN gradients downstream)
+        v = matvec(RR, s * s)
+        pos = v > 0
+        return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, jnp.ones_like(v))), jnp.zeros_like(v))
 
     return ImuNoise(*(rot(getattr(noise, f.name)) for f in dataclasses.fields(ImuNoise)))
 
