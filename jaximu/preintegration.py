@@ -579,11 +579,9 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
         C = -(-T // L)
         pad = C * L - T
 
-        def chunked(x, fill=None):  # (T, ...) -> (L, C, ...), time k = c L + l
+        def chunked(x, fill=0):  # (T, ...) -> (L, C, ...), time k = c L + l
             if pad:
-                tail = (jnp.zeros((pad,) + x.shape[1:], x.dtype) if fill is None
-                        else jnp.broadcast_to(fill, (pad,) + x.shape[1:]))
-                x = jnp.concatenate([x, tail], 0)
+                x = jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)], 0)
             return jnp.swapaxes(x.reshape((C, L) + x.shape[1:]), 0, 1)
 
         mask = chunked(jnp.ones((T,) + batch, bool)) if pad else None
