@@ -47,8 +47,8 @@ import numpy as np  # noqa: E402
 import jaximu  # noqa: E402
 from jaximu.datasets import euroc_v1_02_segment  # noqa: E402
 # (propagation reads --devices before JAX starts: one CPU device per core)
-from propagation import (DEVICES, VECTOR_WIDTH, lane_mesh, machine_info,  # noqa: E402
-                         machine_slug, place)
+from propagation import (DEVICES, NO_UNROLL, VECTOR_WIDTH, lane_mesh,  # noqa: E402
+                         machine_info, machine_slug, place)
 
 TARGETS = {"long": 5.0, "windows": 10.0}  # × GTSAM Manifold, float64
 
@@ -151,6 +151,9 @@ def main(argv=None):
     ap.add_argument("--vector-width", type=int, default=0, choices=(0, 128, 256, 512),
                     help="XLA:CPU's preferred vector width in bits "
                          "(benchmarks/propagation.py --vector-width)")
+    ap.add_argument("--no-loop-unrolling", action="store_true",
+                    help="XLA:CPU compiles without LLVM loop unrolling "
+                         "(benchmarks/propagation.py --no-loop-unrolling)")
     args = ap.parse_args(argv)
     n_long, n_win, w_len = (20_000, 512, 200) if args.quick else (100_000, 4096, 200)
     long, windows, bias = make_inputs(n_long, n_win, w_len)
@@ -375,7 +378,7 @@ def main(argv=None):
         os.path.dirname(__file__), "results",
         f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}"
         f"{f'-{DEVICES}dev' if DEVICES > 1 else ''}"
-        f"{f'-vw{VECTOR_WIDTH}' if VECTOR_WIDTH else ''}.json")
+        f"{f'-vw{VECTOR_WIDTH}' if VECTOR_WIDTH else ''}{'-nounroll' if NO_UNROLL else ''}.json")
     os.makedirs(os.path.dirname(out_path), exist_ok=True)
     with open(out_path, "w") as f:
         json.dump(dict(machine=info, rows=rows), f, indent=1)

@@ -80,6 +80,21 @@ VW_FLAG = f"--xla_cpu_prefer_vector_width={VECTOR_WIDTH}"
 if VECTOR_WIDTH and VW_FLAG not in os.environ.get("XLA_FLAGS", ""):  # read when JAX starts
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + VW_FLAG).strip()
 
+NO_UNROLL = "--no-loop-unrolling" in sys.argv[1:]
+"""``--no-loop-unrolling``: XLA:CPU asks LLVM for no loop unrolling (the backend option
+``xla_cpu_disable_loop_unrolling``), as a user sets it in ``XLA_FLAGS`` (README, "Compile
+time"). XLA_FLAGS is parsed once, so the option joins the last ``--xla_backend_extra_options``
+there, if any."""
+NO_UNROLL_OPTION = "xla_cpu_disable_loop_unrolling"
+if NO_UNROLL and NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""):
+    _flags = os.environ.get("XLA_FLAGS", "").split()
+    _extra = [i for i, f in enumerate(_flags) if f.startswith("--xla_backend_extra_options=")]
+    if _extra:
+        _flags[_extra[-1]] += "," + NO_UNROLL_OPTION
+    else:
+        _flags.append("--xla_backend_extra_options=" + NO_UNROLL_OPTION)
+    os.environ["XLA_FLAGS"] = " ".join(_flags)
+
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -522,7 +537,8 @@ def worker(spec: dict) -> None:
 
 def run_in_subprocess(payload: dict, timeout: float) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--devices", str(DEVICES),
-           "--vector-width", str(VECTOR_WIDTH), "--worker", json.dumps(payload)]
+           "--vector-width", str(VECTOR_WIDTH)] + (["--no-loop-unrolling"] if NO_UNROLL else []) \
+        + ["--worker", json.dumps(payload)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -789,6 +805,10 @@ def main(argv=None) -> int:
                     help="XLA:CPU's preferred vector width in bits "
                          "(--xla_cpu_prefer_vector_width in XLA_FLAGS; default 0: XLA's own, "
                          "256)")
+    ap.add_argument("--no-loop-unrolling", action="store_true",
+                    help="XLA:CPU compiles without LLVM loop unrolling "
+                         "(xla_cpu_disable_loop_unrolling in XLA_FLAGS' "
+                         "--xla_backend_extra_options; README, \"Compile time\")")
     ap.add_argument("--check", type=Path, metavar="BASELINE",
                     help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
                          "more than 30%% slower")
@@ -883,7 +903,8 @@ def main(argv=None) -> int:
     if out is None:
         suffix = (("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
                   + (f"-{args.devices}dev" if args.devices > 1 else "")
-                  + (f"-vw{args.vector_width}" if args.vector_width else ""))
+                  + (f"-vw{args.vector_width}" if args.vector_width else "")
+                  + ("-nounroll" if args.no_loop_unrolling else ""))
         out = RESULTS_DIR / f"propagation-{machine_slug(info)}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
@@ -894,6 +915,7 @@ def main(argv=None) -> int:
                       max_case_s=args.max_case_s, rss=args.rss, dt=DT, gyro_std=GYRO_STD,
                       accel_std=ACCEL_STD, noise="ImuNoise.euroc()", attitude="quaternion",
                       devices=args.devices, vector_width=args.vector_width or None,
+                      loop_unrolling=not args.no_loop_unrolling,
                       argv=sys.argv[1:]),
         definitions=dict(
             samples_per_s="B*T / run_s",

@@ -39,8 +39,15 @@ sequences aim to fill there: a launch over 65536 lanes fills a GPU (an H100 hold
 270 000 threads), and every block or chunk fewer is a sequential step fewer."""
 
 LONG_STEPS = 2048
-"""From this many steps the mean of a float64 sequence of a small batch (its final state; every
-state of a single sequence) is computed in time chunks."""
+"""From this many steps an accelerator computes the mean of a sequence of a small batch in
+time chunks (each sequential step there is a launch)."""
+
+CPU_LONG_STEPS = 1 << 25
+"""From this many steps (46 h at 200 Hz) the CPU computes the final state of a float64
+sequence of a small batch in time chunks: where one call repays their compile. One float64
+trajectory runs 71 M samples/s as chunks and 32 M/s on the one-block kernel, which compiles
+in 0.2 s against 0.8 s: 0.6 s / (1/32 M - 1/71 M) = 3.5·10^7 steps (docs/DESIGN.md,
+"Dispatch")."""
 
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
@@ -71,19 +78,13 @@ TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
-    # the final state of a few long sequences in float64: time chunks side by side as the
-    # lanes of one block (mean_chunks), composed (the lanes can then also be split over
-    # devices). float32 keeps the one-lane kernel: the chunk deltas, which carry the
-    # specific force without gravity cancelling it, round 4x worse in float32
+    # the final state of a few very long float64 sequences: time chunks side by side as
+    # the lanes of one block (mean_chunks), their deltas composed in sequence. Shorter ones,
+    # and every state stored, run on the one-block kernel further down (CPU_LONG_STEPS).
+    # float32 stays there at any length: the chunk deltas, which carry the specific force
+    # without gravity cancelling it, round 4x worse in float32
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False,), 1,
-        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,)),
-    # every state of one long float64 sequence: the chunks run again from their composed
-    # starts (1 x 10^5: 20.9 against 16.7 M samples/s on one lane, compiled in 0.9 against
-    # 0.3 s). From two sequences on, the lanes they already fill win (T = 8192: 2
-    # sequences 13.9 M chunked against 17.0 M, 16 sequences 11.7 against 15.8 M)
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (True,), 1,
-        LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,),
-        max_lanes=1),
+        CPU_LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,)),
     # on an accelerator a sequential step costs a launch whatever the lanes: long sequences
     # run as time chunks in both dtypes, every state stored too (the chunks run twice, from
     # the composed starts)

@@ -40,8 +40,8 @@ from jaximu import sensor
 from jaximu._fast import blocks_autodiff
 from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _cond,
                          _diag_row, _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
-                         _quat_normalize, _quat_rotate, _rows, _skew3, _stage, _time_chunks,
-                         block_lanes, direction_block, jvp_directions, lane_directions,
+                         _quat_normalize, _quat_renormalize, _quat_rotate, _rows, _skew3, _stage,
+                         _time_chunks, block_lanes, direction_block, jvp_directions, lane_directions,
                          quat_matrix, rotation_rows, rotation_tangents, run_blocked,
                          whole_chunks)
 from jaximu._vec import V3
@@ -68,7 +68,7 @@ def _lane_scalars(big):
         else:
             c, k = _half_small(t2)
             b = _jr_b_small(t2)
-        q1 = _quat_normalize(_quat_mul(q, (c, k * phi[0], k * phi[1], k * phi[2])))
+        q1 = _quat_renormalize(_quat_mul(q, (c, k * phi[0], k * phi[1], k * phi[2])))
         dp1 = tuple((dp[i] + dv[i] * h) + 0.5 * u[i] * h * h for i in range(3))
         dv1 = tuple(dv[i] + u[i] * h for i in range(3))
         return (q1, dv1, dp1, t + h), (u, phi, t2, k, b)

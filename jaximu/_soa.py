@@ -132,6 +132,25 @@ def _quat_normalize(q):
     return tuple(x * r for x in q)
 
 
+def _quat_renormalize(q):
+    """``q / |q|`` for a ``q`` of norm 1 up to a small ``ε = |q|² - 1``: a unit quaternion
+    times a unit increment, where ``ε`` is rounding (or, in a trajectory's first step, the
+    validated start state's ``unit_tolerance``). ``1/√(1 + ε) = 1 - ε/2 + O(ε²)``, so
+    ``r = (3 - |q|²)/2``: the direction is exactly the division's, the norm within ``3ε²/4``
+    of 1 (rounding for a unit start; at most 8e-13 once, after the first step, for a float64
+    start at the tolerance edge, and every further step squares it). The square root and
+    division sit on a step's loop-carried path (each step's rotation waits for the last
+    one's), so this is what one trajectory's speed turns on: 1.3x on one float64 lane
+    (docs/DESIGN.md, "Renormalisation"). Over many lanes ``r`` is stored once
+    (:func:`_materialise`) for the four components to read; XLA would otherwise recompute
+    it in each. Increments that are not unit (first order, VINS-Mono's midpoint) use
+    :func:`_quat_normalize`."""
+    r = 1.5 - 0.5 * (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if jnp.size(r) > 1:
+        r, = _materialise([r])
+    return tuple(x * r for x in q)
+
+
 def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
@@ -711,7 +730,7 @@ def _quat_advance(q, phi: V3, half=None):
     """``normalize(q ⊗ Exp(φ))``: the exact exponential, renormalised so that rounding
     cannot let ``|q|`` drift; ``half``: ``(cos(θ/2), sin(θ/2)/θ)`` when the caller has them."""
     c, k = half_angle(phi.dot(phi)) if half is None else half
-    return _quat_normalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
+    return _quat_renormalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
 
 
 def _quat_first_order(q, phi: V3, half=None):

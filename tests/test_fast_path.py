@@ -13,7 +13,7 @@ from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 
-from _shared import dispatch_as, random_inputs as inputs
+from _shared import cpu_chunks_from, dispatch_as, random_inputs as inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 
@@ -122,9 +122,10 @@ def test_half_angle_kernels_match_trig(dtype):
     (1, 2051, "euler", False, False, "cpu"), (1, 2051, "midpoint", False, False, "cpu"),
     # rk4: 2049 steps, padded to whole chunks (dt = 0)
     (2, 2050, "rk4", False, True, "cpu"),
-    (1, 2051, "euler", True, False, "cpu"), (2, 2050, "rk4", True, True, "cpu"),
     # 64 chunks of 67 steps padded to 68 (whole kernel time chunks): the last all padding
-    (1, 4229, "rk4", True, True, "cpu"),
+    (1, 4229, "rk4", False, True, "cpu"),
+    # every state on the CPU: the one-block kernel over the long sequence, not chunks
+    (1, 2051, "euler", True, False, "cpu"), (2, 2050, "rk4", True, True, "cpu"),
     # the accelerator's: the final state's deltas reduced as a tree (65 chunks: odd counts
     # padded), every state from a prefix scan of them
     (1, 2080, "midpoint", False, False, "accelerator"),
@@ -132,10 +133,10 @@ def test_half_angle_kernels_match_trig(dtype):
 def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals,
                                                             backend):
     """A few long float64 sequences run as time chunks side by side (deltas from the
-    identity, composed: in sequence on the CPU, as a tree on an accelerator); every state
-    stored runs the chunks again from the starts a prefix of their deltas gives (a
-    sequential scan on the CPU, for one sequence; a parallel prefix scan on an
-    accelerator). Each: the plain
+    identity, composed: in sequence on the CPU, as a tree on an accelerator); on an
+    accelerator every state stored runs the chunks again from the starts a parallel prefix
+    scan of their deltas gives (the CPU stores every state from its one-block kernel, also
+    checked here). Each: the plain
     generic scan's states to rounding, for every scheme, with per-sample dt and with dt of
     length T-1 (samples at the ends of the intervals). The accelerator's dispatch runs here
     on the CPU (tests/_shared.dispatch_as)."""
@@ -143,12 +144,12 @@ def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_a
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
-    # every state: in chunks for one sequence on the CPU (more fill the lanes themselves)
-    chunked = backend == _dispatch.ACCELERATOR or not save_all or B == 1
-    assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all, lanes=B,
-                            steps=steps, on=backend) == ("soa_mean_chunked" if chunked
-                                                         else "soa_mean")
-    with dispatch_as(backend):
+    # the CPU chunks the final state only, from CPU_LONG_STEPS (lowered here to 2048)
+    chunked = backend == _dispatch.ACCELERATOR or not save_all
+    with dispatch_as(backend), cpu_chunks_from(2048):
+        assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all,
+                                lanes=B, steps=steps, on=backend) == (
+            "soa_mean_chunked" if chunked else "soa_mean")
         fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
@@ -165,23 +166,28 @@ def test_whole_chunks_are_cut_without_a_remainder():
         assert all(x % _soa._chunk_size(x) for x in range(L, W))
 
 
-def test_long_sequence_every_state_gradient_equals_generic():
-    """The gradient through the CPU's chunked every-state path (two kernel passes and the
-    sequential prefix of the chunk deltas) equals the generic scan's, for a loss on all
-    states of one float64 sequence of 2100 steps (over LONG_STEPS)."""
+@pytest.mark.parametrize("save_all,backend", [(False, "cpu"), (True, "accelerator")])
+def test_long_sequence_gradient_equals_generic(save_all, backend):
+    """The gradient through the chunked paths equals the generic scan's, for a loss on the
+    states of one float64 sequence of 2100 steps: the CPU's final state (the chunk deltas
+    applied in sequence; its threshold lowered to 2048) and the accelerator's every state
+    (two kernel passes and the parallel prefix of the chunk deltas)."""
     state, gyro, accel = inputs(1, 2100, seed=13)
     dt = jnp.full((2100,), 0.005)
-    assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=True, lanes=1,
-                            steps=2100, on=_dispatch.CPU) == "soa_mean_chunked"
     w = jnp.asarray(np.random.default_rng(14).normal(size=(2100, 3)))
 
     def loss(scale, fast):
-        s = mean(state, gyro * scale, accel, dt, G_W, save_all=True, fast=fast,
+        s = mean(state, gyro * scale, accel, dt, G_W, save_all=save_all, fast=fast,
                  scheme="midpoint")
+        if not save_all:
+            return jnp.sum(s.p[0] * w[0]) + jnp.sum(s.q[0] * w[1, :1])
         return jnp.sum(s.p[0] * w) * 1e-3 + jnp.sum(s.q[0] * w[:, :1])
 
-    np.testing.assert_allclose(jax.grad(loss)(1.1, True), jax.grad(loss)(1.1, False),
-                               rtol=1e-10)
+    with dispatch_as(backend), cpu_chunks_from(2048):
+        assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=save_all,
+                                lanes=1, steps=2100, on=backend) == "soa_mean_chunked"
+        fast = jax.grad(loss)(1.1, True)
+    np.testing.assert_allclose(fast, jax.grad(loss)(1.1, False), rtol=1e-10)
 
 
 def test_long_float32_sequence_in_time_chunks_on_an_accelerator():
