@@ -142,7 +142,9 @@ def bench_gtsam(data, bias, combined=False):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    # allow_abbrev=False: --vector-width and --no-loop-unrolling are read from sys.argv
+    # by their exact names before JAX starts (benchmarks/propagation.py)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--out", default=None, help="JSON output path")
     ap.add_argument("--devices", type=int, default=1,

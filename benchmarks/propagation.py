@@ -83,8 +83,7 @@ if VECTOR_WIDTH and VW_FLAG not in os.environ.get("XLA_FLAGS", ""):  # read when
 NO_UNROLL = "--no-loop-unrolling" in sys.argv[1:]
 """``--no-loop-unrolling``: XLA:CPU asks LLVM for no loop unrolling (the backend option
 ``xla_cpu_disable_loop_unrolling``), as a user sets it in ``XLA_FLAGS`` (README, "Compile
-time"). XLA_FLAGS is parsed once, so the option joins the last ``--xla_backend_extra_options``
-there, if any."""
+time"). The option joins the last ``--xla_backend_extra_options`` list there, if any."""
 NO_UNROLL_OPTION = "xla_cpu_disable_loop_unrolling"
 if NO_UNROLL and NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""):
     _flags = os.environ.get("XLA_FLAGS", "").split()
@@ -783,7 +782,9 @@ def check(results: list[dict], baseline_path: Path,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    # allow_abbrev=False: --devices, --vector-width and --no-loop-unrolling are read from
+    # sys.argv by their exact names before JAX starts
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="small sizes: a smoke test (< 1 min)")
     ap.add_argument("--only", choices=("mean", "cov"), help="run only one group of cases")
@@ -904,7 +905,7 @@ def main(argv=None) -> int:
         suffix = (("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
                   + (f"-{args.devices}dev" if args.devices > 1 else "")
                   + (f"-vw{args.vector_width}" if args.vector_width else "")
-                  + ("-nounroll" if args.no_loop_unrolling else ""))
+                  + ("-nounroll" if NO_UNROLL else ""))
         out = RESULTS_DIR / f"propagation-{machine_slug(info)}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
@@ -915,7 +916,7 @@ def main(argv=None) -> int:
                       max_case_s=args.max_case_s, rss=args.rss, dt=DT, gyro_std=GYRO_STD,
                       accel_std=ACCEL_STD, noise="ImuNoise.euroc()", attitude="quaternion",
                       devices=args.devices, vector_width=args.vector_width or None,
-                      loop_unrolling=not args.no_loop_unrolling,
+                      loop_unrolling=NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""),
                       argv=sys.argv[1:]),
         definitions=dict(
             samples_per_s="B*T / run_s",

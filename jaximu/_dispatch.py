@@ -42,13 +42,6 @@ LONG_STEPS = 2048
 """From this many steps an accelerator computes the mean of a sequence of a small batch in
 time chunks (each sequential step there is a launch)."""
 
-CPU_LONG_STEPS = 1 << 25
-"""From this many steps (46 h at 200 Hz) the CPU computes the final state of a float64
-sequence of a small batch in time chunks: where one call repays their compile. One float64
-trajectory runs 71 M samples/s as chunks and 32 M/s on the one-block kernel, which compiles
-in 0.2 s against 0.8 s: 0.6 s / (1/32 M - 1/71 M) = 3.5·10^7 steps (docs/DESIGN.md,
-"Dispatch")."""
-
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
 
@@ -78,13 +71,6 @@ TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
-    # the final state of a few very long float64 sequences: time chunks side by side as
-    # the lanes of one block (mean_chunks), their deltas composed in sequence. Shorter ones,
-    # and every state stored, run on the one-block kernel further down (CPU_LONG_STEPS).
-    # float32 stays there at any length: the chunk deltas, which carry the specific force
-    # without gravity cancelling it, round 4x worse in float32
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False,), 1,
-        CPU_LONG_STEPS, "soa_mean_chunked", ("float64",), lever=None, backends=(CPU,)),
     # on an accelerator a sequential step costs a launch whatever the lanes: long sequences
     # run as time chunks in both dtypes, every state stored too (the chunks run twice, from
     # the composed starts)
@@ -93,7 +79,10 @@ TABLE = (
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples). On an accelerator the generic kernel's step over all
-    # lanes is as fast (float64) or 2x faster (float32, 1024 lanes)
+    # lanes is as fast (float64) or 2x faster (float32, 1024 lanes). On the CPU a long
+    # sequence stays here: as time chunks (soa_mean_chunked) one float64 trajectory of 10^5
+    # samples ran 59 against 32 M samples/s but compiled in 0.8 against 0.23 s, and at 2^25
+    # samples both ran 34 M/s (the chunks' gather is memory-bound)
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
@@ -139,21 +128,10 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
     return GENERIC
 
 
-def mean_chunks(lanes, steps, dtype) -> int:
-    """Time chunks per sequence for ``soa_mean_chunked``, each at least
-    :data:`MIN_CHUNK_STEPS` steps long: on the CPU enough to fill one batch block of lanes
-    (a block's step costs nearly as much with fewer lanes, and each block more is a
-    sequential pass: 1 x 10^5 float64 samples, final state, as 64 chunks 59.6 M samples/s
-    compiled in 0.8 s, as 1024 chunks 53.7 M/s in 1.2 s; under a mesh of two devices 64
-    chunks ran the final state faster than 128, docs/DESIGN.md section 5); on an
-    accelerator :data:`ACCELERATOR_LANES`."""
-    if backend() == CPU:
-        from jaximu._soa import block_lanes
-
-        fill = block_lanes(jnp.dtype(dtype))
-    else:
-        fill = ACCELERATOR_LANES
-    return int(max(1, min(-(-fill // lanes), steps // MIN_CHUNK_STEPS)))
+def mean_chunks(lanes, steps) -> int:
+    """Time chunks per sequence for ``soa_mean_chunked`` (an accelerator's), each at least
+    :data:`MIN_CHUNK_STEPS` steps long, enough to fill :data:`ACCELERATOR_LANES`."""
+    return int(max(1, min(-(-ACCELERATOR_LANES // lanes), steps // MIN_CHUNK_STEPS)))
 
 
 # --------------------------------------------------------------------------- preintegration

@@ -133,14 +133,14 @@ def _quat_normalize(q):
 
 
 def _quat_renormalize(q):
-    """``q / |q|`` for a ``q`` of norm 1 up to a small ``ε = |q|² - 1``: a unit quaternion
-    times a unit increment, where ``ε`` is rounding (or, in a trajectory's first step, the
-    validated start state's ``unit_tolerance``). ``1/√(1 + ε) = 1 - ε/2 + O(ε²)``, so
-    ``r = (3 - |q|²)/2``: the direction is exactly the division's, the norm within ``3ε²/4``
-    of 1 (rounding for a unit start; at most 8e-13 once, after the first step, for a float64
-    start at the tolerance edge, and every further step squares it). The square root and
-    division sit on a step's loop-carried path (each step's rotation waits for the last
-    one's), so this is what one trajectory's speed turns on: 1.3x on one float64 lane
+    """``q / |q|`` for a ``q`` whose norm is 1 to rounding: a unit quaternion times a unit
+    increment. With ``ε = |q|² - 1``, ``1/|q| = 1 - ε/2 + 3ε²/8 - …``, so
+    ``r = (3 - |q|²)/2`` is the division's to ``3ε²/8``, below rounding while ``|ε|`` is
+    (then ``|q r|`` is 1 within ``3ε²/8`` and each step squares the deviation; the
+    direction is the division's exactly). The engines start from a normalised ``q``
+    (:func:`jaximu.propagate.unit_start`), so every step's input is such a product. The
+    square root and the division sat on a step's loop-carried path (each step's rotation
+    waits for the last one's): one float64 trajectory 1.3x faster without them
     (docs/DESIGN.md, "Renormalisation"). Over many lanes ``r`` is stored once
     (:func:`_materialise`) for the four components to read; XLA would otherwise recompute
     it in each. Increments that are not unit (first order, VINS-Mono's midpoint) use

@@ -49,7 +49,7 @@ from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
                               flatten_batch, lane_values, mean_body, n_steps, prepare,
-                              sensor_engine_inputs, soa_samples, time_major)
+                              sensor_engine_inputs, soa_samples, time_major, unit_start)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -313,6 +313,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
     ``state``'s biases the sensor's (:func:`jaximu.propagate.sensor_engine_inputs`; ``P0``,
     ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
     att = get_attitude(attitude)
+    state = unit_start(state)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],

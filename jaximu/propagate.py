@@ -74,6 +74,15 @@ def n_steps(gyro, dt) -> int:
     return dt.shape[-1] if dt.ndim else gyro.shape[-2]
 
 
+def unit_start(state: NavState) -> NavState:
+    """``state`` with ``q / |q|``: the engines start from the rotation ``q`` stands for.
+    Eager calls refuse a ``q`` further from unit than the tolerance; under ``jit`` nothing
+    can check it, and the kernels' renormalisation after each step assumes a unit start
+    (:func:`jaximu._soa._quat_renormalize`). For a unit ``q`` it changes nothing but
+    rounding."""
+    return NavState(so3.quat_normalize(state.q), state.p, state.v, state.b_g, state.b_a)
+
+
 def broadcast_state(state: NavState, batch) -> NavState:
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]), state)
 
@@ -197,20 +206,20 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
     known relative to its start, and its acceleration weights sum to ``h`` (in v) and
     ``h²/2`` (in p). So a chunk propagated from the identity with zero gravity gives its
-    exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). The final
-    state applies them in sequence on the CPU (``C`` cheap steps); they compose
-    associatively (:func:`jaximu.integrators.compose_deltas`), so on an accelerator their
-    product is reduced as a tree (``log2 C`` launches, not ``C``). ``save_all``: a prefix
-    of the deltas gives every chunk's start state (in sequence on the CPU, a parallel prefix
-    scan on an accelerator), and the chunks run again from those starts, storing their
-    states (twice the arithmetic, for ``C`` times fewer sequential steps; docs/DESIGN.md
-    "Dispatch"). Equal to the plain scan to rounding.
+    exact deltas ``(ΔR, Δv, Δp, Δt)`` in its start frame (its preintegration). They
+    compose associatively (:func:`jaximu.integrators.compose_deltas`), so their product is
+    reduced as a tree (``log2 C`` launches, not ``C``). ``save_all``: a parallel prefix
+    scan of the deltas gives every chunk's start state, and the chunks run again from those
+    starts, storing their states (twice the arithmetic, for ``C`` times fewer sequential
+    steps). Equal to the plain scan to rounding. An accelerator's kernel (each sequential
+    step there is a launch); the CPU runs long sequences on the one-block kernel
+    (docs/DESIGN.md, "Dispatch").
     """
     sch = get_scheme(scheme)
     n = n_steps(gyro, dt)
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
-    C = dispatch.mean_chunks(B, n, dtype)
+    C = dispatch.mean_chunks(B, n)
     L = _soa.whole_chunks(-(-n // C))
     pad = C * L - n
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
@@ -224,7 +233,10 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
                            for x in (gyro_f, accel_f))
     # chunk c holds steps [cL, cL + L) and, for sample k+1 schemes, sample cL + L too;
     # lane b*C + c is chunk c of sequence b
-    idx = np.arange(C)[:, None] * L + np.arange(L + extra)[None, :]
+    # computed in the program: as a numpy constant (C·(L+1) indices) it is compiled into
+    # it, and the compile grew with the sequence (2^25 steps: 3.8 against 1.1 s)
+    idx = (jnp.arange(C, dtype=jnp.int32)[:, None] * L
+           + jnp.arange(L + extra, dtype=jnp.int32)[None, :])
     lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])  # noqa: E731
     gyro_c, accel_c = lanes(gyro_f), lanes(accel_f)
     dt_c = dt_f.reshape(B * C, L)
@@ -240,14 +252,7 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     # a chunk of no steps, (1, B, .)
     ident = (jnp.zeros((1, B, 4), dtype).at[..., 0].set(1), jnp.zeros((1, B, 3), dtype),
              jnp.zeros((1, B, 3), dtype), jnp.zeros((1, B), dtype))
-    if dispatch.backend() == dispatch.CPU:
-        # C cheap steps in sequence: on XLA:CPU the tree below compiles 3-4x longer (1 ->
-        # 3.4-4.5 s for 1 x 10^5 float64) and runs 8% slower, and the associative prefix
-        # for every state 2.2-3.1 s against 1.0-1.6 s. The carry ends at the final state;
-        # the outputs are the chunks' start states (chunk c starts where 0..c-1 end)
-        (qf, pf, vf), starts = jax.lax.scan(lambda s, d: (_apply_deltas(*s, g_b, d), s),
-                                            (q, p, v), deltas)
-    elif not save_all:
+    if not save_all:
         while deltas[0].shape[0] > 1:  # pairwise, log2(C) levels
             if deltas[0].shape[0] % 2:  # an identity chunk pads to an even count
                 deltas = tuple(jnp.concatenate([d, e]) for d, e in zip(deltas, ident))
@@ -259,14 +264,12 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
                           jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
                           jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
         return states, jnp.zeros(batch, bool)
-    # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas;
-    # on the CPU the sequential scan above gave them)
-    if dispatch.backend() != dispatch.CPU:
-        before = ident
-        if C > 1:
-            prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
-            before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
-        starts = _apply_deltas(q, p, v, g_b, before)
+    # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
+    before = ident
+    if C > 1:
+        prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
+        before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
+    starts = _apply_deltas(q, p, v, g_b, before)
     relane = lambda x: jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:])  # noqa: E731
     q_s, p_s, v_s = (relane(x) for x in starts)
     out = _fast.propagate_mean(sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c,
@@ -344,6 +347,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     the others read them moved (:func:`jaximu.sensor.to_body`). The returned states' biases
     are then the body's."""
     att = get_attitude(attitude)
+    state = unit_start(state)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1],
                                  *(() if omega is None else (omega.shape[:-1],)),
@@ -486,7 +490,8 @@ def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
 
     Args:
         state: initial :class:`NavState` at ``t_0`` (fields ``(..., 4)`` / ``(..., 3)``);
-            ``q`` must be a unit quaternion (it is checked, never silently normalised).
+            ``q`` must be a unit quaternion (checked on eager calls, an error beyond the
+            tolerance, never silently normalised); the step starts from ``q / |q|``.
         gyro: ``(..., T, 3)`` raw body rate ``w_m`` [rad/s]; sample k is held over ``dt[k]``.
         accel: ``(..., T, 3)`` raw specific force ``a_m`` [m/s²] (level and still: ``[0, 0, +g]``).
         dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample. Or

@@ -70,21 +70,3 @@ def dispatch_as(backend):
         _dispatch.backend = saved
         jax.clear_caches()
 
-
-@contextlib.contextmanager
-def cpu_chunks_from(steps):
-    """Run the CPU's time-chunked mean (``soa_mean_chunked``) from ``steps`` steps instead of
-    ``jaximu._dispatch.CPU_LONG_STEPS`` (2^25, too long for a test): its table row with a
-    lower threshold. The jit caches are cleared around it, as in :func:`dispatch_as`."""
-    from jaximu import _dispatch
-
-    saved = _dispatch.TABLE
-    _dispatch.TABLE = tuple(
-        r._replace(min_steps=steps) if r.kernel == "soa_mean_chunked"
-        and r.backends == (_dispatch.CPU,) else r for r in saved)
-    jax.clear_caches()
-    try:
-        yield
-    finally:
-        _dispatch.TABLE = saved
-        jax.clear_caches()

@@ -13,7 +13,7 @@ from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
 
-from _shared import cpu_chunks_from, dispatch_as, random_inputs as inputs
+from _shared import dispatch_as, random_inputs as inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 
@@ -119,37 +119,31 @@ def test_half_angle_kernels_match_trig(dtype):
 
 
 @pytest.mark.parametrize("B,T,scheme,save_all,intervals,backend", [
-    (1, 2051, "euler", False, False, "cpu"), (1, 2051, "midpoint", False, False, "cpu"),
-    # rk4: 2049 steps, padded to whole chunks (dt = 0)
-    (2, 2050, "rk4", False, True, "cpu"),
-    # 64 chunks of 67 steps padded to 68 (whole kernel time chunks): the last all padding
-    (1, 4229, "rk4", False, True, "cpu"),
-    # every state on the CPU: the one-block kernel over the long sequence, not chunks
-    (1, 2051, "euler", True, False, "cpu"), (2, 2050, "rk4", True, True, "cpu"),
-    # the accelerator's: the final state's deltas reduced as a tree (65 chunks: odd counts
-    # padded), every state from a prefix scan of them
+    # the accelerator's time chunks: the final state's deltas reduced as a tree, every state
+    # from a prefix scan of them; 2049 steps as 64 chunks of 33 (63 padding steps, dt = 0)
     (1, 2080, "midpoint", False, False, "accelerator"),
-    (1, 2051, "euler", True, False, "accelerator"), (2, 2050, "rk4", True, True, "accelerator")])
-def test_long_sequences_in_time_chunks_equal_the_plain_scan(B, T, scheme, save_all, intervals,
-                                                            backend):
-    """A few long float64 sequences run as time chunks side by side (deltas from the
-    identity, composed: in sequence on the CPU, as a tree on an accelerator); on an
-    accelerator every state stored runs the chunks again from the starts a parallel prefix
-    scan of their deltas gives (the CPU stores every state from its one-block kernel, also
-    checked here). Each: the plain
-    generic scan's states to rounding, for every scheme, with per-sample dt and with dt of
-    length T-1 (samples at the ends of the intervals). The accelerator's dispatch runs here
-    on the CPU (tests/_shared.dispatch_as)."""
+    (1, 2051, "euler", True, False, "accelerator"), (2, 2050, "rk4", True, True, "accelerator"),
+    (2, 2050, "rk4", False, True, "accelerator"),
+    # 132 chunks of 33 steps: the last three all padding
+    (1, 4229, "rk4", True, True, "accelerator"),
+    # the CPU: the one-block kernel over the long sequence (no chunks on the CPU)
+    (1, 2051, "euler", False, False, "cpu"), (1, 2051, "euler", True, False, "cpu"),
+    (2, 2050, "rk4", True, True, "cpu")])
+def test_long_sequences_equal_the_plain_scan(B, T, scheme, save_all, intervals, backend):
+    """A few long float64 sequences on an accelerator run as time chunks side by side
+    (deltas from the identity, composed as a tree; every state stored runs the chunks again
+    from the starts a parallel prefix scan of their deltas gives); on the CPU on the
+    one-block kernel. Each: the plain generic scan's states to rounding, for every scheme,
+    with per-sample dt and with dt of length T-1 (samples at the ends of the intervals).
+    The accelerator's dispatch runs here on the CPU (tests/_shared.dispatch_as)."""
     state, gyro, accel = inputs(B, T, seed=8)
     rng = np.random.default_rng(9)
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
-    # the CPU chunks the final state only, from CPU_LONG_STEPS (lowered here to 2048)
-    chunked = backend == _dispatch.ACCELERATOR or not save_all
-    with dispatch_as(backend), cpu_chunks_from(2048):
+    with dispatch_as(backend):
         assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all,
                                 lanes=B, steps=steps, on=backend) == (
-            "soa_mean_chunked" if chunked else "soa_mean")
+            "soa_mean_chunked" if backend == _dispatch.ACCELERATOR else "soa_mean")
         fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
@@ -166,12 +160,12 @@ def test_whole_chunks_are_cut_without_a_remainder():
         assert all(x % _soa._chunk_size(x) for x in range(L, W))
 
 
-@pytest.mark.parametrize("save_all,backend", [(False, "cpu"), (True, "accelerator")])
-def test_long_sequence_gradient_equals_generic(save_all, backend):
-    """The gradient through the chunked paths equals the generic scan's, for a loss on the
-    states of one float64 sequence of 2100 steps: the CPU's final state (the chunk deltas
-    applied in sequence; its threshold lowered to 2048) and the accelerator's every state
-    (two kernel passes and the parallel prefix of the chunk deltas)."""
+@pytest.mark.parametrize("save_all", [False, True])
+def test_long_sequence_gradient_equals_generic(save_all):
+    """The gradient through the chunked path (an accelerator's, run here on the CPU) equals
+    the generic scan's, for a loss on the states of one float64 sequence of 2100 steps: the
+    final state (the chunk deltas reduced as a tree) and every state (two kernel passes and
+    the parallel prefix of the chunk deltas)."""
     state, gyro, accel = inputs(1, 2100, seed=13)
     dt = jnp.full((2100,), 0.005)
     w = jnp.asarray(np.random.default_rng(14).normal(size=(2100, 3)))
@@ -183,9 +177,9 @@ def test_long_sequence_gradient_equals_generic(save_all, backend):
             return jnp.sum(s.p[0] * w[0]) + jnp.sum(s.q[0] * w[1, :1])
         return jnp.sum(s.p[0] * w) * 1e-3 + jnp.sum(s.q[0] * w[:, :1])
 
-    with dispatch_as(backend), cpu_chunks_from(2048):
+    with dispatch_as("accelerator"):
         assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=save_all,
-                                lanes=1, steps=2100, on=backend) == "soa_mean_chunked"
+                                lanes=1, steps=2100) == "soa_mean_chunked"
         fast = jax.grad(loss)(1.1, True)
     np.testing.assert_allclose(fast, jax.grad(loss)(1.1, False), rtol=1e-10)
 
