@@ -68,6 +68,17 @@ def _sensor_samples(pose_q, pose_p, b_g, n_samples, tangential):
                                 n_samples, tangential)
 
 
+QUATERNION_FORMS = ("quaternion", "quaternion_first_order")
+
+
+def _unit_start(form, q):
+    """The lanes' start attitude (``(B, form.size)``) as components; a quaternion form's
+    normalised, inside the kernel (:func:`jaximu.propagate.unit_start` does it for the other
+    kernels; an operation outside the kernel is one more module for XLA:CPU to compile)."""
+    x = _components(q)
+    return _quat_normalize(x) if form.name in QUATERNION_FORMS else x
+
+
 def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
                    coriolis="exact", form: LaneForm = QUATERNION, pose=None, tangential=True,
                    n_samples=None):
@@ -98,7 +109,7 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega, pose_q, pose_p):
         consts = (_components(b_g), _components(b_a), _components(g),
                   _components(omega) if rotating else ())
-        carry = (_components(q), _components(p), _components(v))
+        carry = (_unit_start(form, q), _components(p), _components(v))
         if euler:  # and the locked flag of each lane
             carry = carry + ((jnp.zeros(q.shape[:1], bool),),)
 
@@ -291,7 +302,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
                   (_components(omega) if rotating else None),
                   (None if lever is None else _components(lever)))
-        carry = (_components(q), _components(p), _components(v), dense_to_blocks(P0))
+        carry = (_unit_start(form, q), _components(p), _components(v), dense_to_blocks(P0))
         if world_error:
             carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
         if euler:  # and the locked flag of each lane

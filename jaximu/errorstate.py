@@ -313,7 +313,6 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
     ``state``'s biases the sensor's (:func:`jaximu.propagate.sensor_engine_inputs`; ``P0``,
     ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
     att = get_attitude(attitude)
-    state = unit_start(state)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
@@ -325,6 +324,8 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
                              save_all=save_all, lanes=lanes, fast=fast,
                              rotating=omega is not None, lever=lever is not None)
     soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
+    if not soa or attitude not in _fast.QUATERNION_FORMS:
+        state = unit_start(state)  # (the quaternion forms' SoA kernel does it inside)
     state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
     if soa:
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,

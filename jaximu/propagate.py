@@ -79,7 +79,8 @@ def unit_start(state: NavState) -> NavState:
     Eager calls refuse a ``q`` further from unit than the tolerance; under ``jit`` nothing
     can check it, and the kernels' renormalisation after each step assumes a unit start
     (:func:`jaximu._soa._quat_renormalize`). For a unit ``q`` it changes nothing but
-    rounding."""
+    rounding. The structure-of-arrays kernels of the quaternion forms normalise inside the
+    kernel instead (:func:`jaximu._fast._unit_start`)."""
     return NavState(so3.quat_normalize(state.q), state.p, state.v, state.b_g, state.b_a)
 
 
@@ -347,7 +348,6 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     the others read them moved (:func:`jaximu.sensor.to_body`). The returned states' biases
     are then the body's."""
     att = get_attitude(attitude)
-    state = unit_start(state)
     batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
                                  dt.shape[:-1], g.shape[:-1],
                                  *(() if omega is None else (omega.shape[:-1],)),
@@ -357,6 +357,8 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
+    if kernel != "soa_mean" or attitude not in _fast.QUATERNION_FORMS:
+        state = unit_start(state)  # (the quaternion forms' SoA kernel does it inside)
     state, gyro, accel = sensor_engine_inputs(kernel == "soa_mean", pose, state, gyro, accel,
                                               dt, tangential)
     if kernel == "soa_mean":
