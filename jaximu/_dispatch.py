@@ -59,7 +59,6 @@ class Row(NamedTuple):
     rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
     lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
     backends: tuple = (CPU, ACCELERATOR)  # where the row applies (backend())
-    max_lanes: int | None = None  # more batch elements than this: the row does not apply
 
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
@@ -120,7 +119,6 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
-                and (row.max_lanes is None or lanes <= row.max_lanes)
                 and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
                 and rotating in row.rotating and (row.lever is None or lever in row.lever)
                 and on in row.backends):

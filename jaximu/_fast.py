@@ -259,10 +259,10 @@ def world_error_blocks(Pb, q, inverse=False):
     of the world-frame one ``δθ_W = R δθ``, or back. In the world frame ``Φ_θθ = I`` (the
     same change of coordinates as the preintegration kernel's, :mod:`jaximu._fast_preint`),
     which saves the covariance update eight 3×3 products a step (closed-form blocks pay two
-    to change frame; autodiff makes its blocks in that frame). ``q`` is normalised first:
-    under ``jit`` a caller's ``state.q`` is not checked, and ``T`` must be a rotation for the
-    map back to undo the map in."""
-    R = QUATERNION.matrix(_quat_normalize(q), q[0].dtype)
+    to change frame; autodiff makes its blocks in that frame). ``T`` must be a rotation for
+    the map back to undo the map in: ``q`` is the kernel's, normalised at its start
+    (:func:`_unit_start`, also under ``jit``) and kept unit by every step."""
+    R = QUATERNION.matrix(q, q[0].dtype)
     new = _blocks.congruence(dict(zip(UPPER, Pb)), {0: {0: _bt(R) if inverse else R}}, SOA)
     return tuple(new[k] for k in UPPER)
 

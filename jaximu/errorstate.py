@@ -324,8 +324,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
                              save_all=save_all, lanes=lanes, fast=fast,
                              rotating=omega is not None, lever=lever is not None)
     soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
-    if not soa or attitude not in _fast.QUATERNION_FORMS:
-        state = unit_start(state)  # (the quaternion forms' SoA kernel does it inside)
+    state = unit_start(state, soa, attitude)
     state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
     if soa:
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,

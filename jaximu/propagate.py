@@ -74,13 +74,16 @@ def n_steps(gyro, dt) -> int:
     return dt.shape[-1] if dt.ndim else gyro.shape[-2]
 
 
-def unit_start(state: NavState) -> NavState:
+def unit_start(state: NavState, soa: bool, attitude: str) -> NavState:
     """``state`` with ``q / |q|``: the engines start from the rotation ``q`` stands for.
     Eager calls refuse a ``q`` further from unit than the tolerance; under ``jit`` nothing
     can check it, and the kernels' renormalisation after each step assumes a unit start
     (:func:`jaximu._soa._quat_renormalize`). For a unit ``q`` it changes nothing but
-    rounding. The structure-of-arrays kernels of the quaternion forms normalise inside the
-    kernel instead (:func:`jaximu._fast._unit_start`)."""
+    rounding. ``soa``: a structure-of-arrays kernel runs; for the quaternion forms it
+    normalises inside the kernel (:func:`jaximu._fast._unit_start`: outside, the O(B)
+    normalisation is more modules for XLA:CPU to compile), so ``state`` stays as it is."""
+    if soa and attitude in _fast.QUATERNION_FORMS:
+        return state
     return NavState(so3.quat_normalize(state.q), state.p, state.v, state.b_g, state.b_a)
 
 
@@ -357,8 +360,7 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
                              steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
                              rotating=omega is not None)
-    if kernel != "soa_mean" or attitude not in _fast.QUATERNION_FORMS:
-        state = unit_start(state)  # (the quaternion forms' SoA kernel does it inside)
+    state = unit_start(state, kernel == "soa_mean", attitude)
     state, gyro, accel = sensor_engine_inputs(kernel == "soa_mean", pose, state, gyro, accel,
                                               dt, tangential)
     if kernel == "soa_mean":

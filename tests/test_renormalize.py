@@ -29,13 +29,13 @@ def test_renormalize_after_unit_increments_is_the_division(dtype):
     renorm = jax.jit(lambda a, b: _soa._quat_renormalize(_soa._quat_mul(a, b)))
     for k in range(500):
         d = Rotation.random(n, random_state=10 + k).as_quat(scalar_first=True)
-        prod = _soa._quat_mul(qs, tuple(jnp.asarray(d[:, i], dtype) for i in range(4)))
-        qs = renorm(qs, tuple(jnp.asarray(d[:, i], dtype) for i in range(4)))
-        if k == 0:
-            p64 = np.stack([np.asarray(x, np.float64) for x in prod], -1)
-            np.testing.assert_allclose(np.stack([np.asarray(x) for x in qs], -1),
+        ds = tuple(jnp.asarray(d[:, i], dtype) for i in range(4))
+        if k == 0:  # one step against the division of the same (rounded) product
+            p64 = np.stack([np.asarray(x, np.float64) for x in _soa._quat_mul(qs, ds)], -1)
+            np.testing.assert_allclose(np.stack([np.asarray(x) for x in renorm(qs, ds)], -1),
                                        p64 / np.linalg.norm(p64, axis=-1, keepdims=True),
                                        rtol=0, atol=2 * eps)
+        qs = renorm(qs, ds)
         r = np.stack(_soa._quat_mul(tuple(ref.T), tuple(d.T)), -1)
         ref = r / np.linalg.norm(r, axis=-1, keepdims=True)
     got = np.stack([np.asarray(x, np.float64) for x in qs], -1)
