@@ -366,9 +366,15 @@ def check_batch_shape(batch_shape, name: str = "batch_shape"):
     return tuple(int(d) for d in dims)
 
 
-def batch_shape(*shapes, names=None):
+def batch_shape(*shapes, names=None, noise=None):
     """The broadcast of the batch ``shapes``; a ``ValueError`` listing them (with ``names``,
-    each after its argument's name) when they do not broadcast."""
+    each after its argument's name) when they do not broadcast. ``noise``: a checked
+    :class:`ImuNoise` whose densities' batch axes broadcast with them too, each named
+    (:func:`noise_batches`)."""
+    dens = noise_batches(noise)
+    shapes = shapes + tuple(s for _, s in dens)
+    if names is not None:
+        names = tuple(names) + tuple(n for n, _ in dens)
     try:
         return jnp.broadcast_shapes(*shapes)
     except ValueError:

@@ -236,9 +236,7 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
         dt_batch = jnp.shape(dt)
     except (TypeError, ValueError):  # not numbers: discrete_variances names dt
         dt_batch = ()
-    dens = val.noise_batches(noise)
-    val.batch_shape(G.shape[:-2], dt_batch, *(s for _, s in dens),
-                    names=("G", "dt") + tuple(n for n, _ in dens))
+    val.batch_shape(G.shape[:-2], dt_batch, names=("G", "dt"), noise=noise)
     qc = noise.discrete_variances(dt, dtype)
     return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
 
@@ -441,9 +439,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = val.check_noise(noise, dtype)
-    dens = val.noise_batches(noise)  # the densities' batch axes too, each named
-    val.batch_shape(batch, P0.shape[:-2], *(s for _, s in dens),
-                    names=("state and samples", "P0") + tuple(n for n, _ in dens))
+    val.batch_shape(batch, P0.shape[:-2], names=("state and samples", "P0"), noise=noise)
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
                                               omega_coriolis)

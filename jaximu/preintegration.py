@@ -706,11 +706,9 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
     bias = _check_bias(bias, dtype)
     if noise is not None:
         noise = val.check_noise(noise, dtype)
-    dens = val.noise_batches(noise)  # the densities' batch axes too, each named
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
-                    bias.b_a.shape[:-1], *(s for _, s in dens),
-                    names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a")
-                    + tuple(n for n, _ in dens))
+                    bias.b_a.shape[:-1], names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a"),
+                    noise=noise)  # the densities' batch axes too, each named
     if body_P_sensor is not None:
         return _preintegrate_sensor(gyro, accel, dt, bias, noise, scheme, method, prefixes,
                                     jacobians, body_P_sensor, tangential)

@@ -436,8 +436,8 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         raise ValueError(f"dt must be a scalar or have shape (T,) = ({T},) (one period per "
                          f"sample), got {tuple(dt.shape)}")
     dt = jnp.broadcast_to(dt, (T,))
-    dens = val.noise_batches(noise)  # a density per sample broadcasts with dt's (T,)
-    val.batch_shape((T,), *(s for _, s in dens), names=("dt",) + tuple(n for n, _ in dens))
+    # a density per sample broadcasts with dt's (T,)
+    val.batch_shape((T,), names=("dt",), noise=noise)
     sg, sa, sbg, sba = noise.sample_std(dt, dtype)  # (T, 3) each; checks dt > 0
     bias0 = {}
     for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
