@@ -41,8 +41,14 @@ def _is_number(s):
 
 
 def _read_table(path, delimiter=None, comment="#"):
-    """``(header, rows, lines)``: the header fields (or None), the text fields of each data
-    row and its 1-based line number.
+    """``(header, rows, lines)`` of :func:`_read_delimited`."""
+    return _read_delimited(path, delimiter, comment)[:3]
+
+
+def _read_delimited(path, delimiter=None, comment="#"):
+    """``(header, rows, lines, delimiter)``: the header fields (or None), the text fields of
+    each data row, its 1-based line number, and the delimiter used (``None``: whitespace;
+    sniffed from the first data line unless given).
 
     The header is a first line none of whose fields is a number, or else the last comment
     line before the data with as many fields as the data (ASL files: ``#timestamp [ns],…``).
@@ -78,7 +84,7 @@ def _read_table(path, delimiter=None, comment="#"):
         raise DataError(f"{path}: no data rows")
     if header is None:
         header = next((c for c in reversed(comments) if len(c) == len(rows[0])), None)
-    return header, rows, np.asarray(lines)
+    return header, rows, np.asarray(lines), delimiter
 
 
 def _column(header, spec, path):
@@ -133,6 +139,18 @@ def _parse(rows, lines, time_col, value_cols, time_unit, path):
             bad = next(fields[c] for c in value_cols if not _is_number(fields[c]))
             raise DataError(f"{path}, line {k}: {bad!r} is not a number") from None
     return stamps, values
+
+
+def _parse_tum(rows, lines, path):
+    """TUM pose rows ``t tx ty tz qx qy qz qw`` (t in seconds, read exactly to ns) as
+    ``(stamps_ns, values)``: ``(M,)`` int64 and ``(M, 7)`` float64 ``[p (3), q (4)]`` with q
+    reordered to Hamilton ``[w, x, y, z]``. Every row must have exactly 8 values."""
+    for fields, k in zip(rows, lines):
+        if len(fields) != 8:
+            raise DataError(f"{path}, line {k}: a TUM pose has 8 values (t tx ty tz qx qy qz "
+                            f"qw), got {len(fields)}")
+    stamps, values = _parse(rows, lines, 0, range(1, 8), "s", path)
+    return stamps, values[:, [0, 1, 2, 6, 3, 4, 5]]
 
 
 def _check_unit(kind, unit, table):

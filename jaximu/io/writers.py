@@ -8,7 +8,7 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu.io._common import DataError
-from jaximu.io._text import _parse, _read_table
+from jaximu.io._text import _parse, _parse_tum, _read_table
 
 _INT64_MAX = np.iinfo(np.int64).max
 # a variance below -_COV_TOL × the largest entry of its matrix is negative, not rounding
@@ -131,11 +131,8 @@ def read_tum(path):
         ``(T, 4)`` Hamilton ``[w, x, y, z]`` (converted from the file's ``[x, y, z, w]``).
     """
     _, rows, lines = _read_table(path, None)
-    for fields, k in zip(rows, lines):
-        if len(fields) != 8:
-            raise DataError(f"{path}, line {k}: a TUM pose has 8 values, got {len(fields)}")
-    stamps, values = _parse(rows, lines, 0, range(1, 8), "s", path)
-    return stamps, values[:, 0:3], values[:, [6, 3, 4, 5]]
+    stamps, values = _parse_tum(rows, lines, path)
+    return stamps, values[:, 0:3], values[:, 3:7]
 
 
 _STATE_FIELDS = (("q", ("w", "x", "y", "z")), ("p", "xyz"), ("v", "xyz"), ("b_g", "xyz"),
