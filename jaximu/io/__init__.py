@@ -4,9 +4,12 @@ Readers return one container, :class:`ImuData`: exact int64 nanosecond stamps, t
 seconds (float64) since the first stamp, raw gyro [rad/s] and accelerometer [m/s²] samples
 in the IMU frame, and optional :class:`GroundTruth`.
 
-* :func:`read_euroc` / :func:`read_tumvi`: the ASL layout of EuRoC MAV and TUM-VI
-  (``mav0/imu0/data.csv``; ground truth from ``state_groundtruth_estimate0`` (EuRoC: pose,
-  velocity, biases) or ``mocap0`` (TUM-VI: pose only)).
+* :func:`read_euroc` / :func:`read_tumvi`: EuRoC MAV and TUM-VI sequences in three
+  layouts: the datasets' own ASL layout (``mav0/imu0/data.csv``; ground truth from
+  ``state_groundtruth_estimate0`` (EuRoC: pose, velocity, biases) or ``mocap0`` (TUM-VI:
+  pose only)); a flat folder with ``imu.csv`` and the full-state ``groundtruth.csv``; a flat
+  folder with ``imu.csv`` and ``groundtruth_pose.txt`` (pose only, TUM format
+  ``t tx ty tz qx qy qz qw`` in seconds, read exactly to the nanosecond).
 * :func:`read_csv`: any delimited text file, with a column mapping and unit options.
 * :func:`from_arrays`, :func:`read_npz`: NumPy arrays.
 * :func:`read_rosbag`: ``sensor_msgs/Imu`` from ROS 1 bags and ROS 2 bags (sqlite3 or
