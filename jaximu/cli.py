@@ -6,6 +6,7 @@
   jaximu montecarlo                Monte Carlo covariance study on a simulated trajectory
   jaximu calibrate FILE            fit IMU biases (scale, misalignment, …) against ground truth
   jaximu allan FILE                Allan deviation and Kalibr noise densities of a static recording
+  jaximu learn train|evaluate      train and evaluate a learned gyro denoiser (jaximu[learning])
 
 User mistakes (a missing file, a malformed CSV, bad options) end with one line on stderr and
 exit code 2; ``jaximu COMMAND --help`` describes each command.
@@ -837,6 +838,9 @@ def build_parser():
     _add_input_options(p)
     p.add_argument("--plot", metavar="PNG", help="write a plot")
     p.set_defaults(func=cmd_allan)
+    from jaximu import cli_learn
+
+    cli_learn.add_parser(sub)
     return parser
 
 
@@ -847,7 +851,12 @@ def options_table() -> str:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     lines = []
-    for name, p in sub.choices.items():
+    commands = []
+    for name, p in sub.choices.items():  # `jaximu learn train`: a subcommand's actions too
+        nested = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        commands += ([(f"{name} {n}", q) for a in nested for n, q in a.choices.items()]
+                     if nested else [(name, p)])
+    for name, p in commands:
         lines += [f"### `jaximu {name}`", "", "| option | accepts | default | meaning |",
                   "|---|---|---|---|"]
         for a in p._actions:

@@ -57,6 +57,7 @@ __all__ = [
     "discrete_process_noise",
     "propagate_covariance",
     "propagate_covariance_final",
+    "accumulate_covariance",
     "ekf_update",
     "position_jacobian",
     "JACOBIANS",
@@ -290,6 +291,47 @@ def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
                 f"{-min_eig:.2g} of the largest entry {scale:.3g}): the cross terms exceed what "
                 "the variances allow")
     return P0
+
+
+def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
+    """The covariance recursion ``P_{k+1} = Φ_k P_k Φ_kᵀ + Q_k`` over given per-step terms.
+
+    The building block for covariances whose per-step terms are known already: per-sample
+    noise densities (``Q_k`` from :func:`discrete_process_noise` with a time axis in the
+    densities), a sub-block of the error state (the rotation rows ``[:3, :3]`` of
+    :func:`step_jacobians`' ``Φ`` are exact on their own: the rotation error depends only on
+    itself and the gyro bias), or chunk summaries composed in turn.
+
+    Args:
+        Phi: ``(..., T, n, n)`` transitions; Q: ``(..., T, n, n)`` step noise (symmetric).
+        P0: ``(..., n, n)`` covariance before step 0 (default zero).
+        save_all: return every ``P_1 … P_T`` (``(..., T, n, n)``) instead of ``P_T``.
+
+    Returns:
+        ``(..., n, n)`` (or ``(..., T, n, n)``), symmetrised at each step.
+    """
+    Phi, Q = jnp.asarray(Phi), jnp.asarray(Q)
+    if Phi.ndim < 3 or Phi.shape[-1] != Phi.shape[-2] or Q.shape[-3:] != Phi.shape[-3:]:
+        raise ValueError(f"Phi and Q must have shapes (..., T, n, n) with the same T and n, "
+                         f"got {tuple(Phi.shape)} and {tuple(Q.shape)}")
+    batch = jnp.broadcast_shapes(Phi.shape[:-3], Q.shape[:-3],
+                                 () if P0 is None else jnp.shape(P0)[:-2])
+    n = Phi.shape[-1]
+    dtype = jnp.result_type(Phi, Q)
+    P = jnp.zeros(batch + (n, n), dtype) if P0 is None else \
+        jnp.broadcast_to(jnp.asarray(P0, dtype), batch + (n, n))
+
+    def mul(X, Y):  # broadcast-and-sum: XLA:CPU fuses it; small batched dots it does not
+        return jnp.sum(X[..., :, :, None] * Y[..., None, :, :], axis=-2)
+
+    def step(P, fq):
+        F, Qk = fq
+        P = blk.sym(mul(mul(F, P), jnp.swapaxes(F, -1, -2)) + Qk)
+        return P, (P if save_all else None)
+
+    xs = tuple(jnp.moveaxis(jnp.broadcast_to(x, batch + x.shape[-3:]), -3, 0) for x in (Phi, Q))
+    P, every = jax.lax.scan(step, P, xs)
+    return jnp.moveaxis(every, 0, -3) if save_all else P
 
 
 def _resolve_jacobians(jacobians, att):

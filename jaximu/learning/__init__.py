@@ -1,0 +1,24 @@
+"""IMU integration inside learned models (``pip install "jaximu[learning]"``: equinox).
+
+A causal dilated convolution corrects the raw gyro (and optionally the accelerometer) and
+predicts a per-sample gyro noise density (:class:`Denoiser`, Brossard et al. 2020's network
+in equinox). It is trained through jaximu's own batched preintegration on orientation
+increments, with the likelihood of the increment errors under the covariance that jaximu
+propagates from the learned density (:func:`train`), and evaluated on whole sequences
+integrated open loop from the first true attitude (:func:`evaluate_sequence`).
+"""
+
+from jaximu.learning.checkpoint import load, pretrained, save
+from jaximu.learning.data import Sequence, load_sequence, split
+from jaximu.learning.evaluation import (Metrics, SequenceReport, attitude_covariance,
+                                        evaluate_sequence, integrate_attitude,
+                                        orientation_errors)
+from jaximu.learning.model import CausalConv, Corrected, Denoiser, ModelConfig
+from jaximu.learning.training import TrainConfig, TrainResult, train
+
+__all__ = [
+    "Denoiser", "ModelConfig", "Corrected", "CausalConv", "Sequence", "load_sequence", "split",
+    "TrainConfig", "TrainResult", "train", "evaluate_sequence", "integrate_attitude",
+    "orientation_errors", "attitude_covariance", "Metrics", "SequenceReport", "save", "load",
+    "pretrained",
+]

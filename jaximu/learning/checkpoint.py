@@ -1,0 +1,90 @@
+"""Saving and loading a trained model: a folder with ``model.json`` (format, settings,
+training record) and ``weights.eqx`` (equinox's leaf serialisation, float32).
+
+A model written on one machine loads on another: the settings rebuild the network's
+structure, and the weights fill it.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import equinox as eqx
+import jax
+
+from jaximu.io import DataError
+from jaximu.learning.model import Denoiser, ModelConfig
+
+__all__ = ["save", "load", "pretrained", "FORMAT", "PRETRAINED"]
+
+FORMAT = "jaximu.learning.Denoiser/1"
+"""The model file format; a folder of another format is refused by :func:`load`."""
+
+PRETRAINED = {"euroc": pathlib.Path(__file__).parent / "pretrained" / "euroc"}
+"""Models shipped with the package, by name."""
+
+
+def save(path, model: Denoiser, record: dict | None = None) -> pathlib.Path:
+    """Write ``model`` to the folder ``path`` (created; its two files replaced)."""
+    path = pathlib.Path(path)
+    if path.exists() and not path.is_dir():
+        raise DataError(f"{path} is a file; a model is saved as a folder: give a new name")
+    path.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, "config": model.config.to_json(), "record": record or {}}
+    tmp = path / "weights.eqx.tmp"
+    eqx.tree_serialise_leaves(tmp, model)
+    tmp.replace(path / "weights.eqx")
+    (path / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+    return path
+
+
+def load(path) -> Denoiser:
+    """Read a model folder written by :func:`save` (or a name of :data:`PRETRAINED`).
+
+    Raises:
+        DataError: not a model folder, another format or version, damaged weights.
+    """
+    if isinstance(path, str) and path in PRETRAINED:
+        return pretrained(path)
+    path = pathlib.Path(path)
+    meta_path, weights = path / "model.json", path / "weights.eqx"
+    if not path.is_dir() or not meta_path.is_file() or not weights.is_file():
+        raise DataError(f"{path} is not a jaximu model: expected a folder with model.json and "
+                        "weights.eqx, as `jaximu learn train --out MODEL` writes (or the name "
+                        f"of a shipped model: {', '.join(PRETRAINED)})")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DataError(f"{meta_path} is not valid JSON ({e}); the model is damaged") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else None
+        raise DataError(f"{path} holds a model of format {found!r}; this jaximu reads {FORMAT!r}:"
+                        " retrain it with this version (`jaximu learn train`)")
+    try:
+        config = ModelConfig.from_json(meta["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(f"{meta_path}: its settings do not fit this jaximu ({e}); retrain the "
+                        "model with this version") from None
+    skeleton = Denoiser(config, jax.random.key(0))
+    try:
+        model = eqx.tree_deserialise_leaves(weights, skeleton)
+    except Exception as e:  # equinox raises RuntimeError/ValueError/EOFError on a bad file
+        raise DataError(f"{weights} does not hold this model's weights ({type(e).__name__}: "
+                        f"{e}); the file is damaged or from another model") from None
+    return model
+
+
+def record(path) -> dict:
+    """The training record saved beside a model (command, seed, data, figures)."""
+    if isinstance(path, str) and path in PRETRAINED:
+        path = PRETRAINED[path]
+    return json.loads((pathlib.Path(path) / "model.json").read_text()).get("record", {})
+
+
+def pretrained(name: str = "euroc") -> Denoiser:
+    """A model shipped with the package: ``"euroc"``, trained on the EuRoC MAV training
+    sequences (ADIS16448 at 200 Hz; its ``model.json`` records the command, seed and data)."""
+    if name not in PRETRAINED:
+        raise ValueError(f"unknown pretrained model {name!r}; choose one of {sorted(PRETRAINED)}")
+    return load(PRETRAINED[name])

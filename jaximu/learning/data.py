@@ -1,0 +1,137 @@
+"""Sequences for learning: raw IMU samples with the ground truth at the IMU times.
+
+:func:`load_sequence` reads a sequence folder in any layout :func:`jaximu.io.read_euroc`
+reads (EuRoC's ASL ``mav0/``, or the flat ``imu.csv`` with ``groundtruth.csv`` full state or
+``groundtruth_pose.txt`` pose only), keeps the IMU samples the ground truth covers, and
+interpolates the ground truth at them (slerp for the attitude). Everything here is numpy,
+float64, outside ``jit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import numpy as np
+
+from jaximu.io import DataError, read_euroc
+
+__all__ = ["Sequence", "load_sequence", "split", "RATE_TOLERANCE"]
+
+RATE_TOLERANCE = 0.02
+"""Relative difference of sampling rates accepted as the same rate (EuRoC: 200 Hz ± 0.01%)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Sequence:
+    """One recording with the ground truth on the IMU's samples (numpy, float64).
+
+    Attributes:
+        name: the folder's name.
+        t: ``(N,)`` sample times [s] (from the first kept sample).
+        gyro, accel: ``(N, 3)`` raw samples [rad/s], [m/s²], IMU frame.
+        q: ``(N, 4)`` true attitude ``R_WB`` (Hamilton ``[w, x, y, z]``, unit, sign-continuous).
+        p, v: ``(N, 3)`` true position [m] and velocity [m/s] in W (velocity differentiated
+            from positions when the ground truth has none).
+        b_g, b_a: ``(N, 3)`` ground-truth biases, or ``None`` (pose-only ground truth).
+    """
+
+    name: str
+    t: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    q: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    b_g: np.ndarray | None = None
+    b_a: np.ndarray | None = None
+
+    def __len__(self):
+        return len(self.t)
+
+    @property
+    def dt(self) -> np.ndarray:
+        """``(N-1,)`` sample intervals [s]: step k goes from sample k to k+1."""
+        return np.diff(self.t)
+
+    @property
+    def rate_hz(self) -> float:
+        return float(1.0 / np.median(np.diff(self.t)))
+
+    @property
+    def seconds(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    def slice(self, start: int, stop: int | None = None, suffix: str = "") -> Sequence:
+        """Samples ``start:stop`` as a new sequence (times kept)."""
+        s = slice(start, stop)
+        opt = lambda x: None if x is None else x[s]  # noqa: E731
+        return Sequence(self.name + suffix, self.t[s], self.gyro[s], self.accel[s], self.q[s],
+                        self.p[s], self.v[s], opt(self.b_g), opt(self.b_a))
+
+
+def _continuous(q):
+    """Flip quaternion signs so consecutive ones are in the same hemisphere."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    flips = np.cumsum(np.sum(q[1:] * q[:-1], -1) < 0) % 2
+    q[1:] *= np.where(flips[:, None] == 1, -1.0, 1.0)
+    return q
+
+
+def load_sequence(path, *, name: str | None = None) -> Sequence:
+    """Read a sequence folder and put its ground truth on the IMU samples it covers.
+
+    Args:
+        path: a sequence folder: EuRoC's ASL layout (holding ``mav0/``), or a flat folder
+            with ``imu.csv`` and ``groundtruth.csv`` (full state) or ``groundtruth_pose.txt``
+            (pose only: seconds, ``x y z qx qy qz qw``).
+        name: the sequence's name (default: the folder's name).
+
+    Raises:
+        DataError: not a sequence folder, no ground truth, ground truth that does not
+            overlap the IMU, non-finite samples (from the reader, naming the rows).
+    """
+    path = pathlib.Path(path)
+    data = read_euroc(path)
+    gt = data.ground_truth
+    if gt is None:
+        raise DataError(f"{path}: no ground truth found (expected mav0/state_groundtruth_"
+                        "estimate0/data.csv, groundtruth.csv or groundtruth_pose.txt beside "
+                        "the IMU samples); learning and evaluation need it")
+    inside = np.flatnonzero((data.t >= gt.t[0]) & (data.t <= gt.t[-1]))
+    if len(inside) < 2:
+        raise DataError(f"{path}: the ground truth ({gt.t[0]:.3f} to {gt.t[-1]:.3f} s) does "
+                        f"not cover the IMU samples ({data.t[0]:.3f} to {data.t[-1]:.3f} s); "
+                        "check that both files are of the same recording")
+    lo, hi = inside[0], inside[-1] + 1
+    if np.any(np.diff(inside) != 1):  # cannot happen for a sorted t, kept as a guard
+        raise DataError(f"{path}: IMU samples inside the ground truth are not contiguous")
+    t = data.t[lo:hi]
+    q, p, v = gt.interpolate(t)
+    if v is None:
+        v = gt.velocity(t)
+    b = {}
+    for k in ("b_g", "b_a"):
+        x = getattr(gt, k)
+        b[k] = None if x is None else np.stack([np.interp(t, gt.t, x[:, j]) for j in range(3)], 1)
+    return Sequence(name or path.name, t - t[0], data.gyro[lo:hi].copy(),
+                    data.accel[lo:hi].copy(), _continuous(q), p, v, **b)
+
+
+def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequence]:
+    """The first ``train_seconds`` for training and the rest for validation (Brossard's
+    split of each training sequence)."""
+    k = int(np.searchsorted(seq.t, seq.t[0] + train_seconds))
+    if k < 2 or len(seq) - k < 2:
+        raise DataError(f"sequence {seq.name!r} ({seq.seconds:.1f} s) is too short to keep "
+                        f"{train_seconds:g} s for training and some for validation")
+    return seq.slice(0, k, ""), seq.slice(k, None, "")
+
+
+def check_rate(seq: Sequence, rate_hz: float, what: str = "the model") -> None:
+    """Refuse a sequence sampled at another rate than ``rate_hz``."""
+    r = seq.rate_hz
+    if abs(r - rate_hz) > RATE_TOLERANCE * rate_hz:
+        raise DataError(f"sequence {seq.name!r} is sampled at {r:.1f} Hz, {what} at "
+                        f"{rate_hz:g} Hz: resample the recording to {rate_hz:g} Hz or train "
+                        "a model at its rate")

@@ -1,0 +1,291 @@
+"""Training the denoiser on sequences with ground truth (Brossard's recipe, with the
+likelihood of the learned noise).
+
+Each step takes, from every training part, a piece starting at a random offset of
+``0 … offset-1`` samples, adds Gaussian noise to the raw samples (white, and a constant bias
+per piece), and takes one AdamW step on the increment loss
+(:func:`jaximu.learning.losses.increment_loss`) plus the NLL. Every ``validate_every`` steps
+each validation part is integrated whole from its first true attitude and the model with
+the lowest mean AOE (averaged over the sequences) is kept. Deterministic for a seed on one
+machine (unless ``minutes`` cuts the run short).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaximu.io import DataError
+from jaximu.learning.data import Sequence, check_rate, split
+from jaximu.learning.evaluation import integrate_attitude, orientation_errors
+from jaximu.learning.losses import increment_loss
+from jaximu.learning.model import Denoiser, ModelConfig
+
+__all__ = ["TrainConfig", "TrainResult", "train", "constant_biases", "normalisation"]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Settings of :func:`train` (JSON-serialisable).
+
+    Attributes:
+        steps: AdamW steps (one step sees every training part once: Brossard's epoch).
+        learning_rate, min_learning_rate: cosine annealing with warm restarts between them
+            (Brossard: 0.01, 0.001), periods ``restart`` then twice as long each time.
+        restart: the first period [steps].
+        weight_decay: AdamW's, on the convolution weights.
+        train_seconds: the first seconds of each sequence are for training, the rest for
+            validation (Brossard: 80).
+        horizons: increment lengths of the loss [samples] (Brossard: 16, 32).
+        offset: random start offsets ``0 … offset-1`` [samples].
+        skip: windows of the first horizon left out at each piece's start.
+        gyro_noise, accel_noise: white noise added to the raw samples [rad/s], [m/s²].
+        gyro_bias_noise, accel_bias_noise: a constant added per piece [rad/s], [m/s²].
+        nll_weight: weight of the negative log-likelihood (trains the noise outputs).
+        validate_every: steps between validations.
+    """
+
+    steps: int = 1400
+    learning_rate: float = 0.01
+    min_learning_rate: float = 0.001
+    restart: int = 200
+    weight_decay: float = 0.1
+    train_seconds: float = 80.0
+    horizons: tuple = (16, 32)
+    offset: int = 32
+    skip: int = 4
+    gyro_noise: float = 2.4e-3
+    accel_noise: float = 2.8e-2
+    gyro_bias_noise: float = 1e-4
+    accel_bias_noise: float = 1e-3
+    nll_weight: float = 1.0
+    validate_every: int = 50
+
+    def __post_init__(self):
+        object.__setattr__(self, "horizons", tuple(int(h) for h in self.horizons))
+        h = self.horizons
+        if not h or any(b != 2 * a for a, b in zip(h, h[1:])):
+            raise ValueError(f"horizons must each be twice the one before, got {h}")
+        if self.steps < 1 or self.validate_every < 1:
+            raise ValueError("steps and validate_every must be positive")
+
+    def to_json(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v)
+                for k, v in dataclasses.asdict(self).items()}
+
+
+class TrainResult(NamedTuple):
+    """The best model and what happened (``record``: JSON-serialisable)."""
+
+    model: Denoiser
+    record: dict
+
+
+def constant_biases(parts):
+    """The mean of the ground-truth biases over the parts that have them (the constant
+    baseline), ``(b_g, b_a)`` as 3-tuples; zeros where no part has biases."""
+    out = []
+    for key in ("b_g", "b_a"):
+        means = [getattr(s, key).mean(0) for s in parts if getattr(s, key) is not None]
+        out.append(tuple(float(x) for x in (np.mean(means, 0) if means else np.zeros(3))))
+    return tuple(out)
+
+
+def normalisation(parts):
+    """Per-channel mean and standard deviation of ``[ω_m, a_m]`` over all samples."""
+    x = np.concatenate([np.concatenate([s.gyro, s.accel], 1) for s in parts], 0)
+    return tuple(float(v) for v in x.mean(0)), tuple(float(v) for v in x.std(0) + 1e-9)
+
+
+def _stack(parts, length):
+    g = np.stack([s.gyro[:length] for s in parts])
+    a = np.stack([s.accel[:length] for s in parts])
+    q = np.stack([s.q[:length] for s in parts])
+    return jnp.asarray(g, jnp.float32), jnp.asarray(a, jnp.float32), jnp.asarray(q, jnp.float32)
+
+
+def _validation_arrays(seqs, vals, context):
+    """Each validation part with ``context`` samples before it, padded to one length:
+    ``(gyro, accel, q, mask)`` ``(S, N, ·)``; the mask is True on the validation samples."""
+    pieces = []
+    for s, v in zip(seqs, vals):
+        k = len(s) - len(v)
+        lo = max(0, k - context)
+        pieces.append((s.slice(lo), k - lo))
+    N = max(len(p) for p, _ in pieces)
+    G, A, Q, M = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 1))
+    for i, (p, c0) in enumerate(pieces):
+        n = len(p)
+        G[i, :n], A[i, :n], Q[i, :n] = p.gyro, p.accel, p.q
+        G[i, n:], A[i, n:], Q[i, n:] = p.gyro[-1], p.accel[-1], p.q[-1]
+        M[i, c0:n] = 1.0
+    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return f(G), f(A), f(Q), jnp.asarray(M[..., 0] > 0), [c0 for _, c0 in pieces]
+
+
+def _schedule(cfg: TrainConfig):
+    periods, total, p = [], 0, cfg.restart
+    while total < cfg.steps:
+        periods.append(p)
+        total += p
+        p *= 2
+    return optax.sgdr_schedule([dict(init_value=cfg.learning_rate, peak_value=cfg.learning_rate,
+                                     decay_steps=p, warmup_steps=0,
+                                     end_value=cfg.min_learning_rate) for p in periods])
+
+
+def _decay_mask(model):
+    return jax.tree_util.tree_map(lambda x: eqx.is_array(x) and x.ndim == 3, model)
+
+
+def train(sequences: list[Sequence], config: TrainConfig | None = None,
+          model_config: ModelConfig | None = None, *, seed: int = 0,
+          minutes: float | None = None, log: Callable[[str], None] | None = print) -> TrainResult:
+    """Train a :class:`Denoiser` on ``sequences`` (each split into training and validation).
+
+    Args:
+        sequences: :class:`Sequence` with ground truth, all at one rate.
+        config: :class:`TrainConfig`; model_config: :class:`ModelConfig` (its normalisation,
+            constant biases and rate are filled in from the training parts).
+        seed: the random seed (initialisation, offsets, noise, dropout).
+        minutes: stop after this wall time (the best model so far is kept).
+        log: progress lines (``None``: silent).
+
+    Returns:
+        :class:`TrainResult`.
+    """
+    cfg = config or TrainConfig()
+    say = log or (lambda s: None)
+    if not sequences:
+        raise DataError("no sequences to train on")
+    rate = sequences[0].rate_hz
+    for s in sequences:
+        check_rate(s, rate, f"sequence {sequences[0].name!r}")
+    trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
+    g_bias, a_bias = constant_biases(trains)
+    mean, std = normalisation(trains)
+    base = model_config or ModelConfig()
+    mcfg = dataclasses.replace(base, rate_hz=round(rate, 3), input_mean=mean, input_std=std,
+                               gyro_bias=g_bias, accel_bias=a_bias)
+    dt = 1.0 / rate
+    Hmax = cfg.horizons[-1]
+    shortest = min(len(s) for s in trains)
+    L = (shortest - cfg.offset - 1) // Hmax * Hmax
+    if L < 4 * Hmax:
+        raise DataError(f"the training parts are too short ({shortest} samples) for windows "
+                        f"of {Hmax} samples")
+    G, A, Q = _stack(trains, shortest)
+    vG, vA, vQ, vM, _ = _validation_arrays(sequences, vals, mcfg.receptive_field)
+    say(f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
+        f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
+        f"({sum(len(v) for v in vals)} samples: " + ", ".join(
+            f"{v.name} {v.seconds:.1f} s" for v in vals) + ")")
+
+    key = jax.random.key(seed)
+    key, k_init = jax.random.split(key)
+    model = Denoiser(mcfg, k_init)
+    opt = optax.adamw(_schedule(cfg), weight_decay=cfg.weight_decay, mask=_decay_mask(model))
+    opt_state = opt.init(eqx.filter(model, eqx.is_array))
+    S = G.shape[0]
+    noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
+    bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3,
+                             jnp.float32)
+
+    def loss_fn(model, g, a, q, k_drop):
+        c = model(g, a, key=k_drop)
+        huber, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
+                                    reference_sigma=model.reference_sigma,
+                                    random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
+        return huber + cfg.nll_weight * nll, (huber, nll)
+
+    @eqx.filter_jit
+    def step(model, opt_state, key):
+        k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
+        offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
+        cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
+        x = jnp.concatenate([cut(G, L), cut(A, L)], -1)
+        x = x + noise * jax.random.normal(k_w, x.shape) \
+            + bias_noise * jax.random.normal(k_b, (S, 1, 6))
+        (loss, parts), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
+            model, x[..., :3], x[..., 3:], cut(Q, L + 1), k_drop)
+        updates, opt_state = opt.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+        return eqx.apply_updates(model, updates), opt_state, loss, parts
+
+    @eqx.filter_jit
+    def validate(model):
+        """Mean AOE [rad] of each validation part, integrated from its first true attitude:
+        the rates before it (the network's context) are zeroed, so the attitude stays at
+        that true attitude until the validation part starts."""
+        c = model(vG, vA)
+        first = jnp.argmax(vM, 1)
+        q0 = jnp.take_along_axis(vQ, first[:, None, None], 1)[:, 0]
+        gyro = jnp.where(vM[..., None], c.gyro, 0.0)
+        steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
+        _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
+        return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
+
+    record = {"seed": seed, "train": cfg.to_json(), "sequences": [s.name for s in sequences],
+              "split": {s.name: {"train_samples": len(t), "validation_samples": len(v)}
+                        for s, t, v in zip(sequences, trains, vals)},
+              "history": []}
+    t_start = time.perf_counter()
+    key, k = jax.random.split(key)
+    t0 = time.perf_counter()
+    model_next, opt_state, loss, parts = step(model, opt_state, k)
+    jax.block_until_ready(loss)
+    t_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    baseline = np.degrees(np.asarray(validate(model)))  # the untrained model: constant bias
+    t_val_first = time.perf_counter() - t0
+    record["validation_constant_bias_deg"] = [float(x) for x in baseline]
+    say("constant-bias baseline: validation mean AOE " + " ".join(
+        f"{v.name} {x:.2f}°" for v, x in zip(vals, baseline)))
+    best = (np.inf, model, 0)
+    run_time = 0.0
+    compile_time = t_first + t_val_first
+    i = 1
+    cut_short = False
+    while True:
+        if i % cfg.validate_every == 0 or i == cfg.steps:
+            t0 = time.perf_counter()
+            aoe = np.degrees(np.asarray(validate(model_next)))
+            run_time += time.perf_counter() - t0
+            mean_aoe = float(aoe.mean())
+            record["history"].append({"step": i, "loss": float(loss), "huber": float(parts[0]),
+                                      "nll": float(parts[1]),
+                                      "validation_aoe_mean_deg": [float(x) for x in aoe]})
+            mark = ""
+            if mean_aoe < best[0]:
+                best, mark = (mean_aoe, model_next, i), " *"
+            say(f"step {i:5d}/{cfg.steps}  loss {float(parts[0]):.4g}  nll {float(parts[1]):8.3f}"
+                f"  validation mean AOE {mean_aoe:6.2f}° (" + " ".join(f"{x:.2f}" for x in aoe)
+                + f"){mark}  {time.perf_counter() - t_start:6.0f} s")
+        if i >= cfg.steps:
+            break
+        if minutes is not None and time.perf_counter() - t_start > 60 * minutes:
+            cut_short = True
+            say(f"stopped after {minutes:g} minutes at step {i} (--minutes); the run is not "
+                "reproducible step for step")
+            break
+        key, k = jax.random.split(key)
+        t0 = time.perf_counter()
+        model_next, opt_state, loss, parts = step(model_next, opt_state, k)
+        if i % 10 == 0:
+            jax.block_until_ready(loss)
+        run_time += time.perf_counter() - t0
+        i += 1
+    wall = time.perf_counter() - t_start
+    record.update({"best_step": best[2], "validation_aoe_mean_deg": best[0], "steps_run": i,
+                   "cut_short": cut_short, "wall_seconds": wall,
+                   "compile_seconds": compile_time, "first_step_seconds": t_first,
+                   "samples_per_step": int(S * L)})
+    say(f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
+        f"which compile ≈ {compile_time:.1f} s")
+    return TrainResult(best[1], record)

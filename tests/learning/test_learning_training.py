@@ -1,0 +1,107 @@
+"""Training recovers what was put into simulated data, and a saved model is the same model.
+
+The simulation: 3-D rotation rates, a gyro with a known scale/misalignment error ``E``, a
+constant bias ``b`` and white noise of density ``σ``: ``ω_m = (I + E) ω + b + n``; the ground
+truth is scipy's integration of the true rates. The true rates carry a white part ten times
+the noise's, so no filter can tell the sensor's noise from the motion (on smooth rates a
+denoiser low-passes the noise away, and the density it should then learn is that of what is
+left). The trained correction must invert the gyro model (least-squares fit of ``ω̂``
+against ``ω_m``) and the learned noise density must be within 20 % of ``σ``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaximu import learning
+from jaximu.learning import Denoiser, ModelConfig, Sequence, TrainConfig
+
+from test_learning_losses import DT, scipy_attitudes, smooth_rates
+
+E = np.array([[0.02, 0.005, -0.004], [0.003, -0.015, 0.006], [-0.005, 0.004, 0.01]])
+BIAS = np.array([0.02, -0.015, 0.03])
+SIGMA = 2e-3  # rad/s/√Hz: well above the float32 rounding of the ground truth's increments
+
+
+def simulated(seed, seconds=100.0):
+    rng = np.random.default_rng(seed)
+    T = int(seconds / DT)
+    true = smooth_rates(rng, T, 1.5) + 10 * SIGMA / np.sqrt(DT) * rng.standard_normal((T, 3))
+    q, _ = scipy_attitudes(np.array([1.0, 0, 0, 0]), true, DT)
+    gyro = true @ (np.eye(3) + E).T + BIAS + SIGMA / np.sqrt(DT) * rng.standard_normal((T, 3))
+    accel = np.tile([0.0, 0.0, 9.81], (T, 1)) + 0.05 * rng.standard_normal((T, 3))
+    z = np.zeros((T, 3))
+    return Sequence(f"sim{seed}", np.arange(T) * DT, gyro, accel, q, z, z), true
+
+
+@pytest.fixture(scope="module")
+def trained():
+    seqs = [simulated(s, seconds=40.0)[0] for s in (0, 1)]
+    cfg = TrainConfig(steps=300, learning_rate=0.01, min_learning_rate=0.002, restart=300,
+                      train_seconds=30.0, gyro_noise=0.0, accel_noise=0.0,
+                      gyro_bias_noise=0.0, accel_bias_noise=0.0, weight_decay=0.0,
+                      validate_every=300)
+    mcfg = ModelConfig(channels=(8, 8), kernel=3, dilations=(1, 2), dropout=0.0,
+                       gyro_scale=(0.05, 0.05, 0.05), gyro_density=1e-3,
+                       reference_sigma=1e-5)
+    return learning.train(seqs, cfg, mcfg, seed=0, log=None)
+
+
+def test_training_recovers_scale_bias_and_noise_density(trained):
+    model = trained.model
+    seq, true = simulated(7, seconds=30.0)  # a recording it never saw
+    c = model(jnp.asarray(seq.gyro, jnp.float32), jnp.asarray(seq.accel, jnp.float32))
+    w_hat = np.asarray(c.gyro, np.float64)
+    # the learned map from ω_m to ω̂, by least squares (affine)
+    X = np.concatenate([seq.gyro, np.ones((len(seq), 1))], 1)
+    coef, *_ = np.linalg.lstsq(X, w_hat, rcond=None)
+    M, c0 = coef[:3].T, coef[3]
+    M_true = np.linalg.inv(np.eye(3) + E)
+    np.testing.assert_allclose(M, M_true, atol=2e-3)  # E is 1e-2: the scale error is undone
+    np.testing.assert_allclose(c0, -M_true @ BIAS, atol=1.5e-3)  # |b| = 4e-2
+    density = np.median(np.asarray(c.gyro_density), axis=0)
+    np.testing.assert_allclose(density, SIGMA, rtol=0.2)
+    assert float(model.reference_sigma) < 1e-4  # the simulated ground truth is exact
+
+
+def test_training_beats_the_constant_baseline_on_its_validation(trained):
+    r = trained.record
+    assert r["validation_aoe_mean_deg"] < 0.5 * min(r["validation_constant_bias_deg"])
+
+
+def test_save_and_load_give_the_same_outputs(tmp_path, trained):
+    path = learning.save(tmp_path / "model", trained.model, trained.record)
+    back = learning.load(path)
+    assert back.config == trained.model.config
+    x = np.random.default_rng(0).standard_normal((2, 300, 3)).astype(np.float32)
+    a = trained.model(jnp.asarray(x), jnp.asarray(x + [0, 0, 9.81]))
+    b = back(jnp.asarray(x), jnp.asarray(x + [0, 0, 9.81]))
+    for u, v in zip(a, b):
+        np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+    assert learning.checkpoint.record(path)["seed"] == 0
+
+
+def test_training_is_deterministic_for_a_seed():
+    seqs = [simulated(3, seconds=12.0)[0]]
+    cfg = TrainConfig(steps=3, validate_every=3, train_seconds=10.0)
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,))
+    a = learning.train(seqs, cfg, mcfg, seed=5, log=None)
+    b = learning.train(seqs, cfg, mcfg, seed=5, log=None)
+    c = learning.train(seqs, cfg, mcfg, seed=6, log=None)
+    la, lb, lc = (jax.tree_util.tree_leaves(x.model) for x in (a, b, c))
+    assert all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(la, lb))
+    assert not all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(la, lc))
+
+
+def test_pretrained_model_loads_and_corrects_at_its_rate():
+    model = learning.pretrained("euroc")
+    assert model.config.rate_hz == pytest.approx(200.0)
+    rec = learning.checkpoint.record("euroc")
+    assert rec["command"].startswith("jaximu learn train")
+    x = np.zeros((100, 3), np.float32)
+    out = model(jnp.asarray(x), jnp.asarray(x + [9.81, 0, 0]))
+    assert np.all(np.isfinite(np.asarray(out.gyro)))
+    assert Denoiser is type(model)
