@@ -1,4 +1,4 @@
-"""Calibration and learning: recovery within the predicted uncertainty, exact gradients,
+"""Calibration: recovery within the predicted uncertainty, exact gradients,
 one compilation for the fit, loud failures on wrong units and frames.
 
 References: the simulated truth (biases, scale, misalignment, gravity and time offset drawn
@@ -11,12 +11,10 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 import jaximu
 from jaximu import calibration as cal
-from jaximu import learning
 from jaximu import simulate as sim
 
 RATE = 200.0
@@ -239,49 +237,3 @@ def test_bad_arguments_are_named():
         cal.calibrate(prob, estimate=("bias",))
     with pytest.raises(ValueError, match="unknown optimizer"):
         cal.calibrate(prob, optimizer="sgd")
-
-
-def test_learned_correction_lowers_held_out_error():
-    """A synthetic IMU with a bias and a g-sensitive gyro (error ∝ specific force); a
-    small network trained through propagate on one trajectory lowers the end-of-piece
-    error on another trajectory it never saw (80 Adam steps: ~50× lower here, 10× asserted)."""
-    G = np.array([[0.0, 0.002, 0.0], [-0.002, 0.0, 0.0], [0.0, 0.0, 0.001]])  # rad/s per m/s²
-    b_g, b_a = np.array([0.004, -0.003, 0.002]), np.array([0.05, 0.08, -0.06])
-
-    def pieces(traj, seconds):
-        t = np.arange(int(seconds * 100) + 1) / 100.0
-        w, f = sim.ideal_imu(traj, jnp.asarray(t))
-        gyro = np.asarray(w) + np.asarray(f) @ G.T + b_g
-        accel = np.asarray(f) + b_a
-        truth = sim.true_states(traj, jnp.asarray(t))
-        return learning.segments(t, gyro, accel, truth, length=100, context=4, stride=25)
-
-    train = pieces(sim.lissajous(), 30.0)
-    test = pieces(sim.figure_eight(), 20.0)
-    params = learning.init_mlp(jax.random.key(0), [24, 32, 6])
-    opt = optax.adam(3e-3)
-    state = opt.init(params)
-
-    @jax.jit
-    def step(params, state):
-        loss, grad = jax.value_and_grad(learning.segment_loss)(params, train, 4)
-        updates, state = opt.update(grad, state, params)
-        return optax.apply_updates(params, updates), state, loss
-
-    for _ in range(80):
-        params, state, _ = step(params, state)
-    before = float(learning.segment_loss(None, test, 4))
-    after = float(learning.segment_loss(params, test, 4))
-    assert after < 0.1 * before, (before, after)
-    # The zero-initialised last layer makes the untrained model the identity.
-    untrained = learning.init_mlp(jax.random.key(1), [24, 32, 6])
-    g, _ = learning.correct_samples(untrained, test.gyro, test.accel, 4)
-    np.testing.assert_array_equal(np.asarray(g), np.asarray(test.gyro))
-
-
-def test_causal_windows():
-    x = jnp.arange(12.0).reshape(6, 2)
-    w = learning.causal_windows(x, 3)
-    assert w.shape == (6, 6)
-    np.testing.assert_array_equal(np.asarray(w[0]), [0, 1, 0, 1, 0, 1])
-    np.testing.assert_array_equal(np.asarray(w[4]), [4, 5, 6, 7, 8, 9])

@@ -63,16 +63,26 @@ def orientation_errors(q_est, q_true):
     return r, aoe, jnp.abs(jnp.arctan2(jnp.sin(yaw), jnp.cos(yaw)))
 
 
+def attitude_terms(gyro, density, dt, random_walk):
+    """``(W, B)``, each ``(T, 3, 3)``: the attitude error covariance of an open-loop run from
+    a true attitude is ``W_k + B_k Σ_b B_kᵀ`` for a residual gyro bias of covariance
+    ``Σ_b``. ``[δθ, δb_g]`` is propagated from zero with the per-sample ``density`` ``(T, 3)``
+    and the bias ``random_walk`` (``W``), and ``B_k = ∂δθ_k/∂δb_g`` is the accumulated
+    transition's bias column. The first sample's terms are zero."""
+    F, Q = _step_blocks(gyro[:-1], density[:-1], dt, random_walk)
+    W = accumulate_covariance(F, Q, save_all=True)[..., 0:3, 0:3]
+    Phi = jax.lax.associative_scan(lambda A, B: B @ A, F, axis=0)
+    z = jnp.zeros((1, 3, 3), gyro.dtype)
+    return jnp.concatenate([z, W], 0), jnp.concatenate([z, Phi[..., 0:3, 3:6]], 0)
+
+
 def attitude_covariance(gyro, density, dt, bias_sigma, random_walk, reference_sigma):
     """``(T, 3, 3)`` covariance of the attitude error at every sample of an open-loop run
-    from a true attitude: ``[δθ, δb_g]`` propagated with the per-sample ``density``
-    ``(T, 3)``, the bias random walk, a residual bias prior ``σ_b``, plus ``2 σ_ref² I``."""
-    F, Q = _step_blocks(gyro[:-1], density[:-1], dt, random_walk)
-    dtype = gyro.dtype
-    P0 = jnp.zeros((6, 6), dtype).at[3:, 3:].set(bias_sigma ** 2 * jnp.eye(3, dtype=dtype))
-    P = accumulate_covariance(F, Q, P0, save_all=True)[..., 0:3, 0:3]
-    P = jnp.concatenate([jnp.zeros((1, 3, 3), dtype), P], 0)
-    return P + 2.0 * reference_sigma ** 2 * jnp.eye(3, dtype=dtype)
+    from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I``), plus the ground
+    truth's own noise ``2 σ_ref² I`` (at the start and at each compared sample)."""
+    W, B = attitude_terms(gyro, density, dt, random_walk)
+    eye = jnp.eye(3, dtype=gyro.dtype)
+    return W + bias_sigma ** 2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma ** 2 * eye
 
 
 @dataclasses.dataclass(frozen=True)

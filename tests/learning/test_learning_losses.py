@@ -147,3 +147,40 @@ def test_raw_whole_sequence_evaluation_equals_scipy_integration():
                                [aoe.mean(), np.sqrt(np.mean(aoe ** 2)), aye.mean(),
                                 np.sqrt(np.mean(aye ** 2))], rtol=1e-9)
     np.testing.assert_allclose(rep.aoe["raw"], aoe, rtol=1e-9, atol=1e-11)
+
+
+def test_attitude_terms_equal_preintegration_prefixes():
+    """The open-loop covariance terms at every sample equal preintegration's prefixes: ``W``
+    its rotation block with the white density and bias walk, ``B`` its ``∂ΔR/∂b_g``."""
+    from jaximu.learning.evaluation import attitude_terms
+
+    rng = np.random.default_rng(3)
+    T = 200
+    gyro = jnp.asarray(smooth_rates(rng, T, 2.0))
+    sigma, walk = jnp.asarray([2e-3, 1e-3, 3e-3]), 4e-4
+    W, B = attitude_terms(gyro, jnp.broadcast_to(sigma, gyro.shape), DT, walk)
+    pim = jaximu.preintegrate(gyro[:-1], jnp.zeros((T - 1, 3)), DT, prefixes=True,
+                              noise=jaximu.ImuNoise(sigma, 0.0, walk, 0.0))
+    np.testing.assert_allclose(np.asarray(B[1:]), np.asarray(pim.dR_dbg), rtol=1e-10,
+                               atol=1e-15)
+    P = np.asarray(pim.cov15[..., 0:3, 0:3])
+    np.testing.assert_allclose(np.asarray(W[1:]), P, rtol=1e-10, atol=1e-12 * np.abs(P).max())
+    assert np.all(np.asarray(W[0]) == 0)
+
+
+def test_bias_sigma_is_set_for_an_average_nees_of_three():
+    from jaximu.learning import uncertainty
+
+    rng = np.random.default_rng(4)
+    T = 400
+    B = np.broadcast_to(np.eye(3) * np.arange(T)[:, None, None] * DT, (T, 3, 3))
+    W = np.broadcast_to(1e-14 * np.eye(3), (T, 3, 3)) * np.arange(T)[:, None, None]
+    # errors of a constant bias of 1e-3 rad/s per axis: r = B b
+    terms = [uncertainty.NeesTerms(jnp.asarray(B @ (s * 1e-3 * np.ones(3))), jnp.asarray(W),
+                                   jnp.asarray(B), jnp.asarray(1e-6)) for s in (0.5, 1.5)]
+    sigma = uncertainty.fit_bias_sigma(terms)
+    assert np.mean([uncertainty.average_nees(t, sigma) for t in terms]) == pytest.approx(3, 1e-6)
+    # bias-dominated errors: the NEES is 3 (s·1e-3)²/σ_b², averaged over s² = 0.25 and 2.25
+    assert sigma == pytest.approx(np.sqrt(1.25e-6), rel=0.01)
+    (s0, n0), (s1, n1) = uncertainty.leave_one_out(terms)
+    assert n0 < 3 < n1 and s0 > s1

@@ -1,0 +1,159 @@
+"""``jaximu learn train|evaluate`` end to end on sequence folders written in EuRoC's flat
+layout, and the bad inputs a user brings: each ends with one line naming the argument and
+the fix, exit code 2, and nothing written or overwritten."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaximu import cli, learning
+from jaximu.learning import Denoiser, ModelConfig
+
+from test_learning_losses import scipy_attitudes, smooth_rates
+
+TINY = ModelConfig(channels=(4, 4), kernel=3, dilations=(1, 2))
+
+
+def write_sequence(folder, seconds=12.0, rate=200.0, gt_shift=0.0, nan_row=None, seed=0):
+    """A recording in the flat layout (``imu.csv`` + full-state ``groundtruth.csv``)."""
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / rate
+    T = int(seconds * rate)
+    w = smooth_rates(rng, T) * 0.5
+    q, _ = scipy_attitudes(np.array([1.0, 0.0, 0.0, 0.0]), w, dt)
+    gyro = w + np.array([-0.002, 0.021, 0.077])
+    accel = np.tile([0.0, 0.0, 9.81], (T, 1)) + 0.02 * rng.standard_normal((T, 3))
+    if nan_row is not None:
+        gyro[nan_row, 1] = np.nan
+    stamps = 1_403_715_523_912_143_104 + np.round(np.arange(T) * dt * 1e9).astype(np.int64)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "imu.csv", "w") as f:
+        f.write("#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n")
+        for s, g, a in zip(stamps, gyro, accel):
+            f.write(f"{s}," + ",".join(f"{x:.17g}" for x in (*g, *a)) + "\n")
+    gt_stamps = stamps + int(gt_shift * 1e9)
+    z = np.zeros(3)
+    with open(folder / "groundtruth.csv", "w") as f:
+        f.write("#timestamp,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bgx,bgy,bgz,bax,bay,baz\n")
+        for s, qq in zip(gt_stamps, q):
+            vals = (*z, *qq, *z, -0.002, 0.021, 0.077, *z)
+            f.write(f"{s}," + ",".join(f"{x:.17g}" for x in vals) + "\n")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory):
+    root = tmp_path_factory.mktemp("learn")
+    model = learning.save(root / "model", Denoiser(TINY, jax.random.key(0)), {"seed": 0})
+    return {"root": root, "model": model, "seq": write_sequence(root / "seq")}
+
+
+def run(capsys, *argv):
+    code = cli.main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys, tmp_path):
+    js, png = tmp_path / "eval.json", tmp_path / "eval.png"
+    code, out, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(folders["seq"]),
+                         "--json", str(js), "--plot", str(png))
+    assert code == 0, err
+    assert "constant bias" in out and "NEES" in out
+    doc = json.loads(js.read_text())
+    (s,) = doc["sequences"]
+    assert s["name"] == "seq" and s["samples"] == 2400
+    for key in ("aoe_mean_deg", "aoe_rmse_deg", "aye_mean_deg"):
+        assert set(s[key]) == {"raw", "constant_bias", "learned"}
+    # the untrained model is the constant-bias baseline, and the bias is the model's (zero)
+    assert s["aoe_mean_deg"]["learned"] == pytest.approx(s["aoe_mean_deg"]["constant_bias"],
+                                                        rel=1e-4)
+    assert s["aoe_mean_deg"]["raw"] > 1.0
+    assert 0.0 <= s["inside_3sigma"] <= 1.0 and s["nees_orientation"] > 0
+    assert png.stat().st_size > 10_000
+
+
+def test_train_writes_a_model_that_evaluates(folders, capsys):
+    seq = write_sequence(folders["root"] / "long", seconds=84.0, seed=1)
+    out_model = folders["root"] / "trained"
+    code, out, err = run(capsys, "learn", "train", str(seq), "--out", str(out_model),
+                         "--steps", "1", "--seed", "3")
+    assert code == 0, err
+    assert "validation" in out and "compile" in out
+    meta = json.loads((out_model / "model.json").read_text())
+    assert meta["record"]["seed"] == 3 and meta["record"]["command"].startswith("jaximu learn")
+    assert learning.load(out_model).config.rate_hz == pytest.approx(200.0)
+
+
+def one_line_error(code, err, *needles):
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def test_a_folder_that_is_not_a_sequence(folders, capsys, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = run(capsys, "learn", "train", str(empty), "--out", str(tmp_path / "m"))
+    one_line_error(code, err, str(empty), "imu.csv")
+    assert not (tmp_path / "m").exists()
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(empty))
+    one_line_error(code, err, str(empty))
+
+
+def test_an_output_that_is_a_file_is_not_overwritten(folders, capsys, tmp_path):
+    f = tmp_path / "keep.txt"
+    f.write_text("mine")
+    code, _, err = run(capsys, "learn", "train", str(folders["seq"]), "--out", str(f))
+    one_line_error(code, err, "--out", str(f))
+    assert f.read_text() == "mine"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    code, _, err = run(capsys, "learn", "train", str(folders["seq"]), "--out", str(other))
+    one_line_error(code, err, "--out", "not a jaximu model")
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(folders["seq"]),
+                       "--json", str(tmp_path / "missing" / "x.json"))
+    one_line_error(code, err, "--json", "does not exist")
+
+
+def test_a_model_that_is_not_one(folders, capsys, tmp_path):
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["seq"]), str(folders["seq"]))
+    one_line_error(code, err, "is not a jaximu model", "model.json")
+    bad = tmp_path / "old"
+    bad.mkdir()
+    (bad / "weights.eqx").write_bytes(b"\0" * 10)
+    (bad / "model.json").write_text(json.dumps({"format": "jaximu.learning.Denoiser/0"}))
+    code, _, err = run(capsys, "learn", "evaluate", str(bad), str(folders["seq"]))
+    one_line_error(code, err, "format", "retrain")
+    (bad / "model.json").write_text(json.dumps(
+        {"format": learning.checkpoint.FORMAT, "config": TINY.to_json()}))
+    code, _, err = run(capsys, "learn", "evaluate", str(bad), str(folders["seq"]))
+    one_line_error(code, err, "weights.eqx", "damaged")
+
+
+def test_a_sequence_at_another_rate(folders, capsys, tmp_path):
+    seq = write_sequence(tmp_path / "slow", seconds=12.0, rate=100.0)
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
+    one_line_error(code, err, "100.0 Hz", "200 Hz", "resample")
+
+
+def test_ground_truth_that_does_not_cover_the_imu(folders, capsys, tmp_path):
+    seq = write_sequence(tmp_path / "late", seconds=5.0, gt_shift=100.0)
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
+    one_line_error(code, err, "does not cover")
+
+
+def test_nan_samples(folders, capsys, tmp_path):
+    seq = write_sequence(tmp_path / "nan", seconds=5.0, nan_row=100)
+    js = tmp_path / "x.json"
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq),
+                       "--json", str(js))
+    one_line_error(code, err, "NaN")
+    assert not js.exists()
