@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 
 from jaximu.io import DataError
-from jaximu.learning.model import Denoiser, ModelConfig
+from jaximu.learning.model import Denoiser, ModelConfig, check_model
 
 __all__ = ["save", "load", "pretrained", "FORMAT", "PRETRAINED"]
 
@@ -27,6 +27,7 @@ PRETRAINED = {"euroc": pathlib.Path(__file__).parent / "pretrained" / "euroc"}
 
 def save(path, model: Denoiser, record: dict | None = None) -> pathlib.Path:
     """Write ``model`` to the folder ``path`` (created; its two files replaced)."""
+    check_model("model", model)
     path = pathlib.Path(path)
     if path.exists() and not path.is_dir():
         raise DataError(f"{path} is a file; a model is saved as a folder: give a new name")

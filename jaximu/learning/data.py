@@ -46,6 +46,32 @@ class Sequence:
     b_g: np.ndarray | None = None
     b_a: np.ndarray | None = None
 
+    def __post_init__(self):
+        t = np.asarray(self.t, np.float64)
+        if t.ndim != 1 or len(t) < 2:
+            raise ValueError(f"Sequence.t must have shape (N,) with N ≥ 2, got {t.shape}")
+        N = len(t)
+        for name, width in (("gyro", 3), ("accel", 3), ("q", 4), ("p", 3), ("v", 3),
+                            ("b_g", 3), ("b_a", 3)):
+            x = getattr(self, name)
+            if x is None and name in ("b_g", "b_a"):
+                continue
+            x = np.asarray(x, np.float64)
+            if x.shape != (N, width):
+                raise ValueError(f"Sequence.{name} must have shape ({N}, {width}) (one row per "
+                                 f"time in t), got {x.shape}")
+            bad = np.flatnonzero(~np.isfinite(x).all(1))
+            if len(bad):
+                raise ValueError(f"Sequence.{name} has NaN or inf at rows {bad[:5].tolist()}")
+            object.__setattr__(self, name, x)
+        if not np.all(np.diff(t) > 0):
+            raise ValueError("Sequence.t must increase strictly")
+        qn = np.linalg.norm(self.q, axis=1)
+        if np.any(np.abs(qn - 1) > 1e-6):
+            raise ValueError(f"Sequence.q must hold unit quaternions [w, x, y, z]; |q| = "
+                             f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them")
+        object.__setattr__(self, "t", t)
+
     def __len__(self):
         return len(self.t)
 
@@ -126,6 +152,14 @@ def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequenc
         raise DataError(f"sequence {seq.name!r} ({seq.seconds:.1f} s) is too short to keep "
                         f"{train_seconds:g} s for training and some for validation")
     return seq.slice(0, k, ""), seq.slice(k, None, "")
+
+
+def check_sequence(name: str, seq) -> Sequence:
+    """``seq`` must be a :class:`Sequence` (named ``name`` in the message)."""
+    if not isinstance(seq, Sequence):
+        raise ValueError(f"{name} must be a jaximu.learning.Sequence (from load_sequence), got "
+                         f"{type(seq).__name__}")
+    return seq
 
 
 def check_rate(seq: Sequence, rate_hz: float, what: str = "the model") -> None:

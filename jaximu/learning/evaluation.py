@@ -165,7 +165,17 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
         model: a trained :class:`jaximu.learning.Denoiser`.
         seq: a :class:`Sequence` at the model's rate.
         dtype: computation dtype of the integration (default: JAX's default float).
+
+    Raises:
+        ValueError: ``model`` or ``seq`` of the wrong type; DataError: ``seq`` at another
+            rate than the model's.
     """
+    from jaximu.learning.data import check_rate, check_sequence
+    from jaximu.learning.model import check_model
+
+    check_model("model", model)
+    check_sequence("seq", seq)
+    check_rate(seq, model.config.rate_hz)
     dtype = jnp.result_type(float) if dtype is None else dtype
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel, q_true, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt)

@@ -222,6 +222,14 @@ class Denoiser(eqx.Module):
         return Corrected(w, a, density)
 
 
+def check_model(name: str, model) -> Denoiser:
+    """``model`` must be a :class:`Denoiser` (named ``name`` in the message)."""
+    if not isinstance(model, Denoiser):
+        raise ValueError(f"{name} must be a jaximu.learning.Denoiser (from train, load or "
+                         f"pretrained), got {type(model).__name__}")
+    return model
+
+
 def constant_bias(config: ModelConfig, gyro, accel):
     """The baseline the model starts from: raw samples minus the stored constant biases."""
     dtype = jnp.result_type(gyro, accel)

@@ -24,7 +24,7 @@ import optax
 
 from jaximu.io import DataError
 from jaximu.learning import uncertainty
-from jaximu.learning.data import Sequence, check_rate, split
+from jaximu.learning.data import Sequence, check_rate, check_sequence, split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors
 from jaximu.learning.losses import increment_loss
 from jaximu.learning.model import Denoiser, ModelConfig
@@ -173,8 +173,15 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     """
     cfg = config or TrainConfig()
     say = log or (lambda s: None)
-    if not sequences:
-        raise DataError("no sequences to train on")
+    if isinstance(sequences, Sequence) or not sequences:
+        raise DataError("sequences must be a non-empty list of jaximu.learning.Sequence "
+                        "(load_sequence(folder) for each folder)")
+    for i, s in enumerate(sequences):
+        check_sequence(f"sequences[{i}]", s)
+    if not isinstance(cfg, TrainConfig):
+        raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
+    if model_config is not None and not isinstance(model_config, ModelConfig):
+        raise ValueError(f"model_config must be a ModelConfig, got {type(model_config).__name__}")
     rate = sequences[0].rate_hz
     for s in sequences:
         check_rate(s, rate, f"sequence {sequences[0].name!r}")
@@ -216,7 +223,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
         return huber + cfg.nll_weight * nll, (huber, nll)
 
     @eqx.filter_jit
-    def step(model, ema, opt_state, key):
+    def step(model, ema, opt_state, key, G, A, Q):
         k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
         offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
         cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
@@ -235,7 +242,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
         return model, ema, opt_state, loss, parts
 
     @eqx.filter_jit
-    def validate(model):
+    def validate(model, vG, vA, vQ, vM):
         """Mean AOE [rad] of each validation part, integrated from its first true attitude:
         the rates before it (the network's context) are zeroed, so the attitude stays at
         that true attitude until the validation part starts."""
@@ -254,11 +261,12 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     t_start = time.perf_counter()
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
-    model_next, ema, opt_state, loss, parts = step(model, model, opt_state, k)
+    data, vdata = (G, A, Q), (vG, vA, vQ, vM)  # arguments, not constants folded into the program
+    model_next, ema, opt_state, loss, parts = step(model, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    baseline = np.degrees(np.asarray(validate(model)))  # the untrained model: constant bias
+    baseline = np.degrees(np.asarray(validate(model, *vdata)))  # the untrained model: constant bias
     t_val_first = time.perf_counter() - t0
     record["validation_constant_bias_deg"] = [float(x) for x in baseline]
     say("constant-bias baseline: validation mean AOE " + " ".join(
@@ -271,7 +279,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     while True:
         if i % cfg.validate_every == 0 or i == cfg.steps:
             t0 = time.perf_counter()
-            aoe = np.degrees(np.asarray(validate(ema)))
+            aoe = np.degrees(np.asarray(validate(ema, *vdata)))
             run_time += time.perf_counter() - t0
             mean_aoe = float(aoe.mean())
             record["history"].append({"step": i, "loss": float(loss), "huber": float(parts[0]),
@@ -292,7 +300,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
             break
         key, k = jax.random.split(key)
         t0 = time.perf_counter()
-        model_next, ema, opt_state, loss, parts = step(model_next, ema, opt_state, k)
+        model_next, ema, opt_state, loss, parts = step(model_next, ema, opt_state, k, *data)
         if i % 10 == 0:
             jax.block_until_ready(loss)
         run_time += time.perf_counter() - t0

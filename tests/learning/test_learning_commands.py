@@ -157,3 +157,24 @@ def test_nan_samples(folders, capsys, tmp_path):
                        "--json", str(js))
     one_line_error(code, err, "NaN")
     assert not js.exists()
+
+
+def test_the_python_api_names_bad_arguments(folders):
+    seq = learning.load_sequence(folders["seq"])
+    model = learning.load(folders["model"])
+    with pytest.raises(ValueError, match=r"Sequence.gyro must have shape \(2400, 3\)"):
+        learning.Sequence("x", seq.t, seq.gyro[:-1], seq.accel, seq.q, seq.p, seq.v)
+    with pytest.raises(ValueError, match="Sequence.q must hold unit quaternions"):
+        learning.Sequence("x", seq.t, seq.gyro, seq.accel, 2 * seq.q, seq.p, seq.v)
+    with pytest.raises(ValueError, match="NaN or inf at rows"):
+        learning.Sequence("x", seq.t, seq.gyro * np.nan, seq.accel, seq.q, seq.p, seq.v)
+    with pytest.raises(ValueError, match="model must be a jaximu.learning.Denoiser"):
+        learning.evaluate_sequence("euroc", seq)
+    with pytest.raises(ValueError, match="seq must be a jaximu.learning.Sequence"):
+        learning.evaluate_sequence(model, str(folders["seq"]))
+    with pytest.raises(learning.data.DataError, match="non-empty list"):
+        learning.train([])
+    with pytest.raises(ValueError, match=r"sequences\[1\] must be"):
+        learning.train([seq, "x"])
+    with pytest.raises(ValueError, match="unknown pretrained model"):
+        learning.pretrained("kitti")
