@@ -78,11 +78,13 @@ def cmd_train(args):
     seqs = _load_all(learning, args.dirs)
     cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
-    result = learning.train(seqs, cfg, seed=args.seed, minutes=args.minutes)
+    mcfg = learning.ModelConfig(accel_head=args.accel_head)
+    result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
     record = dict(result.record)
     record["command"] = "jaximu learn train " + " ".join(
         [pathlib.Path(d).name for d in args.dirs] + ["--out", out.name, "--seed", str(args.seed)]
-        + (["--steps", str(args.steps)] if args.steps else []))
+        + (["--steps", str(args.steps)] if args.steps else [])
+        + (["--accel-head"] if args.accel_head else []))
     learning.save(out, result.model, record)
     wall = time.perf_counter() - t0
     print(f"saved the model of step {record['best_step']} to {out}; wall time {wall:.0f} s "
@@ -91,7 +93,7 @@ def cmd_train(args):
     return 0
 
 
-def _table(rep):
+def _table(rep, windows=None):
     m = rep.metrics
     lines = [f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s",
              f"  {'':16}{'AOE mean':>10}{'AOE RMSE':>10}{'AYE mean':>10}{'AYE RMSE':>10}  [deg]"]
@@ -102,6 +104,10 @@ def _table(rep):
                      f"{x.aye_rmse:10.2f}")
     lines.append(f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 when "
                  f"consistent), {100 * rep.inside_3sigma:.1f}% of samples inside 3σ")
+    for w, row in (windows or {}).items():
+        lines.append(f"  dead reckoning over {w} windows from the true state, mean |δv| / |δp|: "
+                     + ", ".join(f"{k.replace('_', ' ')} {a:.3f} m/s / {b:.3f} m"
+                                 for k, (a, b) in row.items()))
     return "\n".join(lines)
 
 
@@ -113,22 +119,28 @@ def cmd_evaluate(args):
     seqs = _load_all(learning, args.dirs)
     for s in seqs:
         learning.data.check_rate(s, model.config.rate_hz)
-    reports = []
+    reports, windows = [], []
     for s in seqs:
         rep = learning.evaluate_sequence(model, s)
-        print(_table(rep))
+        win = ({f"{w:g}s": learning.evaluation.window_errors(model, s, w) for w in (1.0, 5.0)}
+               if s.b_g is not None and s.seconds >= 5.0 else {})  # velocities measured
+        print(_table(rep, win))
         reports.append(rep)
+        windows.append(win)
     avg = {k: float(np.mean([r.metrics[k].aoe_mean for r in reports]))
            for k in ("raw", "constant_bias", "learned")}
     print("average mean AOE [deg]: " + ", ".join(f"{k} {v:.2f}" for k, v in avg.items()))
     if json_out is not None:
-        doc = {"model": str(args.model), "sequences": [r.to_json() for r in reports],
+        seqs_json = [dict(r.to_json(), dead_reckoning=w) for r, w in zip(reports, windows)]
+        doc = {"model": str(args.model), "sequences": seqs_json,
                "average_aoe_mean_deg": avg,
                "conventions": {"aoe_mean": "mean over the sequence of the geodesic angle of "
                                "R_gt^T R_est (AirIMU)", "aoe_rmse": "its RMSE (Brossard)",
                                "aye": "yaw (ZYX Euler) difference, wrapped",
                                "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
-                               "inside_3sigma": "fraction of samples with NEES <= 14.16"}}
+                               "inside_3sigma": "fraction of samples with NEES <= 14.16",
+                               "dead_reckoning": "window -> variant -> [mean |dv| m/s, mean "
+                               "|dp| m] over consecutive windows from the true state"}}
         json_out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {json_out}")
     if plot_out is not None:
@@ -171,6 +183,8 @@ def add_parser(sub):
     t.add_argument("--minutes", type=float, help="stop after this wall time, keeping the best "
                    "model so far")
     t.add_argument("--steps", type=int, help="training steps (default: the recipe's)")
+    t.add_argument("--accel-head", action="store_true", help="also correct the accelerometer, "
+                   "trained on velocity increments (sequences with ground-truth velocity)")
     t.set_defaults(func=cmd_train)
     e = learn.add_parser("evaluate", help="integrate whole sequences raw, with the constant "
                          "bias and with the model",

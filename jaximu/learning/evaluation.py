@@ -25,11 +25,11 @@ from jaximu import so3
 from jaximu.errorstate import accumulate_covariance
 from jaximu.learning.data import Sequence
 from jaximu.learning.losses import _step_blocks
-from jaximu.propagate import propagate
+from jaximu.propagate import propagate, propagate_final
 from jaximu.state import NavState
 
 __all__ = ["integrate_attitude", "orientation_errors", "attitude_covariance", "Metrics",
-           "SequenceReport", "evaluate_sequence", "CHI2_3_3SIGMA"]
+           "SequenceReport", "evaluate_sequence", "window_errors", "CHI2_3_3SIGMA"]
 
 CHI2_3_3SIGMA = 14.156
 """``χ²`` quantile of 3 degrees of freedom at 99.73 % (the 3σ probability of one dimension)."""
@@ -192,3 +192,39 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     return SequenceReport(seq.name, len(seq), seq.seconds, metrics, float(e.mean()),
                           float(np.mean(e <= CHI2_3_3SIGMA)), np.asarray(seq.t), aoe,
                           np.degrees(np.asarray(s3)))
+
+
+@partial(jax.jit, static_argnames=("n",))
+def _window_run(gyro, accel, q, p, v, dt, n):
+    W = (gyro.shape[0] - 1) // n
+    cut = lambda x: x[:W * n].reshape((W, n) + x.shape[1:])  # noqa: E731
+    i0 = jnp.arange(W) * n
+    z = jnp.zeros((W, 3), gyro.dtype)
+    start = NavState(q[i0], p[i0], v[i0], z, z)
+    end = propagate_final(start, cut(gyro), cut(accel), cut(dt))
+    return (jnp.linalg.norm(end.v - v[i0 + n], axis=-1),
+            jnp.linalg.norm(end.p - p[i0 + n], axis=-1))
+
+
+def window_errors(model, seq: Sequence, seconds: float, start: int = 0,
+                  dtype=jnp.float32) -> dict:
+    """Velocity and position errors of dead reckoning over consecutive windows of
+    ``seconds`` from the true state (AirIMU's setting), from sample ``start`` on (the network
+    sees the samples before as context): ``{variant: (mean |δv| [m/s], mean |δp| [m])}`` for
+    ``"constant_bias"`` (both sensors minus the stored biases), ``"learned_gyro"`` (the
+    learned gyro, the accelerometer minus its constant bias) and ``"learned"`` (both
+    corrected; the same as ``"learned_gyro"`` without an accelerometer head)."""
+    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    gyro, accel = cast(seq.gyro), cast(seq.accel)
+    c = model(gyro, accel)
+    g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
+    a0 = accel - jnp.asarray(model.config.accel_bias, dtype)
+    n = int(round(seconds * seq.rate_hz))
+    s = slice(start, None)
+    out = {}
+    for name, (g, a) in (("constant_bias", (g0, a0)), ("learned_gyro", (c.gyro, a0)),
+                         ("learned", (c.gyro, c.accel))):
+        dv, dp = _window_run(g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s],
+                             cast(seq.dt)[s], n)
+        out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
+    return out

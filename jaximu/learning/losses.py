@@ -28,7 +28,7 @@ from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate
 
 __all__ = ["Windows", "windows", "huber", "increment_loss", "rotation_covariance",
-           "gaussian_nll"]
+           "gaussian_nll", "velocity_residuals"]
 
 
 class Windows(NamedTuple):
@@ -208,3 +208,20 @@ def increment_loss(corrected, q_true, dt, horizons=(16, 32), *, huber_delta=0.00
                                     reference_sigma)
             nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S)
     return loss, nll
+
+
+def velocity_residuals(gyro, accel, q_true, v_true, dt, H: int, gravity=9.81):
+    """``(..., W, 3)`` velocity-increment errors [m/s] of windows of ``H`` samples, in W:
+    ``R_i Δv̂_ij + g_W Δt − (v_j − v_i)`` with the true ``R_i`` and velocities (AirIMU's
+    setting), the increments preintegrated by :func:`jaximu.preintegrate`.
+
+    Args:
+        gyro, accel: ``(..., T, 3)`` corrected samples; q_true, v_true: ``(..., T + 1, ·)``
+            true attitude and velocity at the samples and after the last step.
+    """
+    w = windows(gyro, accel, dt, H)
+    W = w.delta_v.shape[-2]
+    q0 = q_true[..., 0:W * H:H, :]
+    v = v_true[..., 0:W * H + 1:H, :]
+    g = jnp.asarray([0.0, 0.0, -gravity], gyro.dtype)
+    return so3.quat_rotate(q0, w.delta_v) + g * (H * dt) - (v[..., 1:, :] - v[..., :-1, :])

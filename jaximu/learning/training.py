@@ -25,8 +25,8 @@ import optax
 from jaximu.io import DataError
 from jaximu.learning import uncertainty
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
-from jaximu.learning.evaluation import integrate_attitude, orientation_errors
-from jaximu.learning.losses import increment_loss
+from jaximu.learning.evaluation import integrate_attitude, orientation_errors, window_errors
+from jaximu.learning.losses import huber, increment_loss, velocity_residuals
 from jaximu.learning.model import Denoiser, ModelConfig
 
 __all__ = ["TrainConfig", "TrainResult", "train", "constant_biases", "normalisation"]
@@ -56,6 +56,10 @@ class TrainConfig:
         validate_every: steps between validations.
         ema: decay of the exponential average of the weights that is validated and kept
             (``0``: the weights of the step).
+        velocity_horizon, velocity_delta, velocity_weight: the accelerometer head's loss
+            (``ModelConfig.accel_head``): Huber (``velocity_delta`` [m/s]) of the
+            velocity-increment errors over windows of ``velocity_horizon`` samples
+            (:func:`jaximu.learning.losses.velocity_residuals`), weighted.
         calibrate_uncertainty: set the residual gyro bias ``σ_b`` on the validation parts
             (:mod:`jaximu.learning.uncertainty`) after training.
     """
@@ -76,6 +80,9 @@ class TrainConfig:
     nll_weight: float = 1.0
     validate_every: int = 50
     calibrate_uncertainty: bool = True
+    velocity_horizon: int = 200
+    velocity_delta: float = 0.05
+    velocity_weight: float = 1e3
     ema: float = 0.98
 
     def __post_init__(self):
@@ -118,7 +125,9 @@ def _stack(parts, length):
     g = np.stack([s.gyro[:length] for s in parts])
     a = np.stack([s.accel[:length] for s in parts])
     q = np.stack([s.q[:length] for s in parts])
-    return jnp.asarray(g, jnp.float32), jnp.asarray(a, jnp.float32), jnp.asarray(q, jnp.float32)
+    v = np.stack([s.v[:length] for s in parts])
+    f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return f(g), f(a), f(q), f(v)
 
 
 def _validation_arrays(seqs, vals, context):
@@ -198,7 +207,11 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     if L < 4 * Hmax:
         raise DataError(f"the training parts are too short ({shortest} samples) for windows "
                         f"of {Hmax} samples")
-    G, A, Q = _stack(trains, shortest)
+    G, A, Q, V = _stack(trains, shortest)
+    # velocities of ground truth that has them (a pose-only one's are differenced
+    # positions: too noisy for velocity increments)
+    has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
+    n_v = jnp.maximum(jnp.sum(has_v), 1.0)
     vG, vA, vQ, vM, _ = _validation_arrays(sequences, vals, mcfg.receptive_field)
     say(f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
         f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
@@ -215,15 +228,21 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3,
                              jnp.float32)
 
-    def loss_fn(model, g, a, q, k_drop):
+    def loss_fn(model, g, a, q, v, k_drop):
         c = model(g, a, key=k_drop)
-        huber, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
+        rot, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
                                     reference_sigma=model.reference_sigma,
                                     random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
-        return huber + cfg.nll_weight * nll, (huber, nll)
+        total = rot + cfg.nll_weight * nll
+        if mcfg.accel_head:  # velocity increments train the accelerometer head only
+            r = velocity_residuals(jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt,
+                                   cfg.velocity_horizon)
+            per_seq = jax.vmap(lambda x: huber(x, cfg.velocity_delta))(r)
+            total = total + cfg.velocity_weight * jnp.sum(per_seq * has_v) / n_v
+        return total, (rot, nll)
 
     @eqx.filter_jit
-    def step(model, ema, opt_state, key, G, A, Q):
+    def step(model, ema, opt_state, key, G, A, Q, V):
         k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
         offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
         cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
@@ -231,7 +250,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
         x = x + noise * jax.random.normal(k_w, x.shape) \
             + bias_noise * jax.random.normal(k_b, (S, 1, 6))
         (loss, parts), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
-            model, x[..., :3], x[..., 3:], cut(Q, L + 1), k_drop)
+            model, x[..., :3], x[..., 3:], cut(Q, L + 1), cut(V, L + 1), k_drop)
         updates, opt_state = opt.update(grads, opt_state, eqx.filter(model, eqx.is_array))
         model = eqx.apply_updates(model, updates)
         # the validated and kept model is the exponential average of the weights: the
@@ -261,7 +280,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     t_start = time.perf_counter()
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
-    data, vdata = (G, A, Q), (vG, vA, vQ, vM)  # arguments, not constants folded into the program
+    data, vdata = (G, A, Q, V), (vG, vA, vQ, vM)  # arguments, not constants folded into the program
     model_next, ema, opt_state, loss, parts = step(model, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
@@ -308,6 +327,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     model = best[1]
     if cfg.calibrate_uncertainty:
         model = _set_bias_sigma(model, sequences, vals, record, say)
+    _record_windows(model, sequences, vals, record, say)
     wall = time.perf_counter() - t_start
     record.update({"best_step": best[2], "validation_aoe_mean_deg": best[0], "steps_run": i,
                    "cut_short": cut_short, "wall_seconds": wall,
@@ -316,6 +336,24 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     say(f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
         f"which compile ≈ {compile_time:.1f} s")
     return TrainResult(model, record)
+
+
+def _record_windows(model, sequences, vals, record, say):
+    """Dead-reckoning errors over 1-s and 5-s windows of the validation parts with ground
+    truth velocities: what the accelerometer correction is judged by."""
+    out = {}
+    for s, v in zip(sequences, vals):
+        if s.b_g is None or v.seconds < 5.0:  # pose only: differenced velocities
+            continue
+        out[v.name] = {f"{w:g}s": window_errors(model, s, w, len(s) - len(v)) for w in (1.0, 5.0)}
+    record["validation_windows"] = out
+    for w in ("1s", "5s"):
+        rows = [x[w] for x in out.values()]
+        if rows:
+            mean = {k: np.mean([r[k] for r in rows], 0) for k in rows[0]}
+            say(f"validation dead reckoning over {w} windows from the true state, mean |δv| "
+                f"[m/s] / |δp| [m]: " + ", ".join(f"{k} {a:.3f} / {b:.3f}"
+                                                   for k, (a, b) in mean.items()))
 
 
 def _set_bias_sigma(model, sequences, vals, record, say):
