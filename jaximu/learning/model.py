@@ -190,15 +190,17 @@ class Denoiser(eqx.Module):
 
     def features(self, gyro, accel, key=None):
         """``(corrections, log-density)``: the network's raw outputs ``(..., T, ·)`` in the
-        weights' dtype (float32 as trained). The noise head reads the features without their gradient: the trunk is
-        trained by the corrections' loss alone, the noise head by the likelihood."""
+        weights' dtype (float32 as trained). The noise head reads the features without
+        their gradient: the trunk is trained by the corrections' loss alone, the noise head
+        by the likelihood."""
         cfg = self.config
         wdtype = self.head.weight.dtype  # float32 as trained; float64 after a cast
         x = jnp.concatenate([gyro, accel], -1).astype(wdtype)
         lead = x.shape[:-2]
         x = x.reshape((-1,) + x.shape[-2:])
         x = (x - jnp.asarray(cfg.input_mean, wdtype)) / jnp.asarray(cfg.input_std, wdtype)
-        keys = (None,) * len(self.layers) if key is None else jax.random.split(key, len(self.layers))
+        n = len(self.layers)
+        keys = (None,) * n if key is None else jax.random.split(key, n)
         for layer, k in zip(self.layers, keys):
             x = jax.nn.gelu(layer(x))
             if k is not None and cfg.dropout > 0:

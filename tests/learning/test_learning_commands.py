@@ -9,11 +9,10 @@ import json
 import jax
 import numpy as np
 import pytest
+from test_learning_losses import scipy_attitudes, smooth_rates
 
 from jaximu import cli, learning
 from jaximu.learning import Denoiser, ModelConfig
-
-from test_learning_losses import scipy_attitudes, smooth_rates
 
 TINY = ModelConfig(channels=(4, 4), kernel=3, dilations=(1, 2))
 

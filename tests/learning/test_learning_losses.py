@@ -171,7 +171,6 @@ def test_attitude_terms_equal_preintegration_prefixes():
 def test_bias_sigma_is_set_for_an_average_nees_of_three():
     from jaximu.learning import uncertainty
 
-    rng = np.random.default_rng(4)
     T = 400
     B = np.broadcast_to(np.eye(3) * np.arange(T)[:, None, None] * DT, (T, 3, 3))
     W = np.broadcast_to(1e-14 * np.eye(3), (T, 3, 3)) * np.arange(T)[:, None, None]

@@ -15,11 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_learning_losses import DT, scipy_attitudes, smooth_rates
 
 from jaximu import learning
 from jaximu.learning import Denoiser, ModelConfig, Sequence, TrainConfig
-
-from test_learning_losses import DT, scipy_attitudes, smooth_rates
 
 E = np.array([[0.02, 0.005, -0.004], [0.003, -0.015, 0.006], [-0.005, 0.004, 0.01]])
 BIAS = np.array([0.02, -0.015, 0.03])
