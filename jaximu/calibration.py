@@ -638,13 +638,26 @@ def _check_initial(initial):
         if x.shape != shape:
             raise ValueError(f"initial.{name} must have shape {shape}, got {x.shape}")
         val.check_finite(f"initial.{name}", x)
-    q = np.asarray(initial.q_BS, np.float64)
-    if abs(np.linalg.norm(q) - 1) > 1e-3:
-        raise ValueError(f"initial.q_BS must be a unit quaternion [w, x, y, z]; |q| = "
-                         f"{np.linalg.norm(q):.6g} (normalise it: q / |q|)")
+    val.check_unit_norm("initial.q_BS", np.asarray(initial.q_BS, np.float64), np.float64,
+                        tol=val.ROUNDED_QUATERNION, fix="normalise it: q / |q|",
+                        what="must be a unit quaternion [w, x, y, z]")
     if float(np.asarray(initial.gravity)) < 0:
         raise ValueError(f"initial.gravity is a magnitude [m/s²] and must be ≥ 0, got "
                          f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])")
+
+
+def _sqrt_information(cov, dtype) -> np.ndarray:
+    """``L⁻¹`` for the residuals' covariances ``cov = L Lᵀ`` (``(..., 9, 9)``, one per window),
+    which whiten the residuals; a covariance singular to the precision of ``dtype``
+    (:func:`jaximu._validation.check_definite`) is refused, naming the window and its axes:
+    its whitened residual would be the rounding divided by zero."""
+    val.check_definite(
+        "the residuals' covariance", cov, dtype, axes=val.ERROR_AXES[:9],
+        what="the residuals are whitened by its inverse Cholesky factor",
+        fix="noise (its white-noise densities) and reference_sigma leave some residual "
+            "without variance; give noise positive densities (its datasheet's or an Allan "
+            "fit's) or reference_sigma positive values")
+    return np.linalg.inv(np.linalg.cholesky(cov))
 
 
 def _gap_list(gaps, limit=4) -> str:
@@ -783,10 +796,11 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
     for name, x in (("reference.q", rq), ("reference.p", rp)):
         val.check_finite(name, x)
-    norm_err = np.abs(np.linalg.norm(rq, axis=-1) - 1)
-    if norm_err.max() > 1e-3:
-        raise ValueError(f"reference.q is not unit ([w, x, y, z] quaternions); | |q| - 1 | ="
-                         f" {norm_err.max():.3g} at row {int(np.argmax(norm_err))}")
+    val.check_unit_norm("reference.q", rq, np.float64, tol=val.ROUNDED_QUATERNION,
+                        what="is not unit ([w, x, y, z] quaternions)",
+                        where=lambda i: f" at row {i[0]}",
+                        fix="pass unit quaternions (a normalised copy is used within this "
+                            "tolerance)")
     rq = rq / np.linalg.norm(rq, axis=-1, keepdims=True)
     has_v = reference.v is not None
     rv = val.as_numbers("reference.v", reference.v) if has_v else np.zeros_like(rp)
@@ -863,15 +877,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     extra[:, 3:6] = (2 * s_p**2 + (s_v * Dt) ** 2)[:, None] if has_v else 2 * s_p**2
     extra[:, 6:9] = 2 * s_v**2 if has_v else 0.0
     cov = cov + extra[:, :, None] * np.eye(9)
-    try:
-        L = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        raise ValueError(
-            "the residuals' covariance is singular, so they cannot be whitened: noise (its "
-            "white-noise densities) and reference_sigma leave some residual without variance; "
-            "give noise positive densities (its datasheet's or an Allan fit's) or "
-            "reference_sigma positive values") from None
-    sqrt_info = np.linalg.inv(L)
+    sqrt_info = _sqrt_information(cov, dtype)
 
     diagnostics = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
                                  "accel_frame_error"), np.nan)
@@ -1278,7 +1284,7 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         cov = np.asarray(cov, np.float64) + np.asarray(problem.reference_var, np.float64)[
             ..., None] * np.eye(9)
         problem = dataclasses.replace(problem, sqrt_info=jnp.asarray(
-            np.linalg.inv(np.linalg.cholesky(cov)), dtype))
+            _sqrt_information(cov, dtype), dtype))
         z, more, converged, r, J = fit(problem, z)
         history = list(history) + list(more)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)

@@ -102,15 +102,21 @@ class MonteCarloResult(NamedTuple):
         predicted_cov: ``(K, 15, 15)`` open loop: the linearised covariance; filter study:
             the average over the runs of each run's own covariance after the update.
         nees: ``(N, K)`` NEES of every run at every recorded time with ``keep_nees=True``,
-            else ``None`` (memory ``N·K``).
-        nees_mean: ``(K,)`` average NEES over the runs.
+            else ``None`` (memory ``N·K``); NaN where the NEES is undefined (below).
+        nees_mean: ``(K,)`` average NEES over the runs. NaN at a recorded time where the
+            covariance is singular to the precision of the computation dtype
+            (:func:`jaximu._validation.definiteness`; the filter study's judged on the runs'
+            average): ``eᵀ P⁻¹ e`` is undefined there, e.g. in the first steps from an
+            exactly known start (``P0 = 0``), where one step's position and velocity errors
+            are the same accelerometer noise (:attr:`nees_defined`).
         nees_bounds: ``(2,)`` the two-sided interval of the average NEES at ``confidence``.
         sample_errors: ``(n_keep, K, 15)`` the errors of the first runs (for plots).
         discretization_error: ``(K, 15)`` noise-free propagation ⊟ true trajectory.
         n_runs: N.
         confidence: the interval's confidence.
         nees_hist: ``(H, nbins)`` counts of the per-run NEES at the recorded times
-            ``nees_hist_index`` (values past the last edge in the last bin).
+            ``nees_hist_index`` (values past the last edge in the last bin; NaN where the
+            NEES is undefined).
         nees_hist_edges: ``(nbins + 1,)`` the bins' edges.
         nees_hist_index: ``(H,)`` indices into ``times`` of the histograms.
         nis_mean: filter study: ``(K,)`` average NIS at the updates (else ``None``).
@@ -138,8 +144,15 @@ class MonteCarloResult(NamedTuple):
 
     @property
     def consistent(self) -> np.ndarray:
-        """``(K,)``: whether the average NEES lies inside its interval at each time."""
+        """``(K,)``: whether the average NEES lies inside its interval at each time (False
+        where it is undefined: :attr:`nees_defined`)."""
         return (self.nees_mean >= self.nees_bounds[0]) & (self.nees_mean <= self.nees_bounds[1])
+
+    @property
+    def nees_defined(self) -> np.ndarray:
+        """``(K,)``: whether the NEES is defined at each recorded time (the covariance there
+        is positive definite to the computation dtype's precision; see ``nees_mean``)."""
+        return np.isfinite(self.nees_mean)
 
     def save(self, path) -> None:
         """Write the result (and its settings, as JSON) to ``path``, an ``.npz`` file in an
@@ -582,17 +595,21 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
                                     model_noise, scheme)
         P_rec = np.asarray(P, np.float64)[rec]
-        # NEES = |W e|², W = L⁻¹, P = L Lᵀ
-        try:
-            W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
-        except np.linalg.LinAlgError:
-            k = next((j for j in range(len(rec)) if not _factors(P_rec[j])), 0)
-            raise ValueError(
-                f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} is "
-                "singular, so the NEES (eᵀ P⁻¹ e) is undefined there: P0 (with the noise) "
-                "leaves some error direction without variance; give P0 positive variances "
-                "on every axis (e.g. P0 = diag(σ²), σ > 0), or record later "
-                "(record_every)") from None
+        # NEES = |W e|², W = L⁻¹, P = L Lᵀ, where P is positive definite to the dtype's
+        # precision; elsewhere the NEES is undefined (NaN in the result, W = 0 meanwhile)
+        defined = val.definiteness(P_rec, dtype)[0]
+        if not defined.any():
+            k = len(rec) - 1
+            val.check_definite(
+                f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} "
+                "(and at every recorded time)", P_rec[k], dtype, axes=val.ERROR_AXES,
+                what="the NEES eᵀ P⁻¹ e, undefined at every recorded time",
+                fix="P0 with the noise leaves some error direction without variance for the "
+                    "whole study; give P0 positive variances on every axis (e.g. P0 = "
+                    "diag(σ²), σ > 0), or the noise positive random walks")
+        W = np.zeros_like(P_rec)
+        W[defined] = np.linalg.inv(np.linalg.cholesky(P_rec[defined]))
+        W = jnp.asarray(W, dtype)
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
     disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
@@ -622,15 +639,6 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
                       meas_sd=jnp.asarray(meas_sd, dtype),
                       meas_R=jnp.asarray(np.diag(meas_sd**2), dtype))
     return _Study(consts, scheme, seg, rec, times[rec + 1], P_rec, disc, dtype, filt)
-
-
-def _factors(P) -> bool:
-    """Whether numpy's Cholesky factors ``P`` (positive definite to its rounding)."""
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        return False
-    return True
 
 
 # --------------------------------------------------------------------------- accumulation
@@ -727,7 +735,11 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
             steps (the samples are the interval ends).
         P0: ``(15, 15)`` initial error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
             positive semi-definite (judged relative to its scale, as
-            :func:`jaximu.propagate_covariance`).
+            :func:`jaximu.propagate_covariance`). A singular ``P0`` is allowed (``0``: an
+            exactly known start): the NEES is NaN at the recorded times where the predicted
+            covariance is still singular (``MonteCarloResult.nees_mean``); an open-loop
+            study where it is singular at every recorded time is refused before the work
+            (``ValueError`` naming the axes without variance).
         noise: the :class:`ImuNoise` densities (scalars or ``(3,)``) used both to draw the
             noise and to predict the covariance. (To test a filter's noise model, draw with
             one and predict with another: pass ``noise=(draw, predict)``.)
@@ -863,6 +875,13 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         predicted = acc.P_sum / n_runs
         nis_mean = acc.nis_sum / n_runs
         nis_bounds = np.array(chi2_interval(3 * n_runs, confidence)) / n_runs
+    # the NEES is undefined where the covariance is singular to the dtype's precision (the
+    # filter study's judged on the runs' average): NaN there, never a number from rounding
+    undefined = ~val.definiteness(predicted, st.dtype)[0]
+    nees_mean = np.where(undefined, np.nan, acc.nees_sum / n_runs)
+    hist = np.where(undefined[hist_index][:, None], np.nan, acc.hist)
+    if nees_all is not None:
+        nees_all[:, undefined] = np.nan
     settings = dict(trajectory=getattr(trajectory, "name", repr(trajectory)), n_runs=n_runs,
                     scheme=scheme,
                     record_every=int(record_every), n_steps=len(st.consts["dt"]),
@@ -874,9 +893,9 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                     np.asarray(measurement.sigma, float).tolist())
     return MonteCarloResult(
         times=st.times, mean_error=mean, error_cov=cov, predicted_cov=predicted,
-        nees=nees_all, nees_mean=acc.nees_sum / n_runs, nees_bounds=np.array([lo, hi]) / n_runs,
+        nees=nees_all, nees_mean=nees_mean, nees_bounds=np.array([lo, hi]) / n_runs,
         sample_errors=keep, discretization_error=st.disc, n_runs=n_runs, confidence=confidence,
-        nees_hist=acc.hist, nees_hist_edges=edges, nees_hist_index=hist_index,
+        nees_hist=hist, nees_hist_edges=edges, nees_hist_index=hist_index,
         nis_mean=nis_mean, nis_bounds=nis_bounds, settings=settings)
 
 

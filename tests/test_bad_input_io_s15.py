@@ -125,7 +125,8 @@ def test_trajectory_errors_refuses_negative_or_nonfinite_cov():
 
 def test_trajectory_errors_does_not_normalise_q():
     """q = 2·identity gave rotation error 0."""
-    with pytest.raises(ValueError, match=r"states\.q\[0\] has norm 2.*does not normalise"):
+    with pytest.raises(ValueError, match=r"states\.q is not a unit quaternion at row 0: its norm is 2 .*"
+                       r"does not normalise"):
         io.trajectory_errors(T40, states(scale=2.0), gt50())
     io.trajectory_errors(T40, states(scale=1 + 1.5e-4), gt50())  # rounding, as in EuRoC
 

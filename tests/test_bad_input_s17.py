@@ -90,14 +90,6 @@ def test_monte_carlo_names_a_batched_density_before_the_work():
         mc_study(noise=noise)
 
 
-def test_monte_carlo_with_a_singular_predicted_covariance_names_p0():
-    """P0 = 0 is positive semi-definite (accepted) but its first predicted covariance is
-    singular: numpy's bare LinAlgError "Matrix is not positive definite" came out."""
-    with pytest.raises(ValueError, match=r"covariance at times\[1\] = 0\.01 is singular.*"
-                                         r"give P0 positive variances"):
-        mc_study(P0=np.zeros((15, 15)))
-
-
 def test_host_side_inputs_under_jit_name_the_argument():
     """monte_carlo under jit: "P0 must be an array of numbers, got DynamicJaxprTracer"."""
     import jax
