@@ -18,18 +18,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
 import jaximu
 from jaximu import ImuBias, ImuNoise, NavState, allan, cli, montecarlo, simulate, so3
 from jaximu import calibration as cal
 
+from _shared import fast_settings as shared_settings
+
 
 def fast_settings(n):
-    return settings(max_examples=n, deadline=None, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.too_slow,
-                                           HealthCheck.function_scoped_fixture])
+    return shared_settings(n, HealthCheck.function_scoped_fixture)
 
 
 BAD_REALS = (np.nan, np.inf, -np.inf, -1.0, 0.0)
