@@ -1,5 +1,5 @@
-"""Property tests (hypothesis) for the functions tests/test_properties.py did not reach (issue
-12): the helpers (``needs_reintegration``, ``whitened_residual``, ``compose``,
+"""Property tests (hypothesis) for the functions tests/test_properties.py does not reach: the
+helpers (``needs_reintegration``, ``whitened_residual``, ``compose``,
 ``discrete_process_noise``), ``allan.fit_noise``, ``montecarlo.chi2_interval`` and
 ``monte_carlo``'s parameters, ``calibration_problem`` and ``calibrate``'s parameters, the
 ``so3`` kernels on Python lists, and the command's numeric options.

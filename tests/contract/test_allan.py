@@ -70,8 +70,8 @@ def test_allan_deviation_returns_one_tau_per_given_tau_in_order():
 
 
 def test_fit_noise_flags_densities_it_could_not_determine():
-    """Item 14 (real data): a term the data did not show came back as a density of 0 that
-    read as a measurement; it is now flagged not determined."""
+    """A term the data do not show (as in real recordings) is flagged not determined, not
+    returned as a density of 0 that reads as a measurement."""
     taus = np.logspace(-2, 1, 10)
     adev = np.stack([np.sqrt(1e-3**2 / taus), np.sqrt(1e-4**2 * taus / 3),
                      np.sqrt(1e-3**2 / taus + 1e-4**2 * taus / 3)], axis=1)

@@ -65,7 +65,7 @@ def test_io_and_simulate_helpers_name_their_arguments(call, message):
 
 
 def test_half_precision_times_are_computed_in_float32():
-    """Item 8: a float16 t gave float16 signals and states (the README promises float32)."""
+    """A float16 t gives float32 signals and states (as the README promises), not float16."""
     t = T20[:5].astype(np.float16)
     gyro, accel = sim.ideal_imu(TRAJ, t)
     assert gyro.dtype == accel.dtype == jnp.float32
@@ -84,7 +84,8 @@ def test_half_precision_times_are_computed_in_float32():
     (lambda: sim.helix(wobble=0.2j), r"wobble must be real"),
 ])
 def test_complex_inputs_are_refused(call, message):
-    """Item 6: the imaginary part was dropped with only a warning."""
+    """Complex inputs are refused naming them (their imaginary part would be dropped with
+    only a warning)."""
     with pytest.raises(ValueError, match=message):
         call()
 
@@ -113,8 +114,8 @@ def test_complex_inputs_are_refused(call, message):
     (lambda: sim.lissajous(amplitude=(1.0, 2.0, "3")), r"amplitude must be numbers of shape"),
 ])
 def test_simulate_names_the_bad_argument(call, message):
-    """Items 10 and 11: NaN misalignment gave NaN samples; the rest raised JAX or numpy
-    errors that named no argument."""
+    """Each bad argument is named: a NaN misalignment (it gave NaN samples), and shapes,
+    text and bools that raised JAX's or numpy's errors naming no argument."""
     with pytest.raises(ValueError, match=message):
         call()
 
