@@ -74,8 +74,9 @@ from jaximu.errors import Fix, InputError
 from jaximu.io._common import GAP_FACTOR, in_gap
 from jaximu import so3
 from jaximu.noise import ImuNoise
-from jaximu.preintegration import Preintegrated, _chunk_scan, _pairs, _preintegrate, residual
-from jaximu.preintegration import _step as _pim_step
+from jaximu._preintegration_engine import Preintegrated, _chunk_scan, _pairs, _preintegrate
+from jaximu._preintegration_steps import _step as _pim_step
+from jaximu.preintegration import residual
 from jaximu.propagate import propagate_final
 from jaximu import world
 from jaximu.sensor import SensorPose, to_body
