@@ -9,6 +9,7 @@ import time
 import jax
 import numpy as np
 
+
 # --------------------------------------------------------------------------- progress
 
 
