@@ -27,12 +27,12 @@ def is_concrete(*trees) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in leaves)
 
 
-def _first_bad(mask: np.ndarray) -> str:
-    return _index(np.argwhere(mask)[0])
-
-
 def _index(i) -> str:
     return "[" + ", ".join(str(int(k)) for k in i) + "]"
+
+
+def _first_bad(mask: np.ndarray) -> str:
+    return _index(np.argwhere(mask)[0])
 
 
 def kind_of(x) -> str:
@@ -234,10 +234,6 @@ def _scale(arr):
     return np.where(s > 0, s, 1.0)
 
 
-def _at(batch_index, n_batch) -> str:
-    return f" (batch index {_index(batch_index)})" if n_batch else ""
-
-
 def check_covariance(name: str, P, dtype, *, fix: str = ""):
     """On concrete ``P`` (``(..., n, n)``, finite): each matrix symmetric and positive
     semi-definite within :func:`rounding_tolerance` of ``dtype`` times its own largest
@@ -278,7 +274,8 @@ def check_covariance(name: str, P, dtype, *, fix: str = ""):
         b = np.unravel_index(int(np.argmin(lam)), lam.shape) if nb else ()
         s = float(scale[b].squeeze())
         raise ValueError(
-            f"{name} is not positive semi-definite{_at(b, nb)}: its smallest eigenvalue is "
+            f"{name} is not positive semi-definite{f' (batch index {_index(b)})' if nb else ''}"
+            f": its smallest eigenvalue is "
             f"{lam[b] * s:.3g}, {-lam[b]:.2g} of its largest entry {s:.3g} (beyond the "
             f"rounding allowance {tol:.2g}): the cross terms exceed what the variances "
             f"allow{tail}")
