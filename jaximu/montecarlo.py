@@ -244,9 +244,10 @@ class _Study(NamedTuple):
 
 
 def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, record_every,
-             dtype, update_every=None, measurement=None):
+             dtype, update_every=None, measurement=None, nees=True):
     """Validate the inputs and build the kernel's constants (shared by :func:`monte_carlo`
-    and :func:`sample_run`)."""
+    and :func:`sample_run`). ``nees``: refuse an open-loop study whose NEES is undefined at
+    every recorded time (a single run's errors do not need it)."""
     from jaximu.errorstate import _check_cov
     from jaximu.integrators import SCHEMES
 
@@ -337,7 +338,7 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         # NEES = |W e|², W = L⁻¹, P = L Lᵀ, where P is positive definite to the dtype's
         # precision; elsewhere the NEES is undefined (NaN in the result, W = 0 meanwhile)
         defined = val.definiteness(P_rec, dtype)[0]
-        if not defined.any():
+        if nees and not defined.any():
             k = len(rec) - 1
             val.check_definite(
                 f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} "
@@ -653,7 +654,7 @@ def sample_run(trajectory: Trajectory, times, P0, noise: ImuNoise, key, i: int, 
         raise ValueError(f"i must be below 2**32, got {i}")
     st = _prepare(trajectory, times, P0, noise, key, scheme=scheme, gravity=gravity, b_g0=b_g0,
                   b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
-                  measurement=measurement)
+                  measurement=measurement, nees=False)
     run = jnp.asarray([i], jnp.uint32)
     e = _lane_errors(st, run)[:, 0]
     gyro, accel, b, start = _measured(run, st.consts)

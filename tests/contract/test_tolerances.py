@@ -259,9 +259,15 @@ def test_monte_carlo_from_an_exact_start_reports_an_undefined_nees(dtype):
 
 
 def test_monte_carlo_whose_nees_is_undefined_at_every_time_is_refused():
-    """``P0 = 0`` and no bias random walk: the biases have no variance at any time."""
+    """``P0 = 0`` and no bias random walk: the biases have no variance at any time, so the
+    study is refused before the work; one run's errors (``sample_run``) need no NEES and are
+    regenerated, their bias part exactly zero."""
+    noise = ImuNoise(1.7e-4, 2e-3)
     with pytest.raises(ValueError, match=r"the predicted covariance at times\[4\] = 0\.04 "
                                          r"\(and at every recorded time\) is singular: its "
                                          r"variance \[9, 9\] \(db_gx\) is 0.*give P0 positive "
                                          r"variances"):
-        montecarlo.monte_carlo(P0=np.zeros((15, 15)), noise=ImuNoise(1.7e-4, 2e-3), **MC)
+        montecarlo.monte_carlo(P0=np.zeros((15, 15)), noise=noise, **MC)
+    run = montecarlo.sample_run(MC["trajectory"], MC["times"], np.zeros((15, 15)), noise,
+                                MC["key"], 0)
+    assert run.errors.shape == (4, 15) and np.all(run.errors[:, 9:] == 0)
