@@ -8,7 +8,7 @@
 process: importing JAX, reading, checking, compiling, fitting, the Laplace covariance) on a
 simulated 30 s EuRoC-layout recording at 200 Hz (biases, white noise, ground truth with
 velocities), once with an empty compilation cache (cold) and once more with the cache the
-first run filled (warm). The issue's targets on the 2-core VM: < 25 s cold, < 15 s warm.
+first run filled (warm). The targets on the 2-core VM: < 25 s cold, < 15 s warm.
 
 Workload: a simulated Lissajous flight at 200 Hz with biases, scale and misalignment, the
 reference at 20 Hz; keyframes every 0.5 s (100 samples); the loss of

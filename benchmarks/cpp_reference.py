@@ -11,7 +11,7 @@ a hash of the source, the flags and the compiler version), runs it on the given 
 and returns its timings and results. Without a compiler or Eigen it prints why and returns
 ``None``; it never raises.
 
-Basalt itself (the peer the issue names) is timed on the same samples when its headers are
+Basalt itself (the C++ peer of the targets) is timed on the same samples when its headers are
 given: ``BASALT_HEADERS_DIR`` set to a checkout of basalt-headers with its submodules
 (``git clone --recursive https://gitlab.com/VladyslavUsenko/basalt-headers``; it needs
 ``include/basalt`` and ``thirdparty/Sophus``, or Sophus in ``SOPHUS_INCLUDE_DIR``). The

@@ -13,7 +13,7 @@ the compiled code). The filter study (position fix every 20 samples, every run p
 its own covariance) and two ``jax.distributed`` processes are measured too.
 
 Scenario: GTSAM's constant twist (a level circle, ω = 0.4 rad/s, v = 2 m/s), 1000 samples at
-200 Hz, EuRoC ADIS16448 noise, float32 (as the issue's target) and float64. Reported as
+200 Hz, EuRoC ADIS16448 noise, float32 (as the target) and float64. Reported as
 trajectory-samples/s end to end (noise generation included), compile time apart:
 
 * ``jaximu monte_carlo``: N noisy runs propagated (mean), errors against the clean

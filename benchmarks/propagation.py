@@ -28,9 +28,9 @@ Usage (see benchmarks/README.md)::
 ``--check BASELINE``: compares every case that BASELINE (an earlier run's JSON, same machine)
 also measured, matched by name, dtype and size: a run rate more than 30% below the baseline's
 is a regression, and the script exits 1. Compile times over 1.5× the baseline's are listed
-too (the issue's limit), and fail the check only with ``--check-compile`` (compile times move
+too (the limit), and fail the check only with ``--check-compile`` (compile times move
 ±30% between runs of one commit on this host). Cases the baseline lacks are listed as new.
-The committed baseline is the round's first commit (342b89a) measured by its own script on
+The committed baseline is commit 342b89a measured by its own script on
 the Intel host: rows added since (``vmap``, rotating world, lever arm, autodiff for midpoint
 and RK4) have no baseline.
 
@@ -102,13 +102,13 @@ import jaximu  # noqa: E402
 HERE = Path(__file__).resolve().parent
 RESULTS_DIR = HERE / "results"
 
-# Issue targets for a 2-core CPU, float32, batched (B > 1).
-TARGET_MEAN = 100e6  # issue "One fast engine": Euler mean, float32, 1024×1000
+# Targets for a 2-core CPU, float32, batched (B > 1).
+TARGET_MEAN = 100e6  # Euler mean, float32, 1024×1000
 TARGET_COV = 10e6  # the same with the 15×15 covariance
 # Flag a case when other processes used more than this share of the CPUs while it ran.
 BUSY_WARN = 0.10
 # --check: a run rate more than 30% below the baseline's (run-to-run noise on a shared 2-core
-# VM is ±15-20%), or a compile time over 1.5× the baseline's (the issue's limit), regresses.
+# VM is ±15-20%), or a compile time over 1.5× the baseline's (the limit), regresses.
 RATE_TOLERANCE = 0.30
 COMPILE_LIMIT = 1.5
 
@@ -890,7 +890,7 @@ def main(argv=None) -> int:
         print(f"Note: {n}")
     if summary_text:
         print()
-        print("Issue targets (2-core CPU, float32, batched B > 1)"
+        print("Targets (2-core CPU, float32, batched B > 1)"
               + (" -- quick sizes, not representative:" if args.quick else ":"))
         print(summary_text)
     print()

@@ -126,8 +126,8 @@ def _quat_mul(p, q):
 
 def _quat_normalize(q):
     """``q / |q|`` as ``q · rsqrt(|q|²)``: one square root and one division per lane
-    instead of four divisions (the batched means 1.05-1.14x in an in-process A/B,
-    2026-11-24; the result differs from the division in the last bit)."""
+    instead of four divisions (faster: docs/DESIGN.md section 3, "One square root a
+    normalisation"; the result differs from the division in the last bit)."""
     r = jax.lax.rsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     return tuple(x * r for x in q)
 

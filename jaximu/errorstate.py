@@ -249,47 +249,15 @@ structured_update = blk.structured_update
 
 
 def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
-    """Shape, finiteness, symmetry and semi-definiteness of ``P0``, judged relative to the
-    matrix's own scale (its largest entry): a covariance of 1e-6 m² is held to the same
-    relative rounding tolerance (``60 ε`` of the computation dtype, ``4 n ε`` with n = 15)
-    as one of 1e6, so a one-sided cross term or a negative variance is caught at any scale,
-    while the rounding of ``A Aᵀ`` computed in the dtype passes. ``name``: the argument in
-    the messages; ``n``: the matrix size (15 for the error state)."""
+    """Shape and finiteness of ``P0``, and (eager calls) its symmetry and semi-definiteness
+    relative to each matrix's own scale (:func:`jaximu._validation.check_covariance`: 60 ε
+    of the computation dtype times its largest entry). ``name``: the argument in the
+    messages; ``n``: the matrix size (15 for the error state)."""
     P0 = val.to_dtype(name, P0, dtype)
     if P0.ndim < 2 or P0.shape[-2:] != (n, n):
         raise ValueError(f"{name} must have shape (..., {n}, {n}), got {tuple(P0.shape)}")
     val.check_finite(name, P0)
-    if val.is_concrete(P0):
-        arr = np.asarray(P0, np.float64)
-        scale = float(np.abs(arr).max(initial=0.0))
-        if scale == 0.0:
-            return P0
-        arr = arr / scale  # relative tests; no overflow for entries near the float64 maximum
-        tol = 60 * float(jnp.finfo(P0.dtype).eps)
-        asym = np.abs(arr - np.swapaxes(arr, -1, -2))
-        if asym.max(initial=0.0) > tol:
-            i = np.unravel_index(int(np.argmax(asym)), asym.shape)
-            j = i[:-2] + (i[-1], i[-2])
-            raise ValueError(
-                f"{name} is not symmetric: {name}[{', '.join(map(str, i))}] = "
-                f"{arr[i] * scale:.6g} but "
-                f"{name}[{', '.join(map(str, j))}] = {arr[j] * scale:.6g} "
-                f"(max |{name} - {name}ᵀ| = "
-                f"{asym.max() * scale:.3g}, {asym.max():.2g} of the largest entry {scale:.3g}); "
-                f"set both, e.g. {name} = ({name} + {name}ᵀ) / 2")
-        diag = np.diagonal(arr, axis1=-2, axis2=-1)
-        if diag.min(initial=0.0) < -tol:
-            i = np.unravel_index(int(np.argmin(diag)), diag.shape)
-            where = ", ".join(map(str, i[:-1] + (i[-1], i[-1])))
-            raise ValueError(
-                f"{name} is not positive semi-definite: the variance {name}[{where}] = "
-                f"{diag[i] * scale:.3g} is negative; variances are σ² ≥ 0")
-        min_eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2))).min(initial=0.0)
-        if min_eig < -tol:
-            raise ValueError(
-                f"{name} is not positive semi-definite (smallest eigenvalue {min_eig * scale:.3g}, "
-                f"{-min_eig:.2g} of the largest entry {scale:.3g}): the cross terms exceed what "
-                "the variances allow")
+    val.check_covariance(name, P0, P0.dtype)
     return P0
 
 
@@ -562,21 +530,12 @@ def position_jacobian(dtype=None):
 
 
 def _check_innovation(S, dtype):
-    """``S = H P Hᵀ + R`` must be positive definite (its Cholesky factor is the update's);
-    judged relative to its largest entry (eager calls)."""
-    if not val.is_concrete(S):
-        return
-    arr = np.asarray(S, np.float64)
-    scale = np.abs(arr).max(axis=(-2, -1), keepdims=True)
-    rel = np.linalg.eigvalsh(arr / np.where(scale > 0, scale, 1.0)).min(-1)
-    tol = 60 * float(jnp.finfo(dtype).eps)
-    bad = (rel <= tol) | (scale[..., 0, 0] == 0)
-    if bad.any():
-        where = f" at batch index {val._first_bad(bad)}" if bad.ndim else ""
-        raise ValueError(
-            f"the innovation covariance S = H P Hᵀ + R is singular{where} (smallest eigenvalue "
-            f"{rel.min():.3g} of its largest entry): R must be positive definite (a measurement "
-            "noise variance σ² > 0 on every row), or P positive in the measured directions")
+    """``S = H P Hᵀ + R`` must be positive definite to the dtype's precision (its Cholesky
+    factor is the update's; :func:`jaximu._validation.check_definite`), on eager calls."""
+    val.check_definite(
+        "the innovation covariance S = H P Hᵀ + R", S, dtype, what="the gain K = P Hᵀ S⁻¹",
+        fix="R must be positive definite (a measurement noise variance σ² > 0 on every row), "
+            "or P positive in the measured directions")
 
 
 def ekf_update(state: NavState, P, residual, H, R):
@@ -601,8 +560,10 @@ def ekf_update(state: NavState, P, residual, H, R):
         H: ``(m, 15)`` or ``batch + (m, 15)`` measurement Jacobian ``∂h/∂δ``
             (:func:`position_jacobian`), finite.
         R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
-            positive definite, finite (with ``P``, ``S = H P Hᵀ + R`` must be positive
-            definite).
+            positive semi-definite (as ``P``), finite; with ``P``, ``S = H P Hᵀ + R`` must
+            be positive definite to the dtype's precision (the smallest eigenvalue of its
+            correlation matrix above 60 ε: :func:`jaximu._validation.definiteness`), or the
+            update refuses it naming ``S``, ``R`` and ``P``.
 
     The computation dtype is the promotion of the inputs' (at least float32: integer and
     half-precision inputs are computed in float32). Shapes and batch shapes are checked

@@ -179,10 +179,10 @@ class Scheme:
 
     @property
     def preintegration(self):
-        """Its :class:`jaximu.preintegration.PreintegrationStep` (generic step, noise
+        """Its :class:`jaximu._preintegration_steps.PreintegrationStep` (generic step, noise
         mapping, SoA kernel), or ``None`` where :func:`jaximu.preintegrate` has no such
         scheme (RK4)."""
-        from jaximu.preintegration import PREINTEGRATION_STEPS
+        from jaximu._preintegration_steps import PREINTEGRATION_STEPS
 
         return PREINTEGRATION_STEPS.get(self.name)
 

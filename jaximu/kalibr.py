@@ -19,6 +19,7 @@ import pathlib
 
 import numpy as np
 
+from jaximu import _validation as val
 from jaximu.noise import ImuNoise
 from jaximu.sensor import SensorPose
 
@@ -168,9 +169,8 @@ def parse_body_P_sensor(text: str, camera: str = "cam0") -> SensorConfig:
                          "(q_BS Hamilton, p_BS in metres) or a sensor YAML file")
     q = vals[:4]
     norm = float(np.linalg.norm(q))
-    if abs(norm - 1) > 1e-3:
-        raise ValueError(f"--body-P-sensor: q_BS = {q.tolist()} is not a unit quaternion "
-                         f"(|q| = {norm:.6g}); give a unit quaternion [w, x, y, z]")
+    val.check_unit_norm(f"--body-P-sensor: q_BS = {q.tolist()}", q, np.float64,
+                        tol=val.ROUNDED_QUATERNION, fix="give a unit quaternion [w, x, y, z]")
     note = "" if abs(norm - 1) < 1e-12 else f" (q normalised from |q| = {norm:.6g})"
     pose = SensorPose(np.asarray(q / norm), np.asarray(vals[4:]))
     return SensorConfig(pose, None, None, f"--body-P-sensor{note}")

@@ -43,13 +43,10 @@ NIS (``νᵀ S⁻¹ ν``, dof ``m``) is reported too.
 from __future__ import annotations
 
 import concurrent.futures
-import functools
 import json
 import math
 import os
 import pathlib
-import sys
-import time
 from typing import NamedTuple
 
 import jax
@@ -58,28 +55,19 @@ import numpy as np
 
 from jaximu import _rng
 from jaximu import _validation as val
-from jaximu._blocks import UPPER, blocks_to_dense, kalman_update, whiten
-from jaximu._soa import SOA, _materialise, _rows, mean_step
-from jaximu._vec import V3
+from jaximu._montecarlo_lanes import _N_STREAMS, _chunk, _measured
+from jaximu._montecarlo_stats import _Acc, _allgather_f64, _Progress
 from jaximu.errors import Fix, InputError
 from jaximu.errorstate import propagate_covariance
 from jaximu.integrators import SCHEME_OBJECTS
 from jaximu.noise import ImuNoise
 from jaximu.propagate import _propagate
 from jaximu.simulate import Trajectory, ideal_imu, true_states
-from jaximu.state import NavState, boxminus, boxplus
+from jaximu.state import NavState, boxminus
 
 __all__ = ["MonteCarloResult", "PositionFix", "monte_carlo", "sample_run", "chi2_interval",
            "load_result"]
 
-# Streams of the counter-based generator (each a Threefry key; counter = (run, step)):
-# pairs 0-2 white noise of sample j (counter j): (n_gx, n_gy), (n_gz, n_ax), (n_ay, n_az);
-# pairs 3-5 bias walk of step k (counter k): the same order for (n_wg, n_wa);
-# pairs 6-13 the initial error ε (counter 0; 15 of the 16 normals);
-# pairs 14-15 the measurement noise of update u (counter u).
-_WHITE, _WALK, _INIT, _MEAS = 0, 3, 6, 14
-_N_STREAMS = 16
-_POSITION_H = (None, "I", None, None, None)  # H = [0, I, 0, 0, 0] by column blocks
 
 
 class PositionFix(NamedTuple):
@@ -102,15 +90,21 @@ class MonteCarloResult(NamedTuple):
         predicted_cov: ``(K, 15, 15)`` open loop: the linearised covariance; filter study:
             the average over the runs of each run's own covariance after the update.
         nees: ``(N, K)`` NEES of every run at every recorded time with ``keep_nees=True``,
-            else ``None`` (memory ``N·K``).
-        nees_mean: ``(K,)`` average NEES over the runs.
+            else ``None`` (memory ``N·K``); NaN where the NEES is undefined (below).
+        nees_mean: ``(K,)`` average NEES over the runs. NaN at a recorded time where the
+            covariance is singular to the precision of the computation dtype
+            (:func:`jaximu._validation.definiteness`; the filter study's judged on the runs'
+            average): ``eᵀ P⁻¹ e`` is undefined there, e.g. in the first steps from an
+            exactly known start (``P0 = 0``), where one step's position and velocity errors
+            are the same accelerometer noise (:attr:`nees_defined`).
         nees_bounds: ``(2,)`` the two-sided interval of the average NEES at ``confidence``.
         sample_errors: ``(n_keep, K, 15)`` the errors of the first runs (for plots).
         discretization_error: ``(K, 15)`` noise-free propagation ⊟ true trajectory.
         n_runs: N.
         confidence: the interval's confidence.
         nees_hist: ``(H, nbins)`` counts of the per-run NEES at the recorded times
-            ``nees_hist_index`` (values past the last edge in the last bin).
+            ``nees_hist_index`` (values past the last edge in the last bin; NaN where the
+            NEES is undefined).
         nees_hist_edges: ``(nbins + 1,)`` the bins' edges.
         nees_hist_index: ``(H,)`` indices into ``times`` of the histograms.
         nis_mean: filter study: ``(K,)`` average NIS at the updates (else ``None``).
@@ -138,8 +132,15 @@ class MonteCarloResult(NamedTuple):
 
     @property
     def consistent(self) -> np.ndarray:
-        """``(K,)``: whether the average NEES lies inside its interval at each time."""
+        """``(K,)``: whether the average NEES lies inside its interval at each time (False
+        where it is undefined: :attr:`nees_defined`)."""
         return (self.nees_mean >= self.nees_bounds[0]) & (self.nees_mean <= self.nees_bounds[1])
+
+    @property
+    def nees_defined(self) -> np.ndarray:
+        """``(K,)``: whether the NEES is defined at each recorded time (the covariance there
+        is positive definite to the computation dtype's precision; see ``nees_mean``)."""
+        return np.isfinite(self.nees_mean)
 
     def save(self, path) -> None:
         """Write the result (and its settings, as JSON) to ``path``, an ``.npz`` file in an
@@ -227,255 +228,6 @@ def chi2_interval(dof, confidence: float = 0.95):
     return (k * (1 - c - z * math.sqrt(c)) ** 3, k * (1 - c + z * math.sqrt(c)) ** 3)
 
 
-# --------------------------------------------------------------------------- progress
-
-
-class _Progress:
-    """tqdm when installed, else a line on stderr every second: runs done, runs/s, ETA."""
-
-    def __init__(self, total, enabled):
-        self.total, self.done, self.bar = total, 0, None
-        self.enabled = enabled
-        self.t0 = self.last = time.perf_counter()
-        if enabled:
-            try:
-                from tqdm.auto import tqdm
-
-                self.bar = tqdm(total=total, unit="run", desc="Monte Carlo")
-            except ImportError:
-                pass
-
-    def update(self, n):
-        self.done += n
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            self.bar.update(n)
-            return
-        now = time.perf_counter()
-        if now - self.last >= 1.0 or self.done == self.total:
-            self.last = now
-            rate = self.done / max(now - self.t0, 1e-9)
-            eta = (self.total - self.done) / max(rate, 1e-9)
-            print(f"\rMonte Carlo: {self.done}/{self.total} runs, {rate:,.0f} runs/s, "
-                  f"ETA {eta:.0f} s", end="", file=sys.stderr, flush=True)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()
-        elif self.enabled:
-            print(file=sys.stderr, flush=True)
-
-
-# --------------------------------------------------------------------------- the kernel
-
-
-def _u32(x):
-    return jnp.asarray(x, jnp.uint32)
-
-
-def _initial(run, c):
-    """``(q̂, p̂, v̂, δb_g, δb_a)`` of the runs ``run`` as SoA components: ``x̂_0 = x_0 ⊞ ε``,
-    ``δb = b - b̂ = -ε_b``."""
-    dtype = c["dt"].dtype
-    z = _rng.normals(c["keys"][_INIT:], run, _u32(0), 8, dtype)[:15]
-    # ε = L0 z as an explicit per-lane sum (a matrix product's summation order depends on
-    # the number of lanes; this way a run regenerated alone is bit-identical)
-    L0 = c["L0"]
-    eps = jnp.stack([sum(L0[i, j] * z[j] for j in range(15)) for i in range(15)], -1)
-    B = run.shape[0]
-    x0 = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + x.shape), c["x0"])
-    start = boxplus(x0.replace(b_g=jnp.zeros_like(x0.b_g), b_a=jnp.zeros_like(x0.b_a)), eps)
-    comps = lambda x: tuple(x[:, i] for i in range(x.shape[1]))  # noqa: E731
-    return (comps(start.q), V3(*comps(start.p)), V3(*comps(start.v)), -V3(*comps(start.b_g)),
-            -V3(*comps(start.b_a)))
-
-
-def _draw(run, j, k, c):
-    """The step's 12 normals, materialised: white noise of sample ``j`` (streams 0-2) and the
-    bias walk of step ``k`` (streams 3-5), hashed together. (Materialised: XLA:CPU would
-    otherwise recompute the hash in every fusion that reads one of its outputs.)"""
-    return _rng.normals_at(c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype,
-                           stage=_materialise)
-
-
-def _sample(n, w, a, sd, dbg, dba):
-    """Bias-corrected sample: ``ω = ω_true + δb_g + σ_g/√dt n_g`` and ``f = f_true + δb_a +
-    σ_a/√dt n_a`` (``w``, ``a``, ``sd``: the sample's true signals and its 6 white-noise
-    standard deviations; ``n``: its 6 white normals)."""
-    omega = V3(*(w[i] + dbg[i] + sd[i] * n[i] for i in range(3)))
-    f = V3(*(a[i] + dba[i] + sd[3 + i] * n[3 + i] for i in range(3)))
-    return omega, f
-
-
-def _walk(n, sw, dbg, dba):
-    """Bias errors after a walk step (``n``: its 6 normals; ``sw``: their 6 std)."""
-    return (V3(*(dbg[i] + sw[i] * n[i] for i in range(3))),
-            V3(*(dba[i] + sw[3 + i] * n[3 + i] for i in range(3))))
-
-
-def _errors(carry, ref):
-    """``(B, 15)`` errors ``x_k ⊟ x̂_k`` of the lanes against the shared reference
-    ``ref = (q, p, v)`` (the bias part is ``δb``)."""
-    q, p, v, dbg, dba = (carry[k] for k in ("q", "p", "v", "dbg", "dba"))
-    st = lambda t: jnp.stack(jnp.broadcast_arrays(*t), -1)  # noqa: E731
-    est = NavState(st(q), st(p), st(v), jnp.zeros_like(st(p)), jnp.zeros_like(st(p)))
-    B = est.p.shape[0]
-    truth = NavState(*(jnp.broadcast_to(x, (B,) + x.shape) for x in ref), st(dbg), st(dba))
-    return boxminus(truth, est)
-
-
-def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
-    """Propagate the runs ``run`` (``(B,)`` uint32, the lanes) through all segments.
-
-    ``seg = (length, count, remainder)``: ``count`` segments of ``length`` steps and one of
-    ``remainder`` steps (if > 0), each ending at a recorded time. With ``filt`` every run
-    also propagates its covariance and, at the end of each full segment, takes a position
-    fix (:func:`jaximu.errorstate.ekf_update`); the errors are recorded after the update.
-    ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
-    lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
-    """
-    from jaximu._fast import cov_step_blocks, dense_to_blocks
-
-    sch = SCHEME_OBJECTS[scheme]
-    nxt = sch.uses_next_sample
-    L, n_seg, rem = seg
-    dtype = c["dt"].dtype
-    B = run.shape[0]
-    q, p, v, dbg, dba = _initial(run, c)
-    carry = dict(q=q, p=p, v=v, dbg=dbg, dba=dba)
-    if nxt:
-        w0, a0 = (tuple(x[i] for i in range(3)) for x in (c["w0"], c["a0"]))
-        n0 = _rng.normals(c["keys"][_WHITE:_WHITE + 3], run, _u32(0), 3, dtype)
-        carry["s"] = _sample(n0, w0, a0, tuple(c["sd0"][i] for i in range(6)), dbg, dba)
-    if filt:
-        carry["P"] = dense_to_blocks(jnp.broadcast_to(c["P0"], (B, 15, 15)))
-    g = V3(*(c["g"][i] for i in range(3)))
-
-    def step(carry, xs):
-        k, row = xs
-        # a materialised copy: a dynamic slice of the scan inputs inside the lane fusions
-        # stops LLVM from vectorising them (as in the SoA covariance kernels); one row, one copy
-        row = _materialise(row)
-        w, a, sd, sw, qc = (tuple(row[i] for i in range(lo, hi)) for lo, hi in (
-            (0, 3), (3, 6), (6, 12), (12, 18), (19, row.shape[0])))
-        h = row[18]
-        out = dict(carry)
-        dbg, dba = carry["dbg"], carry["dba"]
-        if nxt:  # white noise of sample k+1 (the step's end), walk of step k
-            n = _draw(run, k + 1, k, c)
-            omega0, f0 = carry["s"]
-            dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
-            omega1, f1 = _sample(n[:6], w, a, sd, dbg1, dba1)
-            out["s"] = (omega1, f1)
-        else:
-            n = _draw(run, k, k, c)
-            omega0, f0 = _sample(n[:6], w, a, sd, dbg, dba)
-            omega1, f1 = omega0, f0
-            dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
-        out["dbg"], out["dba"] = dbg1, dba1
-        if not filt:
-            q1, p1, v1 = mean_step(sch, carry["q"], carry["p"], carry["v"], omega0, f0, omega1,
-                                   f1, h, g)
-        else:
-            q1, p1, v1, out["P"] = cov_step_blocks(
-                sch, "analytic", (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]),
-                omega0, f0, omega1, f1, h, g, qc)
-        out["q"], out["p"], out["v"] = tuple(q1), V3(*p1), V3(*v1)
-        return out, None
-
-    T = c["dt"].shape[0]
-    qc_all = c["qc"] if filt else jnp.zeros((T, 0), dtype)
-    # the per-step inputs as one (T, 19 [+ 12]) table: ω, f, white std, walk std, h [, Q_c]
-    table = jnp.concatenate([c["w_in"], c["a_in"], c["sd_in"], c["sw"], c["dt"][:, None],
-                             qc_all], 1)
-    xs_all = (jnp.arange(T, dtype=jnp.uint32), table)
-
-    def update(carry, i):
-        """Position fix ``i`` (measurement noise: streams _MEAS, counter i), on the lanes:
-        :func:`jaximu._blocks.kalman_update` (the mathematics of
-        :func:`jaximu.errorstate.ekf_update`) on the covariance blocks."""
-        ref_p = c["ref"][1][i]
-        nu = _rng.normals(c["keys"][_MEAS:_MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]
-        res = [ref_p[j] - carry["p"][j] + nu[j] * c["meas_sd"][j] for j in range(3)]  # z - p̂
-        up = kalman_update(dict(zip(UPPER, carry["P"])), _POSITION_H,
-                           SOA.from_arrays(c["meas_R"]), _rows([r[None] for r in res], dtype),
-                           SOA)
-        dx = jnp.concatenate([d[:, 0] for d in up.dx], 0).T  # (B, 15)
-        st = lambda t: jnp.stack(t, -1)  # noqa: E731
-        est = NavState(st(carry["q"]), st(carry["p"]), st(carry["v"]), -st(carry["dbg"]),
-                       -st(carry["dba"]))
-        est = boxplus(est, dx)
-        comps = lambda x: tuple(x[:, j] for j in range(x.shape[1]))  # noqa: E731
-        out = dict(carry, q=comps(est.q), p=V3(*comps(est.p)), v=V3(*comps(est.v)),
-                   dbg=-V3(*comps(est.b_g)), dba=-V3(*comps(est.b_a)),
-                   P=tuple(up.P[k] for k in UPPER))
-        if nxt:  # the carried sample is corrected with the new bias estimate
-            omega, f = carry["s"]
-            out["s"] = (omega + (out["dbg"] - carry["dbg"]), f + (out["dba"] - carry["dba"]))
-        return out, up.nis[0, 0]
-
-    def record(carry, i, with_update):
-        nis = None
-        if filt and with_update:
-            carry, nis = update(carry, i)
-        ref = tuple(x[i] for x in c["ref"])
-        e = _errors(carry, ref)
-        if mode == "errors":
-            return carry, e
-        if not filt:
-            return carry, _lane_stats(e, wt, W=c["W"][i])
-        if nis is None:
-            nis = jnp.full((B,), jnp.nan, dtype)
-        return carry, _lane_stats(e, wt, Pb=carry["P"], nis=nis)
-
-    def segment(carry, i):
-        xs = jax.tree_util.tree_map(
-            lambda x: jax.lax.dynamic_slice_in_dim(x, i * L, L, 0), xs_all)
-        carry = jax.lax.scan(step, carry, xs)[0]
-        return record(carry, i, True)
-
-    outs = []
-    if n_seg:
-        carry, out = jax.lax.scan(segment, carry, jnp.arange(n_seg))
-        outs.append(out)
-    if rem:
-        xs = jax.tree_util.tree_map(lambda x: x[n_seg * L:], xs_all)
-        carry = jax.lax.scan(step, carry, xs)[0]
-        out = record(carry, jnp.asarray(n_seg), False)[1]
-        outs.append(jax.tree_util.tree_map(lambda x: x[None], out))
-    return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x, 0), *outs)
-
-
-def _lane_stats(e, wt, W=None, Pb=None, nis=None):
-    """Over the lanes weighted by ``wt``: the mean and centred second moment of the
-    ``(B, 15)`` errors, and the per-lane NEES: ``|W e|²`` with ``W`` the inverse Cholesky
-    factor of the shared covariance, or ``eᵀ P⁻¹ e`` with each lane's own covariance, its 15
-    upper blocks ``Pb`` (``(3, 3, B)``; filter study: then also the weighted sum of ``P``
-    and the lanes' NIS)."""
-    n = jnp.sum(wt)
-    mean = jnp.sum(e * wt[:, None], 0) / jnp.maximum(n, 1)
-    d = (e - mean) * wt[:, None]
-    if Pb is None:
-        y = e @ W.T
-        return mean, d.T @ d, jnp.sum(y * y, -1)
-    eT = e.T
-    y = whiten(dict(zip(UPPER, Pb)), [eT[3 * i:3 * i + 3, None] for i in range(5)], SOA)
-    nees = sum(jnp.sum(b * b, (0, 1)) for b in y)
-    P_sum = blocks_to_dense({k: jnp.sum(b * wt, -1) for k, b in zip(UPPER, Pb)})
-    return mean, d.T @ d, nees, P_sum, nis
-
-
-@functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt"))
-def _chunk(run, wt, c, *, scheme, seg, mode, filt=False):
-    """The jitted lane kernel (:func:`_run_lanes`). Every caller gives it at least two lanes:
-    a one-lane program rounds differently (:func:`_lane_errors`), so the rule is checked
-    here, at trace time, where a new caller would break it."""
-    if run.shape[0] < 2:
-        raise AssertionError(f"_chunk needs at least two lanes, got {run.shape[0]}")
-    return _run_lanes(run, wt, c, scheme=scheme, seg=seg, mode=mode, filt=filt)
-
-
 # --------------------------------------------------------------------------- set-up
 
 
@@ -492,9 +244,10 @@ class _Study(NamedTuple):
 
 
 def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, record_every,
-             dtype, update_every=None, measurement=None):
+             dtype, update_every=None, measurement=None, nees=True):
     """Validate the inputs and build the kernel's constants (shared by :func:`monte_carlo`
-    and :func:`sample_run`)."""
+    and :func:`sample_run`). ``nees``: refuse an open-loop study whose NEES is undefined at
+    every recorded time (a single run's errors do not need it)."""
     from jaximu.errorstate import _check_cov
     from jaximu.integrators import SCHEMES
 
@@ -582,17 +335,21 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
                                     model_noise, scheme)
         P_rec = np.asarray(P, np.float64)[rec]
-        # NEES = |W e|², W = L⁻¹, P = L Lᵀ
-        try:
-            W = jnp.asarray(np.linalg.inv(np.linalg.cholesky(P_rec)), dtype)
-        except np.linalg.LinAlgError:
-            k = next((j for j in range(len(rec)) if not _factors(P_rec[j])), 0)
-            raise ValueError(
-                f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} is "
-                "singular, so the NEES (eᵀ P⁻¹ e) is undefined there: P0 (with the noise) "
-                "leaves some error direction without variance; give P0 positive variances "
-                "on every axis (e.g. P0 = diag(σ²), σ > 0), or record later "
-                "(record_every)") from None
+        # NEES = |W e|², W = L⁻¹, P = L Lᵀ, where P is positive definite to the dtype's
+        # precision; elsewhere the NEES is undefined (NaN in the result, W = 0 meanwhile)
+        defined = val.definiteness(P_rec, dtype)[0]
+        if nees and not defined.any():
+            k = len(rec) - 1
+            val.check_definite(
+                f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} "
+                "(and at every recorded time)", P_rec[k], dtype, axes=val.ERROR_AXES,
+                what="the NEES eᵀ P⁻¹ e, undefined at every recorded time",
+                fix="P0 with the noise leaves some error direction without variance for the "
+                    "whole study; give P0 positive variances on every axis (e.g. P0 = "
+                    "diag(σ²), σ > 0), or the noise positive random walks")
+        W = np.zeros_like(P_rec)
+        W[defined] = np.linalg.inv(np.linalg.cholesky(P_rec[defined]))
+        W = jnp.asarray(W, dtype)
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
     disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
@@ -624,91 +381,6 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     return _Study(consts, scheme, seg, rec, times[rec + 1], P_rec, disc, dtype, filt)
 
 
-def _factors(P) -> bool:
-    """Whether numpy's Cholesky factors ``P`` (positive definite to its rounding)."""
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        return False
-    return True
-
-
-# --------------------------------------------------------------------------- accumulation
-
-
-class _Acc:
-    """Streaming sums over runs, float64 on the host: count, mean and centred second moment
-    of the errors per recorded time (Chan, Golub, LeVeque's pairwise update), the sum of the
-    NEES, and NEES histograms."""
-
-    def __init__(self, K, hist_index, edges):
-        self.n = 0
-        self.mean = np.zeros((K, 15))
-        self.M2 = np.zeros((K, 15, 15))
-        self.nees_sum = np.zeros(K)
-        self.hist_index = hist_index
-        self.edges = edges
-        self.hist = np.zeros((len(hist_index), len(edges) - 1))
-        self.nis_sum = np.zeros(K)  # filter study
-        self.P_sum = np.zeros((K, 15, 15))
-
-    def add_moments(self, n_b, mean_b, M2_b):
-        n_a = self.n
-        n = n_a + n_b
-        delta = mean_b - self.mean
-        self.mean = self.mean + delta * (n_b / n)
-        self.M2 = self.M2 + M2_b + np.einsum("ki,kj->kij", delta, delta) * (n_a * n_b / n)
-        self.n = n
-
-    def add_chunk(self, n_b, mean_b, M2_b, nees, P_sum=None, nis=None):
-        """``nees``: ``(K, n_b)`` per-run NEES of the chunk's valid runs (filter study: also
-        the sum of the runs' covariances and ``(K, n_b)`` NIS)."""
-        self.add_moments(n_b, np.asarray(mean_b, np.float64), np.asarray(M2_b, np.float64))
-        if P_sum is not None:
-            self.P_sum += np.asarray(P_sum, np.float64)
-            self.nis_sum += nis.sum(1)
-        self.nees_sum += nees.sum(1)
-        last = len(self.edges) - 2
-        for h, k in enumerate(self.hist_index):
-            b = np.clip(np.searchsorted(self.edges, nees[k], side="right") - 1, 0, last)
-            self.hist[h] += np.bincount(b, minlength=last + 1)
-
-    def add(self, other):
-        if other.n:
-            self.add_moments(other.n, other.mean, other.M2)
-        self.nees_sum += other.nees_sum
-        self.hist += other.hist
-        self.nis_sum += other.nis_sum
-        self.P_sum += other.P_sum
-
-    _PARTS = ("mean", "M2", "nees_sum", "hist", "nis_sum", "P_sum")
-
-    def pack(self):
-        return np.concatenate([[self.n]] + [getattr(self, k).ravel() for k in self._PARTS])
-
-    def unpack(self, flat):
-        K = len(self.nees_sum)
-        other = _Acc(K, self.hist_index, self.edges)
-        i = 1
-        other.n = int(flat[0])
-        for name in self._PARTS:
-            shape = getattr(self, name).shape
-            size = int(np.prod(shape))
-            setattr(other, name, flat[i:i + size].reshape(shape))
-            i += size
-        return other
-
-
-def _allgather_f64(x):
-    """Every process's float64 vector ``x`` (same length), exactly: sent as uint32 words (the
-    transport does not need ``jax_enable_x64``). Returns ``(processes, len)``."""
-    from jax.experimental import multihost_utils
-
-    words = np.ascontiguousarray(x, np.float64).view(np.uint32)
-    out = np.asarray(multihost_utils.process_allgather(words))
-    return out.reshape(jax.process_count(), -1).view(np.float64)
-
-
 # --------------------------------------------------------------------------- the study
 
 
@@ -727,7 +399,11 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
             steps (the samples are the interval ends).
         P0: ``(15, 15)`` initial error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
             positive semi-definite (judged relative to its scale, as
-            :func:`jaximu.propagate_covariance`).
+            :func:`jaximu.propagate_covariance`). A singular ``P0`` is allowed (``0``: an
+            exactly known start): the NEES is NaN at the recorded times where the predicted
+            covariance is still singular (``MonteCarloResult.nees_mean``); an open-loop
+            study where it is singular at every recorded time is refused before the work
+            (``ValueError`` naming the axes without variance).
         noise: the :class:`ImuNoise` densities (scalars or ``(3,)``) used both to draw the
             noise and to predict the covariance. (To test a filter's noise model, draw with
             one and predict with another: pass ``noise=(draw, predict)``.)
@@ -863,6 +539,13 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         predicted = acc.P_sum / n_runs
         nis_mean = acc.nis_sum / n_runs
         nis_bounds = np.array(chi2_interval(3 * n_runs, confidence)) / n_runs
+    # the NEES is undefined where the covariance is singular to the dtype's precision (the
+    # filter study's judged on the runs' average): NaN there, never a number from rounding
+    undefined = ~val.definiteness(predicted, st.dtype)[0]
+    nees_mean = np.where(undefined, np.nan, acc.nees_sum / n_runs)
+    hist = np.where(undefined[hist_index][:, None], np.nan, acc.hist)
+    if nees_all is not None:
+        nees_all[:, undefined] = np.nan
     settings = dict(trajectory=getattr(trajectory, "name", repr(trajectory)), n_runs=n_runs,
                     scheme=scheme,
                     record_every=int(record_every), n_steps=len(st.consts["dt"]),
@@ -874,9 +557,9 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                     np.asarray(measurement.sigma, float).tolist())
     return MonteCarloResult(
         times=st.times, mean_error=mean, error_cov=cov, predicted_cov=predicted,
-        nees=nees_all, nees_mean=acc.nees_sum / n_runs, nees_bounds=np.array([lo, hi]) / n_runs,
+        nees=nees_all, nees_mean=nees_mean, nees_bounds=np.array([lo, hi]) / n_runs,
         sample_errors=keep, discretization_error=st.disc, n_runs=n_runs, confidence=confidence,
-        nees_hist=acc.hist, nees_hist_edges=edges, nees_hist_index=hist_index,
+        nees_hist=hist, nees_hist_edges=edges, nees_hist_index=hist_index,
         nis_mean=nis_mean, nis_bounds=nis_bounds, settings=settings)
 
 
@@ -971,29 +654,10 @@ def sample_run(trajectory: Trajectory, times, P0, noise: ImuNoise, key, i: int, 
         raise ValueError(f"i must be below 2**32, got {i}")
     st = _prepare(trajectory, times, P0, noise, key, scheme=scheme, gravity=gravity, b_g0=b_g0,
                   b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
-                  measurement=measurement)
+                  measurement=measurement, nees=False)
     run = jnp.asarray([i], jnp.uint32)
     e = _lane_errors(st, run)[:, 0]
     gyro, accel, b, start = _measured(run, st.consts)
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
     return Run(f64(e), st.times, f64(gyro), f64(accel), jax.tree_util.tree_map(f64, start),
                f64(b[:, :3]), f64(b[:, 3:]))
-
-
-@jax.jit
-def _measured(run, c):
-    """Measured samples, true biases and initial estimate of one run (``run``: ``(1,)``), from
-    the same streams and counters as the kernel."""
-    q, p, v, dbg, dba = _initial(run, c)
-    T = c["dt"].shape[0]
-    ks = jnp.arange(T + 1, dtype=jnp.uint32)
-    dtype = c["dt"].dtype
-    n = jnp.stack(_rng.normals(c["keys"][_WHITE:_WHITE + 3], run[0], ks, 3, dtype), -1)
-    m = jnp.stack(_rng.normals(c["keys"][_WALK:_WALK + 3], run[0], ks[:T], 3, dtype), -1)
-    db = jnp.concatenate([jnp.zeros((1, 6), dtype), jnp.cumsum(m * c["sw"], 0)])  # (T+1, 6)
-    b = c["b0"] + db  # true biases during each sample
-    noisy = n * c["sd"]
-    st = lambda t: jnp.stack(t, -1)[0]  # noqa: E731
-    b_hat = c["b0"] - jnp.concatenate([st(dbg), st(dba)])
-    start = NavState(st(q), st(p), st(v), b_hat[:3], b_hat[3:])
-    return c["gyro"] + b[:, :3] + noisy[:, :3], c["accel"] + b[:, 3:] + noisy[:, 3:], b, start

@@ -111,8 +111,8 @@ class SensorPose:
         R = _numbers(f"{NAME}: R_BS", R_BS)
         if R.shape != (3, 3):
             raise ValueError(f"{NAME}: R_BS must have shape (3, 3), got {R.shape}")
-        err = np.max(np.abs(R.T @ R - np.eye(3)))
-        if not np.isfinite(err) or err > 1e-6 or np.linalg.det(R) < 0:
+        err = np.max(np.abs(R.T @ R - np.eye(3)))  # as a unit quaternion's norm in float64
+        if not np.isfinite(err) or err > val.unit_tolerance(np.float64) or np.linalg.det(R) < 0:
             raise ValueError(
                 f"{NAME}: R_BS is not a rotation matrix (max |RᵀR - I| = {err:.3g}, det = "
                 f"{np.linalg.det(R):.6g}); pass an orthonormal matrix with determinant +1 "
@@ -149,14 +149,9 @@ def check_pose(pose, dtype, name: str = NAME, batch=None, batch_name: str = "the
                     names=(f"{name}.q", f"{name}.p") + (() if batch is None else (batch_name,)))
     val.check_finite(f"{name}.q", q)
     val.check_finite(f"{name}.p", p)
-    if val.is_concrete(q):
-        err = np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)
-        tol = val.unit_tolerance(dtype)
-        if np.any(err > tol):
-            raise ValueError(
-                f"{name}.q is not a unit quaternion (| |q| - 1 | = {err.max():.3g} > {tol:g}); "
-                "normalise it first (jaximu.so3.quat_normalize), or build the pose with "
-                "SensorPose.from_rotation(R_BS, p_BS)")
+    val.check_unit_norm(f"{name}.q", q, dtype, fix="normalise it first "
+                        "(jaximu.so3.quat_normalize), or build the pose with "
+                        "SensorPose.from_rotation(R_BS, p_BS)")
     return SensorPose(q, p)
 
 

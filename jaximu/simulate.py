@@ -227,9 +227,8 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
         if quaternions.shape != (len(times), 4):
             raise ValueError(f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}")
         val.check_finite("quaternions", quaternions)
-        norms = np.linalg.norm(quaternions, axis=1)
-        if np.any(np.abs(norms - 1) > 1e-6):
-            raise ValueError("quaternions must be unit quaternions (normalise them first)")
+        val.check_unit_norm("quaternions", quaternions, np.float64,
+                            where=lambda i: f" at row {i[0]}", fix="normalise them first")
         rotvecs = np.array(so3.log(jnp.asarray(quaternions)), float)  # a writable copy
         for k in range(1, len(rotvecs)):  # unwrap: pick r or r - 2π r̂ closest to the previous
             r = rotvecs[k]
@@ -276,13 +275,10 @@ def _check_poses(traj: Trajectory, t, q, *derived):
             raise ValueError(f"traj.pose ({traj.name}) gave non-finite values at t[{i}] = "
                              f"{tn[i]:g} (in its pose or their derivatives); it must be finite "
                              "and twice differentiable at every t")
-    err = np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)
-    tol = val.unit_tolerance(q.dtype)
-    if np.any(err > tol):
-        i = int(np.argmax(err > tol))
-        raise ValueError(f"traj.pose ({traj.name}) gave a non-unit quaternion at t[{i}] = "
-                         f"{tn[i]:g} (| |q| - 1 | = {err[i]:.3g} > {tol:g}); return a unit q, "
-                         "e.g. normalised with jaximu.so3.quat_normalize inside pose")
+    val.check_unit_norm(f"traj.pose ({traj.name})", q, q.dtype, what="gave a non-unit quaternion",
+                        where=lambda i: f" at t[{i[0]}] = {tn[i[0]]:g}",
+                        fix="return a unit q, e.g. normalised with jaximu.so3.quat_normalize "
+                            "inside pose")
 
 
 def _one(name, x, shape_of):

@@ -1,16 +1,27 @@
 """Helpers shared by several test files (each still checks against its own reference)."""
 
 import contextlib
+import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from hypothesis import HealthCheck, settings
 from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu.datasets import euroc_v1_02_segment
 
 SEG = euroc_v1_02_segment()
+REPO = pathlib.Path(__file__).parent.parent
+DATA = REPO / "tests" / "data"  # the test recordings (EuRoC and TUM-VI excerpts, bags)
+
+
+def fast_settings(n, *checks):
+    """Hypothesis settings of the suite: ``n`` examples, derandomised, no deadline and no
+    example database (``checks``: further health checks to suppress)."""
+    return settings(max_examples=n, deadline=None, derandomize=True, database=None,
+                    suppress_health_check=[HealthCheck.too_slow, *checks])
 
 
 def euroc_window(start_s, length_s):

@@ -1,4 +1,4 @@
-"""Issue 12, class 1: the calibration's unit and frame checks accept every correct 3 s
+"""The calibration's unit and frame checks accept every correct 3 s
 excerpt of the bundled real recordings, and still catch deg/s, g and a rotated frame where
 the motion allows, blaming the sensor that is wrong.
 

@@ -216,7 +216,7 @@ def test_result_saves_and_loads(study, tmp_path):
 def test_float32_study_agrees_with_float64(setup, study):
     """The same draws in float32 and float64 (a counter-based generator gives the same
     numbers to rounding): the average NEES agrees to 1e-3 relative, so a float32 study is
-    as consistent as a float64 one (issue 13, item 5)."""
+    as consistent as a float64 one (docs/DESIGN.md section 6, "Float32 consistency")."""
     traj, times, P0, noise = setup
     f32 = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), dtype=jnp.float32,
                       **STUDY)

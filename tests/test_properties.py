@@ -40,16 +40,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 import jaximu
 from jaximu import ImuBias, ImuNoise, NavState, allan, so3
 
+from _shared import fast_settings
 
-def fast_settings(n):
-    return settings(max_examples=n, deadline=None, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.too_slow])
+
 
 
 TOO_LARGE = r"too large|out of its range"
@@ -564,7 +563,7 @@ def test_overflow_from_finite_inputs_is_a_value_error_not_nan():
 def test_values_that_do_not_fit_the_computation_dtype_are_named():
     """dt = 1e300 and 1e-300 are inf and 0 in float32 (they used to pass the dt check and give
     NaN, or a numpy overflow warning). A Python scalar is weak (the samples' float32 stays);
-    a float64 array makes the computation float64 (test_bad_input_dtypes.py), so a float64
+    a float64 array makes the computation float64 (contract/test_input_types.py), so a float64
     value in a float32 computation happens without jax_enable_x64: checked in a child
     process."""
     s32 = NavState.identity((), jnp.float32)

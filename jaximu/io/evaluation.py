@@ -142,16 +142,12 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
         i = int(back[0])
         raise ValueError(f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
                          f"t[{i}] = {t[i]:.9g} s; pass the states in time order")
-    norm = np.linalg.norm(q, axis=1)
-    tol = QUATERNION_NORM_TOLERANCE  # the readers': rounding passes, a scaled q does not
-    off = np.flatnonzero(np.abs(norm - 1) > tol)
-    if len(off):
-        i = int(off[0])
-        raise ValueError(
-            f"states.q[{i}] has norm {norm[i]:.6g}: not a unit quaternion ({len(off)} of {T} "
-            f"off by more than {tol:g}), and trajectory_errors does not normalise it for you; "
-            "pass unit quaternions (q / |q|) if the norm is only rounding, else check where "
-            "states.q came from")
+    # the readers' tolerance: rounding passes, a scaled q does not
+    val.check_unit_norm("states.q", q, np.float64, tol=QUATERNION_NORM_TOLERANCE,
+                        where=lambda i: f" at row {i[0]}",
+                        fix="trajectory_errors does not normalise it for you; pass unit "
+                            "quaternions (q / |q|) if the norm is only rounding, else check "
+                            "where states.q came from")
     v = val.as_numbers("states.v", states.v)
     if v.shape != (T, 3):
         raise ValueError(f"states.v must have shape ({T}, 3), got {v.shape}")

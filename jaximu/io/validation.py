@@ -140,11 +140,13 @@ def _validate_groundtruth(stamps_ns, values, lines, label):
     nonincr = np.flatnonzero(np.diff(stamps_ns) <= 0) + 1
     if len(nonincr):
         raise DataError(f"{label}: timestamps not increasing at {_rows(labels, nonincr)}")
-    qn = np.linalg.norm(values[:, 3:7], axis=1)
-    off = np.flatnonzero(np.abs(qn - 1) > QUATERNION_NORM_TOLERANCE)
-    if len(off):
-        raise DataError(f"{label}: quaternion norm {qn[off[0]]:.4g} at {_rows(labels, off)}: "
-                        "not [w, x, y, z] unit quaternions")
+    qn = np.abs(np.linalg.norm(values[:, 3:7], axis=1) - 1)
+    off = np.flatnonzero(~(qn <= QUATERNION_NORM_TOLERANCE))
+    val.check_unit_norm(f"{label}: the quaternion", values[:, 3:7], np.float64,
+                        tol=QUATERNION_NORM_TOLERANCE, error=DataError,
+                        what="is not a [w, x, y, z] unit quaternion",
+                        where=lambda i: f" at {_rows(labels, off)}",
+                        fix="check the column order (p, then q as w, x, y, z)")
 
 
 def make(stamps_ns, gyro, accel, *, lines=None, ground_truth=None, source="", **options):

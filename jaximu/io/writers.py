@@ -11,9 +11,9 @@ from jaximu.io._common import DataError
 from jaximu.io._text import _parse, _parse_tum, _read_table
 
 _INT64_MAX = np.iinfo(np.int64).max
-# a variance below -_COV_TOL × the largest entry of its matrix is negative, not rounding
-# (60 ε of float32: covariances computed in float32 pass)
-_COV_TOL = 60 * float(np.finfo(np.float32).eps)
+# the covariances are judged with float32's rounding whatever dtype they arrive in (one
+# computed in float32 and stored as float64 passes): val.check_variances
+_COV_DTYPE = np.float32
 
 
 def _check_t0_ns(t0_ns) -> int:
@@ -65,21 +65,15 @@ def _check_cov(cov, T, name="cov") -> np.ndarray:
         raise ValueError(f"{name} must have shape ({T}, 15, 15) (one 15×15 covariance per "
                          f"state), got {cov.shape}")
     val.check_finite(name, cov)
-    diag = np.diagonal(cov, axis1=1, axis2=2)
-    scale = np.abs(cov).max(axis=(1, 2))
-    neg = diag < -_COV_TOL * scale[:, None]
-    if neg.any():
-        k, j = (int(i) for i in np.argwhere(neg)[0])
-        raise ValueError(
-            f"{name}[{k}, {j}, {j}] = {diag[k, j]:.3g} is a negative variance "
-            f"({int(neg.sum())} in all): variances are σ² ≥ 0; pass the covariance the "
-            "propagation returned, not a difference of covariances")
+    val.check_variances(name, cov, _COV_DTYPE, fix="pass the covariance the propagation "
+                        "returned, not a difference of covariances")
     return cov
 
 
 def _sigma(var):
     """Standard deviations of variances checked by :func:`_check_cov`: those within
-    rounding below zero (``-60 ε`` of their matrix's largest entry) are read as 0."""
+    rounding below zero (``-60 ε`` of float32 times their matrix's largest entry) are read
+    as 0."""
     return np.sqrt(np.maximum(var, 0.0))
 
 

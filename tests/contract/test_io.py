@@ -1,28 +1,22 @@
-"""Session 15, io and the command: bad input gets an error that names the user's argument
-and says the fix; nothing the user gave is altered or written wrong without a word.
-
-numpy only (no JAX computation) except where the command runs; the command runs in-process
-(``jaximu.cli.main``) on files built here.
+"""The input contract of ``jaximu.io`` (numpy only): the writers and ``trajectory_errors``
+refuse what they would write or compare wrong (times given as stamps, NaN, a ``t0_ns`` that
+is not an integer, negative variances, a non-unit ``q``), ground truth of one row, readers'
+options that are not bools, text and complex arrays, and the readers' helpers name their
+arguments.
 """
 
 from __future__ import annotations
 
-import os
-import pathlib
 import shutil
-import subprocess
-import sys
-import warnings
 
 import numpy as np
 import pytest
+from _shared import DATA
 
-from jaximu import NavState, cli, io
+from jaximu import NavState, io
 from jaximu.errors import InputError
 
-DATA = pathlib.Path(__file__).parent / "data"
 EUROC = DATA / "euroc_v1_02_medium"
-
 N = 400
 T = np.arange(N) * 0.005
 G = np.zeros((N, 3))
@@ -125,7 +119,8 @@ def test_trajectory_errors_refuses_negative_or_nonfinite_cov():
 
 def test_trajectory_errors_does_not_normalise_q():
     """q = 2·identity gave rotation error 0."""
-    with pytest.raises(ValueError, match=r"states\.q\[0\] has norm 2.*does not normalise"):
+    with pytest.raises(ValueError, match=r"states\.q is not a unit quaternion at row 0: its "
+                                         r"norm is 2 .*does not normalise"):
         io.trajectory_errors(T40, states(scale=2.0), gt50())
     io.trajectory_errors(T40, states(scale=1 + 1.5e-4), gt50())  # rounding, as in EuRoC
 
@@ -206,7 +201,7 @@ def test_initial_state_says_when_the_recording_is_shorter_than_still_seconds():
     assert "the whole recording" in how and "1e+09" in how, how
 
 
-# --------------------------------------------------------------------------- raw errors
+# -------------------------------------------------------------------------- text and complex arrays
 
 
 def test_from_arrays_refuses_text():
@@ -252,135 +247,6 @@ def test_csv_reader_refuses_digit_separators_and_negative_columns(tmp_path):
     path.write_text("\n".join(rows) + "\n")
     with pytest.raises(ValueError, match="column indices count from 0.*got -1"):
         io.read_csv(path, time_unit="ns", accel=(4, 5, -1))
-
-
-# --------------------------------------------------------------------------- the command
-
-
-def run(capsys, *argv):
-    code = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def one_line_error(capsys, *argv):
-    code, out, err = run(capsys, *argv)
-    assert code == 2, (out, err)
-    assert "Traceback" not in err and "Warning" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "error:" in lines[0], err
-    return lines[0], out
-
-
-def euroc_copy(tmp_path, gt_rows=None, scale_gyro=1.0, scale_accel=1.0):
-    scale_gyro, scale_accel = float(scale_gyro), float(scale_accel)
-    """The bundled EuRoC excerpt (5 s, ground truth on the IMU clock), with the ground-truth
-    data rows ``gt_rows`` kept (a slice or index array) and the IMU columns scaled."""
-    d = tmp_path / "eu"
-    shutil.copytree(EUROC, d)
-    if gt_rows is not None:
-        gt = d / "mav0" / "state_groundtruth_estimate0" / "data.csv"
-        lines = gt.read_text().splitlines()
-        rows = np.asarray(lines[1:], object)[gt_rows]
-        gt.write_text("\n".join([lines[0], *rows]) + "\n")
-    if scale_gyro != 1.0 or scale_accel != 1.0:
-        imu = d / "mav0" / "imu0" / "data.csv"
-        lines = imu.read_text().splitlines()
-        out = [lines[0]]
-        for ln in lines[1:]:
-            f = ln.split(",")
-            out.append(",".join([f[0]] + [repr(float(x) * scale_gyro) for x in f[1:4]]
-                                + [repr(float(x) * scale_accel) for x in f[4:7]]))
-        imu.write_text("\n".join(out) + "\n")
-    return d
-
-
-def test_cli_one_row_ground_truth_is_one_line(capsys, tmp_path):
-    """Was a traceback (IndexError in interpolate) with exit 1."""
-    d = euroc_copy(tmp_path, gt_rows=slice(400, 401))
-    line, _ = one_line_error(capsys, "propagate", d, "--init-from-groundtruth", "--no-progress")
-    assert "1 row(s); at least 2" in line and "state_groundtruth_estimate0" in line, line
-
-
-def test_cli_window_before_the_ground_truth_says_where_it_starts(capsys, tmp_path):
-    """Said 'the window [0.9949900640000001, inf] s holds fewer than 2 samples'."""
-    d = euroc_copy(tmp_path, gt_rows=slice(200, None))
-    line, _ = one_line_error(capsys, "propagate", d, "--init-from-groundtruth",
-                             "--duration", "0.5", "--no-progress")
-    assert "the ground truth starts at 1.000 s" in line and "--start ≥ 1.000" in line, line
-    assert "inf" not in line
-    line, _ = one_line_error(capsys, "calibrate", d, "--duration", "0.5")
-    assert "the ground truth starts at 1.000 s" in line, line
-
-
-def test_cli_unit_advice_on_an_asl_folder_can_be_followed(capsys, tmp_path):
-    """The advice '--gyro-unit deg/s' was then refused for EuRoC folders."""
-    d = euroc_copy(tmp_path, scale_gyro=np.rad2deg(1.0) * 40, scale_accel=1 / 9.80665)
-    line, _ = one_line_error(capsys, "preintegrate", d, "--window", "1000")
-    assert "--gyro-unit deg/s" in line, line
-    line, out = one_line_error(capsys, "preintegrate", d, "--gyro-unit", "deg/s",
-                               "--accel-unit", "g", "--window", "1000")
-    assert out.startswith("read 1002 samples") and "shorter than one window" in line, (out, line)
-    data = io.read_euroc(d, gyro_unit="deg/s", accel_unit="g")
-    ref = io.read_euroc(EUROC)
-    np.testing.assert_allclose(data.gyro, ref.gyro * 40, rtol=1e-12)
-    np.testing.assert_allclose(data.accel, ref.accel, rtol=1e-12)
-
-
-def test_cli_preintegrate_leaves_windows_in_a_ground_truth_gap_out(capsys, tmp_path):
-    """Wrote its output, then exited 2 with 'ground truth has a 1.005 s gap'."""
-    keep = np.r_[0:400, 600:1001]
-    d = euroc_copy(tmp_path, gt_rows=keep)
-    out_file = tmp_path / "p.npz"
-    code, out, err = run(capsys, "preintegrate", d, "--window", "0.5", "--out", out_file)
-    assert code == 0, err
-    assert "Traceback" not in err and "error" not in err, err
-    assert out_file.is_file()
-    assert "window(s) with an end in a ground-truth gap left out" in out, out
-
-
-def test_calibrate_warnings_are_one_line_each(capsys):
-    with cli._warnings_as_lines():
-        warnings.warn("calibration residual χ²/dof = 322 > 100: check", RuntimeWarning)
-    err = capsys.readouterr().err
-    assert err == "warning: calibration residual χ²/dof = 322 > 100: check\n", err
-
-
-def test_cli_propagate_prints_no_jax_warning_in_float32(tmp_path):
-    """Every float32 propagate run printed JAX's 'float64 ... not available' UserWarning
-    (the suite runs in float64, so the command runs in a child without x64)."""
-    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
-    env["PYTHONPATH"] = str(pathlib.Path(__file__).parent.parent)
-    r = subprocess.run([sys.executable, "-m", "jaximu", "propagate", str(tmp_path / "no.csv")],
-                       capture_output=True, text=True, env=env, timeout=120)
-    assert r.returncode == 2
-    assert r.stderr.splitlines() == [f"jaximu propagate: error: no such file or directory: "
-                                     f"{tmp_path / 'no.csv'}"], r.stderr
-
-
-def test_not_an_npz_file_gives_no_pickle_advice(capsys, tmp_path):
-    """numpy's text advised allow_pickle= / pickle.load() (unsafe, and not the fix)."""
-    path = tmp_path / "x.npz"
-    path.write_text("t,a\n1,2\n")
-    line, _ = one_line_error(capsys, "propagate", path)
-    assert "is not a NumPy .npz file" in line and "pickle" not in line, line
-
-
-def test_allan_of_a_constant_signal_names_the_file(capsys, tmp_path):
-    """Said 'adev must be positive ... at index [0, 0]' (an internal, not the file)."""
-    path = tmp_path / "c.npz"
-    np.savez(path, t=np.arange(2000) * 0.005, gyro=np.zeros((2000, 3)),
-             accel=np.zeros((2000, 3)) + [0, 0, 9.81])
-    line, _ = one_line_error(capsys, "allan", path)
-    assert f"gyro's x axis is constant in {path}" in line, line
-
-
-def test_topic_for_a_file_that_is_not_a_bag_is_refused(capsys, tmp_path):
-    """--topic was ignored for a CSV without a word."""
-    path = tmp_path / "c.npz"
-    np.savez(path, t=T, gyro=G, accel=A)
-    line, _ = one_line_error(capsys, "allan", path, "--topic", "/imu0")
-    assert "--topic names a ROS bag's topic" in line, line
 
 
 @pytest.mark.parametrize("which", ["t", "gyro", "accel"])

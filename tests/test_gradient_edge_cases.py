@@ -1,5 +1,6 @@
-"""Gradients at points a user can reach that earlier tests missed (float64, against central
-differences): each test failed before its fix."""
+"""Gradients at edge points a user can reach, finite and equal to central differences
+(float64): a per-axis noise density with a zero entry under a sensor pose, and the padded
+last time chunk of the parallel preintegration with prefixes."""
 
 import jax
 import jax.numpy as jnp
