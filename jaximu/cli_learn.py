@@ -136,7 +136,7 @@ def cmd_evaluate(args):
                "average_aoe_mean_deg": avg,
                "conventions": {"aoe_mean": "mean over the sequence of the geodesic angle of "
                                "R_gt^T R_est (AirIMU)", "aoe_rmse": "its RMSE (Brossard)",
-                               "aye": "yaw (ZYX Euler) difference, wrapped",
+                               "aye": "|yaw| (ZYX Euler) of the world-frame error R_est R_gt^T",
                                "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
                                "inside_3sigma": "fraction of samples with NEES <= 14.16",
                                "dead_reckoning": "window -> variant -> [mean |dv| m/s, mean "

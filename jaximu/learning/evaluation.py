@@ -5,7 +5,8 @@ Metrics (both conventions of the field, named):
 * **AOE**, absolute orientation error: the geodesic angle of ``R_gtᵀ R̂`` at every sample,
   in degrees; its **mean** over the sequence (AirIMU's ``evaluate_state.py``) and its
   **RMSE** (Brossard's).
-* **AYE**: the same for the yaw (ZYX Euler) alone, wrapped to ±180°.
+* **AYE**: the same for the yaw alone: the heading part (ZYX Euler yaw, about the world's z)
+  of the world-frame error ``R̂ R_gtᵀ``.
 * **NEES** of the learned uncertainty: ``rᵀ S⁻¹ r`` with ``r = Log(R_gtᵀ R̂)`` and ``S`` the
   propagated orientation covariance (:func:`attitude_covariance`) plus the ground truth's own
   noise; averaged over the samples (3 when consistent), and the fraction of samples inside
@@ -56,11 +57,15 @@ def integrate_attitude(q0, gyro, dt):
 
 def orientation_errors(q_est, q_true):
     """``(r, aoe, aye)``: ``r = Log(R_trueᵀ R̂)`` ``(..., 3)`` [rad], its angle [rad] and the
-    wrapped yaw difference [rad] (ZYX Euler)."""
+    absolute yaw (ZYX Euler, about the world's z) of the world-frame error ``R̂ R_trueᵀ``
+    [rad]."""
     r = so3.log(so3.quat_mul(so3.quat_conj(q_true), q_est))
     aoe = jnp.linalg.norm(r, axis=-1)
-    yaw = so3.quat_to_euler_zyx(q_est)[..., 2] - so3.quat_to_euler_zyx(q_true)[..., 2]
-    return r, aoe, jnp.abs(jnp.arctan2(jnp.sin(yaw), jnp.cos(yaw)))
+    # the yaw of the world-frame error R̂ R_trueᵀ: the heading error about gravity. (The
+    # difference of the two attitudes' Euler yaws is meaningless for an IMU mounted with
+    # x up, as EuRoC's is: its pitch sits at the ±90° singularity.)
+    yaw = so3.quat_to_euler_zyx(so3.quat_mul(q_est, so3.quat_conj(q_true)))[..., 2]
+    return r, aoe, jnp.abs(yaw)
 
 
 def attitude_terms(gyro, density, dt, random_walk):

@@ -40,7 +40,8 @@ def simulated(seed, seconds=100.0):
 def trained():
     seqs = [simulated(s, seconds=40.0)[0] for s in (0, 1)]
     cfg = TrainConfig(steps=300, learning_rate=0.01, min_learning_rate=0.002, restart=300,
-                      train_seconds=30.0, gyro_noise=0.0, accel_noise=0.0,
+                      train_seconds=30.0, horizons=(16, 32, 64, 128), gyro_noise=0.0,
+                      accel_noise=0.0,
                       gyro_bias_noise=0.0, accel_bias_noise=0.0, weight_decay=0.0,
                       validate_every=300)
     mcfg = ModelConfig(channels=(8, 8), kernel=3, dilations=(1, 2), dropout=0.0,
@@ -85,7 +86,7 @@ def test_save_and_load_give_the_same_outputs(tmp_path, trained):
 
 def test_training_is_deterministic_for_a_seed():
     seqs = [simulated(3, seconds=12.0)[0]]
-    cfg = TrainConfig(steps=3, validate_every=3, train_seconds=10.0)
+    cfg = TrainConfig(steps=3, validate_every=3, train_seconds=10.0, horizons=(16, 32))
     mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,))
     a = learning.train(seqs, cfg, mcfg, seed=5, log=None)
     b = learning.train(seqs, cfg, mcfg, seed=5, log=None)
