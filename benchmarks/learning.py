@@ -715,7 +715,7 @@ def main(argv=None):
     say(f"train's step: {S} parts × {L} samples = {samples} samples per step "
         f"(windows of {config.horizons}, skip {config.skip}, offsets < {config.offset})")
 
-    doc = dict(benchmark="learning", machine=info, versions=vers,
+    doc = dict(benchmark="learning", host=machine_slug(info), machine=info, versions=vers,
                data=[str(p) for p in folders], sequences=[s.name for s in seqs],
                load_seconds=load_s, train_config=config.to_json(),
                model_config=step_args[0].config.to_json(),
@@ -848,7 +848,9 @@ def main(argv=None):
                              learned_deg=(best["validation_aoe_mean_deg"][i] if best else None))
                         for i, (n, c) in enumerate(zip(rec["sequences"],
                                                        rec["validation_constant_bias_deg"]))],
-            validation_mean_learned_deg=rec["validation_aoe_mean_deg"],
+            validation_mean_learned_deg=(rec["validation_aoe_mean_deg"]
+                                         if math.isfinite(rec["validation_aoe_mean_deg"])
+                                         else None),  # inf: cut before any validation
             history=rec["history"])
 
     # ---- report
@@ -885,7 +887,8 @@ def main(argv=None):
             ld = "-" if v["learned_deg"] is None else f"{v['learned_deg']:.2f}"
             say(f"| {v['sequence']} | {v['constant_bias_deg']:.2f} | {ld} |")
         cb = float(np.mean([v["constant_bias_deg"] for v in ft["validation"]]))
-        say(f"| mean | {cb:.2f} | {ft['validation_mean_learned_deg']:.2f} |")
+        lm = ft["validation_mean_learned_deg"]
+        say(f"| mean | {cb:.2f} | {'-' if lm is None else f'{lm:.2f}'} |")
 
     out = pathlib.Path(args.out) if args.out else (
         HERE / "results" / f"learning-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
