@@ -11,7 +11,7 @@ Workloads, all float32 on the five EuRoC training sequences (``--data``; default
 1. **Training step.** jaximu's own jitted step of :func:`jaximu.learning.train` (random
    offsets, input noise, the denoiser, :func:`~jaximu.learning.losses.increment_loss` with
    its NLL, gradient, AdamW update) on the batch ``train`` uses: every sequence's first 80 s,
-   ``S × L`` samples (5 × 15,968). The step function is taken from ``train`` itself (its
+   ``S × L`` samples (5 × 15,936). The step function is taken from ``train`` itself (its
    ``eqx.filter_jit`` is intercepted at the first call, see :func:`capture_train_step`), so
    what is timed is the library's step, not a copy. Also the same step with the loss's NLL
    term left out (``bias_sigma=None``: the Huber loss alone, what the PyTorch step computes).
