@@ -829,6 +829,42 @@ def main(argv=None):
     doc["integration"] = dict(**ishape, cases=integ, ratios=iratios, other_cpu_share=iother,
                               target_vs_pypose=INTEGRATION_TARGET)
 
+    # ---- report (written before the whole training, which takes long)
+    say("\n| workload | variant | samples/s | median s | range s | first call s | compile s |")
+    say("|---|---|--:|--:|--:|--:|--:|")
+    for wl, cases in (("training step", steps), ("integration", integ)):
+        for name, c in cases.items():
+            comp_txt = f"{c['compile_s']:.1f}" if "compile_s" in c else "-"
+            say(f"| {wl} | {name} | {fmt_rate(c['samples_per_s'])} | {c['median_s']:.3f} | "
+                f"{c['min_s']:.3f}–{c['max_s']:.3f} | {c['first_call_s']:.2f} | {comp_txt} |")
+    say(f"\ntraining step: {S} × {L} = {samples} samples; other processes used "
+        f"{100 * (other or 0):.0f} % of the CPUs while it was timed")
+    for name, r in ratios.items():
+        say(f"- {name}: {r['of_medians']:.2f}× (per round {r['median_per_round']:.2f}×, "
+            f"{r['min_per_round']:.2f}–{r['max_per_round']:.2f})")
+    say(f"integration: {ishape['windows']} windows × {ishape['window_samples']} samples; other "
+        f"processes used {100 * (iother or 0):.0f} % of the CPUs")
+    for name, r in iratios.items():
+        verdict = "met" if r["of_medians"] >= INTEGRATION_TARGET else "missed"
+        say(f"- jaximu vs PyPose, {name}: {r['of_medians']:.2f}× (per round "
+            f"{r['median_per_round']:.2f}×, {r['min_per_round']:.2f}–{r['max_per_round']:.2f}); "
+            f"target ≥ {INTEGRATION_TARGET:g}×: {verdict}")
+    if any(x is not None and x > 0.10 for x in (other, iother)):
+        say("note: other processes used more than 10 % of the CPUs: the figures are lower "
+            "bounds, and the ratios less certain than on a quiet machine")
+
+    out = pathlib.Path(args.out) if args.out else (
+        HERE / "results" / f"learning-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save():
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+        say(f"\nwrote {out}")
+
+    if args.full_training:
+        doc["full_training"] = {"status": "running (the process ended before train returned)"}
+    save()
+
     # ---- 4. the whole training run (opt-in)
     if args.full_training:
         say("running jaximu.learning.train (default TrainConfig"
@@ -853,29 +889,6 @@ def main(argv=None):
                                          else None),  # inf: cut before any validation
             history=rec["history"])
 
-    # ---- report
-    say("\n| workload | variant | samples/s | median s | range s | first call s | compile s |")
-    say("|---|---|--:|--:|--:|--:|--:|")
-    for wl, cases in (("training step", steps), ("integration", integ)):
-        for name, c in cases.items():
-            comp_txt = f"{c['compile_s']:.1f}" if "compile_s" in c else "-"
-            say(f"| {wl} | {name} | {fmt_rate(c['samples_per_s'])} | {c['median_s']:.3f} | "
-                f"{c['min_s']:.3f}–{c['max_s']:.3f} | {c['first_call_s']:.2f} | {comp_txt} |")
-    say(f"\ntraining step: {S} × {L} = {samples} samples; other processes used "
-        f"{100 * (other or 0):.0f} % of the CPUs while it was timed")
-    for name, r in ratios.items():
-        say(f"- {name}: {r['of_medians']:.2f}× (per round {r['median_per_round']:.2f}×, "
-            f"{r['min_per_round']:.2f}–{r['max_per_round']:.2f})")
-    say(f"integration: {ishape['windows']} windows × {ishape['window_samples']} samples; other "
-        f"processes used {100 * (iother or 0):.0f} % of the CPUs")
-    for name, r in iratios.items():
-        verdict = "met" if r["of_medians"] >= INTEGRATION_TARGET else "missed"
-        say(f"- jaximu vs PyPose, {name}: {r['of_medians']:.2f}× (per round "
-            f"{r['median_per_round']:.2f}×, {r['min_per_round']:.2f}–{r['max_per_round']:.2f}); "
-            f"target ≥ {INTEGRATION_TARGET:g}×: {verdict}")
-    if any(x is not None and x > 0.10 for x in (other, iother)):
-        say("note: other processes used more than 10 % of the CPUs: the figures are lower "
-            "bounds, and the ratios less certain than on a quiet machine")
     if "full_training" in doc:
         ft = doc["full_training"]
         say(f"\nfull training: {ft['steps_run']} steps, wall {ft['train_wall_s']:.0f} s to the "
@@ -889,12 +902,7 @@ def main(argv=None):
         cb = float(np.mean([v["constant_bias_deg"] for v in ft["validation"]]))
         lm = ft["validation_mean_learned_deg"]
         say(f"| mean | {cb:.2f} | {'-' if lm is None else f'{lm:.2f}'} |")
-
-    out = pathlib.Path(args.out) if args.out else (
-        HERE / "results" / f"learning-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1) + "\n")
-    say(f"\nwrote {out}")
+        save()
 
 
 if __name__ == "__main__":
