@@ -577,7 +577,8 @@ def integration_runners(closure, integration_available):
                 out = integ(td, tg, ta)
             return out["rot"], out["vel"], out["pos"]
 
-        def pp_grad():
+        def pp_grad():  # the cost of a backward pass (PyPose's gradient of a .tensor()
+            # of its LieTensor is a tangent-space one: fine for timing, not for a loss)
             gg = tg.clone().requires_grad_(True)
             out = integ(td, gg, ta)
             (out["rot"][:, -1].tensor() * tw).sum().backward()
