@@ -2,7 +2,7 @@
 
     python benchmarks/learning.py                       # steps + integration (~3-5 min)
     python benchmarks/learning.py --quick               # fewer repeats (smoke test)
-    python benchmarks/learning.py --full-training       # also a whole `train` run (~10 min more)
+    python benchmarks/learning.py --full-training       # also a whole `train` run (1400 steps)
     python benchmarks/learning.py --full-training --train-minutes 3   # ... cut after 3 minutes
 
 Workloads, all float32 on the five EuRoC training sequences (``--data``; default the
