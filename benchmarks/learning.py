@@ -106,8 +106,9 @@ class _EqxProxy:
 def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
     """``(step, args, closure)``: the undecorated step function that
     :func:`jaximu.learning.train` builds for ``seqs`` and ``config``, the arguments of its
-    first call ``(model, opt_state, key)``, and the variables it closes over (``S``, ``L``,
-    ``G``, ``A``, ``Q``, ``dt``, ``cfg``, ...). ``train`` is run up to its first step and
+    first call ``(model, ema, opt_state, key, G, A, Q, V)``, and the variables it closes over
+    (``S``, ``L``, ``dt``, ``cfg``, ...) with the data arguments ``G``, ``A``, ``Q``, ``V``
+    added. ``train`` is run up to its first step and
     stopped there; nothing is compiled."""
     real = training_module.eqx
     training_module.eqx = _EqxProxy(real)
@@ -127,6 +128,9 @@ def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
     closure = cells(fn)
     if callable(closure.get("loss_fn")):  # dt is the loss's
         closure = {**cells(closure["loss_fn"]), **closure}
+    # the step's arguments: (model, ema, opt_state, key, G, A, Q, V), the data passed in
+    # rather than closed over (constants folded into the program compiled slowly)
+    closure.update(zip(("G", "A", "Q", "V"), args[4:8]))
     closure.setdefault("dt", 1.0 / args[0].config.rate_hz)
     missing = {"S", "L", "G", "A", "Q", "cfg"} - set(closure)
     if missing:
@@ -168,13 +172,15 @@ class JaxRunner:
 
     def __init__(self, compiled, args, seed):
         self.compiled = compiled
-        self.model, self.opt_state, _ = args
+        self.model, self.ema, self.opt_state = args[:3]
+        self.data = args[4:]
         self.key = jax.random.key(seed)
         self.loss = None
 
     def __call__(self):
         self.key, k = jax.random.split(self.key)
-        self.model, self.opt_state, loss, parts = self.compiled(self.model, self.opt_state, k)
+        self.model, self.ema, self.opt_state, loss, parts = self.compiled(
+            self.model, self.ema, self.opt_state, k, *self.data)
         jax.block_until_ready((self.model, self.opt_state, loss))
         self.loss, self.nll = float(loss), float(parts[1])
         return self.loss
