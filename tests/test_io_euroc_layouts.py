@@ -182,8 +182,9 @@ def broken(tmp_path, text):
                  r"increasing at line 6", id="repeated stamp"),  # = line 5's
     pytest.param(GOOD.replace(".90832", ".89832"), r"groundtruth_pose.txt: timestamps not "
                  r"increasing at line 6", id="stamp going back"),  # before line 5's
-    pytest.param(ROW.format("-1.156384"), r"groundtruth_pose.txt: quaternion norm 1\.5\d* at "
-                 r"line 6", id="non-unit quaternion"),
+    pytest.param(ROW.format("-1.156384"), r"groundtruth_pose.txt: the quaternion is not a "
+                 r"\[w, x, y, z\] unit quaternion at line 6: its norm is 1\.5\d*",
+                 id="non-unit quaternion"),
 ])
 def test_broken_pose_files_name_file_and_line(tmp_path, text, message):
     path = broken(tmp_path, text)
