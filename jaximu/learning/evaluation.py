@@ -24,8 +24,9 @@ import numpy as np
 
 from jaximu import so3
 from jaximu.errorstate import accumulate_covariance
-from jaximu.learning.data import Sequence
-from jaximu.learning.losses import _step_blocks
+from jaximu.learning.data import Sequence, check_rate, check_sequence
+from jaximu.learning.losses import rotation_step_blocks
+from jaximu.learning.model import check_model
 from jaximu.propagate import propagate, propagate_final
 from jaximu.state import NavState
 
@@ -74,7 +75,7 @@ def attitude_terms(gyro, density, dt, random_walk):
     ``Σ_b``. ``[δθ, δb_g]`` is propagated from zero with the per-sample ``density`` ``(T, 3)``
     and the bias ``random_walk`` (``W``), and ``B_k = ∂δθ_k/∂δb_g`` is the accumulated
     transition's bias column. The first sample's terms are zero."""
-    F, Q = _step_blocks(gyro[:-1], density[:-1], dt, random_walk)
+    F, Q = rotation_step_blocks(gyro[:-1], density[:-1], dt, random_walk)
     W = accumulate_covariance(F, Q, save_all=True)[..., 0:3, 0:3]
     Phi = jax.lax.associative_scan(lambda A, B: B @ A, F, axis=0)
     z = jnp.zeros((1, 3, 3), gyro.dtype)
@@ -175,9 +176,6 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
         ValueError: ``model`` or ``seq`` of the wrong type; DataError: ``seq`` at another
             rate than the model's.
     """
-    from jaximu.learning.data import check_rate, check_sequence
-    from jaximu.learning.model import check_model
-
     check_model("model", model)
     check_sequence("seq", seq)
     check_rate(seq, model.config.rate_hz)

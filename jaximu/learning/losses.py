@@ -58,7 +58,7 @@ def _cut(x, H):
     return x[..., :W * H, :].reshape(x.shape[:-2] + (W, H, x.shape[-1]))
 
 
-def _step_blocks(gyro, density, dt, random_walk):
+def rotation_step_blocks(gyro, density, dt, random_walk):
     """Per-step ``(Φ, Q)`` of ``[δθ, δb_g]`` (``(..., 6, 6)``) from the engine's Euler blocks
     (:func:`jaximu.errorstate.blocks_analytic`: ``Φ_θθ = Exp(ω dt)ᵀ``, ``Φ_θbg = -Jr dt``,
     which is also the gyro noise's column of ``G``) and the noise model's ``σ²/dt``
@@ -100,9 +100,9 @@ def windows(gyro, accel, dt, H: int, density=None, random_walk=0.0) -> Windows:
     if density is not None:
         # the Jacobians at the corrected rates, without their gradient: the likelihood
         # trains the noise, not the corrections
-        F, Qs = _step_blocks(jax.lax.stop_gradient(g), _cut(density, H), jnp.asarray(dt, dtype),
-                             random_walk)
-        # compose the H steps of each window: (Φ, Q) pairs accumulated from P = 0 by Φ I Φᵀ
+        F, Qs = rotation_step_blocks(jax.lax.stop_gradient(g), _cut(density, H),
+                                     jnp.asarray(dt, dtype), random_walk)
+        # the window's transition (the product of its steps') and noise (accumulated from 0)
         Phi = jax.lax.associative_scan(lambda A, B: _mul(B, A), F, axis=-3)[..., -1, :, :]
         Q = accumulate_covariance(F, Qs)
     return Windows(pim.delta_q, pim.delta_v, Phi, Q)
