@@ -201,6 +201,10 @@ def numpy_propagate(gyro, accel, dt, g, cov=False):
 def pypose_run(gyro, accel, dt, torch_dtype, cov=True, gravity=0.0):
     """PyPose's IMUPreintegrator over a batch ``(B, F, 3)`` from the identity state."""
     import pypose as pp
+
+    from _pypose_fix import fix_pypose_cumops
+
+    fix_pypose_cumops()  # PyPose 0.9.5's scan under torch ≥ 2.14 (benchmarks/_pypose_fix.py)
     import torch
 
     B = gyro.shape[0]
