@@ -153,7 +153,7 @@ def _validation_arrays(seqs, vals, context):
         G[i, n:], A[i, n:], Q[i, n:] = p.gyro[-1], p.accel[-1], p.q[-1]
         M[i, c0:n] = 1.0
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(G), f(A), f(Q), jnp.asarray(M[..., 0] > 0), [c0 for _, c0 in pieces]
+    return f(G), f(A), f(Q), jnp.asarray(M[..., 0] > 0)
 
 
 def _schedule(cfg: TrainConfig):
@@ -220,7 +220,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
-    vG, vA, vQ, vM, _ = _validation_arrays(sequences, vals, mcfg.receptive_field)
+    vG, vA, vQ, vM = _validation_arrays(sequences, vals, mcfg.receptive_field)
     say(f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
         f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
         f"({sum(len(v) for v in vals)} samples: " + ", ".join(
@@ -242,7 +242,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
                                     reference_sigma=model.reference_sigma,
                                     random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
         total = rot + cfg.nll_weight * nll
-        if mcfg.accel_head:  # velocity increments train the accelerometer head only
+        if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
             r = velocity_residuals(jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt,
                                    cfg.velocity_horizon)
             per_seq = jax.vmap(lambda x: huber(x, cfg.velocity_delta))(r)
