@@ -1,12 +1,12 @@
 """Learning benchmark: jaximu's training step against the same network and loss in PyTorch.
 
-    python benchmarks/learning.py                       # steps + integration (~3-5 min)
-    python benchmarks/learning.py --quick               # fewer repeats (smoke test)
-    python benchmarks/learning.py --full-training       # also a whole `train` run (1400 steps)
-    python benchmarks/learning.py --full-training --train-minutes 3   # ... cut after 3 minutes
+    python benchmarks/learning.py --data DIR...         # steps + integration (~3-5 min)
+    python benchmarks/learning.py --data DIR... --quick # fewer repeats (smoke test)
+    python benchmarks/learning.py --data DIR... --full-training   # also a whole `train` run
+    python benchmarks/learning.py --data DIR... --full-training --train-minutes 3   # cut after 3 min
 
-Workloads, all float32 on the five EuRoC training sequences (``--data``; default the
-``euroc_*`` folders of ``../shared/data``), read with :func:`jaximu.learning.load_sequence`:
+Workloads, all float32 on the sequence folders given by ``--data`` (the five EuRoC training
+sequences), read with :func:`jaximu.learning.load_sequence`:
 
 1. **Training step.** jaximu's own jitted step of :func:`jaximu.learning.train` (random
    offsets, input noise, the denoiser, :func:`~jaximu.learning.losses.increment_loss` with
@@ -67,7 +67,6 @@ from jaximu.learning import training as training_module
 from jaximu.learning.losses import increment_loss
 
 HERE = pathlib.Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 TORCH_THREADS = 2
 INTEGRATION_TARGET = 3.0  # jaximu ≥ 3× PyPose on the loss's windows (forward + backward)
 CHECK_RTOL = 1e-5  # float32 agreement of the JAX and PyTorch functions on the check batch
@@ -638,8 +637,8 @@ def versions():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    ap.add_argument("--data", nargs="+", default=None,
-                    help="sequence folders (default: the euroc_* folders of ../shared/data)")
+    ap.add_argument("--data", nargs="+", required=True, metavar="DIR",
+                    help="sequence folders with ground truth (the EuRoC training sequences)")
     ap.add_argument("--repeats", type=int, default=7,
                     help="timed rounds of each variant, after warm-up (default 7, at least 5 "
                          "for a reported figure)")
@@ -674,10 +673,7 @@ def main(argv=None):
         f"jax {vers['jax']} ({jax.default_backend()}), equinox {vers['equinox']}, "
         f"torch {vers['torch']}, pypose {vers['pypose']}")
 
-    folders = ([pathlib.Path(p) for p in args.data] if args.data else
-               sorted(DEFAULT_DATA.glob("euroc_*")))
-    if not folders:
-        sys.exit(f"no sequences: give --data DIR [DIR...] (nothing matched {DEFAULT_DATA}/euroc_*)")
+    folders = [pathlib.Path(p) for p in args.data]
     t0 = time.perf_counter()
     seqs = [load_sequence(p) for p in folders]
     load_s = time.perf_counter() - t0
