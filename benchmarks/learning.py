@@ -11,15 +11,15 @@ sequences), read with :func:`jaximu.learning.load_sequence`:
 1. **Training step.** jaximu's own jitted step of :func:`jaximu.learning.train` (random
    offsets, input noise, the denoiser, :func:`~jaximu.learning.losses.increment_loss` with
    its NLL, gradient, AdamW update) on the batch ``train`` uses: every sequence's first 80 s,
-   ``S × L`` samples (5 × 15,936). The step function is taken from ``train`` itself (its
-   ``eqx.filter_jit`` is intercepted at the first call, see :func:`capture_train_step`), so
+   ``S × L`` samples (5 × 14,336 by default). The step function is taken from ``train``
+   itself (its ``eqx.filter_jit`` is intercepted at the first call, see :func:`capture_train_step`), so
    what is timed is the library's step, not a copy. Also the same step with the loss's NLL
    term left out (``bias_sigma=None``: the Huber loss alone, what the PyTorch step computes).
    Compile time is reported apart.
 2. **PyTorch.** The same network written as a PyTorch user writes it (channels-first
    ``Conv1d``, replication left-padding, tanh-GELU as ``jax.nn.gelu``, dropout, the gyro
-   correction, the noise head), eager, ``torch.set_num_threads(2)``, the 16/32-sample
-   increment Huber loss with the 16-sample windows integrated by PyPose's
+   correction, the noise head), eager, ``torch.set_num_threads(2)``, the configured-horizon
+   increment Huber loss with the first horizon's windows integrated by PyPose's
    ``pp.module.IMUPreintegrator`` (a plain PyTorch quaternion product when PyPose is not
    installed, or with ``--torch-integration plain``), and ``torch.optim.AdamW``; on batches
    of the same size with its own random offsets and noise. Before timing, a converter copies
