@@ -3,7 +3,7 @@
     python benchmarks/learning.py --data DIR...         # steps + integration (~3-5 min)
     python benchmarks/learning.py --data DIR... --quick # fewer repeats (smoke test)
     python benchmarks/learning.py --data DIR... --full-training   # also a whole `train` run
-    python benchmarks/learning.py --data DIR... --full-training --train-minutes 3   # cut after 3 min
+    python benchmarks/learning.py --data DIR... --full-training --train-minutes 3  # cut at 3 min
 
 Workloads, all float32 on the sequence folders given by ``--data`` (the five EuRoC training
 sequences), read with :func:`jaximu.learning.load_sequence`:
@@ -12,8 +12,8 @@ sequences), read with :func:`jaximu.learning.load_sequence`:
    offsets, input noise, the denoiser, :func:`~jaximu.learning.losses.increment_loss` with
    its NLL, gradient, AdamW update) on the batch ``train`` uses: every sequence's first 80 s,
    ``S × L`` samples (5 × 14,336 by default). The step function is taken from ``train``
-   itself (its ``eqx.filter_jit`` is intercepted at the first call, see :func:`capture_train_step`), so
-   what is timed is the library's step, not a copy. Also the same step with the loss's NLL
+   itself (its ``eqx.filter_jit`` is intercepted at the first call, see
+   :func:`capture_train_step`), so what is timed is the library's step, not a copy. Also the same step with the loss's NLL
    term left out (``bias_sigma=None``: the Huber loss alone, what the PyTorch step computes).
    Compile time is reported apart.
 2. **PyTorch.** The same network written as a PyTorch user writes it (channels-first
