@@ -17,7 +17,7 @@ skipped: this is what makes ``Φ P Φᵀ`` cost a few dozen 3×3 products instea
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,18 +37,18 @@ class Layout(NamedTuple):
     block algebra serves both. Vectors are :class:`~jaximu._vec.V3` of per-element scalars.
     """
 
-    matmul: object  # X @ Y
-    transpose: object  # Xᵀ
-    scale: object  # s X for a per-element scalar s
-    scale_cols: object  # X diag(s) for a per-element 3-vector s
-    diag: object  # diag(s) for a per-element 3-vector s
-    barrier: object = lambda tree: tree  # materialise a pytree of blocks (SoA: see _soa)
-    skew: object = None  # [v]x of a V3
-    matvec: object = None  # X v -> V3
-    exp_jr: object = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
-    from_arrays: object = None  # a (3, 3) or (..., 3, 3) array as a block of this layout
-    cholesky: object = None  # factor of a symmetric positive definite (m, m) block
-    tri_solve: object = None  # (factor, X, trans=False) -> L⁻¹ X (trans: L⁻ᵀ X)
+    matmul: Callable[..., Any]  # X @ Y
+    transpose: Callable[..., Any]  # Xᵀ
+    scale: Callable[..., Any]  # s X for a per-element scalar s
+    scale_cols: Callable[..., Any]  # X diag(s) for a per-element 3-vector s
+    diag: Callable[..., Any]  # diag(s) for a per-element 3-vector s
+    barrier: Callable[..., Any] = lambda tree: tree  # materialise a pytree of blocks (see _soa)
+    skew: Any = None  # [v]x of a V3
+    matvec: Any = None  # X v -> V3
+    exp_jr: Any = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
+    from_arrays: Any = None  # a (3, 3) or (..., 3, 3) array as a block of this layout
+    cholesky: Any = None  # factor of a symmetric positive definite (m, m) block
+    tri_solve: Any = None  # (factor, X, trans=False) -> L⁻¹ X (trans: L⁻ᵀ X)
 
 
 ARRAYS = Layout(
@@ -70,9 +70,9 @@ ARRAYS = Layout(
 class Blocks(NamedTuple):
     """Non-trivial 3×3 blocks of ``Φ`` (``(..., 3, 3)``; ``None`` where zero) and ``dt``."""
 
-    A: jax.Array  # θθ
+    A: Any  # θθ: an array, or the string "I" where the lane kernels know it is the identity
     B: jax.Array | None  # θ b_g
-    Cp: jax.Array  # p θ
+    Cp: jax.Array | None  # p θ (None where the p rows follow from the v rows)
     Cv: jax.Array  # v θ
     Dp: jax.Array | None  # p b_g
     Dv: jax.Array | None  # v b_g
@@ -235,7 +235,7 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
         def K(i):
             return scale(p_over_v, Kv[i]), Kv[i]
 
-    out = {}
+    out: dict = {}
     for i in range(3):
         Mi = M[i]
         out[(i, 3)] = Mi[3]
@@ -274,7 +274,7 @@ def congruence(Pb, rows, ops: Layout = ARRAYS):
     def Nrow(i, j):
         return N[i][j] if i in N else P(i, j)
 
-    out = {}
+    out: dict = {}
     for i, j in UPPER:
         if j in rows:
             out[(i, j)] = add(*(times_t(Nrow(i, l), Mjl) for l, Mjl in rows[j].items()))
@@ -302,7 +302,7 @@ def noise_blocks(columns, variances, ops: Layout = ARRAYS):
         variances: list over noise inputs of per-axis variances ``s_n`` (``(..., 3)``, or
             as ``ops`` stores 3-vectors).
     """
-    out = {}
+    out: dict = {}
     for V, s in zip(columns, variances):
         V = {k: v for k, v in V.items() if v is not None}
         rows = sorted(V)
@@ -417,7 +417,9 @@ def whiten(Pb, e, ops: Layout = ARRAYS):
     def P(i, j):
         return block(Pb, i, j, ops)
 
-    F, Lo, y = [None] * 5, {}, [None] * 5  # Lo[(i, j)] = L_ijᵀ (i > j)
+    F: list = [None] * 5
+    y: list = [None] * 5
+    Lo: dict = {}  # Lo[(i, j)] = L_ijᵀ (i > j)
     for j in range(5):
         F[j] = ops.cholesky(add(P(j, j), *(-mm(t(Lo[(j, k)], ops), Lo[(j, k)], ops)
                                            for k in range(j))))

@@ -40,7 +40,7 @@ def _fill(Q, keys, like):
 
 def _zeros_like_blocks(b: Blocks):
     z = jnp.zeros_like(b.A)
-    return Blocks(*(z if x is None else x for x in b[:-1]), b.dt)
+    return Blocks._make([z if x is None else x for x in b[:-1]] + [b.dt])
 
 
 def _euler_step(dR, w0, a0, h, b_g, b_a, var, lever=None):

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -904,7 +904,7 @@ class LaneForm(NamedTuple):
     rotate_left: Callable  # (x, dθ (…, 3)) -> Exp(dθ) R(x), the form's state
 
 
-_QUAT = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, tangents=rotation_tangents,
+_QUAT: dict[str, Any] = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, tangents=rotation_tangents,
              rows=rotation_rows, rotate_left=_quat_rotate_left)
 LANE_FORMS = {
     "quaternion": LaneForm("quaternion", advance=_quat_advance, **_QUAT),

@@ -666,7 +666,7 @@ def compute_dtype(name: str, dtype):
             from None
     if not jnp.issubdtype(d, jnp.floating) or d.itemsize < 4:
         raise ValueError(f"{name} must be a floating dtype (float32 or float64), got {d.name}")
-    if d == jnp.float64 and not jax.config.jax_enable_x64:
+    if d == jnp.float64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
         raise ValueError(f"{name}=float64 needs 64-bit JAX: call "
                          "jax.config.update('jax_enable_x64', True) first, or pass float32")
     return d

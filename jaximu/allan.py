@@ -227,8 +227,8 @@ def fit_noise(taus, adev) -> NoiseFit:
             coef = alone(1 - int(hidden[0]))[1]
         white.append(np.sqrt(max(coef[0], 0.0)))
         walk.append(np.sqrt(max(coef[1], 0.0)))
-    white, walk = np.array(white), np.array(walk)
-    return NoiseFit(white[0], walk[0]) if squeeze else NoiseFit(white, walk)
+    w, r = np.array(white), np.array(walk)
+    return NoiseFit(w[0], r[0]) if squeeze else NoiseFit(w, r)
 
 
 def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
@@ -251,11 +251,11 @@ def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
     white = white[white > 0]  # the axes whose density was determined
     if white.size == 0:
         return
-    white = float(np.median(white))
-    if white > GYRO_WHITE_MAX:
+    median = float(np.median(white))
+    if median > GYRO_WHITE_MAX:
         raise InputError(
-            f"the gyro white-noise density {white:.3g} rad/s/√Hz is implausible for an IMU in "
+            f"the gyro white-noise density {median:.3g} rad/s/√Hz is implausible for an IMU in "
             f"rad/s (the noisiest MEMS gyros stay below {GYRO_WHITE_MAX:g}; read as deg/s it is "
-            f"{np.deg2rad(white):.3g} rad/s/√Hz): is the gyro in deg/s, or the recording not "
+            f"{np.deg2rad(median):.3g} rad/s/√Hz): is the gyro in deg/s, or the recording not "
             "static?",
             [Fix("gyro_unit", "deg/s"), Fix("check_units", False)], sep=" ")

@@ -292,7 +292,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     # fitted to a pose interpolated across the gap.
     inside, gap_of, max_gap = in_gap(rt, t[idx] + td0)  # the keyframes on the reference clock
     kept = ~(inside[:-1] | inside[1:])
-    gap_windows = {}  # gap index -> windows with a keyframe inside it
+    gap_windows: dict[int, int] = {}  # gap index -> windows with a keyframe inside it
     for k in np.flatnonzero(~kept):
         for end in (k, k + 1):
             if inside[end]:

@@ -933,8 +933,9 @@ def enable_compilation_cache() -> pathlib.Path | None:
     Returns the folder in use, or None."""
     import jax
 
-    if jax.config.jax_compilation_cache_dir:
-        return pathlib.Path(jax.config.jax_compilation_cache_dir)
+    given = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]
+    if given:
+        return pathlib.Path(given)
     folder = cache_folder()
     if folder is None:
         return None

@@ -32,6 +32,7 @@ a handful of 3×3 products on the upper blocks of the symmetric ``P``) instead o
 from __future__ import annotations
 
 import functools
+from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -154,7 +155,7 @@ def dense_from_blocks(b: Blocks):
     def f(x):
         return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
 
-    rows = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
+    rows: list[list[Any]] = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
             [Z, Z, Z, hI]]
     G = jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
     return Phi, G

@@ -47,7 +47,7 @@ import json
 import math
 import os
 import pathlib
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -154,11 +154,12 @@ class MonteCarloResult(NamedTuple):
             raise ValueError(f"path {str(p)!r} is a folder; name an .npz file in it")
         if not p.parent.is_dir():
             raise ValueError(f"path {str(p)!r}: the folder {str(p.parent)!r} does not exist")
-        arrays = {k: np.asarray(v) for k, v in self._asdict().items()
+        arrays: dict[str, Any] = {k: np.asarray(v) for k, v in self._asdict().items()
                   if v is not None and k not in ("settings", "n_runs", "confidence")}
         meta = dict(settings=self.settings or {}, n_runs=self.n_runs, confidence=self.confidence,
                     format=_FORMAT)
-        np.savez(p, __meta__=np.asarray(json.dumps(meta)), **arrays)
+        arrays["__meta__"] = np.asarray(json.dumps(meta))
+        np.savez(p, **arrays)
 
 
 _FORMAT = "jaximu.montecarlo/1"
@@ -208,8 +209,9 @@ def load_result(path) -> MonteCarloResult:
     if missing or absent:
         raise ValueError(f"{str(p)!r} is a damaged Monte Carlo result: "
                          f"{', '.join(missing + absent)} missing")
-    return MonteCarloResult(**{k: fields.get(k) for k in MonteCarloResult._fields
-                               if k not in ("settings", "n_runs", "confidence")},
+    stats: dict[str, Any] = {k: fields.get(k) for k in MonteCarloResult._fields
+                             if k not in ("settings", "n_runs", "confidence")}
+    return MonteCarloResult(**stats,
                             n_runs=int(meta["n_runs"]), confidence=float(meta["confidence"]),
                             settings=meta.get("settings"))
 
@@ -553,7 +555,7 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
                     key=np.asarray(st.consts["keys"][0]).tolist(),
                     chunk_size=min(chunk_size, n_runs),
                     processes=n_proc, update_every=update_every,
-                    measurement_sigma=None if update_every is None else
+                    measurement_sigma=None if update_every is None or measurement is None else
                     np.asarray(measurement.sigma, float).tolist())
     return MonteCarloResult(
         times=st.times, mean_error=mean, error_cov=cov, predicted_cov=predicted,

@@ -464,8 +464,8 @@ def residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9
                    jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1))
 
 
-predict.__doc__ = predict.__doc__.replace("{coriolis}", CORIOLIS_DOC)
-residual.__doc__ = residual.__doc__.replace("{coriolis}", CORIOLIS_DOC)
+predict.__doc__ = (predict.__doc__ or "").replace("{coriolis}", CORIOLIS_DOC)
+residual.__doc__ = (residual.__doc__ or "").replace("{coriolis}", CORIOLIS_DOC)
 
 
 def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, gravity=9.81,

@@ -544,4 +544,4 @@ def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
                   coriolis_mode(coriolis_exact, coriolis_second_order))
 
 
-propagate.__doc__ = propagate.__doc__.replace("{sensor}", SENSOR_ARGS_DOC)
+propagate.__doc__ = (propagate.__doc__ or "").replace("{sensor}", SENSOR_ARGS_DOC)

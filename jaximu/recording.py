@@ -226,7 +226,7 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
           file=out)
     print("propagating from the ground-truth state with the ground-truth biases; "
           "no corrections (pure dead reckoning)", file=out)
-    report_at = [s for s in _DEMO_REPORT_AT if s <= data.duration + 1e-9]
+    report_at: list[float] = [s for s in _DEMO_REPORT_AT if s <= data.duration + 1e-9]
     if not report_at:  # shorter than the first mark: report at the end
         report_at = [round(float(seconds), 3)]
     table, results = {}, {}

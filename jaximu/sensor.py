@@ -75,8 +75,8 @@ class SensorPose:
         p: ``(..., 3)`` ``p_BS`` [m]: the IMU's origin in the body frame (the lever arm).
     """
 
-    q: jax.Array
-    p: jax.Array
+    q: jax.Array | np.ndarray
+    p: jax.Array | np.ndarray
 
     @property
     def R(self):

@@ -13,6 +13,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaximu import so3
 
@@ -55,11 +56,11 @@ class NavState:
         b_a: ``(..., 3)`` accelerometer bias in B [m/s²] (``a_m = R_WBᵀ(a_W - g_W) + b_a + n_a``).
     """
 
-    q: jax.Array
-    p: jax.Array
-    v: jax.Array
-    b_g: jax.Array
-    b_a: jax.Array
+    q: jax.Array | np.ndarray
+    p: jax.Array | np.ndarray
+    v: jax.Array | np.ndarray
+    b_g: jax.Array | np.ndarray
+    b_a: jax.Array | np.ndarray
 
     @classmethod
     def identity(cls, batch_shape=(), dtype=jnp.float32) -> NavState:
@@ -107,8 +108,8 @@ class ImuBias:
         b_a: ``(..., 3)`` accelerometer bias [m/s²].
     """
 
-    b_g: jax.Array
-    b_a: jax.Array
+    b_g: jax.Array | np.ndarray
+    b_a: jax.Array | np.ndarray
 
     @classmethod
     def zeros(cls, batch_shape=(), dtype=jnp.float32) -> ImuBias:

@@ -63,7 +63,7 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
         q, p, _ = gt.interpolate(t0)
         v = gt.velocity(t0)
         how = "initial state from the ground truth"
-        if bias is None and gt.b_g is not None:
+        if bias is None and gt.b_g is not None and gt.b_a is not None:
             k = int(np.argmin(np.abs(gt.t - t0[0])))
             b = np.r_[gt.b_g[k], gt.b_a[k]]
             how += " (pose, velocity, biases)"

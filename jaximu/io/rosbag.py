@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pathlib
+from typing import Any
 
 import numpy as np
 
@@ -62,7 +63,7 @@ def read_rosbag(path, topic: str | None = None, *, stamp: str = "header",
         stamps, gyro, accel = [], [], []
         try:
             for conn, log_ns, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg: Any = reader.deserialize(raw, conn.msgtype)  # a sensor_msgs/Imu
                 w, a = msg.angular_velocity, msg.linear_acceleration
                 if stamp == "header":
                     s = msg.header.stamp

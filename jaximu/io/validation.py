@@ -114,10 +114,10 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
         with np.errstate(over="ignore"):  # magnitudes near the float64 limit: inf, reported below
             wn, an = np.linalg.norm(g, axis=1), np.linalg.norm(a, axis=1)
         if wn.max() > _GYRO_MAX or np.median(wn) > _GYRO_MEDIAN_MAX:
-            i = int(np.argmax(wn))
+            worst = int(np.argmax(wn))
             raise DataError(
                 f"gyro magnitudes up to {wn.max():.4g} (median {np.median(wn):.3g}) at "
-                f"{labels[idx[i]]} are implausible in rad/s (±2000 °/s = 34.9 rad/s): is the "
+                f"{labels[idx[worst]]} are implausible in rad/s (±2000 °/s = 34.9 rad/s): is the "
                 "gyro in deg/s?", [Fix("gyro_unit", "deg/s"), Fix("check_units", False)],
                 sep=" ")
         am = float(np.median(an))

@@ -162,9 +162,10 @@ def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: 
         cov = _check_cov(cov, T)
     stamps = _stamps(t, t0_ns)
     if path.suffix == ".npz":
-        extra = {} if cov is None else {"cov": cov}
-        np.savez(path, stamps_ns=stamps, t=t, t0_ns=np.int64(t0_ns),
-                 **arrays, **extra)
+        fields = dict(stamps_ns=stamps, t=t, t0_ns=np.int64(t0_ns), **arrays)
+        if cov is not None:
+            fields["cov"] = cov
+        np.savez(path, **fields)
         return
     if path.suffix != ".csv":
         raise ValueError(f"write_states writes .csv or .npz, not {path.suffix!r}")

@@ -204,6 +204,7 @@ def increment_loss(corrected, q_true, dt, horizons=(16, 32), *, huber_delta=0.00
         r = rotation_residual(dq_true[..., s:W, :], w.delta_q[..., s:W, :])
         loss = loss + weight * huber(r, huber_delta) / 2 ** i
         if with_noise:
+            assert w.Phi is not None and w.Q is not None  # formed when a density is given
             S = rotation_covariance(w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :], bias_sigma,
                                     reference_sigma)
             nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -281,7 +281,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
         _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
         return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
 
-    record = {"seed": seed, "train": cfg.to_json(), "sequences": [s.name for s in sequences],
+    record: dict[str, Any] = {"seed": seed, "train": cfg.to_json(), "sequences": [s.name for s in sequences],
               "split": {s.name: {"train_samples": len(t), "validation_samples": len(v)}
                         for s, t, v in zip(sequences, trains, vals)},
               "history": []}
