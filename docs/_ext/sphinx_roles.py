@@ -4,6 +4,8 @@ are written:
 * they cross-reference in Sphinx's roles (``:func:`read_euroc```, ``:class:`ImuData```),
   which Markdown would print as they are: each role becomes the inline code of its target
   before the docstring is parsed;
+* a paragraph that ends in ``::`` introduces an indented literal block (reStructuredText),
+  which Markdown reads as a code block already: the ``::`` becomes ``:``;
 * their ``Args:`` sections describe parameters that share a meaning together
   (``gyro, accel: (..., T, 3) ...``), which griffe's Google parser takes for one unknown
   name. The site's configuration turns griffe's own check off, and this one takes its place:
@@ -15,6 +17,7 @@ import re
 
 import griffe
 
+_LITERAL = re.compile(r"(?<=\S)::[ \t]*\n(?=[ \t]*\n)")
 _ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|attr|data|obj|exc|const):`~?([^`]+)`")
 
 
@@ -50,7 +53,10 @@ def _check_parameters(obj):
                 if name not in names:
                     griffe.logger.warning(
                         "%s:%s: Parameter '%s' does not appear in the function signature",
-                        obj.relative_filepath, docstring.lineno, name)
+                        obj.relative_filepath,
+                        docstring.lineno,
+                        name,
+                    )
 
 
 def _public_objects(module, seen):
@@ -81,11 +87,12 @@ def _public_objects(module, seen):
 
 
 class SphinxRoles(griffe.Extension):
-    """Sphinx roles as inline code; grouped ``Args:`` entries checked name by name."""
+    """Sphinx roles as inline code, ``::`` as ``:``; grouped ``Args:`` entries checked name by name."""
 
     def on_instance(self, *, obj, **kwargs):
         if obj.docstring is not None:
-            obj.docstring.value = _ROLE.sub(_plain, obj.docstring.value)
+            value = _ROLE.sub(_plain, obj.docstring.value)
+            obj.docstring.value = _LITERAL.sub(":\n", value)
 
     def on_package(self, *, pkg, **kwargs):
         for obj in _public_objects(pkg, {pkg.path}):
