@@ -6,6 +6,9 @@ are written:
   before the docstring is parsed;
 * a paragraph that ends in ``::`` introduces an indented literal block (reStructuredText),
   which Markdown reads as a code block already: the ``::`` becomes ``:``;
+* a few docstrings are completed when their module is imported (a shared paragraph put in
+  place of ``{repair}``, ``{sensor}``, ``{coriolis}``): those are read from the imported
+  object, as ``help()`` shows them;
 * their ``Args:`` sections describe parameters that share a meaning together
   (``gyro, accel: (..., T, 3) ...``), which griffe's Google parser takes for one unknown
   name. The site's configuration turns griffe's own check off, and this one takes its place:
@@ -13,6 +16,8 @@ are written:
   fails with griffe's warning.
 """
 
+import importlib
+import inspect
 import re
 
 import griffe
@@ -26,6 +31,38 @@ def _plain(match):
     # Sphinx's explicit title form, ``:func:`title <target>```: keep the title
     titled = re.fullmatch(r"(.+?)\s*<[^>]+>", target)
     return f"`{titled.group(1) if titled else target}`"
+
+
+_PLACEHOLDER = re.compile(r"\{[a-z_]+\}")
+
+
+def _clean(text):
+    return _LITERAL.sub(":\n", _ROLE.sub(_plain, text))
+
+
+def _runtime_docstring(obj):
+    """The docstring of ``obj`` once its module has run, or None where it cannot be imported."""
+    module = importlib.import_module(obj.module.path)
+    value = module
+    for name in obj.path[len(obj.module.path) + 1 :].split("."):
+        value = getattr(value, name, None)
+    return inspect.getdoc(value) if value is not None else None
+
+
+def _complete(obj):
+    """Fill a docstring's placeholders from the imported object's docstring."""
+    if obj.docstring is None or not _PLACEHOLDER.search(obj.docstring.value):
+        return
+    runtime = _runtime_docstring(obj)
+    if runtime is not None and not _PLACEHOLDER.search(runtime):
+        obj.docstring.value = _clean(runtime)
+        return
+    griffe.logger.warning(
+        "%s:%s: docstring placeholder %s is not filled at import",
+        obj.relative_filepath,
+        obj.docstring.lineno,
+        _PLACEHOLDER.search(obj.docstring.value).group(0),
+    )
 
 
 def _signature_names(obj):
@@ -87,13 +124,13 @@ def _public_objects(module, seen):
 
 
 class SphinxRoles(griffe.Extension):
-    """Sphinx roles as inline code, ``::`` as ``:``; grouped ``Args:`` entries checked name by name."""
+    """Sphinx roles as inline code, ``::`` as ``:``, placeholders filled; grouped ``Args:`` entries checked name by name."""
 
     def on_instance(self, *, obj, **kwargs):
         if obj.docstring is not None:
-            value = _ROLE.sub(_plain, obj.docstring.value)
-            obj.docstring.value = _LITERAL.sub(":\n", value)
+            obj.docstring.value = _clean(obj.docstring.value)
 
     def on_package(self, *, pkg, **kwargs):
         for obj in _public_objects(pkg, {pkg.path}):
+            _complete(obj)
             _check_parameters(obj)
