@@ -42,7 +42,11 @@ def _clean(text):
 
 def _runtime_docstring(obj):
     """The docstring of ``obj`` once its module has run, or None where it cannot be imported."""
-    module = importlib.import_module(obj.module.path)
+    try:
+        module = importlib.import_module(obj.module.path)
+    except ImportError as error:  # an optional dependency the site's environment lacks
+        griffe.logger.warning("%s: %s", obj.relative_filepath, error)
+        return None
     value = module
     for name in obj.path[len(obj.module.path) + 1 :].split("."):
         value = getattr(value, name, None)
