@@ -127,8 +127,9 @@ def _public_objects(module, seen):
                     yield method
 
 
-class SphinxRoles(griffe.Extension):
-    """Sphinx roles as inline code, ``::`` as ``:``, placeholders filled; grouped ``Args:`` entries checked name by name."""
+class Docstrings(griffe.Extension):
+    """Sphinx roles as inline code, ``::`` as ``:``, placeholders filled; grouped ``Args:``
+    entries checked name by name."""
 
     def on_instance(self, *, obj, **kwargs):
         if obj.docstring is not None:
