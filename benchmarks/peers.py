@@ -1,6 +1,7 @@
 """jaximu against its peers on the same workloads, in one run on one machine.
 
-    pip install ".[bench]"                     # gtsam; for PyPose first a CPU torch (README)
+    pip install ".[bench]"                     # gtsam; for PyPose first a CPU torch
+                                               # (docs/guide/performance.md)
     python benchmarks/peers.py                 # full sizes (~5 min on 2 cores)
     python benchmarks/peers.py --quick         # small sizes (~1 min)
     python benchmarks/peers.py --check benchmarks/results/peers-baseline-intel-xeon-2cpu.json

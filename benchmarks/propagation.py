@@ -75,15 +75,16 @@ if DEVICES > 1:  # one CPU device per core; every case runs under a mesh of them
 VECTOR_WIDTH = _int_arg(sys.argv[1:], "--vector-width", 0)
 """``--vector-width N``: XLA:CPU compiles with N-bit vectors preferred (its flag
 ``--xla_cpu_prefer_vector_width``, default 256), as a user sets it in ``XLA_FLAGS``; 0 leaves
-XLA's default (README, "CPU vector width")."""
+XLA's default (docs/guide/performance.md, "CPU vector width")."""
 VW_FLAG = f"--xla_cpu_prefer_vector_width={VECTOR_WIDTH}"
 if VECTOR_WIDTH and VW_FLAG not in os.environ.get("XLA_FLAGS", ""):  # read when JAX starts
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + VW_FLAG).strip()
 
 NO_UNROLL = "--no-loop-unrolling" in sys.argv[1:]
 """``--no-loop-unrolling``: XLA:CPU asks LLVM for no loop unrolling (the backend option
-``xla_cpu_disable_loop_unrolling``), as a user sets it in ``XLA_FLAGS`` (README, "Compile
-time"). The option joins the last ``--xla_backend_extra_options`` list there, if any."""
+``xla_cpu_disable_loop_unrolling``), as a user sets it in ``XLA_FLAGS``
+(docs/guide/performance.md, "Compile time"). The option joins the last
+``--xla_backend_extra_options`` list there, if any."""
 NO_UNROLL_OPTION = "xla_cpu_disable_loop_unrolling"
 if NO_UNROLL and NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""):
     _flags = os.environ.get("XLA_FLAGS", "").split()
@@ -222,8 +223,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     # a sensor at a lever arm (body_P_sensor: its samples moved to the body)
                     cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
                                       lever=True))
-                    # the other attitude forms on the same kernels (README, "Schemes and
-                    # attitude forms")
+                    # the other attitude forms on the same kernels
+                    # (docs/guide/propagation.md, "Schemes and attitude forms")
                     cases += [case("mean", "mean", "euler", "final", B, T, dtype, attitude=a)
                               for a in ("matrix", "quaternion_first_order", "euler_angles")]
                     if dtype == "float32":
@@ -388,7 +389,7 @@ def _all_finite(tree) -> bool:
 
 def lane_mesh():
     """With ``--devices N``: the mesh of the N CPU devices, one ``Auto`` axis. Under it
-    jaximu's kernels split their lanes over the devices (README, "GPU and several devices")."""
+    jaximu's kernels split their lanes over the devices (docs/guide/gpu.md)."""
     if DEVICES < 2:
         return None
     return jax.make_mesh((DEVICES,), ("lanes",), axis_types=(jax.sharding.AxisType.Auto,))
@@ -809,7 +810,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-loop-unrolling", action="store_true",
                     help="XLA:CPU compiles without LLVM loop unrolling "
                          "(xla_cpu_disable_loop_unrolling in XLA_FLAGS' "
-                         "--xla_backend_extra_options; README, \"Compile time\")")
+                         "--xla_backend_extra_options; docs/guide/performance.md, "
+                         "\"Compile time\")")
     ap.add_argument("--check", type=Path, metavar="BASELINE",
                     help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
                          "more than 30%% slower")

@@ -144,8 +144,9 @@ def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: 
     ``stamps_ns, t, q, p, v, b_g, b_a`` and ``cov`` ``(T, 15, 15)``.
 
     Args:
-        t: ``(T,)`` [s] since ``t0_ns``; states: a :class:`jaximu.NavState` with ``(T, ·)``
-        fields; cov: ``(T, 15, 15)`` or ``None``.
+        t: ``(T,)`` [s] since ``t0_ns``.
+        states: a :class:`jaximu.NavState` with ``(T, ·)`` fields.
+        cov: ``(T, 15, 15)`` or ``None``.
     """
     path = pathlib.Path(path)
     full_covariance = val.check_bool("full_covariance", full_covariance)

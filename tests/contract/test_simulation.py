@@ -65,7 +65,8 @@ def test_io_and_simulate_helpers_name_their_arguments(call, message):
 
 
 def test_half_precision_times_are_computed_in_float32():
-    """A float16 t gives float32 signals and states (as the README promises), not float16."""
+    """A float16 t gives float32 signals and states (as docs/guide/errors.md promises), not
+    float16."""
     t = T20[:5].astype(np.float16)
     gyro, accel = sim.ideal_imu(TRAJ, t)
     assert gyro.dtype == accel.dtype == jnp.float32
