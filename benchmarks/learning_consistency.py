@@ -1,0 +1,117 @@
+"""How consistent can a learned gyro uncertainty be, sequence by sequence?
+
+    python benchmarks/learning_consistency.py --data DIR... [--model euroc] [--draws 2000]
+
+For each sequence folder (the EuRoC training sequences; their validation part, after the
+first 80 s, as :func:`jaximu.learning.split` cuts it), this prints the average orientation
+NEES of the model's open-loop run (:mod:`jaximu.learning.uncertainty`) with the residual
+gyro bias ``σ_b`` set on all sequences and on the others (leave-one-out), and compares it
+with what a *perfectly consistent* model would give: errors drawn from the model's own
+assumptions, by simulating the error state ``[δθ, δb_g]`` through the same per-step
+``(Φ, Q)`` (:func:`jaximu.learning.losses.rotation_step_blocks`, the learned per-sample
+density, the bias random walk) from a residual bias ``δb ~ N(0, σ_b² I)``, plus the
+reference's own noise (one draw at the start, which the run inherits, and one at every
+compared sample). Each simulated run's NEES is averaged over its samples as the evaluation
+does.
+
+What it shows: over a whole sequence the error is dominated by one draw of the residual bias,
+so the per-sequence average NEES of a consistent model is close to ``χ²₃ / 3 · 3`` — one
+χ² sample with 3 degrees of freedom, not an average of many. The fraction of consistent runs
+whose NEES falls in a band such as ``[1.5, 6]`` is therefore far from 1, and the chance that
+all sequences fall in it at once is the product. The printed table gives both for the
+sequences given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # the simulation's covariance algebra in float64
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaximu import learning  # noqa: E402
+from jaximu.learning import uncertainty  # noqa: E402
+from jaximu.learning.losses import rotation_step_blocks  # noqa: E402
+
+BAND = (1.5, 6.0)
+
+
+def step_blocks(model, seq, start):
+    """The validation part's per-step ``(Φ, Q)`` ``(T-1, 6, 6)`` in float64 (the network
+    runs in float32 on the whole sequence, as the evaluation does)."""
+    c = model(jnp.asarray(seq.gyro, jnp.float32), jnp.asarray(seq.accel, jnp.float32))
+    g = jnp.asarray(c.gyro, jnp.float64)[start:]
+    d = jnp.asarray(c.gyro_density, jnp.float64)[start:]
+    dt = jnp.asarray(seq.dt, jnp.float64)[start:]
+    F, Q = rotation_step_blocks(g[:-1], d[:-1], dt, model.config.gyro_random_walk)
+    return np.asarray(F), np.asarray(Q)
+
+
+def simulated_nees(F, Q, terms, bias_sigma, draws, rng):
+    """``(draws,)`` average NEES of runs drawn from the model's own error model."""
+    W, B = np.asarray(terms.W, np.float64), np.asarray(terms.B, np.float64)
+    s_ref = float(terms.reference_sigma)
+    S = W + bias_sigma ** 2 * B @ np.swapaxes(B, -1, -2) + 2.0 * s_ref ** 2 * np.eye(3)
+    S_inv = np.linalg.inv(S)
+    L = np.linalg.cholesky(Q + 1e-30 * np.eye(6))  # Q's bias rows are exact zeros at times
+    x = np.zeros((draws, 6))
+    x[:, 3:] = bias_sigma * rng.standard_normal((draws, 3))
+    e0 = s_ref * rng.standard_normal((draws, 3))
+    total = np.zeros(draws)  # sample 0: r = 0 exactly (the run starts at the true attitude)
+    for k in range(F.shape[0]):
+        x = x @ F[k].T + rng.standard_normal((draws, 6)) @ L[k].T
+        r = x[:, :3] + s_ref * rng.standard_normal((draws, 3)) - e0
+        total += np.einsum("ni,ij,nj->n", r, S_inv[k + 1], r)
+    return total / (F.shape[0] + 1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", nargs="+", required=True, help="sequence folders")
+    ap.add_argument("--model", default="euroc", help="a model folder or 'euroc' (shipped)")
+    ap.add_argument("--draws", type=int, default=2000, help="simulated runs per sequence")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=pathlib.Path, help="write the figures as JSON")
+    a = ap.parse_args(argv)
+    model = learning.load(a.model)
+    seqs = [learning.load_sequence(d) for d in a.data]
+    starts = [len(s) - len(learning.split(s)[1]) for s in seqs]
+    terms = [uncertainty.nees_terms(model, s, k, jnp.float64) for s, k in zip(seqs, starts)]
+    sigma = uncertainty.fit_bias_sigma(terms)
+    loo = uncertainty.leave_one_out(terms)
+    rng = np.random.default_rng(a.seed)
+    rows, inside = [], []
+    print(f"σ_b set on all sequences: {sigma:.3g} rad/s; simulated runs per sequence: {a.draws}")
+    print(f"{'sequence':24s} {'samples':>7s} {'NEES(all)':>9s} {'NEES(LOO)':>9s}   consistent "
+          f"model's NEES: 5%    50%    95%  P(in [{BAND[0]:g}, {BAND[1]:g}])")
+    for s, k, t, (_, nees_loo) in zip(seqs, starts, terms, loo):
+        F, Q = step_blocks(model, s, k)
+        sim = simulated_nees(F, Q, t, sigma, a.draws, rng)
+        p = float(np.mean((sim >= BAND[0]) & (sim <= BAND[1])))
+        q5, q50, q95 = np.quantile(sim, [0.05, 0.5, 0.95])
+        measured = uncertainty.average_nees(t, sigma)
+        inside.append(p)
+        rows.append({"name": s.name, "samples": len(s) - k, "nees_all": measured,
+                     "nees_leave_one_out": nees_loo, "consistent_quantiles": [q5, q50, q95],
+                     "consistent_p_in_band": p})
+        print(f"{s.name:24s} {len(s) - k:7d} {measured:9.2f} {nees_loo:9.2f}   "
+              f"{'':15s}{q5:5.2f}  {q50:5.2f}  {q95:5.2f}  {p:5.2f}")
+    joint = float(np.prod(inside))
+    print(f"a consistent model puts every sequence in [{BAND[0]:g}, {BAND[1]:g}] with probability "
+          f"{joint:.2f} (independent sequences)")
+    if a.out:
+        a.out.write_text(json.dumps({"model": a.model, "bias_sigma": sigma, "band": BAND,
+                                     "draws": a.draws, "seed": a.seed, "sequences": rows,
+                                     "p_all_in_band": joint}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
