@@ -92,8 +92,8 @@ def keyframe_windows(t, samples: int) -> KeyframeWindows:
     down = np.flatnonzero(np.diff(t) <= 0)
     if down.size:
         i = int(down[0])
-        raise ValueError(f"t must be strictly increasing, but t[{i}] = {t[i]!r} and "
-                         f"t[{i + 1}] = {t[i + 1]!r}")
+        raise ValueError(f"t must be strictly increasing, but t[{i}] = {t[i]:.17g} and "
+                         f"t[{i + 1}] = {t[i + 1]:.17g}")
     n = val.check_int("samples", samples, 1)
     K = (len(t) - 1) // n
     if K < 1:
