@@ -101,8 +101,8 @@ def test_check_units_judges_only_determined_axes():
     (lambda: allan.motion_ratio(Y, 0.01, window=-1.0), r"window must be positive and finite"),
     (lambda: allan.motion_ratio(Y + 1j, 0.01), r"y must be real, got a complex value"),
     (lambda: allan.motion_ratio(np.zeros((4, 3, 2)), 0.01), r"y must have shape \(N,\) or"),
-    (lambda: allan.static_intervals(Y, 0.01, segment=1.5), r"segment = 1.5 s must hold at "
-     r"least two windows of 1 s .*pass segment ≥ 2"),
+    (lambda: allan.static_intervals(Y, 0.01, segment=1.5),
+     r"segment = 1.5 s must hold at least two windows of 1 s .*pass segment ≥ 2"),
     (lambda: allan.static_intervals(Y, 0.01, segment=0.0), r"segment must be positive"),
 ])
 def test_motion_detection_names_bad_input(call, message):
