@@ -1,6 +1,6 @@
-"""The ``jaximu`` command's former home, kept so that its import paths work: the console
-script ``jaximu.cli:main``, ``jaximu.cli.build_parser``, ``options_table``, ``flag_of``, … The
-command lives in :mod:`jaximu.app`, one module per subcommand."""
+"""The ``jaximu`` command's import paths (the console script ``jaximu.cli:main``,
+``jaximu.cli.build_parser``, ``options_table``, ``flag_of``, …): a re-export of
+:mod:`jaximu.app`, where the command lives, one module per subcommand."""
 
 import sys
 

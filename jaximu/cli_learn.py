@@ -1,5 +1,5 @@
-"""``jaximu learn``'s former home, kept so that its import paths work; the subcommand lives in
-:mod:`jaximu.app.learn`."""
+"""``jaximu learn``'s import paths: a re-export of :mod:`jaximu.app.learn`, where the
+subcommand lives."""
 
 from jaximu.app.learn import LEARNING_EXTRA, _Usage, add_parser, cmd_evaluate, cmd_train
 

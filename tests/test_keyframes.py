@@ -81,3 +81,11 @@ def test_residuals_against_a_constant_velocity_truth():
     np.testing.assert_allclose(r[checked][:, 6:9], np.tile(dt * delta, (8, 1)),
                                rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(r[checked][:, [0, 1, 2, 9, 10, 11, 12, 13, 14]], 0.0, atol=1e-10)
+    # in float32: the residuals in pim's dtype, the same to float32 rounding of |p| ≈ 10 m
+    pim32 = jaximu.preintegrate(gyro.astype(jnp.float32), accel.astype(jnp.float32),
+                                jnp.asarray(w.dt, jnp.float32), None, None, "euler")
+    r32 = keyframes.groundtruth_residuals(pim32, gt, w.t_i, w.t_j, jaximu.ImuBias(
+        jnp.zeros(3, jnp.float32), jnp.asarray(delta, jnp.float32)))
+    assert r32.dtype == np.float64 and np.array_equal(np.isnan(r32), np.isnan(r))
+    np.testing.assert_allclose(r32[checked], r[checked], rtol=0,
+                               atol=50 * np.finfo(np.float32).eps * 10)

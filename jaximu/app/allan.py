@@ -25,7 +25,7 @@ def cmd_allan(args):
     # than the samples (≈ 0.07 at 200 Hz); motion varies slowly and survives the averaging.
     # (The spread of the samples cannot tell: a still gyro in deg/s spreads 57× more.)
     moving = allan.motion_ratio(data.gyro, dt)
-    static = not moving >= allan.STATIC_MOTION_RATIO  # too short to judge (NaN): static
+    static = not moving >= allan.STATIC_MOTION_RATIO  # NaN (too short to judge): static
     if not static:
         print(f"note: the gyro's 1 s means vary by {100 * moving:.0f}% of its sample spread: the "
               "recording does not look static, so the densities below include motion")

@@ -1,9 +1,8 @@
 """``jaximu calibrate``: IMU calibration against a ground-truth trajectory (the work is
 :mod:`jaximu.calibration`'s).
 
-``cmd_calibrate``, ``_warnings_as_lines`` and the parser section in :func:`add_parser` are
-the command's former lines unchanged; the shared helpers they call keep their former names
-here (imported under them).
+``cmd_calibrate`` and the parser section in :func:`add_parser` call the shared helpers of
+:mod:`jaximu.app.common` by private names (``_load``, ``_dtype``, …), imported under them.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """What the subcommands share: the input and output options, reading the recording named on
 the command line, and the checks of options that come before the work.
 
-Parsing only: the readers, the noise presets and the ground-truth alignment are the
-library's (:mod:`jaximu.io`, :mod:`jaximu.recording`, :mod:`jaximu.kalibr`).
+Parsing only: the readers and the sensor files are the library's (:mod:`jaximu.io`,
+:mod:`jaximu.kalibr`).
 """
 
 from __future__ import annotations
