@@ -1,5 +1,5 @@
 import sys
 
-from jaximu.cli import main
+from jaximu.app import main
 
 sys.exit(main())

@@ -11,10 +11,15 @@ random walk of density ``σ_rw`` gives ``σ(τ) = σ_rw √(τ/3)`` (slope +1/2:
 :func:`fit_noise` fits ``σ²(τ) = σ_w²/τ + σ_rw² τ/3`` by weighted least squares, which returns
 exactly the Kalibr parameters of :class:`jaximu.ImuNoise` (``*_noise_density``,
 ``*_random_walk``).
+
+Both need a static recording: :func:`motion_ratio` says whether a signal looks static (its
+spread does not survive averaging), and :func:`static_intervals` finds the stretches of a
+recording that do.
 """
 
 from __future__ import annotations
 
+import itertools
 import numbers
 from typing import NamedTuple
 
@@ -23,8 +28,17 @@ import numpy as np
 from jaximu import _validation as val
 from jaximu.errors import Fix, InputError
 
-__all__ = ["allan_deviation", "fit_noise", "NoiseFit", "check_units", "GYRO_WHITE_MAX",
-           "VISIBLE"]
+__all__ = [
+    "GYRO_WHITE_MAX",
+    "STATIC_MOTION_RATIO",
+    "VISIBLE",
+    "NoiseFit",
+    "allan_deviation",
+    "check_units",
+    "fit_noise",
+    "motion_ratio",
+    "static_intervals",
+]
 
 VISIBLE = 0.1
 """The share of the fitted ``σ²(τ)`` that a term must reach at some τ of the fit to count as
@@ -119,6 +133,95 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
                          + ": y or dt is too large (or dt too small); rescale the samples")
     taus = ms * dt
     return taus, (adev[:, 0] if squeeze else adev)
+
+
+STATIC_MOTION_RATIO = 0.3
+"""The :func:`motion_ratio` below which a signal looks static. White noise about a constant
+(a still gyro about its bias) has ``1/√m`` for ``m`` samples per window (0.07 for 1 s at
+200 Hz); motion varies slowly, survives the averaging and keeps the ratio near 1."""
+
+
+def motion_ratio(y, dt: float, window: float = 1.0) -> float:
+    """How much of a signal's spread survives averaging over ``window`` seconds.
+
+    The standard deviation of the means of consecutive ``window``-second stretches over the
+    standard deviation of the samples, the largest over the axes (:data:`STATIC_MOTION_RATIO`
+    tells static from moving). White noise about a constant gives ``≈ 1/√m`` (``m``
+    samples per window); a signal constant over each window (slow motion) gives ≈ 1. The
+    ratio does not depend on the unit: a still gyro in deg/s spreads 57× more than in rad/s,
+    and its ratio is the same.
+
+    Args:
+        y: ``(N,)`` or ``(N, d)`` real samples at a constant rate ``1/dt`` (e.g. the gyro
+            [rad/s]), finite.
+        dt: sample period [s], positive and finite.
+        window: averaging time [s], positive and finite; rounded to a whole number ``m`` of
+            samples, at least one. The samples after the last whole window count in the
+            samples' spread only.
+
+    Returns:
+        The ratio (a float ≥ 0; an axis whose samples are all equal counts 0), or NaN when
+        ``y`` holds fewer than two whole windows (too short to judge).
+
+    Raises:
+        ValueError: naming ``y``, ``dt`` or ``window`` outside that domain.
+    """
+    y = _real_array("y", y)
+    if y.ndim not in (1, 2) or len(y) < 1:
+        raise ValueError(f"y must have shape (N,) or (N, d), got {y.shape}")
+    if not np.all(np.isfinite(y)):
+        raise ValueError(f"y contains non-finite values (NaN or inf), first at sample "
+                         f"{int(np.argwhere(~np.isfinite(y))[0][0])}")
+    dt, window = val.check_positive("dt", dt), val.check_positive("window", window)
+    m = max(1, round(window / dt))
+    n = len(y) // m
+    if n < 2:
+        return float("nan")
+    means = y[:n * m].reshape(n, m, -1).mean(1)
+    return float(np.max(means.std(0) / np.maximum(y.std(0), 1e-300)))
+
+
+def static_intervals(y, dt: float, segment: float = 10.0, window: float = 1.0) -> np.ndarray:
+    """The stretches of a recording that look static (for :func:`allan_deviation`).
+
+    The recording is cut into consecutive ``segment``-second pieces (the samples after the
+    last whole piece join it); a piece whose :func:`motion_ratio` over ``window`` is below
+    :data:`STATIC_MOTION_RATIO` is static, and neighbouring static pieces are merged. A piece
+    too short to judge (fewer than two windows: a recording shorter than ``2·window``) is
+    not static.
+
+    Args:
+        y: ``(N,)`` or ``(N, d)`` real samples at a constant rate ``1/dt`` (the gyro, which
+            tells motion best), finite.
+        dt: sample period [s], positive and finite.
+        segment: length [s] of the pieces judged, at least ``2·window``.
+        window: averaging time [s] of :func:`motion_ratio`, positive and finite.
+
+    Returns:
+        ``(M, 2)`` integer sample ranges ``[start, stop)`` of the static stretches, in order
+        (``(0, 2)`` when none is static): ``y[start:stop]``.
+
+    Raises:
+        ValueError: naming ``y``, ``dt``, ``segment`` or ``window`` outside that domain.
+    """
+    y = _real_array("y", y)
+    dt, window = val.check_positive("dt", dt), val.check_positive("window", window)
+    segment = val.check_positive("segment", segment)
+    if segment < 2 * window:
+        raise ValueError(f"segment = {segment:g} s must hold at least two windows of "
+                         f"{window:g} s (motion_ratio compares their means): pass segment ≥ "
+                         f"{2 * window:g}")
+    m = max(1, round(segment / dt))
+    bounds = np.r_[np.arange(0, max(len(y) // m, 1)) * m, len(y)]
+    still = [motion_ratio(y[a:b], dt, window) < STATIC_MOTION_RATIO  # NaN: not static
+             for a, b in itertools.pairwise(bounds)]
+    out = []
+    for k, s in enumerate(still):
+        if s and out and out[-1][1] == bounds[k]:
+            out[-1][1] = bounds[k + 1]
+        elif s:
+            out.append([bounds[k], bounds[k + 1]])
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
 def _real_array(name, x) -> np.ndarray:

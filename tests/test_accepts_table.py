@@ -11,12 +11,14 @@ import re
 import pytest
 
 import jaximu
-from jaximu import allan, calibration, cli, io, learning, montecarlo, recording, simulate, so3
+from jaximu import (allan, calibration, cli, io, keyframes, learning, montecarlo, recording,
+                    simulate, so3)
 
 DOC = pathlib.Path(__file__).parent.parent / "docs" / "accepts.md"
 MODULES = {"jaximu": jaximu, "jaximu.so3": so3, "jaximu.allan": allan,
            "jaximu.montecarlo": montecarlo, "jaximu.calibration": calibration, "jaximu.io": io,
            "jaximu.simulate": simulate, "jaximu.recording": recording,
+           "jaximu.keyframes": keyframes,
            "jaximu.learning": learning}
 
 

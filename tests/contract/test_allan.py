@@ -93,3 +93,18 @@ def test_check_units_judges_only_determined_axes():
     with pytest.raises(InputError, match=r"gyro white-noise density 0\.01 rad/s/√Hz"):
         allan.check_units(fit)
     allan.check_units(allan.fit_noise(taus, np.stack([walk_only] * 3, axis=1)))  # nothing to judge
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: allan.motion_ratio(np.array([0.0, np.nan, 1.0]), 0.01), r"y contains non-finite"),
+    (lambda: allan.motion_ratio(Y, 0.0), r"dt must be positive and finite"),
+    (lambda: allan.motion_ratio(Y, 0.01, window=-1.0), r"window must be positive and finite"),
+    (lambda: allan.motion_ratio(Y + 1j, 0.01), r"y must be real, got a complex value"),
+    (lambda: allan.motion_ratio(np.zeros((4, 3, 2)), 0.01), r"y must have shape \(N,\) or"),
+    (lambda: allan.static_intervals(Y, 0.01, segment=1.5),
+     r"segment = 1.5 s must hold at least two windows of 1 s .*pass segment ≥ 2"),
+    (lambda: allan.static_intervals(Y, 0.01, segment=0.0), r"segment must be positive"),
+])
+def test_motion_detection_names_bad_input(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()

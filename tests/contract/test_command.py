@@ -318,8 +318,9 @@ def test_the_command_renders_every_fix_the_library_can_raise():
     src = "\n".join(p.read_text() for p in pathlib.Path(cli.__file__).parent.rglob("*.py"))
     options = set(re.findall(r"\bFix\(\s*\"(\w+)\"", src))
     assert {"gyro_unit", "accel_unit", "sort", "check_units"} <= options
+    app = pathlib.Path(cli.__file__).parent / "app"  # the command: one module per subcommand
     parser_flags = set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"",
-                                  pathlib.Path(cli.__file__).read_text()))
+                                  "\n".join(p.read_text() for p in app.glob("*.py"))))
     for option in options - cli.API_ONLY_OPTIONS:
         flags = [cli.FLAGS.get(option)] + [f for (o, _), f in cli.INVERTED_FLAGS.items()
                                            if o == option]
