@@ -215,7 +215,7 @@ def static_intervals(y, dt: float, segment: float = 10.0, window: float = 1.0) -
     bounds = np.r_[np.arange(0, max(len(y) // m, 1)) * m, len(y)]
     still = [motion_ratio(y[a:b], dt, window) < STATIC_MOTION_RATIO  # NaN: not static
              for a, b in itertools.pairwise(bounds)]
-    out = []
+    out: list[list[int]] = []
     for k, s in enumerate(still):
         if s and out and out[-1][1] == bounds[k]:
             out[-1][1] = bounds[k + 1]

@@ -59,6 +59,8 @@ __all__ = [
     "propagate_covariance",
     "propagate_covariance_final",
     "accumulate_covariance",
+    "compose_transitions",
+    "transition_products",
     "ekf_update",
     "position_jacobian",
     "JACOBIANS",
@@ -262,6 +264,28 @@ def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
     return P0
 
 
+def small_matmul(X, Y):
+    """``X @ Y`` for small batched matrices as broadcast-and-sum: XLA:CPU fuses it, where it
+    runs small batched dots one by one."""
+    return jnp.sum(X[..., :, :, None] * Y[..., None, :, :], axis=-2)
+
+
+def compose_transitions(first, then):
+    """The pair ``(Φ, Q)`` of two consecutive spans: ``first = (Φ_a, Q_a)`` followed by
+    ``then = (Φ_b, Q_b)`` gives ``(Φ_b Φ_a, Φ_b Q_a Φ_bᵀ + Q_b)``, the transition and
+    accumulated noise of the covariance recursion over both (associative: any grouping of
+    spans composes to the same pair). Arrays ``(..., n, n)``."""
+    (Fa, Qa), (Fb, Qb) = first, then
+    return (small_matmul(Fb, Fa),
+            small_matmul(small_matmul(Fb, Qa), jnp.swapaxes(Fb, -1, -2)) + Qb)
+
+
+def transition_products(Phi, axis: int = -3):
+    """Accumulated transitions ``Φ_k ⋯ Φ_1 Φ_0`` for every ``k`` along ``axis`` of
+    ``Phi`` ``(..., T, n, n)``, by a parallel prefix product (``jax.lax.associative_scan``)."""
+    return jax.lax.associative_scan(lambda A, B: small_matmul(B, A), Phi, axis=axis)
+
+
 def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
     """The covariance recursion ``P_{k+1} = Φ_k P_k Φ_kᵀ + Q_k`` over given per-step terms.
 
@@ -290,12 +314,9 @@ def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
     P = jnp.zeros(batch + (n, n), dtype) if P0 is None else \
         jnp.broadcast_to(jnp.asarray(P0, dtype), batch + (n, n))
 
-    def mul(X, Y):  # broadcast-and-sum: XLA:CPU fuses it; small batched dots it does not
-        return jnp.sum(X[..., :, :, None] * Y[..., None, :, :], axis=-2)
-
     def step(P, fq):
         F, Qk = fq
-        P = blk.sym(mul(mul(F, P), jnp.swapaxes(F, -1, -2)) + Qk)
+        P = blk.sym(small_matmul(small_matmul(F, P), jnp.swapaxes(F, -1, -2)) + Qk)
         return P, (P if save_all else None)
 
     xs = tuple(jnp.moveaxis(jnp.broadcast_to(x, batch + x.shape[-3:]), -3, 0) for x in (Phi, Q))

@@ -33,15 +33,16 @@ class KeyframeWindows(NamedTuple):
     """``K`` consecutive windows of ``n`` sample intervals (:func:`keyframe_windows`).
 
     Attributes:
-        index: ``(K, n + 1)`` sample indices of each window, from keyframe i (column 0) to
-            keyframe j (column ``n``, the next window's column 0): ``gyro[index]`` is the
-            ``(K, n + 1, 3)`` input of :func:`jaximu.preintegrate`.
+        sample_index: ``(K, n + 1)`` sample indices of each window, from keyframe i
+            (column 0) to keyframe j (column ``n``, the next window's column 0):
+            ``gyro[sample_index]`` is the ``(K, n + 1, 3)`` input of
+            :func:`jaximu.preintegrate`.
         dt: ``(K, n)`` sample intervals [s] of each window (``t[k + 1] - t[k]``).
         t_i: ``(K,)`` time of each window's first keyframe [s].
         t_j: ``(K,)`` time of each window's last keyframe [s].
     """
 
-    index: np.ndarray
+    sample_index: np.ndarray
     dt: np.ndarray
     t_i: np.ndarray
     t_j: np.ndarray
@@ -179,8 +180,8 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
     states = []
     for tt in (_times("t_i", t_i)[rows], _times("t_j", t_j)[rows]):
         q, p, v = gt.interpolate(tt)
-        states.append(jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v)),
-                                      bias.b_g, bias.b_a))
+        states.append(jaximu.NavState(jnp.asarray(q, dtype), jnp.asarray(p, dtype),
+                                      jnp.asarray(v, dtype), bias.b_g, bias.b_a))
     sel = jax.tree_util.tree_map(lambda x: x[rows], pim)
     out[rows] = np.asarray(jaximu.residual(states[0], states[1], sel, gravity,
                                            omega_coriolis=omega_coriolis), np.float64)

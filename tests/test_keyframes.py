@@ -33,13 +33,13 @@ def test_windows_are_the_samples_from_keyframe_to_keyframe():
     rng = np.random.default_rng(0)
     t = np.cumsum(0.005 + 0.001 * rng.random(23))
     w = keyframes.keyframe_windows(t, 5)
-    assert w.index.shape == (4, 6) and w.dt.shape == (4, 5)  # (23 - 1) // 5 = 4 windows
+    assert w.sample_index.shape == (4, 6) and w.dt.shape == (4, 5)  # (23 - 1) // 5 = 4 windows
     for k in range(4):
         samples = list(range(5 * k, 5 * k + 6))
-        assert w.index[k].tolist() == samples
+        assert w.sample_index[k].tolist() == samples
         assert w.dt[k].tolist() == [t[i + 1] - t[i] for i in samples[:-1]]
         assert (w.t_i[k], w.t_j[k]) == (t[5 * k], t[5 * k + 5])
-    assert w.index[1:, 0].tolist() == w.index[:-1, -1].tolist()  # keyframes shared
+    assert w.sample_index[1:, 0].tolist() == w.sample_index[:-1, -1].tolist()  # keyframes shared
 
 
 def test_coverage_of_a_ground_truth_with_a_known_gap():

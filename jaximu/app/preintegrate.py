@@ -49,8 +49,8 @@ def cmd_preintegrate(args):
         k = np.clip(np.searchsorted(gt.t, data.t[0]), 0, len(gt.t) - 1)
         bias, how = np.r_[gt.b_g[k], gt.b_a[k]], "from the ground truth"
     bias = np.zeros(6) if bias is None else bias
-    gyro = jnp.asarray(data.gyro[windows.index], dtype)
-    accel = jnp.asarray(data.accel[windows.index], dtype)
+    gyro = jnp.asarray(data.gyro[windows.sample_index], dtype)
+    accel = jnp.asarray(data.accel[windows.sample_index], dtype)
     dt = jnp.asarray(windows.dt, dtype)
     b = jaximu.ImuBias(jnp.asarray(bias[:3], dtype), jnp.asarray(bias[3:], dtype))
     print(f"{K} windows of {n} samples ({args.window:g} s), scheme {args.scheme}, biases {how}")
@@ -70,8 +70,8 @@ def cmd_preintegrate(args):
               f"{np.linalg.norm(np.asarray(pim.delta_p)[k]):>10.4f}"
               f"{np.rad2deg(sig[k, 0]):>9.4f}{sig[k, 3]:>9.5f}{sig[k, 6]:>10.5f}")
     if args.out:
-        np.savez(args.out, stamp_i_ns=data.stamps_ns[windows.index[:, 0]],
-                 stamp_j_ns=data.stamps_ns[windows.index[:, -1]],
+        np.savez(args.out, stamp_i_ns=data.stamps_ns[windows.sample_index[:, 0]],
+                 stamp_j_ns=data.stamps_ns[windows.sample_index[:, -1]],
                  **{name: np.asarray(getattr(pim, name)) for name in
                     ("delta_t", "delta_q", "delta_v", "delta_p", "cov", "cov15", "dR_dbg",
                      "dv_dbg", "dv_dba", "dp_dbg", "dp_dba")},

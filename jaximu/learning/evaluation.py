@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import so3
-from jaximu.errorstate import accumulate_covariance
+from jaximu.errorstate import accumulate_covariance, transition_products
 from jaximu.learning.data import Sequence, check_rate, check_sequence
 from jaximu.learning.losses import rotation_step_blocks
 from jaximu.learning.model import check_model
@@ -77,7 +77,7 @@ def attitude_terms(gyro, density, dt, random_walk):
     transition's bias column. The first sample's terms are zero."""
     F, Q = rotation_step_blocks(gyro[:-1], density[:-1], dt, random_walk)
     W = accumulate_covariance(F, Q, save_all=True)[..., 0:3, 0:3]
-    Phi = jax.lax.associative_scan(lambda A, B: B @ A, F, axis=0)
+    Phi = transition_products(F)
     z = jnp.zeros((1, 3, 3), gyro.dtype)
     return jnp.concatenate([z, W], 0), jnp.concatenate([z, Phi[..., 0:3, 3:6]], 0)
 

@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 
 from jaximu import so3
-from jaximu.errorstate import accumulate_covariance, blocks_analytic
+from jaximu.errorstate import (accumulate_covariance, blocks_analytic, compose_transitions,
+                               small_matmul, transition_products)
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate
 
@@ -45,11 +46,6 @@ class Windows(NamedTuple):
     delta_v: jax.Array
     Phi: jax.Array | None
     Q: jax.Array | None
-
-
-def _mul(X, Y):
-    """``X @ Y`` for small matrices as broadcast-and-sum (fused by XLA:CPU)."""
-    return jnp.sum(X[..., :, :, None] * Y[..., None, :, :], axis=-2)
 
 
 def _cut(x, H):
@@ -79,7 +75,7 @@ def rotation_step_blocks(gyro, density, dt, random_walk):
     Z = jnp.zeros(batch + (3, 3), dtype)
     Phi = jnp.concatenate([jnp.concatenate([b.A, b.B], -1),
                            jnp.concatenate([Z, jnp.broadcast_to(eye, Z.shape)], -1)], -2)
-    Q_tt = _mul(b.B * var[..., None, 0:3], jnp.swapaxes(b.B, -1, -2))
+    Q_tt = small_matmul(b.B * var[..., None, 0:3], jnp.swapaxes(b.B, -1, -2))
     walk = (h * h)[..., None, None] * var[..., None, 6:9] * eye  # G_bb = dt I
     Q = jnp.concatenate([jnp.concatenate([Q_tt, Z], -1), jnp.concatenate([Z, walk], -1)], -2)
     return Phi, Q
@@ -103,7 +99,7 @@ def windows(gyro, accel, dt, H: int, density=None, random_walk=0.0) -> Windows:
         F, Qs = rotation_step_blocks(jax.lax.stop_gradient(g), _cut(density, H),
                                      jnp.asarray(dt, dtype), random_walk)
         # the window's transition (the product of its steps') and noise (accumulated from 0)
-        Phi = jax.lax.associative_scan(lambda A, B: _mul(B, A), F, axis=-3)[..., -1, :, :]
+        Phi = transition_products(F)[..., -1, :, :]
         Q = accumulate_covariance(F, Qs)
     return Windows(pim.delta_q, pim.delta_v, Phi, Q)
 
@@ -126,8 +122,7 @@ def compose_pairs(w: Windows) -> Windows:
     if w.Phi is not None:
         F1, F2 = _pick(w.Phi, 2, 0, W), _pick(w.Phi, 2, 1, W)
         Q1, Q2 = _pick(w.Q, 2, 0, W), _pick(w.Q, 2, 1, W)
-        Phi = _mul(F2, F1)
-        Q = _mul(_mul(F2, Q1), jnp.swapaxes(F2, -1, -2)) + Q2
+        Phi, Q = compose_transitions((F1, Q1), (F2, Q2))
     return Windows(dq, dv, Phi, Q)
 
 
@@ -154,7 +149,7 @@ def rotation_covariance(Phi, Q, bias_sigma, reference_sigma):
     """``S = P_θθ + 2 σ_ref² I``: the covariance of the rotation residual of windows with
     transition ``Phi`` and noise ``Q`` (``(..., 6, 6)``), from ``P0 = diag(0, σ_b² I)``."""
     B = Phi[..., 0:3, 3:6]  # ∂δθ_end/∂δb_g
-    P = Q[..., 0:3, 0:3] + bias_sigma ** 2 * _mul(B, jnp.swapaxes(B, -1, -2))
+    P = Q[..., 0:3, 0:3] + bias_sigma ** 2 * small_matmul(B, jnp.swapaxes(B, -1, -2))
     eye = jnp.eye(3, dtype=P.dtype)
     return P + 2.0 * reference_sigma ** 2 * eye
 
