@@ -137,8 +137,8 @@ def padded_variances(h, var):
     """``σ² / dt`` of the noise (:meth:`jaximu.noise.ImuNoise.discrete_variances`), and
     ``σ²`` for a padding step (``dt = 0``, whose noise columns ``G`` are all zero: no noise
     rather than ``0 · ∞``)."""
-    h = jnp.where(h > 0, h, jnp.ones_like(h))
-    return var / (h[..., None] if jnp.ndim(h) else h)
+    inv = 1.0 / jnp.where(h > 0, h, jnp.ones_like(h))  # one division a lane, not twelve
+    return var * (inv[..., None] if jnp.ndim(inv) else inv)
 
 
 def _rotation_maps(R, rotated):
@@ -158,36 +158,55 @@ def _in_start_frame(F, Q, R, rotated, pattern):
     return F, blk.congruence(Q, _rotation_maps(R, rotated), SOA)
 
 
-def compose_covariance(P0, F, Q, R, pattern, rotated, save_all, on):
+def _frame(q):
+    """``R(q)`` of quaternions ``(…, B, 4)`` as blocks ``(3, 3, …, B)``."""
+    return jnp.moveaxis(so3.quat_to_matrix(q), (-2, -1), (0, 1))
+
+
+def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, deltas=None,
+                       g=None):
     """``P_{c+1} = Φ_c P_c Φ_cᵀ + Q_c`` along the chunks: in order (the CPU: one compiled
-    kernel, :func:`jaximu._soa.one_kernel`) or as an associative scan of the pairs
-    (an accelerator: ``log2 C`` levels of launches, not ``C``).
+    kernel, :func:`jaximu._soa.one_kernel`) or as an associative scan of the pairs (an
+    accelerator: ``log2 C`` levels of launches, not ``C``).
 
     ``P0``: upper blocks ``(3, 3, B)``; ``F``: the chunks' transition leaves
     (:func:`jaximu._blocks.rows_leaves` of ``pattern``) and ``Q`` the 15 upper blocks of
-    their noise, ``(C, 3, 3, B)`` (scalars ``(C, B)``); ``R``: ``(C, 3, 3, B)`` rotations
-    of the chunks' starts for the blocks ``rotated`` (:func:`_in_start_frame`), or ``None``.
-    Returns the final ``P`` and, with ``save_all``, every chunk's start ``P_c``
-    ``(C, 3, 3, B)`` (upper blocks)."""
+    their noise, ``(C, 3, 3, B)`` (scalars ``(C, B)``). Chunks run from the identity
+    (``rotated``: the blocks their start's rotation turns, :func:`_in_start_frame`) move the
+    state ``start = (q, p, v)`` ``(B, ·)`` by their ``deltas`` ``(C, B, ·)`` under gravity
+    ``g`` ``(B, 3)``, which gives each chunk's start. Returns ``(P, end, starts)``: the final
+    upper blocks, the final state (``None`` without deltas) and, with ``save_all``, each
+    chunk's start ``((q, p, v) (C, B, ·), P blocks (C, 3, 3, B))`` (else ``None``)."""
+    moving = deltas is not None
     if on == dispatch.CPU:
-        def body(P, xs):
-            leaves, Qc, Rc = xs
+        def body(carry, xs):
+            x, P = carry
+            leaves, Qc, d = xs
             Fc, Qc = _in_start_frame(blk.rows_from_leaves(leaves, pattern),
-                                     dict(zip(UPPER, Qc)), Rc, rotated, pattern)
+                                     dict(zip(UPPER, Qc)), _frame(x[0]) if moving else None,
+                                     rotated, pattern)
             new = blk.symmetrize_diagonal(blk.add_blocks(blk.congruence(
                 dict(zip(UPPER, P)), Fc, SOA), Qc), SOA)
-            return tuple(new[k] for k in UPPER), (P if save_all else None)
+            x1 = apply_deltas(*x, g, d) if moving else x
+            return (x1, tuple(new[k] for k in UPPER)), ((x, P) if save_all else None)
 
-        def run(P0, F, Q, R):
-            return jax.lax.scan(body, P0, (F, Q, R))
+        def run(x, P0, F, Q, deltas):
+            return jax.lax.scan(body, (x, P0), (F, Q, deltas))
 
-        P, starts = _soa.one_kernel(run, tuple(P0[k] for k in UPPER), tuple(F), tuple(Q), R)
-        return dict(zip(UPPER, P)), (None if starts is None else dict(zip(UPPER, starts)))
-    # an accelerator: the pairs (Φ_c, Q_c) in the sequence's coordinates, and (I, P0) first
+        (end, P), starts = _soa.one_kernel(run, start if moving else None,
+                                           tuple(P0[k] for k in UPPER), tuple(F), tuple(Q),
+                                           deltas)
+        if starts is not None:
+            starts = (starts[0], dict(zip(UPPER, starts[1])))
+        return dict(zip(UPPER, P)), end, starts
+    # an accelerator: the chunks' starts by a parallel prefix of their deltas, the pairs
+    # (Φ_c, Q_c) in the sequence's coordinates, (I, P0) first, and their parallel prefix
+    before = apply_deltas(*(x[None] for x in start), g, deltas_before(deltas)) if moving \
+        else None
     last = lambda x: jnp.moveaxis(x, 0, -1)  # noqa: E731  (C, 3, 3, B) -> (3, 3, B, C)
     Fr, Qr = _in_start_frame(blk.rows_from_leaves([last(x) for x in F], pattern),
                              dict(zip(UPPER, (last(x) for x in Q))),
-                             None if R is None else last(R), rotated, pattern)
+                             last(_frame(before[0])) if moving else None, rotated, pattern)
     like = Qr[(0, 0)]
     ident = blk.conform_rows({}, pattern, like.shape[:-1] + (1,), like.shape[2:-1] + (1,),
                              like.dtype, SOA)
@@ -206,8 +225,11 @@ def compose_covariance(P0, F, Q, R, pattern, rotated, save_all, on):
 
     _, P_all = jax.lax.associative_scan(combine, elems, axis=-1)  # P_0 (= P0) ... P_C
     P = {k: x[..., -1] for k, x in zip(UPPER, P_all)}
-    starts = {k: jnp.moveaxis(x[..., :-1], -1, 0) for k, x in zip(UPPER, P_all)}
-    return P, (starts if save_all else None)
+    end = apply_deltas(*start, g, total_deltas(deltas)) if moving else None
+    starts = None
+    if save_all:
+        starts = (before, {k: jnp.moveaxis(x[..., :-1], -1, 0) for k, x in zip(UPPER, P_all)})
+    return P, end, starts
 
 
 def _join(ident, F, pattern):
@@ -279,39 +301,36 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))  # noqa: E731
     Q = tuple(soa(x) for x in out[3])  # (C, 3, 3, B)
     F = tuple(soa(x) for x in out[4])
-    if local:
+    deltas = start = None
+    rotated = ()
+    if local:  # the chunks' deltas move the state from one chunk's start to the next
         deltas = (_soa.to_quat(form, out[0]), out[1], out[2], jnp.sum(dt_c, axis=-1))
         deltas = tuple(by_chunk(x, B, C) for x in deltas)  # (C, B, ·)
-        q0 = so3.quat_normalize(_soa.to_quat(form, q))
-        before = apply_deltas(q0, p, v, g_b, deltas_before(deltas))  # each chunk's start
-        R = jnp.moveaxis(so3.quat_to_matrix(before[0]), 1, -1)  # (C, 3, 3, B)
+        start = (so3.quat_normalize(_soa.to_quat(form, q)), p, v)
         rotated = (0, 1, 2) if world_error else (1, 2)
-    else:
-        R, rotated = None, ()
     Pb = dict(zip(UPPER, _fast.dense_to_blocks(P0)))
     if world_error:  # the user's body-frame rotation error into the world frame
-        R0 = jnp.moveaxis(so3.quat_to_matrix(q0), 0, -1)
-        Pb = blk.congruence(Pb, {0: {0: R0}}, SOA)
-    P, P_starts = compose_covariance(Pb, F, Q, R, pattern, rotated, save_all, on)
+        Pb = blk.congruence(Pb, {0: {0: _frame(start[0])}}, SOA)
+    P, end, starts = compose_covariance(Pb, F, Q, pattern, rotated, save_all, on, start,
+                                        deltas, g_b)
     if not save_all:
         if local:
-            qf, pf, vf = apply_deltas(q0, p, v, g_b, total_deltas(deltas))
-            xf = _soa.from_quat(form, qf)
+            xf, pf, vf = _soa.from_quat(form, end[0]), end[1], end[2]
         else:
             xf, pf, vf = (x[:, -1] for x in mean[:3])
         if world_error:
-            Rf = jnp.moveaxis(so3.quat_to_matrix(qf), 0, -1)
-            P = blk.congruence(P, {0: {0: _soa._bt(Rf)}}, SOA)
+            P = blk.congruence(P, {0: {0: _soa._bt(_frame(end[0]))}}, SOA)
         return xf, pf, vf, _fast.blocks_to_dense(tuple(P[k] for k in UPPER)), locked
     # every covariance: the chunks again, from their starts, storing every step
     if local:
-        x_s = _soa.from_quat(form, by_lane(before[0]))
-        p_s, v_s = by_lane(before[1]), by_lane(before[2])
+        x_s = _soa.from_quat(form, by_lane(starts[0][0]))
+        p_s, v_s = by_lane(starts[0][1]), by_lane(starts[0][2])
     # (C, 3, 3, B) -> (3, 3, B·C), lane b·C + c
     lanes = lambda x: jnp.moveaxis(x, 0, -1).reshape(x.shape[1:3] + (B * C,))  # noqa: E731
-    P_starts = {k: lanes(x) for k, x in P_starts.items()}
+    P_starts = {k: lanes(x) for k, x in starts[1].items()}
     if world_error:  # the starts' covariances in the body frame, as the kernel keeps them
-        P_starts = blk.congruence(P_starts, {0: {0: _soa._bt(lanes(R))}}, SOA)
+        P_starts = blk.congruence(P_starts, {0: {0: _soa._bt(_frame(by_lane(starts[0][0])))}},
+                                  SOA)
     P_s = _fast.blocks_to_dense(tuple(P_starts[k] for k in UPPER))
     x_t, p_t, v_t, P_t, *lk = _fast.propagate_cov(
         x_s, p_s, v_s, rep(b_g), rep(b_a), P_s, gyro_c, accel_c, dt_c, rep(g_b),
