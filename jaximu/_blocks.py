@@ -259,8 +259,11 @@ class ScaledIdentity(NamedTuple):
     s: jax.Array
 
 
-def _eye(like, ops):
-    return ops.from_arrays(jnp.eye(3, dtype=jnp.result_type(like)))
+def _eye(ndim, dtype, ops):
+    """The identity block of ``ndim`` dimensions in the layout ``ops`` (lanes minor: as
+    many trailing unit axes as the block has lane axes)."""
+    eye = jnp.eye(3, dtype=dtype)
+    return eye if ops is ARRAYS else eye.reshape((3, 3) + (1,) * (ndim - 2))
 
 
 def entry_t(X, ops: Layout = ARRAYS):
@@ -299,7 +302,7 @@ def entry_add(*terms, ops: Layout = ARRAYS):
     if not blocks:
         return ScaledIdentity(s)
     out = add(*blocks)
-    return out if s is None else out + ops.scale(s, _eye(out, ops))
+    return out if s is None else out + ops.scale(s, _eye(out.ndim, out.dtype, ops))
 
 
 def transition_rows(b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
@@ -375,7 +378,7 @@ def conform_rows(rows, pattern, block_shape, scalar_shape, dtype, ops: Layout = 
                     out[i][j] = ScaledIdentity(jnp.broadcast_to(jnp.asarray(s, dtype),
                                                                 scalar_shape))
                     continue
-                x = ops.scale(s, ops.from_arrays(jnp.eye(3, dtype=dtype)))
+                x = ops.scale(s, _eye(len(block_shape), dtype, ops))
             elif kind == "s":
                 raise ValueError(f"block ({i}, {j}) is a full block, the pattern a multiple "
                                  "of the identity")

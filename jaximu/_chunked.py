@@ -179,7 +179,7 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
     chunk's start ``((q, p, v) (C, B, ·), P blocks (C, 3, 3, B))`` (else ``None``)."""
     moving = deltas is not None
     if on == dispatch.CPU:
-        def body(carry, xs):
+        def body(carry, xs, g):
             x, P = carry
             leaves, Qc, d = xs
             Fc, Qc = _in_start_frame(blk.rows_from_leaves(leaves, pattern),
@@ -190,12 +190,14 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
             x1 = apply_deltas(*x, g, d) if moving else x
             return (x1, tuple(new[k] for k in UPPER)), ((x, P) if save_all else None)
 
-        def run(x, P0, F, Q, deltas):
-            return jax.lax.scan(body, (x, P0), (F, Q, deltas))
+        def run(x, P0, F, Q, deltas, g):  # closes over no traced value (one_kernel)
+            return jax.lax.scan(lambda c, xs: body(c, xs, g), (x, P0), (F, Q, deltas))
 
-        (end, P), starts = _soa.one_kernel(run, start if moving else None,
-                                           tuple(P0[k] for k in UPPER), tuple(F), tuple(Q),
-                                           deltas)
+        # one chunk: no loop (XLA:CPU's kernel emitter aborts on the call whose loop of one
+        # trip it removes, its outputs then its parameters)
+        call = run if F[0].shape[0] == 1 else lambda *a: _soa.one_kernel(run, *a)
+        (end, P), starts = call(start if moving else None, tuple(P0[k] for k in UPPER),
+                                tuple(F), tuple(Q), deltas, g)
         if starts is not None:
             starts = (starts[0], dict(zip(UPPER, starts[1])))
         return dict(zip(UPPER, P)), end, starts

@@ -274,6 +274,8 @@ def _materialise(tree):
     """:func:`_stage` of the identity on a pytree: its array leaves are computed once, in
     memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu._blocks`) pass
     as they are."""
+    if _dispatch.backend() != _dispatch.CPU:  # a stage is the plain call there (_stage)
+        return tree
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     marks = [isinstance(x, str) for x in leaves]
     arrays = [x for x, m in zip(leaves, marks) if not m]
