@@ -205,32 +205,36 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
     # (Φ_c, Q_c) in the sequence's coordinates, (I, P0) first, and their parallel prefix
     before = apply_deltas(*(x[None] for x in start), g, deltas_before(deltas)) if moving \
         else None
+    # the scan's axis leads every leaf; the block algebra runs with it last, as a lane axis
     last = lambda x: jnp.moveaxis(x, 0, -1)  # noqa: E731  (C, 3, 3, B) -> (3, 3, B, C)
+    first = lambda x: jnp.moveaxis(x, -1, 0)  # noqa: E731
     Fr, Qr = _in_start_frame(blk.rows_from_leaves([last(x) for x in F], pattern),
                              dict(zip(UPPER, (last(x) for x in Q))),
-                             last(_frame(before[0])) if moving else None, rotated, pattern)
+                             jnp.swapaxes(_frame(before[0]), -1, -2) if moving else None,
+                             rotated, pattern)
     like = Qr[(0, 0)]
     ident = blk.conform_rows({}, pattern, like.shape[:-1] + (1,), like.shape[2:-1] + (1,),
                              like.dtype, SOA)
-    elems = (blk.rows_leaves(_join(ident, Fr, pattern), pattern),
-             tuple(jnp.concatenate([jnp.broadcast_to(P0[k][..., None], like.shape[:-1] + (1,)),
-                                    Qr[k]], -1) for k in UPPER))
+    elems = (tuple(first(x) for x in blk.rows_leaves(_join(ident, Fr, pattern), pattern)),
+             tuple(first(jnp.concatenate([jnp.broadcast_to(P0[k][..., None],
+                                                           like.shape[:-1] + (1,)), Qr[k]], -1))
+                   for k in UPPER))
 
     def combine(a, b):
-        Fa, Fb = (blk.rows_from_leaves(x[0], pattern) for x in (a, b))
-        Fn, Qn = blk.compose_transitions((Fa, dict(zip(UPPER, a[1]))),
-                                         (Fb, dict(zip(UPPER, b[1]))), SOA)
-        sh = jax.tree_util.tree_leaves(Qn)[0].shape
+        Fa, Fb = (blk.rows_from_leaves([last(y) for y in x[0]], pattern) for x in (a, b))
+        Fn, Qn = blk.compose_transitions((Fa, {k: last(y) for k, y in zip(UPPER, a[1])}),
+                                         (Fb, {k: last(y) for k, y in zip(UPPER, b[1])}), SOA)
+        sh = Qn[(0, 0)].shape
         Fn = blk.conform_rows(Fn, pattern, sh, sh[2:], like.dtype, SOA)
-        return blk.rows_leaves(Fn, pattern), tuple(blk.sym(Qn[k], SOA) if k[0] == k[1]
-                                                   else Qn[k] for k in UPPER)
+        return (tuple(first(x) for x in blk.rows_leaves(Fn, pattern)),
+                tuple(first(blk.sym(Qn[k], SOA) if k[0] == k[1] else Qn[k]) for k in UPPER))
 
-    _, P_all = jax.lax.associative_scan(combine, elems, axis=-1)  # P_0 (= P0) ... P_C
-    P = {k: x[..., -1] for k, x in zip(UPPER, P_all)}
+    _, P_all = jax.lax.associative_scan(combine, elems)  # P_0 (= P0) ... P_C, (C + 1, ...)
+    P = {k: x[-1] for k, x in zip(UPPER, P_all)}
     end = apply_deltas(*start, g, total_deltas(deltas)) if moving else None
     starts = None
     if save_all:
-        starts = (before, {k: jnp.moveaxis(x[..., :-1], -1, 0) for k, x in zip(UPPER, P_all)})
+        starts = (before, {k: x[:-1] for k, x in zip(UPPER, P_all)})
     return P, end, starts
 
 
