@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
@@ -34,7 +33,6 @@ from jaximu import _fast, _soa, so3
 from jaximu._blocks import UPPER
 from jaximu._soa import SOA
 from jaximu.integrators import compose_deltas
-
 
 # --------------------------------------------------------------------------- layout
 
@@ -61,7 +59,7 @@ def chunk_lanes(gyro, accel, dt, C, L, extra):
     # it, and the compile grew with the sequence (2^25 steps: 3.8 against 1.1 s)
     idx = (jnp.arange(C, dtype=jnp.int32)[:, None] * L
            + jnp.arange(L + extra, dtype=jnp.int32)[None, :])
-    lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])  # noqa: E731
+    lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])
     return lanes(gyro), lanes(accel), dt.reshape(B * C, L)
 
 
@@ -206,8 +204,8 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
     before = apply_deltas(*(x[None] for x in start), g, deltas_before(deltas)) if moving \
         else None
     # the scan's axis leads every leaf; the block algebra runs with it last, as a lane axis
-    last = lambda x: jnp.moveaxis(x, 0, -1)  # noqa: E731  (C, 3, 3, B) -> (3, 3, B, C)
-    first = lambda x: jnp.moveaxis(x, -1, 0)  # noqa: E731
+    last = lambda x: jnp.moveaxis(x, 0, -1)
+    first = lambda x: jnp.moveaxis(x, -1, 0)
     Fr, Qr = _in_start_frame(blk.rows_from_leaves([last(x) for x in F], pattern),
                              dict(zip(UPPER, (last(x) for x in Q))),
                              jnp.swapaxes(_frame(before[0]), -1, -2) if moving else None,
@@ -276,7 +274,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     L = chunk_length(n, C)
     extra = int(sch.uses_next_sample)
     gyro_c, accel_c, dt_c = chunk_lanes(gyro, accel, jnp.broadcast_to(dt, (B, n)), C, L, extra)
-    rep = lambda x: repeat_lanes(x, C)  # noqa: E731
+    rep = lambda x: repeat_lanes(x, C)
     omega_c, lever_c, var_c = rep(omega), rep(lever), rep(var)
     g_b = jnp.broadcast_to(g, (B, 3))
     local = runs_from_identity(omega, form.name)
@@ -304,7 +302,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     out = _fast.propagate_cov(x_s, p_s, v_s, rep(b_g), rep(b_a), zeros, gyro_c, accel_c, dt_c,
                               g_s, padded_variances, var_c, sch, jacobians, omega_c, coriolis,
                               lever_c, False, form, transition=pattern)
-    soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))  # noqa: E731
+    soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))
     Q = tuple(soa(x) for x in out[3])  # (C, 3, 3, B)
     F = tuple(soa(x) for x in out[4])
     deltas = start = None
@@ -332,14 +330,14 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
         x_s = _soa.from_quat(form, by_lane(starts[0][0]))
         p_s, v_s = by_lane(starts[0][1]), by_lane(starts[0][2])
     # (C, 3, 3, B) -> (3, 3, B·C), lane b·C + c
-    lanes = lambda x: jnp.moveaxis(x, 0, -1).reshape(x.shape[1:3] + (B * C,))  # noqa: E731
+    lanes = lambda x: jnp.moveaxis(x, 0, -1).reshape(x.shape[1:3] + (B * C,))
     P_starts = {k: lanes(x) for k, x in starts[1].items()}
     if world_error:  # the starts' covariances in the body frame, as the kernel keeps them
         P_starts = blk.congruence(P_starts, {0: {0: _soa._bt(_frame(by_lane(starts[0][0])))}},
                                   SOA)
     P_s = _fast.blocks_to_dense(tuple(P_starts[k] for k in UPPER))
-    x_t, p_t, v_t, P_t, *lk = _fast.propagate_cov(
+    x_t, p_t, v_t, P_t, *_ = _fast.propagate_cov(
         x_s, p_s, v_s, rep(b_g), rep(b_a), P_s, gyro_c, accel_c, dt_c, rep(g_b),
         padded_variances, var_c, sch, jacobians, omega_c, coriolis, lever_c, True, form)
-    seq = lambda x: x.reshape((B, C * L) + x.shape[2:])[:, :n]  # noqa: E731
+    seq = lambda x: x.reshape((B, C * L) + x.shape[2:])[:, :n]
     return seq(x_t), seq(p_t), seq(v_t), seq(P_t), locked

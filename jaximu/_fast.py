@@ -351,8 +351,11 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         if transition is not None:  # and the product of the steps' transitions (identity)
             dtype = q.dtype
             block_shape, scalar_shape = (3, 3, q.shape[0]), (q.shape[0],)
-            conform = lambda rows: _blocks.rows_leaves(_blocks.conform_rows(  # noqa: E731
-                rows, transition, block_shape, scalar_shape, dtype, SOA), transition)
+
+            def conform(rows):
+                return _blocks.rows_leaves(_blocks.conform_rows(
+                    rows, transition, block_shape, scalar_shape, dtype, SOA), transition)
+
             carry = carry + (tuple(conform({})),)
 
         def step(c, w, a, h, consts):
@@ -400,10 +403,9 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         if save_all:
             return tuple(bufs) + locked
         if transition is not None:  # lanes first, as run_blocked joins them
-            lanes_first = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
             return ((_stack_last(q), _stack_last(p), _stack_last(v),
-                     tuple(lanes_first(X) for X in Pb),
-                     tuple(lanes_first(X) for X in carry[-1])) + locked)
+                     tuple(jnp.moveaxis(X, -1, 0) for X in Pb),
+                     tuple(jnp.moveaxis(X, -1, 0) for X in carry[-1])) + locked)
         if world_error:
             Pb = world_error_blocks(Pb, q, inverse=True)
         return (_stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)) + locked

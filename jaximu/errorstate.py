@@ -48,9 +48,9 @@ from jaximu._vec import V3
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
-                              flatten_batch, kernel_samples, lane_values, mean_body,
-                              n_steps, prepare,
-                              sensor_engine_inputs, soa_samples, time_major, unit_start)
+                              flatten_batch, kernel_samples, lane_values, mean_body, n_steps,
+                              prepare, sensor_engine_inputs, soa_samples, time_major,
+                              unit_start)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -445,10 +445,15 @@ def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, s
     x, p, v, P, locked = _chunked.covariance(get_scheme(scheme), form, _soa.from_quat(form, q),
                                              p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                              var, jacobians, omega, coriolis, lever, save_all)
-    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q = _soa.to_quat(form, x)
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())
-    bias = lambda b: jnp.broadcast_to(b[..., None, :] if save_all else b, lead + (3,))  # noqa: E731
+
+    def unflat(x):
+        return x.reshape(tuple(batch) + x.shape[1:])
+
+    def bias(b):
+        return jnp.broadcast_to(b[..., None, :] if save_all else b, lead + (3,))
+
     st = NavState(unflat(q), unflat(p), unflat(v), bias(state.b_g), bias(state.b_a))
     return st, unflat(P), jnp.zeros(batch, bool) if locked is None else unflat(locked)
 

@@ -12,11 +12,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import dispatch_as, random_inputs
 
 import jaximu
 from jaximu import _dispatch
-
-from _shared import dispatch_as, random_inputs
 
 NOISE = jaximu.ImuNoise.euroc()
 P0 = jnp.diag(jnp.asarray(np.r_[[3e-4] * 3, [1e-2] * 3, [1e-2] * 3, [1e-6] * 3, [1e-4] * 3]))
