@@ -28,7 +28,7 @@ run 150 python benchmarks/preintegration.py
 run 120 python benchmarks/montecarlo.py
 # where the covariance's time chunks pay for one trajectory (256 to 10^5 steps), and the
 # mean's long sequences, against the sequential kernels
-run 120 env VARIANTS=new,sequential ONLY=" 1x" BUDGET=100 python benchmarks/dispatch_ab.py
+run 150 env VARIANTS=new,sequential ONLY="cov analytic euler final 1x" BUDGET=130 python benchmarks/dispatch_ab.py
 if [ -n "${OUT:-}" ]; then
   find "$RES" -newer "$MARK" -name '*.json' -exec cp -v {} "$OUT"/ \;
 fi
