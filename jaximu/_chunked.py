@@ -194,8 +194,9 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
         # one chunk: no loop (XLA:CPU's kernel emitter aborts on the call whose loop of one
         # trip it removes, its outputs then its parameters)
         call = run if F[0].shape[0] == 1 else lambda *a: _soa.one_kernel(run, *a)
-        (end, P), starts = call(start if moving else None, tuple(P0[k] for k in UPPER),
-                                tuple(F), tuple(Q), deltas, g)
+        (end, P), starts = _soa.replicated(call(*_soa.replicated((
+            start if moving else None, tuple(P0[k] for k in UPPER), tuple(F), tuple(Q),
+            deltas, g))))
         if starts is not None:
             starts = (starts[0], dict(zip(UPPER, starts[1])))
         return dict(zip(UPPER, P)), end, starts

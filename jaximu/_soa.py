@@ -699,6 +699,23 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
         return put(out, P())
 
 
+def replicated(tree):
+    """``tree`` replicated on the current mesh (:func:`_mesh_axes`), or as it is without
+    one: the inputs of a kernel that runs whole on every device (:func:`run_blocked`'s
+    undivided batch; the time chunks' composition), so that no collective lands inside the
+    one-kernel call (XLA:CPU's kernel emitter cannot link it)."""
+    mesh, axes = _mesh_axes(tree)
+    if not axes:
+        return tree
+    spec = jax.sharding.PartitionSpec()
+    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
+                   for a in axes)
+    with jax.sharding.use_abstract_mesh(mesh):
+        if explicit:
+            return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, spec), tree)
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, spec), tree)
+
+
 def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):
     def ordered(block_args, shared):  # the arguments back in their order
         lane, common = iter(block_args), iter(shared)
