@@ -52,7 +52,7 @@ VARIANTS = {
     "new": dict(table=TABLE0),
     "generic": dict(table=()),
     "soa": dict(table=SOA_TABLE),
-    "sequential": dict(table=tuple(r for r in TABLE0 if r.kernel != "soa_cov_chunked")),
+    "sequential": {"table": tuple(r for r in TABLE0 if r.kernel != "soa_cov_chunked")},
 }
 
 
