@@ -5,7 +5,10 @@ Each case (the public entries, wrapped in ``jax.jit``) runs under three tables:
 * ``new``: the dispatch table as it is (``jaximu._dispatch.TABLE``);
 * ``generic``: an empty table, so every entry runs the generic ``lax.scan`` kernels;
 * ``soa``: the CPU's structure-of-arrays rows on every backend (the table before the
-  accelerator rows, less the CPU's float64-only chunked row).
+  accelerator rows, less the CPU's float64-only chunked row), the covariance sequential;
+* ``sequential``: the table as it is less the covariance's time chunks
+  (``soa_cov_chunked``): with ``new``, where the chunks pay for one trajectory
+  (``ONLY="cov analytic euler final 1x"``: 256 to 10^5 steps).
 
 and prints, per case, samples/s, compile s and the largest difference of the outputs
 from the first table's relative to their largest value (rounding: the tables pick
@@ -42,12 +45,14 @@ SOA_TABLE = tuple(
     r._replace(backends=("cpu", "accelerator"),
                min_lanes=min(r.min_lanes, 32) if r.entry == "mean" else 1)
     for r in TABLE0 if not (r.kernel == "soa_mean_chunked" and "cpu" in r.backends)
-    and not (r.entry == "covariance" and r.backends == ("accelerator",)))
+    and not (r.entry == "covariance" and r.backends == ("accelerator",))
+    and r.kernel != "soa_cov_chunked")
 # the accelerator's chunked row first among the mean rows after the 32-lane one
 VARIANTS = {
     "new": dict(table=TABLE0),
     "generic": dict(table=()),
     "soa": dict(table=SOA_TABLE),
+    "sequential": {"table": tuple(r for r in TABLE0 if r.kernel != "soa_cov_chunked")},
 }
 
 
@@ -113,6 +118,9 @@ for dt in ("float32", "float64"):
               case("mean", "euler", "final", 1, 100_000, dt),
               case("mean", "euler", "all", 1, 100_000, dt),
               case("mean", "midpoint", "all", 1, 100_000, dt)]
+    # one trajectory's covariance: sequential or in time chunks, by length (the crossover)
+    CASES += [case("cov", "euler", "final", 1, T, dt, jac="analytic")
+              for T in (256, 512, 1024, 2048, 4096, 100_000)]
 PRE = [("preint 4096x200", 4096, 200, "float64"), ("preint 1x100000", 1, 100_000, "float64"),
        ("preint 1024x200", 1024, 200, "float64")]
 

@@ -170,10 +170,12 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
         mean_sizes, cov_sizes = [(1, 1000), (64, 100)], [(64, 100)]
         extra_size, extra_dtypes = (64, 100), ["float32"]  # midpoint, rk4, the baseline
         cov_all_size, cov_all_dtypes = (16, 50), ["float32"]
+        one_size = (1, 1000)
     else:
         mean_sizes = cov_sizes = [(1, 100_000), (1024, 1000), (16384, 200)]
         extra_size, extra_dtypes = (1024, 1000), dtypes
         cov_all_size, cov_all_dtypes = (1024, 200), dtypes
+        one_size = (1, 100_000)
     notes = []
     big_b, big_t = cov_sizes[-1]
     gb = [big_b * big_t * 15 * 15 * np.dtype(d).itemsize / 1e9 for d in dtypes]
@@ -200,7 +202,8 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                     B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating, lever=lever,
                     attitude=attitude)
 
-    all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size]))
+    all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size,
+                                                             one_size]))
     cases = []
     for B, T in all_sizes:
         for dtype in dtypes:
@@ -251,6 +254,10 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
                     cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
                               for j in ("analytic", "autodiff")]
+                if (B, T) == one_size and dtype in cov_all_dtypes:
+                    # one long recording, every covariance stored (in time chunks)
+                    cases.append(case("cov", "cov", "euler", "all", B, T, dtype,
+                                      jac="analytic"))
     return cases, (notes if only in (None, "cov") else [])
 
 
@@ -729,6 +736,24 @@ def target_summary(results: list[dict]) -> tuple[str, dict]:
     # jax.vmap against the same work passed as leading axes
     ratios("vmap_ratio", lambda c: c["name"][: -len(" vmap")] if c.get("vmap") else None,
            "leading axes", 0.8)
+    # one long recording (time chunks side by side) against a batch of the same work: the
+    # final covariance against 1024 × 1000, every covariance stored against 1024 × 200
+    for r in ok:
+        c = r["case"]
+        if c["kind"] != "cov" or c["B"] != 1 or c.get("vmap") or c.get("rotating") \
+                or c.get("lever") or c.get("attitude", "quaternion") != "quaternion":
+            continue
+        size, target = ((1024, 200), 0.5) if c["save"] == "all" else ((1024, 1000), 0.8)
+        same = [x for x in ok if x["case"]["name"] == c["name"]
+                and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"]) == size + (c["dtype"],)]
+        if same:
+            ratio = r["samples_per_s"] / same[0]["samples_per_s"]
+            out.append(f"- one recording: {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
+                       f"{fmt_rate(r['samples_per_s'])}samples/s, compile "
+                       f"{r['compile_s']:.2f} s; {ratio:.2f}× the batch {size[0]}×{size[1]} "
+                       f"(target ≥ {target}×)")
+            summary.setdefault("one_recording_ratio", {})[
+                f"{c['name']} {c['B']}x{c['T']} {c['dtype']}"] = ratio
     # autodiff Jacobians against the closed forms, same scheme and size
     ratios("autodiff_ratio", lambda c: c["name"].replace("autodiff", "analytic")
            if c["kind"] == "cov" and c["jac"] == "autodiff" and not c.get("vmap") else None,

@@ -252,19 +252,187 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     return out
 
 
+class ScaledIdentity(NamedTuple):
+    """The block ``s I`` (``s`` a per-element scalar): the p-v block ``Δt I`` of a
+    transition, kept as its scalar so that products with it are scalings."""
+
+    s: jax.Array
+
+
+def _eye(ndim, dtype, ops):
+    """The identity block of ``ndim`` dimensions in the layout ``ops`` (lanes minor: as
+    many trailing unit axes as the block has lane axes)."""
+    eye = jnp.eye(3, dtype=dtype)
+    return eye if ops is ARRAYS else eye.reshape((3, 3) + (1,) * (ndim - 2))
+
+
+def entry_t(X, ops: Layout = ARRAYS):
+    """The transpose of a block entry (``None``, ``"I"``, :class:`ScaledIdentity` or a block)."""
+    return X if X is None or isinstance(X, (str, ScaledIdentity)) else ops.transpose(X)
+
+
+def entry_mul(X, Y, ops: Layout = ARRAYS):
+    """``X Y`` of two block entries (``None`` zero, ``"I"``, :class:`ScaledIdentity`, a
+    block): only two blocks cost a product."""
+    if X is None or Y is None:
+        return None
+    if isinstance(X, str):
+        return Y
+    if isinstance(Y, str):
+        return X
+    if isinstance(X, ScaledIdentity):
+        return ScaledIdentity(X.s * Y.s) if isinstance(Y, ScaledIdentity) else ops.scale(X.s, Y)
+    if isinstance(Y, ScaledIdentity):
+        return ops.scale(Y.s, X)
+    return ops.matmul(X, Y)
+
+
+def entry_add(*terms, ops: Layout = ARRAYS):
+    """The sum of block entries (``None`` if all are ``None``): multiples of the identity
+    stay a :class:`ScaledIdentity` (``"I"`` alone stays ``"I"``), a block absorbs them."""
+    terms = [x for x in terms if x is not None]
+    if len(terms) <= 1:
+        return terms[0] if terms else None
+    scalars = [1.0 if isinstance(x, str) else x.s for x in terms
+               if isinstance(x, (str, ScaledIdentity))]
+    blocks = [x for x in terms if not isinstance(x, (str, ScaledIdentity))]
+    s = None
+    for x in scalars:
+        s = x if s is None else s + x
+    if not blocks:
+        return ScaledIdentity(s)
+    out = add(*blocks)
+    return out if s is None else out + ops.scale(s, _eye(out.ndim, out.dtype, ops))
+
+
+def transition_rows(b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
+    """A transition's block rows θ, p, v (rows b_g, b_a are identity rows) from its
+    :class:`Blocks`: ``{i: {j: entry}}`` for :func:`rows_product` and :func:`congruence`.
+    ``p_over_v``: as :func:`phi_p_phit` (the p rows are ``s`` times the v rows)."""
+    Cp, Dp, Ep = b.Cp, b.Dp, b.Ep
+    if p_over_v is not None:
+        Cp, Dp, Ep = (scale(p_over_v, X, ops) for X in (b.Cv, b.Dv, b.Ev))
+    return {0: {0: b.A, 3: b.B}, 1: {0: Cp, 1: "I", 2: ScaledIdentity(b.dt), 3: Dp, 4: Ep},
+            2: {0: b.Cv, 2: "I", 3: b.Dv, 4: b.Ev}}
+
+
+def rows_product(F, G, ops: Layout = ARRAYS):
+    """``F G`` of two matrices that are the identity but for their block rows ``{i: {j:
+    entry}}`` (:func:`transition_rows`, :func:`jaximu.world.error_map_rows`); the product
+    in the same form (its rows: those of ``F`` and of ``G``)."""
+    def g(k, j):
+        return G[k].get(j) if k in G else ("I" if k == j else None)
+
+    out = {i: dict(G[i]) for i in G if i not in F}
+    for i, Fi in F.items():
+        row = {j: entry_add(*(entry_mul(Fik, g(k, j), ops) for k, Fik in Fi.items()), ops=ops)
+               for j in range(5)}
+        out[i] = {j: x for j, x in row.items() if x is not None}
+    return out
+
+
+def rotate_rows(rows, R, rotated, ops: Layout = ARRAYS):
+    """``T M Tᵀ`` for ``M`` given by its block rows and ``T`` block diagonal, ``R`` on the
+    blocks in ``rotated`` and the identity elsewhere: each entry becomes ``T_i M_ij T_jᵀ``
+    (a multiple of the identity between two rotated blocks stays one)."""
+    def side(i):
+        return R if i in rotated else "I"
+
+    out = {}
+    for i, row in rows.items():
+        out[i] = {}
+        for j, X in row.items():
+            if isinstance(X, (str, ScaledIdentity)) and (i in rotated) == (j in rotated):
+                out[i][j] = X
+            else:
+                out[i][j] = entry_mul(entry_mul(side(i), X, ops), entry_t(side(j), ops), ops)
+    return out
+
+
+def conform_rows(rows, pattern, block_shape, scalar_shape, dtype, ops: Layout = ARRAYS):
+    """``rows`` in the fixed form ``pattern`` (``{i: {j: kind}}``, kind ``"I"``, ``"s"`` (a
+    :class:`ScaledIdentity`) or ``"X"`` (a block); missing: zero), blocks broadcast to
+    ``block_shape`` and scalars to ``scalar_shape``: the carry of a scan over transitions,
+    whose structure must not change from one step to the next."""
+    def value(i, j):
+        if i not in rows:
+            return "I" if i == j else None
+        return rows[i].get(j)
+
+    out = {}
+    for i, prow in pattern.items():
+        extra = [j for j in rows.get(i, {}) if j not in prow and rows[i][j] is not None]
+        if extra:
+            raise ValueError(f"row {i} has blocks {extra} outside the pattern")
+        out[i] = {}
+        for j, kind in prow.items():
+            x = value(i, j)
+            if kind == "I":
+                if x != "I":
+                    raise ValueError(f"block ({i}, {j}) is not the identity the pattern says")
+                out[i][j] = "I"
+                continue
+            if isinstance(x, (str, ScaledIdentity)) or x is None:
+                s = 0.0 if x is None else (1.0 if isinstance(x, str) else x.s)
+                if kind == "s":
+                    out[i][j] = ScaledIdentity(jnp.broadcast_to(jnp.asarray(s, dtype),
+                                                                scalar_shape))
+                    continue
+                x = ops.scale(s, _eye(len(block_shape), dtype, ops))
+            elif kind == "s":
+                raise ValueError(f"block ({i}, {j}) is a full block, the pattern a multiple "
+                                 "of the identity")
+            out[i][j] = jnp.broadcast_to(jnp.asarray(x, dtype), block_shape)
+    return out
+
+
+def rows_pattern(rows):
+    """The form of block rows (:func:`conform_rows`' ``pattern``)."""
+    def kind(x):
+        return "I" if isinstance(x, str) else ("s" if isinstance(x, ScaledIdentity) else "X")
+
+    return {i: {j: kind(x) for j, x in row.items() if x is not None} for i, row in rows.items()}
+
+
+def rows_leaves(rows, pattern):
+    """The arrays of block rows in the form ``pattern`` (:func:`conform_rows`), in a fixed
+    order: a block's, or a :class:`ScaledIdentity`'s scalar."""
+    return [rows[i][j].s if kind == "s" else rows[i][j]
+            for i, prow in sorted(pattern.items()) for j, kind in sorted(prow.items())
+            if kind != "I"]
+
+
+def rows_from_leaves(leaves, pattern):
+    """The inverse of :func:`rows_leaves`."""
+    it = iter(leaves)
+    return {i: {j: "I" if kind == "I" else (ScaledIdentity(next(it)) if kind == "s"
+                                            else next(it))
+                for j, kind in sorted(prow.items())} for i, prow in sorted(pattern.items())}
+
+
+def compose_transitions(first, then, ops: Layout = ARRAYS):
+    """``(Φ₂Φ₁, Φ₂ Q₁ Φ₂ᵀ + Q₂)``: the interval ``first = (Φ₁, Q₁)`` followed by ``then =
+    (Φ₂, Q₂)`` (``Φ`` as block rows, ``Q`` as upper blocks), so that ``P ↦ Φ₂(Φ₁ P Φ₁ᵀ +
+    Q₁)Φ₂ᵀ + Q₂`` is one step ``P ↦ Φ P Φᵀ + Q``. Associative: chunks of a long sequence
+    compose in sequence or as a parallel prefix scan."""
+    (F1, Q1), (F2, Q2) = first, then
+    return rows_product(F2, F1, ops), add_blocks(congruence(Q1, F2, ops), Q2)
+
+
 def congruence(Pb, rows, ops: Layout = ARRAYS):
     """``M P Mᵀ`` on upper blocks, for an ``M`` that is the identity but for the block rows
     in ``rows``: ``{i: {k: M_ik}}`` (missing blocks zero, the string ``"I"`` an identity
-    block), as :func:`jaximu.world.error_map_rows` gives them. Rows of ``M`` that are
-    identity rows cost nothing."""
+    block, a :class:`ScaledIdentity` a multiple of it), as :func:`jaximu.world.error_map_rows`
+    and :func:`transition_rows` give them. Rows of ``M`` that are identity rows cost
+    nothing."""
     def P(i, j):
         return block(Pb, i, j, ops)
 
     def times(Mik, X):  # M_ik X
-        return X if isinstance(Mik, str) else mm(Mik, X, ops)
+        return entry_mul(Mik, X, ops)
 
     def times_t(X, Mjl):  # X M_jlᵀ
-        return X if isinstance(Mjl, str) else mm(X, t(Mjl, ops), ops)
+        return entry_mul(X, entry_t(Mjl, ops), ops)
 
     # N = M P (all columns of the changed rows), then N Mᵀ (the changed columns)
     N = {i: {j: add(*(times(Mik, P(k, j)) for k, Mik in rows[i].items())) for j in range(5)}

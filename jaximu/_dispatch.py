@@ -45,6 +45,17 @@ time chunks (each sequential step there is a launch)."""
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
 
+COV_CHUNK_STEPS = {"cpu": 2048, "accelerator": 512}
+"""From this many steps the covariance of a few sequences runs in time chunks
+(``soa_cov_chunked``), by backend (docs/DESIGN.md, "Dispatch"). The CPU's: one trajectory's
+final covariance ran as fast both ways at 1024 float64 steps (0.32 against 0.40 ms) and
+twice as fast chunked from 2048 (float32 0.38 against 0.74 ms), run time alone (the chunks
+compile in about 3.5 s against 1 s). The accelerator's is not measured yet."""
+
+COV_CHUNK_LANES = 8
+"""Up to this many sequences the covariance runs in time chunks: each sequence's chunks
+fill a block of lanes on the CPU (more sequences fill it themselves)."""
+
 
 class Row(NamedTuple):
     entry: str  # "mean", "covariance", "preintegrate"
@@ -59,6 +70,7 @@ class Row(NamedTuple):
     rotating: tuple = (False,)  # omega_coriolis given (rotating world): (False,) = no
     lever: tuple | None = (False,)  # a sensor's lever arm in the Jacobians (None: no Jacobians)
     backends: tuple = (CPU, ACCELERATOR)  # where the row applies (backend())
+    max_lanes: int | None = None  # more batch elements than this: the row does not apply
 
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
@@ -84,6 +96,15 @@ TABLE = (
     # samples both ran 34 M/s (the chunks' gather is memory-bound)
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
+    # a few long sequences: time chunks side by side as lanes, their transitions and noise
+    # composed (jaximu/_chunked.py): on the CPU one sequence fills a block of lanes; on an
+    # accelerator a sequential step is a launch
+    *(Row("covariance", ("euler", "midpoint", "rk4"), attitudes, (jac,), (False, True), 1,
+          COV_CHUNK_STEPS[on], "soa_cov_chunked", rotating=(False, True), lever=(False, True),
+          backends=(on,), max_lanes=COV_CHUNK_LANES)
+      for on in (CPU, ACCELERATOR)
+      for attitudes, jac in ((("quaternion", "matrix"), "analytic"),
+                             (LANE_ATTITUDES, "autodiff"))),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
     # SoA layout; the exact-exponential forms have them); on an accelerator too (2.6-8x the
     # generic kernel on an H100)
@@ -119,11 +140,29 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
                 and (row.attitudes is None or attitude in row.attitudes)
                 and (row.jacobians is None or jacobians in row.jacobians)
                 and save_all in row.save_all and lanes >= row.min_lanes
+                and (row.max_lanes is None or lanes <= row.max_lanes)
                 and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
                 and rotating in row.rotating and (row.lever is None or lever in row.lever)
                 and on in row.backends):
             return row.kernel
     return GENERIC
+
+
+CPU_CHUNK_LANES = 64
+"""Lanes the covariance's time chunks fill on the CPU, in either dtype: one trajectory of
+10^5 samples, final covariance, ran 11.3–11.5 M samples/s float32 as 64 chunks (128: 10.2,
+256: 9.9, 96: 10.9, 32: 10.4) and 5.2–5.4 M float64 (128: 5.0, 32: 5.0), in-process."""
+
+
+def covariance_chunks(lanes, steps, dtype) -> int:
+    """Time chunks per sequence for ``soa_cov_chunked``, each at least
+    :data:`MIN_CHUNK_STEPS` steps long: on the CPU enough to fill :data:`CPU_CHUNK_LANES`
+    lanes (the chunks run at the batched rate; every chunk more is a step more of the
+    composition), on an accelerator :func:`mean_chunks`. ``dtype``: the computation's (the
+    same count for both, as measured)."""
+    if backend() != CPU:
+        return mean_chunks(lanes, steps)
+    return int(max(1, min(CPU_CHUNK_LANES // lanes, steps // MIN_CHUNK_STEPS)))
 
 
 def mean_chunks(lanes, steps) -> int:

@@ -214,7 +214,7 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
 
 def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
                     coriolis="exact", lever=None, world_error=False,
-                    form: LaneForm = QUATERNION):
+                    form: LaneForm = QUATERNION, transition=False):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
@@ -224,7 +224,9 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
     samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`).
     ``world_error`` (a still world only): ``Pb``'s rotation error is in the world frame,
     ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``. ``form``: the
-    attitude form of ``q`` (:data:`LANE_FORMS`; closed forms only for the exact ones)."""
+    attitude form of ``q`` (:data:`LANE_FORMS`; closed forms only for the exact ones).
+    ``transition``: return the step's whole transition too, as block rows
+    (:func:`jaximu._blocks.transition_rows`, between the world's maps in a turning world)."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -244,13 +246,44 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
         (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
                                           h, g, lever, world_error, form)
     qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
+    s = scheme.p_over_v(h)
+    rows = None
+    if transition:  # the blocks are read by the transition's products too: computed once
+        b = SOA.barrier(b)
+        rows = _blocks.transition_rows(b, SOA, s)
     if omega is None:
-        new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, scheme.p_over_v(h))
+        new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, s)
     else:
+        pre, post = world.error_maps(omega.stack(), h, coriolis, SOA)
         new = world.covariance_step(dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis,
-                                    SOA, scheme.p_over_v(h))
+                                    SOA, s, maps=(pre, post))
+        if transition:
+            rows = _blocks.rows_product(post, rows, SOA)
+            rows = rows if pre is None else _blocks.rows_product(rows, pre, SOA)
         q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis, form)
-    return q1, p1, v1, tuple(new[k] for k in UPPER)
+    out = (q1, p1, v1, tuple(new[k] for k in UPPER))
+    return out + (rows,) if transition else out
+
+
+def world_error_frame(omega, save_all, form: LaneForm) -> bool:
+    """Whether the covariance kernel keeps the rotation error in the world frame
+    (:func:`world_error_blocks`): the final covariance of a quaternion form in a still world
+    (for a quaternion form its map in and out normalises ``q``, which a matrix cannot be;
+    Euler angles' step is no right multiplication of ``R``, so their ``Φ_θθ`` would not be
+    ``I`` there)."""
+    return omega is None and not save_all and form.size == 4
+
+
+def transition_pattern(rotating, world_error):
+    """The form of a product of the covariance kernel's step transitions
+    (:func:`jaximu._blocks.conform_rows`): the structure of the module docstring of
+    :mod:`jaximu._blocks` (``Φ_θθ = I`` with ``world_error``), which products keep; in a
+    turning world the error maps fill the p and v rows (:func:`jaximu.world.error_map_rows`)."""
+    if rotating:
+        pv = {j: "X" for j in range(5)}
+        return {0: {0: "X", 3: "X"}, 1: dict(pv), 2: dict(pv)}
+    return {0: {0: "I" if world_error else "X", 3: "X"},
+            1: {0: "X", 1: "I", 2: "s", 3: "X", 4: "X"}, 2: {0: "X", 2: "I", 3: "X", 4: "X"}}
 
 
 def world_error_blocks(Pb, q, inverse=False):
@@ -269,7 +302,8 @@ def world_error_blocks(Pb, q, inverse=False):
 
 def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
                   jacobians, omega=None, coriolis="exact", lever=None, save_all=False,
-                  form: LaneForm = QUATERNION, pose=None, tangential=True, n_samples=None):
+                  form: LaneForm = QUATERNION, pose=None, tangential=True, n_samples=None,
+                  transition=None):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
     after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
     discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
@@ -280,7 +314,16 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of a sensor's samples
     (:func:`cov_step_blocks`); ``form``: the attitude form of ``q`` ``(B, form.size)``
     (:data:`LANE_FORMS`), which the outputs keep; ``pose``, ``tangential``, ``n_samples``:
-    a sensor's samples, moved in the time chunks (:func:`propagate_mean`)."""
+    a sensor's samples, moved in the time chunks (:func:`propagate_mean`).
+
+    ``transition``: a time chunk's summary (:mod:`jaximu._chunked`), ``None`` or the form of
+    its transition's block rows (:func:`jaximu._blocks.conform_rows`' ``pattern``). The
+    kernel then also multiplies the steps' transitions, and returns ``(q, p, v, P blocks,
+    Φ leaves)`` (final state only): the 15 upper blocks of ``P`` ``(B, 3, 3)`` each and the
+    leaves of ``Φ`` (:func:`jaximu._blocks.rows_leaves`: ``(B, 3, 3)`` blocks, ``(B,)``
+    scalars), both in the kernel's frame (the world-frame rotation error of a final
+    covariance, :func:`world_error_blocks`, is not mapped back); Euler angles' locked flags
+    after them."""
     B = gyro.shape[0]
     shared_dt = dt.ndim == 1
     shared_g = g.ndim == 1
@@ -288,10 +331,8 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     shared_w = not rotating or omega.ndim == 1
     shared_r = lever is None or lever.ndim == 1
     shared_n = qc_params.ndim == 1
-    # final covariance in a still world: the rotation error runs in the world frame (for a
-    # quaternion form: its map in and out normalises q, which a matrix cannot be; Euler
-    # angles' step is no right multiplication of R, so their Φ_θθ would not be I there)
-    world_error = omega is None and not save_all and form.size == 4
+    world_error = world_error_frame(omega, save_all, form)
+    assert transition is None or not save_all
     euler = form.name == "euler_angles"
     pose_q, pose_p = (None, None) if pose is None else pose
     # the pose's rotation and lever arm are each shared or per lane (a vmap over lever arms)
@@ -307,8 +348,24 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
         if euler:  # and the locked flag of each lane
             carry = carry + ((jnp.zeros(q.shape[:1], bool),),)
+        if transition is not None:  # and the product of the steps' transitions (identity)
+            dtype = q.dtype
+            block_shape, scalar_shape = (3, 3, q.shape[0]), (q.shape[0],)
+
+            def conform(rows):
+                return _blocks.rows_leaves(_blocks.conform_rows(
+                    rows, transition, block_shape, scalar_shape, dtype, SOA), transition)
+
+            carry = carry + (tuple(conform({})),)
 
         def step(c, w, a, h, consts):
+            if transition is None:
+                return cov_step(c, w, a, h, consts)
+            out = cov_step(c[:-1], w, a, h, consts, True)
+            acc = _blocks.rows_from_leaves(c[-1], transition)
+            return out[:-1] + (tuple(conform(_blocks.rows_product(out[-1], acc, SOA))),)
+
+        def cov_step(c, w, a, h, consts, with_transition=False):
             bg, ba, gv, ln, wv, rv = consts
             qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
             qc = tuple(qc[..., i] for i in range(12))
@@ -320,13 +377,14 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
             out = cov_step_blocks(scheme, jacobians, c[:4], omega0, f0, omega1, f1, h, V3(*gv),
                                   qc, None if wv is None else V3(*wv), coriolis,
-                                  None if rv is None else V3(*rv), world_error, form)
+                                  None if rv is None else V3(*rv), world_error, form,
+                                  with_transition)
             if not euler:
                 return out
             # the covariance follows the NaN state from the next step's blocks, as the
             # generic kernel's
             q, p, v, locked = _lock(c[4][0], *out[:3])
-            return q, p, v, out[3], locked
+            return (q, p, v, out[3], locked) + out[4:]
 
         # every step: q, p, v and the 15 upper blocks, each (Bc, 9) (a block's 3×3 in a
         # row): the dense matrices are assembled once, after the kernel (assembling them at
@@ -344,6 +402,10 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         locked = (carry[4][0],) if euler else ()  # (Bc,): by the last step
         if save_all:
             return tuple(bufs) + locked
+        if transition is not None:  # lanes first, as run_blocked joins them
+            return ((_stack_last(q), _stack_last(p), _stack_last(v),
+                     tuple(jnp.moveaxis(X, -1, 0) for X in Pb),
+                     tuple(jnp.moveaxis(X, -1, 0) for X in carry[-1])) + locked)
         if world_error:
             Pb = world_error_blocks(Pb, q, inverse=True)
         return (_stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)) + locked
@@ -353,7 +415,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
                       dt, g, qc_params, omega, lever, pose_q, pose_p,
                       whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r)
                       + shared_pose)
-    if not save_all:
+    if not save_all or transition is not None:
         return out
     blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:3 + len(UPPER)])}
     return (out[0], out[1], out[2], _blocks.blocks_to_dense(blocks)) + tuple(out[3 + len(UPPER):])

@@ -274,6 +274,8 @@ def _materialise(tree):
     """:func:`_stage` of the identity on a pytree: its array leaves are computed once, in
     memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu._blocks`) pass
     as they are."""
+    if _dispatch.backend() != _dispatch.CPU:  # a stage is the plain call there (_stage)
+        return tree
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     marks = [isinstance(x, str) for x in leaves]
     arrays = [x for x, m in zip(leaves, marks) if not m]
@@ -695,6 +697,23 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
             return local(lane_args, shared)
         out = local(put(lane_args, P(axes)), put(shared, P()))
         return put(out, P())
+
+
+def replicated(tree):
+    """``tree`` replicated on the current mesh (:func:`_mesh_axes`), or as it is without
+    one: the inputs of a kernel that runs whole on every device (:func:`run_blocked`'s
+    undivided batch; the time chunks' composition), so that no collective lands inside the
+    one-kernel call (XLA:CPU's kernel emitter cannot link it)."""
+    mesh, axes = _mesh_axes(tree)
+    if not axes:
+        return tree
+    spec = jax.sharding.PartitionSpec()
+    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
+                   for a in axes)
+    with jax.sharding.use_abstract_mesh(mesh):
+        if explicit:
+            return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, spec), tree)
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, spec), tree)
 
 
 def _run_blocks(block_fn, B, lanes, lane_args, shared, whole):

@@ -39,7 +39,7 @@ import numpy as np
 
 from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
-from jaximu import _fast, _soa
+from jaximu import _chunked, _fast, _soa
 from jaximu import _validation as val
 from jaximu import sensor
 from jaximu import world
@@ -49,8 +49,9 @@ from jaximu._vec import V3
 from jaximu.noise import ImuNoise
 from jaximu._batching import ArgSpec, leading_axes
 from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
-                              flatten_batch, lane_values, mean_body, n_steps, prepare,
-                              sensor_engine_inputs, soa_samples, time_major, unit_start)
+                              flatten_batch, kernel_samples, lane_values, mean_body, n_steps,
+                              prepare, sensor_engine_inputs, soa_samples, time_major,
+                              unit_start)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [
@@ -351,11 +352,18 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
         *(() if pose is None else (nb(pose.q), nb(pose.p))))
     lanes = int(np.prod(batch, dtype=np.int64))
     kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                             save_all=save_all, lanes=lanes, fast=fast,
-                             rotating=omega is not None, lever=lever is not None)
+                             save_all=save_all, lanes=lanes, steps=n_steps(gyro, dt),
+                             dtype=gyro.dtype, fast=fast, rotating=omega is not None,
+                             lever=lever is not None)
     soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
     state = unit_start(state, soa, attitude)
+    # the time chunks read samples moved into the body frame (a chunk's own ends have no
+    # neighbours for the lever arm's rate derivative)
     state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
+    if kernel == "soa_cov_chunked":
+        return _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch,
+                                             scheme, jacobians, omega, coriolis, lever,
+                                             save_all, attitude)
     if soa:
         return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
                                           jacobians, omega, coriolis, lever, save_all, attitude,
@@ -413,17 +421,11 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     a sensor's, moved into the body frame in the kernel's time chunks."""
     gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
-    B = gyro_f.shape[0]
-    P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
-    var = noise.variances(q.dtype)  # (..., 12)
-    if var.ndim > 1:  # noise per batch element
-        var = jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
+    P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
 
     def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
         return var / (h[..., None] if jnp.ndim(h) else h)
 
-    # a world rate and a lever arm shared by every lane, or one per batch element
-    omega, lever = (None if x is None else lane_values(x, batch) for x in (omega, lever))
     form = _soa.lane_form(attitude)
     x, p, v, P, *locked = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f,
                                               gyro_f, accel_f, dt_f, g_f, qc_fn, var,
@@ -438,6 +440,44 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
                   jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)))
     # Euler angles: the lanes that reached the pitch singularity (by the last step)
     return st, unflat(P), unflat(locked[0]) if locked else jnp.zeros(batch, bool)
+
+
+def _lane_inputs(P0, noise, omega, lever, batch, dtype):
+    """The covariance kernels' lanes of ``P0`` ``(B, 15, 15)``, the noise's variances
+    (``(12,)`` shared or ``(B, 12)``) and a world rate and lever arm (shared ``(3,)`` or
+    ``(B, 3)``; ``None`` when not given)."""
+    B = int(np.prod(batch, dtype=np.int64))
+    P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
+    var = noise.variances(dtype)  # (..., 12)
+    if var.ndim > 1:  # noise per batch element
+        var = jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
+    omega, lever = (None if x is None else lane_values(x, batch) for x in (omega, lever))
+    return P0_f, var, omega, lever
+
+
+def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, scheme,
+                                  jacobians, omega, coriolis, lever, save_all, attitude):
+    """Mean and covariance of a few long sequences in time chunks side by side
+    (:mod:`jaximu._chunked`); the samples are the body's already."""
+    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
+                                                                   dt, g)
+    P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
+    form = _soa.lane_form(attitude)
+    x, p, v, P, locked = _chunked.covariance(get_scheme(scheme), form, _soa.from_quat(form, q),
+                                             p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
+                                             var, jacobians, omega, coriolis, lever, save_all)
+    q = _soa.to_quat(form, x)
+    lead = tuple(batch) + (q.shape[1:2] if save_all else ())
+
+    def unflat(x):
+        return x.reshape(tuple(batch) + x.shape[1:])
+
+    def bias(b):
+        return jnp.broadcast_to(b[..., None, :] if save_all else b, lead + (3,))
+
+    st = NavState(unflat(q), unflat(p), unflat(v), bias(state.b_g), bias(state.b_a))
+    return st, unflat(P), jnp.zeros(batch, bool) if locked is None else unflat(locked)
 
 
 NOISE = ArgSpec(1, lambda args, batched: 3)  # a density: scalar (isotropic) or (..., 3)

@@ -14,13 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _dispatch as dispatch
-from jaximu import _fast, _soa
+from jaximu import _chunked, _fast, _soa
 from jaximu import _validation as val
 from jaximu import sensor
 from jaximu import so3
 from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.integrators import (GIMBAL_LOCK_COS, check_scheme, compose_deltas, get_attitude,
+from jaximu.integrators import (GIMBAL_LOCK_COS, check_scheme, get_attitude,
                                 get_scheme, step)
 from jaximu.state import NavState
 
@@ -193,19 +193,9 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     return states, locked
 
 
-def _apply_deltas(q, p, v, g, d):
-    """The state ``(q, p, v)`` moved by deltas ``d`` (:func:`compose_deltas`) under gravity
-    ``g``: ``R ΔR``, ``p + v Δt + ½ g Δt² + R Δp``, ``v + g Δt + R Δv``."""
-    dq, dp, dv, t = d
-    t = t[..., None]
-    return (so3.quat_normalize(so3.quat_mul(q, dq)),
-            p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
-            v + g * t + so3.quat_rotate(q, dv))
-
-
 def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False):
     """The states of a few long sequences, cut into ``C`` time chunks that run side by side
-    as lanes.
+    as lanes (:mod:`jaximu._chunked`).
 
     Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
     known relative to its start, and its acceleration weights sum to ``h`` (in v) and
@@ -224,62 +214,39 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
     C = dispatch.mean_chunks(B, n)
-    L = _soa.whole_chunks(-(-n // C))
-    pad = C * L - n
+    L = _chunked.chunk_length(n, C)
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
                                                                    dt, g)
-    dt_f = jnp.broadcast_to(dt_f, (B, n))
-    extra = int(sch.uses_next_sample)
-    if pad:  # padded steps have dt = 0: exact identities for every scheme
-        dt_f = jnp.pad(dt_f, ((0, 0), (0, pad)))
-        gyro_f, accel_f = (jnp.pad(x, ((0, 0), (0, pad), (0, 0)), mode="edge")
-                           for x in (gyro_f, accel_f))
-    # chunk c holds steps [cL, cL + L) and, for sample k+1 schemes, sample cL + L too;
-    # lane b*C + c is chunk c of sequence b
-    # computed in the program: as a numpy constant (C·(L+1) indices) it is compiled into
-    # it, and the compile grew with the sequence (2^25 steps: 3.8 against 1.1 s)
-    idx = (jnp.arange(C, dtype=jnp.int32)[:, None] * L
-           + jnp.arange(L + extra, dtype=jnp.int32)[None, :])
-    lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])  # noqa: E731
-    gyro_c, accel_c = lanes(gyro_f), lanes(accel_f)
-    dt_c = dt_f.reshape(B * C, L)
-    rep = lambda x: jnp.repeat(x, C, axis=0)  # noqa: E731
+    gyro_c, accel_c, dt_c = _chunked.chunk_lanes(gyro_f, accel_f, jnp.broadcast_to(dt_f, (B, n)),
+                                                 C, L, int(sch.uses_next_sample))
+
+    def rep(x):
+        return _chunked.repeat_lanes(x, C)
+
     z = jnp.zeros((B * C, 3), dtype)
     q_id = jnp.zeros((B * C, 4), dtype).at[:, 0].set(1)
     dq, dp, dv = _fast.propagate_mean(sch, q_id, z, z, rep(b_g), rep(b_a), gyro_c, accel_c,
                                       dt_c, jnp.zeros(3, dtype), False)
-    unlane = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), 1, 0)  # noqa: E731
-    deltas = (unlane(dq), unlane(dp), unlane(dv), unlane(jnp.sum(dt_c, axis=-1)))  # (C, B, .)
+    deltas = tuple(_chunked.by_chunk(x, B, C)
+                   for x in (dq, dp, dv, jnp.sum(dt_c, axis=-1)))  # (C, B, ·)
     g_b = jnp.broadcast_to(g_f, (B, 3))
-    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    # a chunk of no steps, (1, B, .)
-    ident = (jnp.zeros((1, B, 4), dtype).at[..., 0].set(1), jnp.zeros((1, B, 3), dtype),
-             jnp.zeros((1, B, 3), dtype), jnp.zeros((1, B), dtype))
+
+    def unflat(x):
+        return x.reshape(tuple(batch) + x.shape[1:])
+
     if not save_all:
-        while deltas[0].shape[0] > 1:  # pairwise, log2(C) levels
-            if deltas[0].shape[0] % 2:  # an identity chunk pads to an even count
-                deltas = tuple(jnp.concatenate([d, e]) for d, e in zip(deltas, ident))
-            deltas = compose_deltas(tuple(d[0::2] for d in deltas),
-                                     tuple(d[1::2] for d in deltas))
-        qf, pf, vf = _apply_deltas(q, p, v, g_b, tuple(d[0] for d in deltas))
-    if not save_all:
+        qf, pf, vf = _chunked.apply_deltas(q, p, v, g_b, _chunked.total_deltas(deltas))
         states = NavState(unflat(qf), unflat(pf), unflat(vf),
                           jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
                           jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
         return states, jnp.zeros(batch, bool)
     # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
-    before = ident
-    if C > 1:
-        prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
-        before = tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))  # (C, B, .)
-    starts = _apply_deltas(q, p, v, g_b, before)
-    relane = lambda x: jnp.moveaxis(x, 0, 1).reshape((B * C,) + x.shape[2:])  # noqa: E731
-    q_s, p_s, v_s = (relane(x) for x in starts)
+    starts = _chunked.apply_deltas(q, p, v, g_b, _chunked.deltas_before(deltas))
+    q_s, p_s, v_s = (_chunked.by_lane(x) for x in starts)
     out = _fast.propagate_mean(sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c,
                                rep(g_b), True)
-    seq = lambda x: unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n])  # noqa: E731
-    q_t, p_t, v_t = (seq(x) for x in out[:3])
+    q_t, p_t, v_t = (unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n]) for x in out[:3])
     bshape = q_t.shape[:-1] + (3,)
     states = NavState(q_t, p_t, v_t, jnp.broadcast_to(state.b_g[..., None, :], bshape),
                       jnp.broadcast_to(state.b_a[..., None, :], bshape))

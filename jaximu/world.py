@@ -192,7 +192,18 @@ def error_map_rows(omega, dt, coriolis):
     return None, {1: {1: "I", 2: cross}, 2: {2: eye - 2.0 * h * W}}
 
 
-def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None):
+def error_maps(omega, h, coriolis, ops=blk.ARRAYS):
+    """:func:`error_map_rows` with the blocks in the layout ``ops`` (made as arrays from
+    ``omega`` ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``)."""
+    pre, post = error_map_rows(omega, h, coriolis)
+    if ops is not blk.ARRAYS:
+        pre, post = (None if m is None else {i: {k: (x if isinstance(x, str) else
+                                                     ops.from_arrays(x)) for k, x in r.items()}
+                                             for i, r in m.items()} for m in (pre, post))
+    return pre, post
+
+
+def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None, maps=None):
     """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
     ``Pb``: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the still-world step's ``Φ``
     between the error maps of :func:`error_map_rows` (exact transition: into
@@ -200,12 +211,9 @@ def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None
     ``[p, v]`` Jacobian), each applied as a block congruence (:func:`jaximu._blocks.congruence`).
     ``ops``: the block layout (the maps' blocks are made as arrays from ``omega``
     ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``); ``p_over_v``: as
-    :func:`jaximu._blocks.structured_update`."""
-    pre, post = error_map_rows(omega, h, coriolis)
-    if ops is not blk.ARRAYS:
-        pre, post = (None if m is None else {i: {k: (x if isinstance(x, str) else
-                                                     ops.from_arrays(x)) for k, x in r.items()}
-                                             for i, r in m.items()} for m in (pre, post))
+    :func:`jaximu._blocks.structured_update`; ``maps``: :func:`error_maps`' result when the
+    caller has it."""
+    pre, post = error_maps(omega, h, coriolis, ops) if maps is None else maps
     if pre is not None:
         Pb = blk.congruence(Pb, pre, ops)
     return blk.congruence(blk.structured_update(Pb, b, qc, ops, p_over_v), post, ops)

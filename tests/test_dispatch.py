@@ -22,7 +22,7 @@ def documented_table():
     rows = []
     for line in section.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 12 and cells[0] in ("mean", "covariance", "preintegrate"):
+        if len(cells) == 13 and cells[0] in ("mean", "covariance", "preintegrate"):
             rows.append(cells)
     return rows
 
@@ -35,14 +35,15 @@ def test_design_notes_table_is_the_code_table():
     assert len(doc) == len(_dispatch.TABLE)
     stored = {"final": False, "all": True}
     for cells, row in zip(doc, _dispatch.TABLE):
-        (entry, schemes, attitude, jac, save, lanes, steps, dtypes, rotating, lever, backends,
-         kernel) = cells
+        (entry, schemes, attitude, jac, save, lanes, max_lanes, steps, dtypes, rotating, lever,
+         backends, kernel) = cells
         assert entry == row.entry
         assert words(schemes) == row.schemes
         assert words(attitude) == (row.attitudes or ())
         assert words(jac) == (row.jacobians or ())
         assert tuple(stored[s] for s in words(save)) == row.save_all
         assert int(lanes) == row.min_lanes
+        assert (None if max_lanes in ("–", "-") else int(max_lanes)) == row.max_lanes
         assert int(steps) == row.min_steps
         assert words(dtypes) == row.dtypes
         assert tuple({"no": False, "yes": True}[w] for w in words(rotating)) == row.rotating
