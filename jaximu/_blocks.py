@@ -290,13 +290,13 @@ def entry_mul(X, Y, ops: Layout = ARRAYS):
 def entry_add(*terms, ops: Layout = ARRAYS):
     """The sum of block entries (``None`` if all are ``None``): multiples of the identity
     stay a :class:`ScaledIdentity` (``"I"`` alone stays ``"I"``), a block absorbs them."""
-    terms = [x for x in terms if x is not None]
-    if len(terms) <= 1:
-        return terms[0] if terms else None
-    scalars = [1.0 if isinstance(x, str) else x.s for x in terms
+    kept = [x for x in terms if x is not None]
+    if len(kept) <= 1:
+        return kept[0] if kept else None
+    scalars = [1.0 if isinstance(x, str) else x.s for x in kept
                if isinstance(x, (str, ScaledIdentity))]
-    blocks = [x for x in terms if not isinstance(x, (str, ScaledIdentity))]
-    s = None
+    blocks = [x for x in kept if not isinstance(x, (str, ScaledIdentity))]
+    s: Any = None
     for x in scalars:
         s = x if s is None else s + x
     if not blocks:
@@ -338,7 +338,7 @@ def rotate_rows(rows, R, rotated, ops: Layout = ARRAYS):
     def side(i):
         return R if i in rotated else "I"
 
-    out = {}
+    out: dict = {}
     for i, row in rows.items():
         out[i] = {}
         for j, X in row.items():
@@ -359,7 +359,7 @@ def conform_rows(rows, pattern, block_shape, scalar_shape, dtype, ops: Layout = 
             return "I" if i == j else None
         return rows[i].get(j)
 
-    out = {}
+    out: dict = {}
     for i, prow in pattern.items():
         extra = [j for j in rows.get(i, {}) if j not in prow and rows[i][j] is not None]
         if extra:

@@ -284,8 +284,9 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     locked = None
     if local:  # from the identity, without gravity: the deltas, Φ_c and Q_c in one pass
         q_id = jnp.zeros((B * C, 4), dtype).at[:, 0].set(1)
-        x_s, p_s, v_s, g_s = _soa.from_quat(form, q_id), *(jnp.zeros((B * C, 3), dtype),) * 2, \
-            jnp.zeros(3, dtype)
+        x_s = _soa.from_quat(form, q_id)
+        p_s = v_s = jnp.zeros((B * C, 3), dtype)
+        g_s = jnp.zeros(3, dtype)
     else:  # from the true starts: the mean's own pass first
         mean = _fast.propagate_mean(sch, q, p, v, b_g, b_a, gyro, accel, dt, g, True, omega,
                                     coriolis, form)

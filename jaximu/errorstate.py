@@ -275,7 +275,8 @@ def compose_transitions(first, then):
     """The pair ``(Φ, Q)`` of two consecutive spans: ``first = (Φ_a, Q_a)`` followed by
     ``then = (Φ_b, Q_b)`` gives ``(Φ_b Φ_a, Φ_b Q_a Φ_bᵀ + Q_b)``, the transition and
     accumulated noise of the covariance recursion over both (associative: any grouping of
-    spans composes to the same pair). Arrays ``(..., n, n)``."""
+    spans composes to the same pair). Dense arrays ``(..., n, n)``: the same composition as
+    :func:`jaximu._blocks.compose_transitions` on the kernels' block layout."""
     (Fa, Qa), (Fb, Qb) = first, then
     return (small_matmul(Fb, Fa),
             small_matmul(small_matmul(Fb, Qa), jnp.swapaxes(Fb, -1, -2)) + Qb)
