@@ -126,10 +126,10 @@ def test_gradients_through_vmap(name, orders):
     want = jnp.stack([ref_grad(gyro[i], jax.tree_util.tree_map(lambda x: x[i], state), accel[i])
                       for i in range(3)])
     grads = {
-        "grad_vmap": lambda: jax.grad(lambda w: loss(jax.vmap(fn)(state, w, accel)))(gyro),
-        "vmap_grad": lambda: jax.vmap(jax.grad(lambda s, w, a: loss(fn(s, w, a)), argnums=1))(
+        "grad_vmap": lambda: jax.jit(jax.grad(lambda w: loss(jax.vmap(fn)(state, w, accel))))(gyro),
+        "vmap_grad": lambda: jax.jit(jax.vmap(jax.grad(lambda s, w, a: loss(fn(s, w, a)), argnums=1)))(
             state, gyro, accel),
-        "jacfwd": lambda: jax.jacfwd(lambda w: loss(jax.vmap(fn)(state, w, accel)))(gyro),
+        "jacfwd": lambda: jax.jit(jax.jacfwd(lambda w: loss(jax.vmap(fn)(state, w, accel))))(gyro),
     }
     for order in orders:
         g = grads[order]()
