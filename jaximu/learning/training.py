@@ -13,6 +13,7 @@ machine (unless ``minutes`` cuts the run short).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -171,6 +172,70 @@ def _decay_mask(model):
     return jax.tree_util.tree_map(lambda x: eqx.is_array(x) and x.ndim == 3, model)
 
 
+def _optimizer(cfg: TrainConfig, model):
+    return optax.adamw(_schedule(cfg), weight_decay=cfg.weight_decay, mask=_decay_mask(model))
+
+
+def _loss(model, g, a, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
+    """The training loss of one step and its ``(rotation, nll)`` parts (``has_v``: 1 for the
+    parts whose ground truth has velocities, ``n_v`` their number, at least 1)."""
+    mcfg = model.config
+    c = model(g, a, key=k_drop)
+    rot, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
+                              reference_sigma=model.reference_sigma,
+                              random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
+    total = rot + cfg.nll_weight * nll
+    if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
+        r = velocity_residuals(jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt,
+                               cfg.velocity_horizon)
+        per_seq = jax.vmap(lambda x: huber(x, cfg.velocity_delta))(r)
+        total = total + cfg.velocity_weight * jnp.sum(per_seq * has_v) / n_v
+    return total, (rot, nll)
+
+
+# The step and the validation are compiled once per configuration, model structure and data
+# shape (the static arguments and the model's static config are their cache keys), not once
+# per call of train: a second run with the same settings (another seed, a rerun) starts at once.
+@eqx.filter_jit
+def _step(model, ema, opt_state, key, G, A, Q, V, noise, bias_noise, has_v, n_v, *,
+          cfg: TrainConfig, dt: float, L: int):
+    """One AdamW step on pieces of ``L`` samples of the training parts ``(S, N, ·)`` at random
+    offsets, with noise added; ``ema``: the exponential average of the weights."""
+    S = G.shape[0]
+    k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
+    offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
+    cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
+    x = jnp.concatenate([cut(G, L), cut(A, L)], -1)
+    x = x + noise * jax.random.normal(k_w, x.shape) \
+        + bias_noise * jax.random.normal(k_b, (S, 1, 6))
+    (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
+        model, x[..., :3], x[..., 3:], cut(Q, L + 1), cut(V, L + 1), k_drop, has_v, n_v,
+        cfg, dt)
+    updates, opt_state = _optimizer(cfg, model).update(grads, opt_state,
+                                                       eqx.filter(model, eqx.is_array))
+    model = eqx.apply_updates(model, updates)
+    # the validated and kept model is the exponential average of the weights: the
+    # whole-sequence error hangs on the learned bias, which single steps jitter
+    ema = jax.tree_util.tree_map(
+        lambda e, m: e + (1.0 - cfg.ema) * (m - e) if eqx.is_inexact_array(m) else m,
+        ema, model)
+    return model, ema, opt_state, loss, parts
+
+
+@eqx.filter_jit
+def _validate(model, vG, vA, vQ, vM, *, dt: float):
+    """Mean AOE [rad] of each validation part, integrated from its first true attitude:
+    the rates before it (the network's context) are zeroed, so the attitude stays at
+    that true attitude until the validation part starts."""
+    c = model(vG, vA)
+    first = jnp.argmax(vM, 1)
+    q0 = jnp.take_along_axis(vQ, first[:, None, None], 1)[:, 0]
+    gyro = jnp.where(vM[..., None], c.gyro, 0.0)
+    steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
+    _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
+    return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
+
+
 def train(sequences: list[Sequence], config: TrainConfig | None = None,
           model_config: ModelConfig | None = None, *, seed: int = 0,
           minutes: float | None = None, log: Callable[[str], None] | None = print) -> TrainResult:
@@ -229,57 +294,12 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     key = jax.random.key(seed)
     key, k_init = jax.random.split(key)
     model = Denoiser(mcfg, k_init)
-    opt = optax.adamw(_schedule(cfg), weight_decay=cfg.weight_decay, mask=_decay_mask(model))
-    opt_state = opt.init(eqx.filter(model, eqx.is_array))
-    S = G.shape[0]
+    opt_state = _optimizer(cfg, model).init(eqx.filter(model, eqx.is_array))
     noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
     bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3,
                              jnp.float32)
-
-    def loss_fn(model, g, a, q, v, k_drop):
-        c = model(g, a, key=k_drop)
-        rot, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
-                                    reference_sigma=model.reference_sigma,
-                                    random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
-        total = rot + cfg.nll_weight * nll
-        if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
-            r = velocity_residuals(jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt,
-                                   cfg.velocity_horizon)
-            per_seq = jax.vmap(lambda x: huber(x, cfg.velocity_delta))(r)
-            total = total + cfg.velocity_weight * jnp.sum(per_seq * has_v) / n_v
-        return total, (rot, nll)
-
-    @eqx.filter_jit
-    def step(model, ema, opt_state, key, G, A, Q, V):
-        k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
-        offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
-        cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
-        x = jnp.concatenate([cut(G, L), cut(A, L)], -1)
-        x = x + noise * jax.random.normal(k_w, x.shape) \
-            + bias_noise * jax.random.normal(k_b, (S, 1, 6))
-        (loss, parts), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
-            model, x[..., :3], x[..., 3:], cut(Q, L + 1), cut(V, L + 1), k_drop)
-        updates, opt_state = opt.update(grads, opt_state, eqx.filter(model, eqx.is_array))
-        model = eqx.apply_updates(model, updates)
-        # the validated and kept model is the exponential average of the weights: the
-        # whole-sequence error hangs on the learned bias, which single steps jitter
-        ema = jax.tree_util.tree_map(
-            lambda e, m: e + (1.0 - cfg.ema) * (m - e) if eqx.is_inexact_array(m) else m,
-            ema, model)
-        return model, ema, opt_state, loss, parts
-
-    @eqx.filter_jit
-    def validate(model, vG, vA, vQ, vM):
-        """Mean AOE [rad] of each validation part, integrated from its first true attitude:
-        the rates before it (the network's context) are zeroed, so the attitude stays at
-        that true attitude until the validation part starts."""
-        c = model(vG, vA)
-        first = jnp.argmax(vM, 1)
-        q0 = jnp.take_along_axis(vQ, first[:, None, None], 1)[:, 0]
-        gyro = jnp.where(vM[..., None], c.gyro, 0.0)
-        steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
-        _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
-        return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
+    step = functools.partial(_step, cfg=cfg, dt=dt, L=L)
+    validate = functools.partial(_validate, dt=dt)
 
     record: dict[str, Any] = {"seed": seed, "train": cfg.to_json(), "sequences": [s.name for s in sequences],
               "split": {s.name: {"train_samples": len(t), "validation_samples": len(v)}
@@ -288,7 +308,8 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     t_start = time.perf_counter()
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
-    data, vdata = (G, A, Q, V), (vG, vA, vQ, vM)  # arguments, not constants folded into the program
+    # arguments, not constants folded into the program
+    data, vdata = (G, A, Q, V, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vM)
     model_next, ema, opt_state, loss, parts = step(model, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
@@ -340,7 +361,7 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     record.update({"best_step": best[2], "validation_aoe_mean_deg": best[0], "steps_run": i,
                    "cut_short": cut_short, "wall_seconds": wall,
                    "compile_seconds": compile_time, "first_step_seconds": t_first,
-                   "samples_per_step": int(S * L)})
+                   "samples_per_step": int(G.shape[0] * L)})
     say(f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
         f"which compile ≈ {compile_time:.1f} s")
     return TrainResult(model, record)
