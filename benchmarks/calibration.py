@@ -36,11 +36,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
 
 import jaximu  # noqa: E402
 from jaximu import calibration as cal  # noqa: E402
 from jaximu import simulate as sim  # noqa: E402
-from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
 
 RATE = 200.0
 

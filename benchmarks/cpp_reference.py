@@ -268,9 +268,9 @@ def main(argv=None):
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
+    from preintegration import best_time, make_inputs  # same folder
 
     import jaximu
-    from preintegration import best_time, make_inputs  # same folder
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")

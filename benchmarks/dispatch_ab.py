@@ -25,10 +25,10 @@ Usage::
 Writes ``$OUT/dispatch_ab.json`` (``OUT`` defaults to ``benchmarks/results``, the file then
 named ``dispatch-ab-<machine>.json``).
 """
+import json
 import os
 import sys
 import time
-import json
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # propagation.py beside it
 import jax
@@ -37,6 +37,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 import propagation as P  # noqa: E402
+
 import jaximu  # noqa: E402
 import jaximu._dispatch as dsp  # noqa: E402
 

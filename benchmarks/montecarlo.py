@@ -41,11 +41,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
 
 import jaximu  # noqa: E402
 from jaximu import simulate as sim  # noqa: E402
 from jaximu.montecarlo import PositionFix, monte_carlo  # noqa: E402
-from propagation import machine_info, machine_slug  # noqa: E402  (same folder)
 
 T, DT = 1000, 0.005
 RADIUS, SPEED = 5.0, 2.0

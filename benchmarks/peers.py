@@ -44,11 +44,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import jaximu  # noqa: E402
 from preintegration import bench_gtsam as gtsam_preintegrate  # noqa: E402  (same folder)
 from preintegration import make_inputs  # noqa: E402
 from propagation import machine_info, machine_slug  # noqa: E402
+
+import jaximu  # noqa: E402
 
 NOISE = jaximu.ImuNoise.euroc()
 DT = 0.005
@@ -202,7 +202,6 @@ def numpy_propagate(gyro, accel, dt, g, cov=False):
 def pypose_run(gyro, accel, dt, torch_dtype, cov=True, gravity=0.0):
     """PyPose's IMUPreintegrator over a batch ``(B, F, 3)`` from the identity state."""
     import pypose as pp
-
     from _pypose_fix import fix_pypose_cumops
 
     fix_pypose_cumops()  # PyPose 0.9.5's scan under torch ≥ 2.14 (benchmarks/_pypose_fix.py)

@@ -44,11 +44,19 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+# (propagation reads --devices before JAX starts: one CPU device per core)
+from propagation import (  # noqa: E402
+    DEVICES,
+    NO_UNROLL,
+    VECTOR_WIDTH,
+    lane_mesh,
+    machine_info,
+    machine_slug,
+    place,
+)
+
 import jaximu  # noqa: E402
 from jaximu.datasets import euroc_v1_02_segment  # noqa: E402
-# (propagation reads --devices before JAX starts: one CPU device per core)
-from propagation import (DEVICES, NO_UNROLL, VECTOR_WIDTH, lane_mesh,  # noqa: E402
-                         machine_info, machine_slug, place)
 
 TARGETS = {"long": 5.0, "windows": 10.0}  # × GTSAM Manifold, float64
 

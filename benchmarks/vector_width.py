@@ -33,10 +33,10 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import jaximu  # noqa: E402
 import preintegration as PB  # noqa: E402
 import propagation as P  # noqa: E402
+
+import jaximu  # noqa: E402
 
 WIDE = {"xla_cpu_prefer_vector_width": 512}
 

@@ -9,8 +9,8 @@ from jaximu import allan as allan
 from jaximu import errors as errors
 from jaximu import io as io
 from jaximu import montecarlo as montecarlo
-from jaximu import simulate as simulate
 from jaximu import sensor as sensor
+from jaximu import simulate as simulate
 from jaximu import so3 as so3
 from jaximu import world as world
 from jaximu.errorstate import discrete_process_noise as discrete_process_noise
@@ -32,8 +32,8 @@ from jaximu.preintegration import residual as residual
 from jaximu.preintegration import whitened_residual as whitened_residual
 from jaximu.propagate import propagate as propagate
 from jaximu.propagate import propagate_final as propagate_final
-from jaximu.state import ImuBias as ImuBias
 from jaximu.sensor import SensorPose as SensorPose
+from jaximu.state import ImuBias as ImuBias
 from jaximu.state import NavState as NavState
 from jaximu.state import boxminus as boxminus
 from jaximu.state import boxplus as boxplus

@@ -26,7 +26,8 @@ per-element derivative) failed to transpose through the SoA kernel's conds
 from __future__ import annotations
 
 import functools
-from typing import Callable, NamedTuple, Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -79,7 +80,7 @@ def _to_leading(axis_size, in_batched, args, specs: Sequence[ArgSpec]):
     return tuple(out)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
     """``fn(*args, **dict(statics))`` whose ``vmap`` runs as one call over leading axes.
 

@@ -17,7 +17,8 @@ skipped: this is what makes ``Φ P Φᵀ`` cost a few dozen 3×3 products instea
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp

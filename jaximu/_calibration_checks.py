@@ -15,7 +15,6 @@ from jaximu import so3
 from jaximu._calibration_model import CalibrationError
 from jaximu._preintegration_engine import _preintegrate
 
-
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 """XLA options for graphs that run once or a few times on little data: about half the
 compile time, several times the run time (benchmarks/calibration.py --command: a cold
@@ -27,7 +26,7 @@ QUICK_COMPILE_SAMPLES = 30_000
 ten-odd evaluations of a Levenberg–Marquardt fit."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compiled(fn, quick: bool, static_argnames=()):
     """``jax.jit(fn)``, with :data:`QUICK_COMPILE` when ``quick``."""
     return jax.jit(fn, static_argnames=static_argnames,

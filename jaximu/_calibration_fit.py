@@ -15,11 +15,18 @@ import optax
 
 from jaximu import so3
 from jaximu._calibration_checks import QUICK_COMPILE_SAMPLES, _compiled
-from jaximu._calibration_model import (_SIZES, _TANGENT, _VELOCITY_SCALE, FIELDS, SCALES,
-                                       CalibrationProblem, ImuCalibration,
-                                       _group_residuals, calibration_loss,
-                                       calibration_residuals)
-
+from jaximu._calibration_model import (
+    _SIZES,
+    _TANGENT,
+    _VELOCITY_SCALE,
+    FIELDS,
+    SCALES,
+    CalibrationProblem,
+    ImuCalibration,
+    _group_residuals,
+    calibration_loss,
+    calibration_residuals,
+)
 
 # --------------------------------------------------------------------------- fitting
 
@@ -75,7 +82,7 @@ def _objective(z, problem, init_vec, layout):
     return calibration_loss(problem, calib, v)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _optimizer(name, learning_rate):
     if name == "adam":
         return optax.adam(learning_rate)

@@ -10,10 +10,27 @@ import numpy as np
 
 from jaximu import _blocks, sensor, so3, world
 from jaximu._blocks import UPPER, Blocks, block, structured_update
-from jaximu._soa import (LANE_FORMS, SOA, LaneForm, _bmm, _bt, _components, _materialise,
-                         _quat_normalize, _sincos, _stack_last, _time_chunks, block_lanes,
-                         direction_block, exp_jr, half_angle_jr, jvp_directions,
-                         lane_directions, mean_step, run_blocked)
+from jaximu._soa import (
+    LANE_FORMS,
+    SOA,
+    LaneForm,
+    _bmm,
+    _bt,
+    _components,
+    _materialise,
+    _quat_normalize,
+    _sincos,
+    _stack_last,
+    _time_chunks,
+    block_lanes,
+    direction_block,
+    exp_jr,
+    half_angle_jr,
+    jvp_directions,
+    lane_directions,
+    mean_step,
+    run_blocked,
+)
 from jaximu._vec import V3
 from jaximu.integrators import GIMBAL_LOCK_COS
 

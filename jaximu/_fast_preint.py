@@ -38,12 +38,40 @@ import numpy as np
 
 from jaximu import sensor
 from jaximu._fast import blocks_autodiff
-from jaximu._soa import (SOA, _E3, _THR, _any_big, _bmm, _bsym, _bt, _components, _cond,
-                         _diag_row, _half_any, _half_small, _jr_b_small, _lane, _outer, _quat_mul,
-                         _quat_normalize, _quat_renormalize, _quat_rotate, _rows, _skew3, _stage,
-                         _time_chunks, block_lanes, direction_block, jvp_directions, lane_directions,
-                         quat_matrix, rotation_rows, rotation_tangents, run_blocked,
-                         whole_chunks)
+from jaximu._soa import (
+    _E3,
+    _THR,
+    SOA,
+    _any_big,
+    _bmm,
+    _bsym,
+    _bt,
+    _components,
+    _cond,
+    _diag_row,
+    _half_any,
+    _half_small,
+    _jr_b_small,
+    _lane,
+    _outer,
+    _quat_mul,
+    _quat_normalize,
+    _quat_renormalize,
+    _quat_rotate,
+    _rows,
+    _skew3,
+    _stage,
+    _time_chunks,
+    block_lanes,
+    direction_block,
+    jvp_directions,
+    lane_directions,
+    quat_matrix,
+    rotation_rows,
+    rotation_tangents,
+    run_blocked,
+    whole_chunks,
+)
 from jaximu._vec import V3
 from jaximu.integrators import compose_deltas, get_scheme
 

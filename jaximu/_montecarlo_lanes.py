@@ -18,7 +18,6 @@ from jaximu._vec import V3
 from jaximu.integrators import SCHEME_OBJECTS
 from jaximu.state import NavState, boxminus, boxplus
 
-
 # Streams of the counter-based generator (each a Threefry key; counter = (run, step)):
 # pairs 0-2 white noise of sample j (counter j): (n_gx, n_gy), (n_gz, n_ax), (n_ay, n_az);
 # pairs 3-5 bias walk of step k (counter k): the same order for (n_wg, n_wa);

@@ -9,7 +9,6 @@ import time
 import jax
 import numpy as np
 
-
 # --------------------------------------------------------------------------- progress
 
 

@@ -17,7 +17,6 @@ from jaximu._vec import V3
 from jaximu.errorstate import blocks_analytic
 from jaximu.integrators import get_scheme
 
-
 # --------------------------------------------------------------------------- one step
 
 

@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.experimental.xla_metadata import set_xla_metadata
 import numpy as np
+from jax.experimental.xla_metadata import set_xla_metadata
 
 from jaximu import _dispatch, so3
 from jaximu._blocks import Layout

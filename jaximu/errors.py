@@ -15,7 +15,8 @@ with :meth:`InputError.render`, so neither depends on the other's wording.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 __all__ = ["ANY", "Fix", "InputError"]
 

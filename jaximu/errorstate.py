@@ -33,25 +33,37 @@ from __future__ import annotations
 
 import functools
 from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaximu import _blocks as blk
+from jaximu import _chunked, _fast, _soa, sensor, world
 from jaximu import _dispatch as dispatch
-from jaximu import _chunked, _fast, _soa
 from jaximu import _validation as val
-from jaximu import sensor
-from jaximu import world
-from jaximu.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
+from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import Blocks
 from jaximu._vec import V3
+from jaximu.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
 from jaximu.noise import ImuNoise
-from jaximu._batching import ArgSpec, leading_axes
-from jaximu.propagate import (SAMPLES, STATE, VECTOR, broadcast_state, coriolis_mode,
-                              flatten_batch, kernel_samples, lane_values, mean_body, n_steps,
-                              prepare, sensor_engine_inputs, soa_samples, time_major,
-                              unit_start)
+from jaximu.propagate import (
+    SAMPLES,
+    STATE,
+    VECTOR,
+    broadcast_state,
+    coriolis_mode,
+    flatten_batch,
+    kernel_samples,
+    lane_values,
+    mean_body,
+    n_steps,
+    prepare,
+    sensor_engine_inputs,
+    soa_samples,
+    time_major,
+    unit_start,
+)
 from jaximu.state import NavState, boxminus, boxplus
 
 __all__ = [

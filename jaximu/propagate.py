@@ -13,15 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu import _chunked, _fast, _soa, sensor, so3, world
 from jaximu import _dispatch as dispatch
-from jaximu import _chunked, _fast, _soa
 from jaximu import _validation as val
-from jaximu import sensor
-from jaximu import so3
-from jaximu import world
 from jaximu._batching import ArgSpec, leading_axes
-from jaximu.integrators import (GIMBAL_LOCK_COS, check_scheme, get_attitude,
-                                get_scheme, step)
+from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
 from jaximu.state import NavState
 
 __all__ = ["propagate", "propagate_final"]

@@ -11,8 +11,18 @@ import re
 import pytest
 
 import jaximu
-from jaximu import (allan, calibration, cli, io, keyframes, learning, montecarlo, recording,
-                    simulate, so3)
+from jaximu import (
+    allan,
+    calibration,
+    cli,
+    io,
+    keyframes,
+    learning,
+    montecarlo,
+    recording,
+    simulate,
+    so3,
+)
 
 DOC = pathlib.Path(__file__).parent.parent / "docs" / "accepts.md"
 MODULES = {"jaximu": jaximu, "jaximu.so3": so3, "jaximu.allan": allan,

@@ -6,13 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import central_difference_phi
 
 import jaximu
 from jaximu import _dispatch
 from jaximu import simulate as sim
 from jaximu.datasets import euroc_v1_02_segment
-
-from _shared import central_difference_phi
 
 try:
     import gtsam

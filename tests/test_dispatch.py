@@ -7,11 +7,10 @@ import re
 import jax
 import numpy as np
 import pytest
+from _shared import dispatch_as
 
 import jaximu
 from jaximu import _dispatch
-
-from _shared import dispatch_as
 
 DESIGN = pathlib.Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
 

@@ -11,13 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import random_inputs
 
 import jaximu
 from jaximu import _dispatch
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
-
-from _shared import random_inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 NOISE = jaximu.ImuNoise(jnp.asarray([1e-3, 2e-3, 3e-3]), 2e-3, 1e-4, 3e-3)

@@ -7,13 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import dispatch_as
+from _shared import random_inputs as inputs
 
 import jaximu
 from jaximu import _dispatch, _soa
 from jaximu.errorstate import _propagate_covariance
 from jaximu.propagate import _propagate
-
-from _shared import dispatch_as, random_inputs as inputs
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 

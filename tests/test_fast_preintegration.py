@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu import _fast_preint
+from jaximu import _dispatch, _fast_preint
 from jaximu._soa import block_lanes
-from jaximu import _dispatch
 from jaximu.preintegration import _preintegrate
 
 

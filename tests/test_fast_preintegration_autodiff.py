@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_fast_preintegration import assert_same, inputs, pre, uses_fast_path
 
 import jaximu
-from test_fast_preintegration import assert_same, inputs, pre, uses_fast_path
 
 
 @pytest.mark.parametrize("scheme,batch,T,method,kw,lever", [

@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_fast_path import inputs
 
 import jaximu
 from jaximu import _soa
-from test_fast_path import inputs
 
 NOISE = jaximu.ImuNoise.euroc()
 B, T = 4, 400  # each sample array 38 kB: above XLA:CPU's large-constant size

@@ -7,12 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import SEG, euroc_window
 from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import so3
-
-from _shared import SEG, euroc_window
 
 try:
     import gtsam

@@ -40,16 +40,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import fast_settings
 from hypothesis import given
 from hypothesis import strategies as st
 
 import jaximu
 from jaximu import ImuBias, ImuNoise, NavState, allan, so3
-
-from _shared import fast_settings
-
-
-
 
 TOO_LARGE = r"too large|out of its range"
 DT_BAD = r"dt must be positive and finite"

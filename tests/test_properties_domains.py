@@ -18,14 +18,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import fast_settings as shared_settings
 from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
 import jaximu
 from jaximu import ImuBias, ImuNoise, NavState, allan, cli, montecarlo, simulate, so3
 from jaximu import calibration as cal
-
-from _shared import fast_settings as shared_settings
 
 
 def fast_settings(n):

@@ -6,12 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import random_inputs
 from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import _soa
-
-from _shared import random_inputs
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -6,13 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shared import SEG, central_difference_phi, euroc_window
 from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import simulate as sim
 from jaximu.sensor import SensorPose
-
-from _shared import SEG, central_difference_phi, euroc_window
 
 try:
     import gtsam

@@ -628,7 +628,7 @@ def _grad_inputs():
 _compiled_bundle = fast_jit(_bundle)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _grads(which):
     """which: "f64", "f32", or "f64@f32" (float64 gradients at the float32-rounded inputs).
 

@@ -47,7 +47,7 @@ def cmd_allan(args):
         pairs = zip(np.atleast_1d(values), np.atleast_1d(determined))
         return "[" + " ".join(f"{v:.4g}" if ok else "not-determined" for v, ok in pairs) + "]"
 
-    for name, (taus, adev, fit, unit) in results.items():
+    for name, (_taus, _adev, fit, unit) in results.items():
         print(f"{name}_noise_density: {shown(fit.white, fit.white_determined)}"
               f"   # {unit}/√Hz (x, y, z)")
         print(f"{name}_random_walk:   {shown(fit.random_walk, fit.random_walk_determined)}"

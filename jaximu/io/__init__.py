@@ -40,8 +40,12 @@ The package is split along its seams; every name above is importable from ``jaxi
 from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, STANDARD_GRAVITY, DataError
 from jaximu.io.asl import read_euroc, read_tumvi
 from jaximu.io.containers import GroundTruth, ImuData
-from jaximu.io.evaluation import (TrajectoryErrors, gravity_alignment, initial_state,
-                                  trajectory_errors)
+from jaximu.io.evaluation import (
+                                  TrajectoryErrors,
+                                  gravity_alignment,
+                                  initial_state,
+                                  trajectory_errors,
+)
 from jaximu.io.rosbag import read_rosbag
 from jaximu.io.tables import from_arrays, read_csv, read_npz
 from jaximu.io.validation import validate_imu

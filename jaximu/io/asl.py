@@ -11,7 +11,6 @@ from jaximu.io._text import _check_unit, _parse, _parse_tum, _read_delimited, _r
 from jaximu.io.containers import ImuData
 from jaximu.io.validation import make
 
-
 _GT_DIRS = {"euroc": ("state_groundtruth_estimate0", "mocap0", "vicon0", "leica0"),
             "tumvi": ("mocap0", "state_groundtruth_estimate0")}
 _FLAT_GT = ("groundtruth.csv", "groundtruth_pose.txt")  # full state first, then pose only

@@ -8,8 +8,7 @@ import math
 import numpy as np
 
 from jaximu import _validation as val
-from jaximu.io._common import (CLOCK_TOLERANCE, QUATERNION_NORM_TOLERANCE, DataError,
-                                _seconds)
+from jaximu.io._common import CLOCK_TOLERANCE, QUATERNION_NORM_TOLERANCE, DataError, _seconds
 from jaximu.io.containers import GroundTruth, ImuData, _qmul
 from jaximu.io.writers import _check_cov, _check_times, _pose_arrays, _sigma
 

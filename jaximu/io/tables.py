@@ -10,8 +10,15 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu.errors import Fix
-from jaximu.io._common import (_ACCEL_UNITS, _GYRO_UNITS, _TIME_UNITS, DataError, _labels, _rows,
-                               with_repair_doc)
+from jaximu.io._common import (
+    _ACCEL_UNITS,
+    _GYRO_UNITS,
+    _TIME_UNITS,
+    DataError,
+    _labels,
+    _rows,
+    with_repair_doc,
+)
 from jaximu.io._text import _check_unit, _column, _header_time_unit, _parse, _read_table
 from jaximu.io.containers import GroundTruth, ImuData
 from jaximu.io.validation import make

@@ -7,9 +7,18 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu.errors import Fix
-from jaximu.io._common import (_ACCEL_MEDIAN_RANGE, _DT_RANGE, _GYRO_MAX, _GYRO_MEDIAN_MAX,
-                               GAP_FACTOR, QUATERNION_NORM_TOLERANCE, DataError, _labels,
-                               _max_gap, _rows)
+from jaximu.io._common import (
+    _ACCEL_MEDIAN_RANGE,
+    _DT_RANGE,
+    _GYRO_MAX,
+    _GYRO_MEDIAN_MAX,
+    GAP_FACTOR,
+    QUATERNION_NORM_TOLERANCE,
+    DataError,
+    _labels,
+    _max_gap,
+    _rows,
+)
 from jaximu.io.containers import GroundTruth, ImuData
 
 

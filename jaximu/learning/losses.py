@@ -23,8 +23,13 @@ import jax
 import jax.numpy as jnp
 
 from jaximu import so3
-from jaximu.errorstate import (accumulate_covariance, blocks_analytic, compose_transitions,
-                               small_matmul, transition_products)
+from jaximu.errorstate import (
+    accumulate_covariance,
+    blocks_analytic,
+    compose_transitions,
+    small_matmul,
+    transition_products,
+)
 from jaximu.noise import ImuNoise
 from jaximu.preintegration import preintegrate
 

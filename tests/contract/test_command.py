@@ -364,7 +364,7 @@ def test_the_library_fix_for_update_every_renders_as_the_filter_flag():
 
 def test_calibrate_warnings_are_one_line_each(capsys):
     with cli._warnings_as_lines():
-        warnings.warn("calibration residual χ²/dof = 322 > 100: check", RuntimeWarning)
+        warnings.warn("calibration residual χ²/dof = 322 > 100: check", RuntimeWarning, stacklevel=1)
     err = capsys.readouterr().err
     assert err == "warning: calibration residual χ²/dof = 322 > 100: check\n", err
 

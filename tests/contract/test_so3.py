@@ -90,7 +90,7 @@ def test_so3_kernels_refuse_wrong_shapes_naming_the_argument(data):
     bad = data.draw(st.integers(0, len(sig) - 1), label="argument")
     batch = data.draw(st.sampled_from(((), (2,))), label="batch")
     args = []
-    for i, (arg, shape) in enumerate(sig):
+    for i, (_arg, shape) in enumerate(sig):
         if i == bad:
             # wrong: not ending in the shape wanted ((2, 4) is a batch of quaternions)
             shape = data.draw(st.sampled_from([s for s in ((), (2,), (3,), (4,), (5,), (3, 3),
