@@ -395,9 +395,14 @@ def table(rows, rats):
     return "\n".join(lines)
 
 
-def check(rats, baseline_path):
-    with open(baseline_path) as f:
-        base = json.load(f)["ratios"]
+def read_baseline(path):
+    """The ratios of an earlier run's JSON (read before this run writes its own, which may be
+    the same file)."""
+    with open(path) as f:
+        return json.load(f)["ratios"]
+
+
+def check(rats, base):
     worse = []
     for key, old in base.items():
         new = rats.get(key)
@@ -419,6 +424,7 @@ def main(argv=None):
     ap.add_argument("--check", default=None, metavar="BASELINE",
                     help="exit 1 if a ratio is more than 30%% worse than in BASELINE")
     args = ap.parse_args(argv)
+    baseline = read_baseline(args.check) if args.check else None
     info = machine_info()
     print(f"# peers on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax "
           f"{jax.__version__}, backend {jax.default_backend()}", flush=True)
@@ -443,7 +449,7 @@ def main(argv=None):
     print(f"wrote {out} and its .md")
     if args.check:
         print(f"regression check against {args.check} (ratios, tolerance {TOLERANCE:.0%}):")
-        if check(rats, args.check):
+        if check(rats, baseline):
             return 1
     return 0
 
