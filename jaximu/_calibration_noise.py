@@ -370,12 +370,6 @@ def _nll(p, r, J, basis, u0, free_idx, n_c):
     return 0.5 * jnp.sum(w * w) + jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)))
 
 
-@functools.partial(jax.jit, static_argnames=("n_c",))
-def _nll_derivatives(p, r, J, basis, u0, free_idx, *, n_c):
-    f = functools.partial(_nll, r=r, J=J, basis=basis, u0=u0, free_idx=free_idx, n_c=n_c)
-    return f(p), jax.grad(f)(p), jax.hessian(f)(p)
-
-
 @jax.jit
 def _whitened(u, r, basis):
     L = jnp.linalg.cholesky(_covariances(u, basis))
@@ -497,15 +491,13 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
                      multiples=problem.multiples, layout=layout)
         return r[keep], J[keep]
 
-    u0 = jnp.zeros(7, dtype)
-    free_idx = jnp.asarray(free_s, jnp.int32)
     n = n_c + len(free_s)
 
+    basis_np = np.asarray(basis, np.float64)
+
     def derivatives(z, u, r, J):
-        u0_ = u0.at[:].set(jnp.asarray(u, dtype))
-        f, g, H = _nll_derivatives(jnp.concatenate([jnp.zeros(n_c, dtype), u0_[free_idx]]),
-                                   r, J, basis, u0_, free_idx, n_c=n_c)
-        return float(f), np.asarray(g, np.float64), np.asarray(H, np.float64)
+        return _nll_newton(np.asarray(r, np.float64), np.asarray(J, np.float64), basis_np, u,
+                           free_s)
 
     z, u = np.zeros(n_c), np.zeros(7)
     r, J = evaluate(z)
@@ -544,6 +536,38 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
                 free_sigmas=free_s, scales=scales, history=np.asarray(history),
                 converged=converged, chi2=chi2, dof=max(9 * len(keep) - n, 1),
                 n_windows=len(keep))
+
+
+def _nll_newton(r, J, basis, u, free_s):
+    """The NLL (:func:`_nll` at ``δ = 0``), its gradient and Hessian in ``[δ, u_free]``, in
+    float64 numpy: ``∂Σ/∂u_b = D_b = 2 e^{2u_b} B_b``, ``a = Σ⁻¹ r``;
+    ``f_δ = Σ Jᵀa``, ``f_δδ = Σ JᵀΣ⁻¹J`` (Gauss–Newton), ``f_b = ½ tr(Σ⁻¹D_b) - ½ aᵀD_b a``,
+    ``f_δc = -Σ JᵀΣ⁻¹D_c a``, ``f_bc = aᵀD_bΣ⁻¹D_c a - ½ tr(Σ⁻¹D_cΣ⁻¹D_b) + 2 δ_bc f_b``
+    (``∂D_b/∂u_b = 2 D_b``). The same derivatives as autodiff of :func:`_nll`
+    (``tests/test_calibration_noise.py`` compares them); the fit's loop calls this one:
+    its many small XLA calls of batched 9×9 Cholesky factors were seen to hang on the
+    2-core CPU host (the runtime waiting on a result no thread computes; not root-caused)."""
+    c = np.exp(2 * u)
+    S = np.einsum("b,kbij->kij", c, basis)
+    L = np.linalg.cholesky(S)
+    P = np.linalg.inv(S)
+    a = np.einsum("kij,kj->ki", P, r)
+    f = 0.5 * float(np.sum(a * r)) + float(np.sum(np.log(np.diagonal(L, axis1=1, axis2=2))))
+    D = 2 * c[free_s, None, None, None] * np.swapaxes(basis[:, free_s], 0, 1)  # (nf, K, 9, 9)
+    Da = np.einsum("bkij,kj->bki", D, a)
+    PD = np.einsum("kij,bkjl->bkil", P, D)
+    tr = np.einsum("bkii->b", PD)
+    aDa = np.einsum("ki,bki->b", a, Da)
+    g_u = 0.5 * tr - 0.5 * aDa
+    PDa = np.einsum("kij,bkj->bki", P, Da)
+    H_uu = (np.einsum("bki,cki->bc", Da, PDa) - 0.5 * np.einsum("bkij,ckji->bc", PD, PD)
+            + np.diag(2 * g_u))
+    g_d = np.einsum("kin,ki->n", J, a)
+    H_dd = np.einsum("kin,kij,kjm->nm", J, P, J)
+    H_du = -np.einsum("kin,cki->nc", J, PDa)
+    g = np.concatenate([g_d, g_u])
+    H = np.block([[H_dd, H_du], [H_du.T, H_uu]])
+    return f, g, H
 
 
 def _damped_step(H, g, lam):

@@ -48,6 +48,12 @@ one compiled function returns the residuals and their Jacobian (``jacfwd`` over 
 coordinates; 6 tangents per window for nuisance velocities) and serves every iteration and
 the covariance. optax L-BFGS and Adam on the loss are there too.
 
+The noise densities (and the reference's σ) are fitted by maximum likelihood over windows of
+several lengths: :func:`calibration_problem` with ``window_lengths`` returns a
+:class:`jaximu._calibration_noise.NoiseProblem`, and ``estimate=`` may then name
+:data:`NOISE_FIELDS` beside the fields; the model, its covariance and the fit are in
+:mod:`jaximu._calibration_noise` (docs/noise-densities.md).
+
 Adding an estimable field (an IMU–body extrinsic, say): a pytree field of
 :class:`ImuCalibration` with its default in :meth:`ImuCalibration.default`; its name in
 :data:`FIELDS`, its size in ``_SIZES``, its typical magnitude in :data:`SCALES` (the unit of

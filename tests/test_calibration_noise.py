@@ -21,6 +21,7 @@ from jaximu import kalibr
 from jaximu import simulate as sim
 from jaximu import so3
 from jaximu._calibration_model import _group_residuals
+from jaximu.errors import InputError
 
 RATE = 200.0
 SECONDS = 20.0
@@ -104,31 +105,71 @@ def test_likelihood_gradient_equals_central_differences(problem):
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())
 
 
+def test_fit_derivatives_equal_autodiff_of_the_likelihood(problem):
+    """The fit's closed-form gradient and Hessian (numpy) equal jax.grad and jax.hessian of
+    the likelihood (autodiff through the covariance), in the calibration's coordinates and
+    the seven log σ."""
+    init = cal.ImuCalibration.default(dtype=jnp.float64)
+    basis, logd = cn._bases(problem, (True, True))
+    keep = np.flatnonzero(problem.kept)
+    r = np.asarray(cn._all_residuals(init, problem.base, problem.multiples))[keep]
+    r = r / np.exp(logd[keep])
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=r.shape + (2,))
+    u = np.array([0.1, -0.2, 0.3, -0.1, 0.2, 0.05, -0.15])
+    free = [0, 2, 3, 5, 6]
+    f, g, H = cn._nll_newton(r, J, basis[keep], u, free)
+    p = jnp.concatenate([jnp.zeros(2), jnp.asarray(u[free])])
+    args = dict(r=jnp.asarray(r), J=jnp.asarray(J), basis=jnp.asarray(basis[keep]),
+                u0=jnp.asarray(u), free_idx=jnp.asarray(free), n_c=2)
+    fn = lambda q: cn._nll(q, **args)  # noqa: E731
+    np.testing.assert_allclose(f, float(fn(p)), rtol=1e-12)
+    np.testing.assert_allclose(g, np.asarray(jax.grad(fn)(p)), rtol=1e-8,
+                               atol=1e-10 * np.abs(g).max())
+    H_ad = np.asarray(jax.hessian(fn)(p))  # e = r + Jδ is linear: f_δδ = JᵀΣ⁻¹J exactly
+    np.testing.assert_allclose(H, H_ad, rtol=1e-7, atol=1e-9 * np.abs(H).max())
+
+
+WHITE_AND_REFERENCE = ("b_g", "b_a", "gyroscope_noise_density", "accelerometer_noise_density",
+                       "reference_sigma")
+
+
+def fit_white_and_reference(seed):
+    """The white densities and the reference's σ (with the biases), the random walks fixed at
+    their true values, from 2.5× the truth."""
+    start = jaximu.ImuNoise(5e-3, 5e-2, TRUE.gyroscope_random_walk,
+                            TRUE.accelerometer_random_walk)
+    prob = cal.calibration_problem(*recording(seed), start, window_lengths=LENGTHS,
+                                   scheme="midpoint", reference_sigma=2 * REF_SIGMA)
+    return cal.calibrate(prob, estimate=WHITE_AND_REFERENCE)
+
+
 @pytest.fixture(scope="module")
-def result(problem):
-    return cal.calibrate(problem, estimate=("b_g", "b_a") + cal.NOISE_FIELDS)
+def result():
+    return fit_white_and_reference(3)
 
 
 def test_recovers_white_densities_and_reference_sigma_within_reported_uncertainty(result):
-    """The two white-noise densities and the reference's three σ each within 3σ of the truth
-    (each check fails by chance with probability 0.27% if the reported σ is right: the five
-    together 1.3%), and determined (relative σ < 25%). The random walks are not asserted
-    here: 20 s hold too little of them (benchmarks/noise_recovery.py measures their coverage
-    over seeds)."""
-    assert result.converged
-    fitted = cn._isotropic(result.noise)
-    std = cn._isotropic(result.noise_std)
-    truth = cn._isotropic(TRUE)
-    for i in (0, 1):
-        assert abs(fitted[i] - truth[i]) < 3 * std[i], (cn.DENSITIES[i], fitted[i], std[i])
-        assert std[i] < 0.25 * truth[i]
-    for j in range(3):
-        s, e = result.reference_sigma[j], result.reference_sigma_std[j]
-        assert abs(s - REF_SIGMA[j]) < 3 * e, (j, s, e)
-        assert e < 0.25 * REF_SIGMA[j] or j == 1  # σ_p: below the IMU's position noise
-    assert np.all(cn._isotropic(result.noise_std)[2:] > 0)
-    lo, hi = jaximu.montecarlo.chi2_interval(result.dof, 0.999)
-    assert lo < result.chi2 < hi
+    """Two seeds: the two white-noise densities and the reference's three σ each within 3σ of
+    the truth (each check fails by chance with probability 0.27% if the reported σ is right:
+    the ten together 2.7%); the gyro's white density determined (relative σ < 25%; 20 s hold
+    too little of the accelerometer's, below the reference's velocity noise). χ²/dof at the
+    estimate in its 99.9% interval. The random walks are fixed here: fitted together with the
+    rest, their estimates are biased (benchmarks/noise_recovery.py measures it)."""
+    for res in (result, fit_white_and_reference(4)):
+        assert res.converged
+        fitted = cn._isotropic(res.noise)
+        std = cn._isotropic(res.noise_std)
+        truth = cn._isotropic(TRUE)
+        for i in (0, 1):
+            assert abs(fitted[i] - truth[i]) < 3 * std[i], (cn.DENSITIES[i], fitted[i], std[i])
+        assert std[0] < 0.25 * truth[0]
+        assert np.all(std[2:] == 0) and np.all(fitted[2:] == truth[2:])  # fixed, as given
+        for j in range(3):
+            s, e = res.reference_sigma[j], res.reference_sigma_std[j]
+            assert abs(s - REF_SIGMA[j]) < 3 * e, (j, s, e)
+        lo, hi = jaximu.montecarlo.chi2_interval(res.dof, 0.999)
+        assert lo < res.chi2 < hi
     table = result.noise_table(allan=TRUE)
     assert "gyroscope_noise_density" in table and "rad/s/√Hz" in table and "200 Hz" in table
 
@@ -156,7 +197,7 @@ def test_write_imu_yaml_refuses_per_axis_and_bad_values(tmp_path):
 def test_one_length_problem_is_refused_naming_window_lengths(data):
     prob = cal.calibration_problem(*data, START, keyframe_interval=0.5,
                                    reference_sigma=REF_SIGMA)
-    with pytest.raises(jaximu.InputError, match="window_lengths=") as e:
+    with pytest.raises(InputError, match="window_lengths=") as e:
         cal.calibrate(prob, estimate=("b_g", "gyroscope_noise_density"))
     assert "one length" in str(e.value)
 
@@ -167,7 +208,7 @@ def test_one_length_problem_is_refused_naming_window_lengths(data):
     ((0.25, -1.0), "positive"),
 ])
 def test_bad_window_lengths_are_refused(data, lengths, match):
-    with pytest.raises(jaximu.InputError, match=match) as e:
+    with pytest.raises(InputError, match=match) as e:
         cal.calibration_problem(*data, START, window_lengths=lengths)
     assert "window_lengths" in str(e.value)
 
@@ -177,31 +218,31 @@ def test_problems_that_cannot_separate_the_noises_are_refused(problem):
     than kinds of noise: each refused naming window_lengths and a fix."""
     few = dataclasses.replace(problem, kept=np.where(
         np.arange(len(problem.kept)) >= len(problem.kept) - 8, False, problem.kept))
-    with pytest.raises(jaximu.InputError, match="windows of the longest length"):
+    with pytest.raises(InputError, match="windows of the longest length"):
         cal.calibrate(few, estimate=("gyroscope_random_walk",))
     narrow = dataclasses.replace(problem, window_lengths=(0.25, 0.5, 0.75))
-    with pytest.raises(jaximu.InputError, match="ratio"):
+    with pytest.raises(InputError, match="ratio"):
         cal.calibrate(narrow, estimate=("gyroscope_noise_density",))
     two = dataclasses.replace(problem, window_lengths=(0.25, 2.5))
-    with pytest.raises(jaximu.InputError, match="at least 3 lengths") as e:
+    with pytest.raises(InputError, match="at least 3 lengths") as e:
         cal.calibrate(two, estimate=cal.NOISE_FIELDS)
     assert "window_lengths=(0.25, 1, 4, 16)" in str(e.value)
 
 
 def test_bad_starting_values_and_names_are_refused(data, problem):
     zero = dataclasses.replace(problem, noise=jaximu.ImuNoise(2e-3, 2e-2, 0.0, 2e-2))
-    with pytest.raises(jaximu.InputError, match="gyroscope_random_walk is 0"):
+    with pytest.raises(InputError, match="gyroscope_random_walk is 0"):
         cal.calibrate(zero, estimate=("gyroscope_random_walk",))
     no_ref = dataclasses.replace(problem, reference_sigma=np.array([1e-3, 0.0, 1e-2]))
-    with pytest.raises(jaximu.InputError, match="reference_sigma"):
+    with pytest.raises(InputError, match="reference_sigma"):
         cal.calibrate(no_ref, estimate=("reference_sigma",))
     with pytest.raises(ValueError, match="unknown calibration fields"):
         cal.calibrate(problem, estimate=("gyro_noise",))
-    with pytest.raises(jaximu.InputError, match="optimizer"):
+    with pytest.raises(InputError, match="optimizer"):
         cal.calibrate(problem, estimate=("gyroscope_noise_density",), optimizer="adam")
-    with pytest.raises(jaximu.InputError, match="keyframe_interval"):
+    with pytest.raises(InputError, match="keyframe_interval"):
         cal.calibration_problem(*data, START, keyframe_interval=0.5, window_lengths=LENGTHS)
-    with pytest.raises(jaximu.InputError, match="extrinsics"):
+    with pytest.raises(InputError, match="extrinsics"):
         cal.calibrate(problem, estimate=("q_BS", "gyroscope_noise_density"))
     with pytest.raises(ValueError, match="no noise fit"):
         cal.noise_table(cal.CalibrationResult(*([None] * 10)))
