@@ -439,6 +439,8 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
                 "starts from it", [Fix("noise", f"a positive {n} (the datasheet's or an Allan "
                                                 "fit's) to start from")])
     kinds = sorted({_KIND[n] for n in names})
+    if not kinds:  # the fields alone (densities fixed): any windows will do
+        return
     lengths = problem.window_lengths
     if len(lengths) < max(len(kinds), 2):
         raise InputError(
