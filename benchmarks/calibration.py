@@ -171,8 +171,8 @@ def main():
     info = machine_info()
     if args.command:
         print(f"machine: {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax {info['jax']}")
-        time_command(args.seconds, ("--estimate", "b_g,b_a,noise", "--window-lengths",
-                                    "0.25,1,3") if args.noise else ())
+        noise = ("--estimate", "b_g,b_a,noise", "--window-lengths", "0.25,1,3")
+        time_command(args.seconds, noise if args.noise else ())
         return
     sizes = [100_000] if args.quick else [100_000, 1_000_000]
     rows = []

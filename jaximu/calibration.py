@@ -88,7 +88,8 @@ from jaximu._calibration_model import (_SIZES, _TANGENT, _VELOCITY_SCALE, EXCITA
                                        _gap_list, _interp, _sample_noise_covariance,
                                        calibration_loss, calibration_residuals)
 from jaximu._calibration_model import sensor_matrix  # noqa: F401  (calibration.sensor_matrix)
-from jaximu._calibration_noise import NOISE_FIELDS, NoiseProblem, noise_result, noise_table
+from jaximu._calibration_noise import NOISE_FIELDS, NoiseProblem, noise_result
+from jaximu._noise_table import noise_table
 from jaximu.errors import Fix, InputError
 from jaximu.io._common import GAP_FACTOR, in_gap
 from jaximu.noise import ImuNoise

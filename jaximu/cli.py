@@ -15,7 +15,6 @@ exit code 2; ``jaximu COMMAND --help`` describes each command.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 import sys
