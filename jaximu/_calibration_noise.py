@@ -522,7 +522,10 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
         z_new, u_new = z + delta[:n_c], u.copy()
         u_new[free_s] += delta[n_c:]
         r_new, J_new = evaluate(z_new)
-        f_new, g_new, H_new = derivatives(z_new, u_new, r_new, J_new)
+        try:
+            f_new, g_new, H_new = derivatives(z_new, u_new, r_new, J_new)
+        except np.linalg.LinAlgError:  # a covariance singular at the trial point: reject it
+            f_new = np.inf
         if np.isfinite(f_new) and f_new < f:
             z, u, r, J, f, g, H = z_new, u_new, r_new, J_new, f_new, g_new, H_new
             history.append(f + const)

@@ -58,14 +58,15 @@ def noise_table(result, allan=None) -> str:
              f"{'Allan':>10s}   discrete std at {result.rate_hz:.4g} Hz"]
     for i, name in enumerate(DENSITIES):
         unit, dunit = _UNITS[name]
-        est = f"{fitted[i]:.4g} ± {std[i]:.2g}" if std[i] > 0 else f"{fitted[i]:.4g} (fixed)"
+        est = (f"{fitted[i]:.4g} ± {std[i]:.2g}" if name in result.free
+               else f"{fitted[i]:.4g} (fixed)")
         lines.append(f"{name:28s} {unit:13s} {est:>22s} {fmt(given[i]):>10s} {fmt(al[i]):>10s}"
                      f"   {discrete[i]:.4g} {dunit}" + (" per sample" if i < 2 else
                                                         " per bias step"))
     for j, (name, unit) in enumerate((("reference σ_θ", "rad"), ("reference σ_p", "m"),
                                       ("reference σ_v", "m/s"))):
         s, e = result.reference_sigma[j], result.reference_sigma_std[j]
-        est = f"{s:.4g} ± {e:.2g}" if e > 0 else f"{s:.4g} (fixed)"
+        est = f"{s:.4g} ± {e:.2g}" if "reference_sigma" in result.free else f"{s:.4g} (fixed)"
         lines.append(f"{name:28s} {unit:13s} {est:>22s} "
                      f"{fmt(result.reference_sigma_given[j]):>10s}")
     return "\n".join(lines)
