@@ -3,12 +3,15 @@
     python benchmarks/calibration.py            # 1e5 and 1e6 samples, float32 and float64
     python benchmarks/calibration.py --quick    # 1e5 only
     python benchmarks/calibration.py --command  # `jaximu calibrate` on 30 s at 200 Hz: cold, warm
+    python benchmarks/calibration.py --command --noise  # the same with the noise densities
 
 ``--command`` times what a user waits for: ``jaximu calibrate`` run as a command (a fresh
 process: importing JAX, reading, checking, compiling, fitting, the Laplace covariance) on a
 simulated 30 s EuRoC-layout recording at 200 Hz (biases, white noise, ground truth with
 velocities), once with an empty compilation cache (cold) and once more with the cache the
 first run filled (warm). The targets on the 2-core VM: < 25 s cold, < 15 s warm.
+``--noise`` adds the four noise densities and the reference's σ to the fit (``--estimate
+b_g,b_a,noise --window-lengths 0.25,1,3``: windows of 0.25, 1 and 3 s); target < 30 s cold.
 
 Workload: a simulated Lissajous flight at 200 Hz with biases, scale and misalignment, the
 reference at 20 Hz; keyframes every 0.5 s (100 samples); the loss of
@@ -160,13 +163,16 @@ def main():
     ap.add_argument("--command", action="store_true",
                     help="only time `jaximu calibrate` on 30 s at 200 Hz, cold and warm")
     ap.add_argument("--seconds", type=float, default=30.0, help="with --command")
+    ap.add_argument("--noise", action="store_true",
+                    help="with --command: fit the noise densities too (windows 0.25, 1, 3 s)")
     ap.add_argument("--per-group", type=int, default=64)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     info = machine_info()
     if args.command:
         print(f"machine: {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax {info['jax']}")
-        time_command(args.seconds)
+        noise = ("--estimate", "b_g,b_a,noise", "--window-lengths", "0.25,1,3")
+        time_command(args.seconds, noise if args.noise else ())
         return
     sizes = [100_000] if args.quick else [100_000, 1_000_000]
     rows = []

@@ -21,7 +21,6 @@ from jaximu.propagate import propagate_final
 from jaximu.sensor import SensorPose, to_body
 from jaximu.state import ImuBias, NavState
 
-
 FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
           "accel_misalignment", "gravity", "time_offset", "q_BS", "p_BS")
 _SIZES = {"b_g": 3, "b_a": 3, "gyro_scale": 3, "gyro_misalignment": 3, "accel_scale": 3,
@@ -72,7 +71,7 @@ class ImuCalibration:
     p_BS: jax.Array
 
     @classmethod
-    def default(cls, gravity=9.81, dtype=None, **fields) -> "ImuCalibration":
+    def default(cls, gravity=9.81, dtype=None, **fields) -> ImuCalibration:
         """Zero biases, scale, misalignment and offset (unless given in ``fields``)."""
         dtype = val.compute_dtype("dtype", dtype) if dtype is not None else \
             jnp.zeros(()).dtype

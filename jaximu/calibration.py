@@ -48,6 +48,12 @@ one compiled function returns the residuals and their Jacobian (``jacfwd`` over 
 coordinates; 6 tangents per window for nuisance velocities) and serves every iteration and
 the covariance. optax L-BFGS and Adam on the loss are there too.
 
+The noise densities (and the reference's σ) are fitted by maximum likelihood over windows of
+several lengths: :func:`calibration_problem` with ``window_lengths`` returns a
+:class:`jaximu._calibration_noise.NoiseProblem`, and ``estimate=`` may then name
+:data:`NOISE_FIELDS` beside the fields; the model, its covariance and the fit are in
+:mod:`jaximu._calibration_noise` (docs/guide/noise-densities.md).
+
 Adding an estimable field (an IMU–body extrinsic, say): a pytree field of
 :class:`ImuCalibration` with its default in :meth:`ImuCalibration.default`; its name in
 :data:`FIELDS`, its size in ``_SIZES``, its typical magnitude in :data:`SCALES` (the unit of
@@ -67,21 +73,54 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu import so3, world
+
 # The model, the checks and the fit live in their own modules; the calibration's public
 # names (and the internals the tests call) are importable from here as before.
-from jaximu._calibration_checks import (QUICK_COMPILE_SAMPLES, _apply, _check_consistency,
-                                        _compiled, _initial_rotation, _keyframe_rotations,
-                                        _once, _preintegrate_sequential, _rotation_vectors)
-from jaximu._calibration_fit import (_flatten, _Layout, _levenberg_marquardt, _n_free,
-                                     _optax_loop, _quick, _residuals_jacobian, _scale_vector,
-                                     _unpack)
-from jaximu._calibration_fit import _residuals_jacobian_compiled  # noqa: F401  (tests)
-from jaximu._calibration_model import (_SIZES, _TANGENT, _VELOCITY_SCALE, EXCITATION, FIELDS,
-                                       MODELS, OPTIMIZERS, SCALES, CalibrationError,
-                                       CalibrationProblem, ImuCalibration, Reference,
-                                       _gap_list, _interp, _sample_noise_covariance,
-                                       calibration_loss, calibration_residuals)
-from jaximu._calibration_model import sensor_matrix  # noqa: F401  (calibration.sensor_matrix)
+from jaximu._calibration_checks import (
+    QUICK_COMPILE_SAMPLES,
+    _apply,
+    _check_consistency,
+    _compiled,
+    _initial_rotation,
+    _keyframe_rotations,
+    _once,
+    _preintegrate_sequential,
+    _rotation_vectors,
+)
+from jaximu._calibration_fit import (
+    _flatten,
+    _Layout,
+    _levenberg_marquardt,
+    _n_free,
+    _optax_loop,
+    _quick,
+    _residuals_jacobian,
+    _residuals_jacobian_compiled,  # noqa: F401  (tests)
+    _scale_vector,
+    _unpack,
+)
+from jaximu._calibration_model import (
+    _SIZES,
+    _TANGENT,
+    _VELOCITY_SCALE,
+    EXCITATION,
+    FIELDS,
+    MODELS,
+    OPTIMIZERS,
+    SCALES,
+    CalibrationError,
+    CalibrationProblem,
+    ImuCalibration,
+    Reference,
+    _gap_list,
+    _interp,
+    _sample_noise_covariance,
+    calibration_loss,
+    calibration_residuals,
+    sensor_matrix,  # noqa: F401  (calibration.sensor_matrix)
+)
+from jaximu._calibration_noise import NOISE_FIELDS, NoiseProblem, noise_result
+from jaximu._noise_table import noise_table
 from jaximu.errors import Fix, InputError
 from jaximu.io._common import GAP_FACTOR, in_gap
 from jaximu.noise import ImuNoise
@@ -98,7 +137,9 @@ __all__ = [
     "calibration_residuals",
     "calibrate",
     "FIELDS",
+    "NOISE_FIELDS",
     "SCALES",
+    "noise_table",
 ]
 
 def _check_initial(initial):
@@ -157,11 +198,12 @@ def _velocities_from_positions(p, t, good):
 
 
 def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
-                        keyframe_interval: float = 0.5, scheme: str = "euler",
+                        keyframe_interval: float | None = None, scheme: str = "euler",
                         model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
                         initial: ImuCalibration | None = None, windows_per_group: int = 64,
                         check: bool = True, extrinsics: bool = False,
-                        omega_coriolis=None) -> CalibrationProblem:
+                        omega_coriolis=None, window_lengths=None
+                        ) -> CalibrationProblem | NoiseProblem:
     """Cut the IMU stream into keyframe windows and pair them with the reference.
 
     Args:
@@ -177,7 +219,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             :class:`CalibrationError` names the gaps when they leave no window.
         noise: :class:`ImuNoise` of the IMU (whitening of the residuals).
         keyframe_interval: seconds between keyframes, positive, at least one sample interval
-            (rounded to whole samples).
+            (rounded to whole samples); default 0.5. Not with ``window_lengths``.
         scheme: ``"euler"`` or ``"midpoint"``; model: ``"preintegration"`` or ``"propagation"``.
         reference_sigma: ``(σ_θ [rad], σ_p [m], σ_v [m/s])``, each ``≥ 0``, of the
             reference's own errors,
@@ -208,9 +250,35 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             (:func:`jaximu.earth_rate`): the residuals then use the exact rotating-world
             prediction (:func:`jaximu.residual`).
 
+        window_lengths: windows of several lengths [s] for fitting the noise densities
+            (``estimate=(..., "gyroscope_noise_density", …, "reference_sigma")`` in
+            :func:`calibrate`), e.g. ``(0.25, 1, 4, 16)``: the shortest are the keyframe
+            windows, each longer one a whole multiple of the shortest, composed of
+            consecutive shortest windows; every length tiles the whole recording (they
+            overlap in time; :mod:`jaximu._calibration_noise`). White noise grows with the
+            length, random walk with its cube, the reference's noise not at all, so the
+            lengths should run from a fraction of a second to many seconds, the longest
+            fitting ≥ 8 times in the recording. The model is ``"preintegration"``, without
+            ``extrinsics``; a reference without velocities gets its positions' central
+            differences (their error is part of ``σ_v``).
+
     Returns:
-        :class:`CalibrationProblem`.
+        :class:`CalibrationProblem`, or with ``window_lengths`` a
+        :class:`jaximu._calibration_noise.NoiseProblem` (the shortest windows' problem as
+        its ``base``).
     """
+    if window_lengths is not None:
+        if keyframe_interval is not None:
+            raise InputError("keyframe_interval and window_lengths both given: with "
+                             "window_lengths the keyframes are the shortest length's",
+                             [Fix("keyframe_interval", "leave keyframe_interval out")])
+        from jaximu._calibration_noise import noise_problem
+        return noise_problem(calibration_problem, t, gyro, accel, reference, noise,
+                             window_lengths=window_lengths, scheme=scheme, model=model,
+                             reference_sigma=reference_sigma, initial=initial,
+                             windows_per_group=windows_per_group, check=check,
+                             extrinsics=extrinsics, omega_coriolis=omega_coriolis)
+    keyframe_interval = 0.5 if keyframe_interval is None else keyframe_interval
     if scheme not in ("euler", "midpoint"):
         raise ValueError(f"unknown scheme {scheme!r}; choose 'euler' or 'midpoint'")
     if model not in MODELS:
@@ -424,6 +492,14 @@ class CalibrationResult:
         n_windows: the windows in the fit; skipped_windows: those left out because a
             keyframe of theirs falls inside a reference gap; note: why, in words
             (:attr:`CalibrationProblem.skip_note`; "" when none was left out).
+        noise, noise_std: with ``window_lengths`` (a noise fit), the :class:`ImuNoise` at
+            the estimate (estimated densities isotropic; the others as given) and the 1σ of
+            each (0 for fixed ones), from the observed information of the likelihood;
+            ``None`` otherwise. reference_sigma, reference_sigma_std: ``(3,)``
+            ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` and its 1σ. noise_given,
+            reference_sigma_given: the values the problem was built with. rate_hz: the IMU's
+            rate (for the discrete-time standard deviations); window_lengths [s].
+            :meth:`noise_table` prints them side by side.
     """
 
     calibration: ImuCalibration
@@ -439,6 +515,18 @@ class CalibrationResult:
     n_windows: int = 0
     skipped_windows: int = 0
     note: str = ""
+    noise: ImuNoise | None = None
+    noise_std: ImuNoise | None = None
+    reference_sigma: np.ndarray | None = None
+    reference_sigma_std: np.ndarray | None = None
+    noise_given: ImuNoise | None = None
+    reference_sigma_given: np.ndarray | None = None
+    rate_hz: float | None = None
+    window_lengths: tuple = ()
+
+    def noise_table(self, allan=None) -> str:
+        """The fitted densities in words: :func:`noise_table`."""
+        return noise_table(self, allan)
 
 
 def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None,
@@ -479,11 +567,29 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     except TypeError:
         raise ValueError(f"estimate must be a tuple of field names from {FIELDS}, got "
                          f"{type(estimate).__name__} {estimate!r}") from None
-    unknown = [n for n in estimate if n not in FIELDS]
+    unknown = [n for n in estimate if n not in FIELDS + NOISE_FIELDS]
     if unknown:
-        raise ValueError(f"unknown calibration fields {unknown}; fields are {FIELDS}")
+        raise ValueError(f"unknown calibration fields {unknown}; fields are {FIELDS} and the "
+                         f"noise's {NOISE_FIELDS}")
     if not estimate:
         raise ValueError("estimate names no field")
+    if isinstance(problem, NoiseProblem):
+        if optimizer != "lm":
+            raise InputError(f"optimizer={optimizer!r}: the noise densities are fitted by "
+                             "damped Newton on the likelihood", [Fix("optimizer", "lm")])
+        _check_initial(initial)
+        steps = 50 if steps is None else val.check_int("steps", steps, 1)
+        tol = val.check_positive("tol", tol, allow_zero=True)
+        if max_reduced_chi2 is not None:
+            max_reduced_chi2 = val.check_positive("max_reduced_chi2", max_reduced_chi2)
+        return noise_result(problem, initial, estimate, steps, tol, max_reduced_chi2)
+    noise_names = [n for n in estimate if n in NOISE_FIELDS]
+    if noise_names:
+        raise InputError(
+            f"estimate names {noise_names}, but the problem's windows have one length: they "
+            "cannot separate white noise, random walk and the reference's noise",
+            [Fix("window_lengths", (0.25, 1, 4, 16))],
+            lead="build the problem with")
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
     if not isinstance(problem, CalibrationProblem):

@@ -5,7 +5,8 @@ Kalibr's ``camchain-imucam.yaml`` and ``imu.yaml``.
   16 numbers, row-major), ``rate_hz`` and the four Kalibr noise densities at the top level.
 * Kalibr ``camchain-imucam.yaml``: ``cam0: T_cam_imu`` (a 4×4 nested list): the IMU's pose
   in the camera frame, ``T_CS``; with the camera as the body it is ``T_BS``.
-* Kalibr ``imu.yaml``: ``imu0:`` with ``update_rate`` and the densities (no pose).
+* Kalibr ``imu.yaml``: ``imu0:`` with ``update_rate`` and the densities (no pose);
+  :func:`write_imu_yaml` writes one (Kalibr's input layout: the keys at the top level).
 
 :func:`read_sensor_yaml` returns a :class:`SensorConfig`; :func:`parse_body_P_sensor` reads
 the command's ``--body-P-sensor`` (seven numbers or such a file). Reading YAML needs PyYAML
@@ -23,7 +24,7 @@ from jaximu import _validation as val
 from jaximu.noise import ImuNoise
 from jaximu.sensor import SensorPose
 
-__all__ = ["SensorConfig", "read_sensor_yaml", "parse_body_P_sensor"]
+__all__ = ["SensorConfig", "read_sensor_yaml", "parse_body_P_sensor", "write_imu_yaml"]
 
 DENSITIES = ("gyroscope_noise_density", "accelerometer_noise_density", "gyroscope_random_walk",
              "accelerometer_random_walk")
@@ -174,3 +175,40 @@ def parse_body_P_sensor(text: str, camera: str = "cam0") -> SensorConfig:
     note = "" if abs(norm - 1) < 1e-12 else f" (q normalised from |q| = {norm:.6g})"
     pose = SensorPose(np.asarray(q / norm), np.asarray(vals[4:]))
     return SensorConfig(pose, None, None, f"--body-P-sensor{note}")
+
+
+_UNIT_COMMENTS = {"gyroscope_noise_density": "rad/s/sqrt(Hz) (gyro white noise)",
+                  "gyroscope_random_walk": "rad/s^2/sqrt(Hz) (gyro bias diffusion)",
+                  "accelerometer_noise_density": "m/s^2/sqrt(Hz) (accel white noise)",
+                  "accelerometer_random_walk": "m/s^3/sqrt(Hz) (accel bias diffusion)"}
+
+
+def write_imu_yaml(path, noise: ImuNoise, rate_hz: float, rostopic: str = "/imu0",
+                   comment: str = "") -> pathlib.Path:
+    """Write a Kalibr ``imu.yaml`` (its input layout: the four continuous-time densities,
+    ``rostopic`` and ``update_rate`` at the top level; no PyYAML needed): what
+    :func:`read_sensor_yaml` reads back. Kalibr's densities are scalars, so each field of
+    ``noise`` must be one finite number ``≥ 0`` (a per-axis value is refused: pass its
+    axes' root mean square if that is what you mean); ``rate_hz > 0``; ``comment``: a line
+    or more written as YAML comments at the top. Every number is written with 17
+    significant digits (it reads back exactly). Returns the path."""
+    if not isinstance(noise, ImuNoise):
+        raise ValueError(f"noise must be an ImuNoise, got {type(noise).__name__}")
+    values = {}
+    for key in DENSITIES:
+        x = np.asarray(getattr(noise, key), np.float64)
+        if x.ndim != 0:
+            raise ValueError(f"noise.{key} has shape {x.shape}: Kalibr's imu.yaml holds one "
+                             "number per density; pass a scalar (e.g. the axes' root mean square)")
+        if not np.isfinite(x) or x < 0:
+            raise ValueError(f"noise.{key} must be finite and ≥ 0, got {float(x)}")
+        values[key] = float(x)
+    rate = _number("rate_hz", "rate_hz", rate_hz, positive=True)
+    if not isinstance(rostopic, str) or not rostopic or any(c in rostopic for c in "\n:#'\""):
+        raise ValueError(f"rostopic must be a topic name such as '/imu0', got {rostopic!r}")
+    lines = [f"# {line}" for line in str(comment).splitlines()]
+    lines += [f"{key}: {values[key]:.17g}  # {_UNIT_COMMENTS[key]}" for key in DENSITIES]
+    lines += [f"rostopic: {rostopic}", f"update_rate: {rate:.17g}  # Hz"]
+    p = pathlib.Path(path)
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return p

@@ -1,8 +1,16 @@
-"""``jaximu calibrate``: IMU calibration against a ground-truth trajectory (the work is
-:mod:`jaximu.calibration`'s).
+"""``jaximu calibrate``: fit IMU calibration fields (biases, scale, misalignment, …) and the
+noise densities against a recording's ground truth.
 
-``cmd_calibrate`` and the parser section in :func:`add_parser` call the shared helpers of
-:mod:`jaximu.app.common` by private names (``_load``, ``_dtype``, …), imported under them.
+  jaximu calibrate FILE [--estimate b_g,b_a] [--keyframe-interval S] [--out JSON]
+  jaximu calibrate FILE --estimate b_g,b_a,noise [--window-lengths 0.25,1,4,16]
+                        [--reference-sigma 1e-3,1e-3,1e-2] [--imu-yaml imu.yaml]
+
+``noise`` in ``--estimate`` stands for the four densities and the reference's σ
+(:data:`jaximu.calibration.NOISE_FIELDS`); any of those names may be given alone. Parsing and
+printing only: the work is :mod:`jaximu.calibration`'s.
+
+The shared helpers of :mod:`jaximu.app.common` are imported under the private names
+(``_load``, ``_dtype``, …) this module has always called them by.
 """
 
 from __future__ import annotations
@@ -46,21 +54,60 @@ class _warnings_as_lines:
         return False
 
 
+WINDOW_LENGTHS = "0.25,1,4,16"
+
+
+def _numbers(flag, text, count=None):
+    try:
+        vals = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise UsageError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+    if count is not None and len(vals) != count:
+        raise UsageError(f"{flag} must hold {count} numbers, got {text!r}")
+    if not vals or not all(np.isfinite(vals)) or min(vals) <= 0:
+        raise UsageError(f"{flag} must be positive numbers, got {text!r}")
+    return vals
+
+
+def _estimate(text, cal):
+    names = []
+    for s in (s.strip() for s in text.split(",")):
+        if s == "noise":
+            names += [n for n in cal.NOISE_FIELDS if n not in names]
+        elif s and s not in names:
+            names.append(s)
+    known = cal.FIELDS + cal.NOISE_FIELDS
+    unknown = [s for s in names if s not in known]
+    if unknown or not names:
+        raise UsageError(f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
+                         f"--estimate; fields: {', '.join(cal.FIELDS)}, and the noise's "
+                         f"{', '.join(cal.NOISE_FIELDS)} (or noise for all of them)")
+    return tuple(names)
+
+
 def cmd_calibrate(args):
     import jax.numpy as jnp
 
     from jaximu import calibration as cal
 
-    if not args.keyframe_interval > 0:
+    estimate = _estimate(args.estimate, cal)
+    noise_fit = any(n in cal.NOISE_FIELDS for n in estimate)
+    if args.keyframe_interval is not None and not args.keyframe_interval > 0:
         raise UsageError("--keyframe-interval must be positive")
+    if noise_fit and args.keyframe_interval is not None:
+        raise UsageError("--keyframe-interval with noise densities in --estimate: their windows "
+                         "are --window-lengths (the shortest are the keyframes)")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be at least 1, got {args.steps}")
-    estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
-    unknown = [s for s in estimate if s not in cal.FIELDS]
-    if unknown or not estimate:
-        raise UsageError(f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
-                         f"--estimate; fields: {', '.join(cal.FIELDS)}")
-    _check_outputs(out=args.out)
+    lengths = _numbers("--window-lengths", args.window_lengths) if noise_fit else None
+    if args.window_lengths != WINDOW_LENGTHS and not noise_fit:
+        raise UsageError("--window-lengths is for fitting noise densities: add noise to --estimate")
+    if args.imu_yaml and not noise_fit:
+        raise UsageError("--imu-yaml writes fitted noise densities: add noise to --estimate")
+    ref_sigma = _numbers("--reference-sigma", args.reference_sigma, 3)
+    if noise_fit and args.optimizer != "lm":
+        raise UsageError("--optimizer: the noise densities are fitted by damped Newton (lm)")
+    _check_outputs(**{"out": args.out, "imu-yaml": args.imu_yaml})
     data = _load(args)
     gt = data.ground_truth
     if gt is None:
@@ -73,26 +120,32 @@ def cmd_calibrate(args):
     d = data.select(np.flatnonzero(inside))
     pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
     extrinsics = pose is not None or bool({"q_BS", "p_BS"} & set(estimate))
+    if noise_fit and extrinsics:
+        raise UsageError("noise densities with extrinsics (--body-P-sensor, q_BS, p_BS): fit "
+                         "the extrinsics first, then the noise on the rotated samples")
     initial = None
     if pose is not None:
         initial = cal.ImuCalibration.default(dtype=dtype, q_BS=np.asarray(pose.q),
                                              p_BS=np.asarray(pose.p))
+    noise = yaml_noise or _noise(args.noise)
+    kw = ({"window_lengths": lengths} if noise_fit
+          else {"keyframe_interval": args.keyframe_interval or 0.5, "extrinsics": extrinsics})
     with _warnings_as_lines():
         problem = cal.calibration_problem(jnp.asarray(d.t, dtype), jnp.asarray(d.gyro, dtype),
-                                          jnp.asarray(d.accel, dtype), ref,
-                                          yaml_noise or _noise(args.noise),
-                                          keyframe_interval=args.keyframe_interval,
-                                          scheme=args.scheme, extrinsics=extrinsics,
-                                          omega_coriolis=omega)
-    if "q_BS0" in problem.diagnostics:
-        angle = float(np.degrees(np.asarray(problem.diagnostics["q_BS0_angle"])))
+                                          jnp.asarray(d.accel, dtype), ref, noise,
+                                          scheme=args.scheme, omega_coriolis=omega,
+                                          reference_sigma=ref_sigma, **kw)
+    base = problem.base if noise_fit else problem
+    if "q_BS0" in base.diagnostics:
+        angle = float(np.degrees(np.asarray(base.diagnostics["q_BS0_angle"])))
         print(f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
               f"form): {angle:.2f}°, q_BS0 = "
-              f"{np.array2string(np.asarray(problem.diagnostics['q_BS0']), precision=5)}")
-    if problem.n_skipped:  # keyframes inside a dropout of the reference: left out of the fit
-        print(f"note: {problem.skip_note}")
-    print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s "
-          f"(keyframes every {args.keyframe_interval:g} s, {args.scheme})")
+              f"{np.array2string(np.asarray(base.diagnostics['q_BS0']), precision=5)}")
+    if base.n_skipped:  # keyframes inside a dropout of the reference: left out of the fit
+        print(f"note: {base.skip_note}")
+    windows = (f"windows of {', '.join(f'{x:g}' for x in problem.window_lengths)} s"
+               if noise_fit else f"keyframes every {args.keyframe_interval or 0.5:g} s")
+    print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s ({windows}, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
     what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step",
             "adam": "Adam step"}[args.optimizer]
@@ -107,7 +160,7 @@ def cmd_calibrate(args):
     print(f"done in {time.perf_counter() - tic:.2f} s ({len(res.loss_history) - 1} steps, "
           f"{'converged' if res.converged else 'not converged'}); χ²/dof = {res.reduced_chi2:.3g}")
     out = {}
-    for name in estimate:
+    for name in (n for n in estimate if n in cal.FIELDS):
         value = np.asarray(getattr(res.calibration, name), np.float64)
         std = np.asarray(getattr(res.std, name), np.float64)
         out[name] = {"value": value.tolist(), "std": std.tolist()}
@@ -117,36 +170,77 @@ def cmd_calibrate(args):
         if truth is not None:
             line += f"   (ground truth {np.array2string(truth.mean(0), precision=5)})"
         print(line)
+    doc = {"fields": out, "reduced_chi2": res.reduced_chi2, "source": data.source}
+    if noise_fit:
+        print(res.noise_table())
+        doc["noise"] = _noise_json(res, cal)
     if args.out:
-        pathlib.Path(args.out).write_text(json.dumps(
-            {"fields": out, "reduced_chi2": res.reduced_chi2, "source": data.source}, indent=2))
+        pathlib.Path(args.out).write_text(json.dumps(doc, indent=2))
         print(f"calibration written to {args.out}")
+    if args.imu_yaml:
+        from jaximu import kalibr
+
+        iso = cal.ImuNoise(*(float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
+                             for n in kalibr.DENSITIES))
+        kalibr.write_imu_yaml(args.imu_yaml, iso, res.rate_hz, comment=(
+            f"jaximu calibrate {args.file}: densities by likelihood over windows of "
+            f"{', '.join(f'{x:g}' for x in res.window_lengths)} s; χ²/dof = "
+            f"{res.reduced_chi2:.3f}"))
+        print(f"Kalibr imu.yaml written to {args.imu_yaml}")
     return 0
 
 
+def _noise_json(res, cal):
+    """The densities (Kalibr units) and the reference's σ, each ``{value, std}``."""
+    out = {}
+    for name in cal.NOISE_FIELDS[:4]:
+        out[name] = {"value": np.asarray(getattr(res.noise, name), np.float64).tolist(),
+                     "std": np.asarray(getattr(res.noise_std, name), np.float64).tolist()}
+    out["reference_sigma"] = {"value": res.reference_sigma.tolist(),
+                              "std": res.reference_sigma_std.tolist()}
+    out["rate_hz"] = res.rate_hz
+    out["window_lengths"] = list(res.window_lengths)
+    return out
+
+
 def add_parser(sub):
-    """Register ``jaximu calibrate`` on the command's subparsers."""
-    p = sub.add_parser("calibrate", help="fit IMU biases (or scale, misalignment, …) to ground truth",
+    p = sub.add_parser("calibrate", help="fit IMU biases (or scale, misalignment, …, the noise "
+                       "densities) to ground truth",
                        description="Fit IMU calibration parameters (Levenberg-Marquardt, or "
-                       "optax L-BFGS/Adam) on preintegration residuals between ground-truth keyframes; "
-                       "print them with their Laplace 1σ.")
+                       "optax L-BFGS/Adam) on preintegration residuals between ground-truth "
+                       "keyframes, and the noise densities by likelihood over windows of several "
+                       "lengths; print them with their Laplace 1σ.")
     _add_input_options(p)
     p.add_argument("--estimate", default="b_g,b_a",
                    help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
                    "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, "
                    "time_offset, q_BS (the IMU's rotation in the reference's body frame, "
-                   "initialised in closed form), p_BS (its lever arm)")
-    p.add_argument("--keyframe-interval", type=float, default=0.5,
-                   help="seconds between keyframes (> 0, at least one sample interval)")
+                   "initialised in closed form), p_BS (its lever arm); the noise densities "
+                   "gyroscope_noise_density, accelerometer_noise_density, "
+                   "gyroscope_random_walk, accelerometer_random_walk and reference_sigma, or "
+                   "noise for all five")
+    p.add_argument("--keyframe-interval", type=float, default=None,
+                   help="seconds between keyframes (> 0, at least one sample interval; "
+                   "default 0.5); not with noise densities")
+    p.add_argument("--window-lengths", default=WINDOW_LENGTHS,
+                   help="noise densities: comma-separated window lengths [s], each a whole "
+                   "multiple of the shortest, the longest fitting ≥ 8 times in the recording "
+                   "(default: %(default)s)")
+    p.add_argument("--reference-sigma", default="1e-3,1e-3,1e-2",
+                   help="the reference's own noise σ_θ [rad], σ_p [m], σ_v [m/s] (positive; "
+                   "the starting values when reference_sigma is estimated; default: %(default)s)")
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
     p.add_argument("--optimizer", default="lm", choices=["lm", "lbfgs", "adam"],
                    help="Levenberg-Marquardt on the residuals (default: compiles least, fewest "
                    "steps), optax L-BFGS or Adam")
     p.add_argument("--steps", type=int, default=None,
                    help="optimiser steps (≥ 1; default: 50 LM, 100 L-BFGS, 1000 Adam)")
-    p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS)
+    p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS,
+                   help="the densities to whiten with (and to start a noise fit from)")
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
+    p.add_argument("--imu-yaml", metavar="YAML",
+                   help="write the fitted densities as a Kalibr imu.yaml (with noise in "
+                   "--estimate)")
     p.add_argument("--float64", action="store_true", help="compute in float64")
     _add_sensor_options(p)
     p.set_defaults(func=cmd_calibrate)
-    return p

@@ -81,9 +81,11 @@ FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": 
          "drop_nonfinite": "--drop-nonfinite", "allow_gaps": "--allow-gaps",
          "max_gap": "--max-gap", "gravity": "--gravity",
          "keyframe_interval": "--keyframe-interval", "seconds": "--seconds",
-         "update_every": "--filter"}
+         "update_every": "--filter", "estimate": "--estimate",
+         "window_lengths": "--window-lengths", "reference_sigma": "--reference-sigma",
+         "optimizer": "--optimizer", "noise": "--noise"}
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
-API_ONLY_OPTIONS = frozenset({"measurement", "path"})
+API_ONLY_OPTIONS = frozenset({"measurement", "path", "model", "extrinsics"})
 """Options the library's fixes may name that have no flag (rendered as keywords):
 ``monte_carlo``'s ``measurement`` (the command builds it from ``--fix-sigma``) and
 ``MonteCarloResult.save``'s ``path`` (``--save`` is checked by the command first)."""
@@ -103,6 +105,8 @@ def flag_of(fix) -> str:
         return fix.describe(flag)
     if fix.value is True:
         return flag
+    if isinstance(fix.value, tuple):  # the command's lists are comma-separated numbers
+        return f"{flag} " + ",".join(f"{x:g}" for x in fix.value)
     return f"{flag} {fix.value:g}" if isinstance(fix.value, float) else f"{flag} {fix.value}"
 
 
