@@ -538,13 +538,33 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
             lam = max(10 * lam, 1e-3 * float(np.max(np.abs(np.diag(H)))) or 1e-3)
     w = np.asarray(_whitened(jnp.asarray(u, dtype), r, basis), np.float64)
     chi2 = float(np.sum(w * w))
-    cov_z = np.linalg.pinv(H)
+    cov_z = laplace_covariance(H)
     calib, _ = _unpack(jnp.asarray(z, dtype), init_vec, base.velocities, layout)
     scales = np.asarray(_scale_vector(free_c, dtype), np.float64) if n_c else np.zeros(0)
     return dict(calibration=calib, sigmas=s0 * np.exp(u), cov_z=cov_z, free=free_c,
                 free_sigmas=free_s, scales=scales, history=np.asarray(history),
                 converged=converged, chi2=chi2, dof=max(9 * len(keep) - n, 1),
                 n_windows=len(keep))
+
+
+def laplace_covariance(H):
+    """The Laplace covariance ``H⁻¹`` of the fit's coordinates from the NLL's Hessian ``H``,
+    with NaN rows and columns for the coordinates the likelihood does not determine: those
+    that lie along a direction of ``H`` that is flat or curved downward (eigenvalue at most
+    ``n·ε`` times the largest; a coordinate counts when that direction holds more than 1 % of
+    it, ``Σ V_ik² > 10⁻⁴``). A pseudo-inverse would give them a variance of zero — a standard
+    error that claims certainty where the data say nothing. The other coordinates' variances
+    are those with the flat directions held fixed (a scale going to zero in log coordinates,
+    such as a reference σ far below what the residuals show, is such a direction)."""
+    H = 0.5 * (np.asarray(H, np.float64) + np.asarray(H, np.float64).T)
+    w, V = np.linalg.eigh(H)
+    flat = w <= len(w) * np.finfo(np.float64).eps * max(float(np.max(np.abs(w))), 1e-300)
+    keep = ~flat
+    cov = (V[:, keep] / w[keep]) @ V[:, keep].T
+    undetermined = np.sum(V[:, flat] ** 2, axis=1) > 1e-4
+    cov[undetermined, :] = np.nan
+    cov[:, undetermined] = np.nan
+    return cov
 
 
 def _nll_newton(r, J, basis, u, free_s):
@@ -611,7 +631,14 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
     free_s, sig = out["free_sigmas"], out["sigmas"]
     jac = np.concatenate([out["scales"], sig[free_s]])  # physical per coordinate (dσ = σ du)
     cov = out["cov_z"] * jac[:, None] * jac[None, :]
-    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    se = np.sqrt(np.diag(cov))  # NaN where the likelihood does not determine the value
+    names = [f"{n}[{i}]" for n in out["free"] for i in range(_TANGENT[n])]
+    names += [_SIGMAS[i] for i in free_s]
+    flat = [n for n, e in zip(names, se) if not np.isfinite(e)]
+    if flat:
+        warnings.warn(f"noise fit: the likelihood does not determine {', '.join(flat)} (flat "
+                      "or not at a minimum there): their standard errors are NaN; fix them, "
+                      "or add windows that separate them", RuntimeWarning, stacklevel=3)
     std, off = {}, 0
     for name in FIELDS:
         shape = np.shape(getattr(initial, name)) if name != "q_BS" else (3,)

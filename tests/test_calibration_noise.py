@@ -245,3 +245,20 @@ def test_bad_starting_values_and_names_are_refused(data, problem):
         cal.calibrate(problem, estimate=("q_BS", "gyroscope_noise_density"))
     with pytest.raises(ValueError, match="no noise fit"):
         cal.noise_table(cal.CalibrationResult(*([None] * 10)))
+
+
+def test_laplace_covariance_is_the_inverse_and_nan_where_the_likelihood_is_flat():
+    """A positive definite Hessian gives ``H⁻¹`` (numpy's inverse); a Hessian flat along one
+    coordinate, or curved downward there, gives NaN for that coordinate's row and column
+    (never the zero variance of a pseudo-inverse), and the others' covariance with it fixed."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(4, 4))
+    H = A @ A.T + 4 * np.eye(4)
+    np.testing.assert_allclose(cn.laplace_covariance(H), np.linalg.inv(H), rtol=1e-12)
+    for curvature in (0.0, -1.0):
+        Hf = np.zeros((5, 5))
+        Hf[:4, :4] = H
+        Hf[4, 4] = curvature
+        cov = cn.laplace_covariance(Hf)
+        assert np.all(np.isnan(cov[4])) and np.all(np.isnan(cov[:, 4]))
+        np.testing.assert_allclose(cov[:4, :4], np.linalg.inv(H), rtol=1e-12)
