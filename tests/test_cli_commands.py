@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 SEG = str(pathlib.Path(__file__).parent / "data" / "euroc_v1_02_medium")
 
@@ -69,3 +70,27 @@ def test_preintegrate_when_the_ground_truth_starts_later(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "median over the 5 windows inside it" in res.stdout
     assert (tmp_path / "pim.npz").exists()
+
+
+def test_calibrate_command_fits_noise_densities_and_writes_an_imu_yaml(tmp_path):
+    """``--estimate b_g,b_a,noise`` over windows of four lengths (5 s of data: the longest
+    fits ten times): the JSON holds each density and the reference's σ with its standard
+    error (strict JSON: ``null`` where undetermined), and the Kalibr imu.yaml it writes
+    reads back through ``jaximu.kalibr`` to the JSON's values."""
+    from jaximu import kalibr
+
+    out, yaml = tmp_path / "cal.json", tmp_path / "imu.yaml"
+    res = run("calibrate", SEG, "--estimate", "b_g,b_a,noise",
+              "--window-lengths", "0.05,0.1,0.2,0.5", "--out", str(out), "--imu-yaml", str(yaml))
+    assert res.returncode == 0, res.stderr
+    assert "noise densities by likelihood" in res.stdout and "Kalibr imu.yaml written" in res.stdout
+    noise = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+    noise = noise["noise"]
+    assert noise["window_lengths"] == pytest.approx([0.05, 0.1, 0.2, 0.5], rel=1e-3)
+    back = kalibr.read_sensor_yaml(yaml).noise
+    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
+                 "gyroscope_random_walk", "accelerometer_random_walk"):
+        value, std = noise[name]["value"], noise[name]["std"]
+        assert value > 0 and (std is None or std > 0), (name, value, std)
+        assert float(getattr(back, name)) == pytest.approx(value, rel=1e-15)
+    assert len(noise["reference_sigma"]["value"]) == 3

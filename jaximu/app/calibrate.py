@@ -190,14 +190,24 @@ def cmd_calibrate(args):
     return 0
 
 
+def _json_numbers(x):
+    """An array as JSON numbers: a value the fit did not determine (NaN) is ``null``, which
+    every JSON reader takes (``NaN`` is no JSON)."""
+    a = np.asarray(x, np.float64)
+    if a.ndim == 0:
+        return float(a) if np.isfinite(a) else None
+    return [_json_numbers(v) for v in a]
+
+
 def _noise_json(res, cal):
-    """The densities (Kalibr units) and the reference's σ, each ``{value, std}``."""
+    """The densities (Kalibr units) and the reference's σ, each ``{value, std}`` (``std``
+    ``null`` where the likelihood does not determine the value)."""
     out = {}
     for name in cal.NOISE_FIELDS[:4]:
-        out[name] = {"value": np.asarray(getattr(res.noise, name), np.float64).tolist(),
-                     "std": np.asarray(getattr(res.noise_std, name), np.float64).tolist()}
-    out["reference_sigma"] = {"value": res.reference_sigma.tolist(),
-                              "std": res.reference_sigma_std.tolist()}
+        out[name] = {"value": _json_numbers(getattr(res.noise, name)),
+                     "std": _json_numbers(getattr(res.noise_std, name))}
+    out["reference_sigma"] = {"value": _json_numbers(res.reference_sigma),
+                              "std": _json_numbers(res.reference_sigma_std)}
     out["rate_hz"] = res.rate_hz
     out["window_lengths"] = list(res.window_lengths)
     return out
