@@ -29,7 +29,7 @@ import jax.numpy as jnp
 
 from jaximu import _blocks as blk
 from jaximu import _dispatch as dispatch
-from jaximu import _fast, _soa, so3
+from jaximu import _fast, _soa, integrators, so3
 from jaximu._blocks import UPPER
 from jaximu._soa import SOA
 from jaximu.integrators import compose_deltas
@@ -112,13 +112,10 @@ def deltas_before(deltas):
 
 
 def apply_deltas(q, p, v, g, d):
-    """The state ``(q, p, v)`` moved by deltas ``d`` (:func:`compose_deltas`) under gravity
-    ``g``: ``R ΔR``, ``p + v Δt + ½ g Δt² + R Δp``, ``v + g Δt + R Δv``."""
-    dq, dp, dv, t = d
-    t = t[..., None]
-    return (so3.quat_normalize(so3.quat_mul(q, dq)),
-            p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
-            v + g * t + so3.quat_rotate(q, dv))
+    """The state ``(q, p, v)`` moved by deltas ``d`` under gravity ``g``
+    (:func:`jaximu.integrators.apply_deltas`), the quaternion renormalised."""
+    q1, p1, v1 = integrators.apply_deltas(q, p, v, g, d)
+    return so3.quat_normalize(q1), p1, v1
 
 
 # --------------------------------------------------------------------------- the covariance

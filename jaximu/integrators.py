@@ -402,6 +402,17 @@ def compose_deltas(a, b, rotate=None):
             va + rot(vb), ta + tb)
 
 
+def apply_deltas(q, p, v, g, deltas):
+    """The state ``(q, p, v)`` moved by an interval's gravity-free deltas ``(Δq, Δp, Δv, Δt)``
+    (:func:`compose_deltas`) under gravity ``g``: ``(q ⊗ Δq, p + v Δt + ½ g Δt² + R Δp,
+    v + g Δt + R Δv)`` (Forster et al. 2017; the quaternion product not renormalised).
+    Quaternions ``(..., 4)``, vectors ``(..., 3)``, ``Δt`` ``(...)``."""
+    dq, dp, dv, t = deltas
+    t = t[..., None]
+    return (so3.quat_mul(q, dq), p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
+            v + g * t + so3.quat_rotate(q, dv))
+
+
 def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, noise=None):
     """One step on a :class:`NavState` (quaternion in, quaternion out), with optional noise.
 

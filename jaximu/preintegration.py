@@ -45,7 +45,7 @@ from jaximu._batching import ArgSpec, leading_axes
 from jaximu._blocks import mm
 from jaximu._preintegration_engine import Preintegrated, _Acc, _combine, _finish, _preintegrate
 from jaximu._preintegration_steps import _UPPER9
-from jaximu.integrators import compose_deltas
+from jaximu.integrators import apply_deltas, compose_deltas
 from jaximu.noise import ImuNoise
 from jaximu.state import ImuBias, NavState
 
@@ -402,13 +402,11 @@ def predict(state_i: NavState, pim: Preintegrated, gravity=9.81, *, omega_coriol
     omega = _world(omega_coriolis, pim.delta_v.dtype, batch, coriolis_exact,
                    coriolis_second_order)
     delta_q, delta_v, delta_p = _corrected_deltas(pim, state_i.bias)
-    dt = pim.delta_t[..., None]
     v_i = state_i.v
     if omega is not None and coriolis_exact:
         v_i = world.to_inertial(omega, state_i.p, v_i)
-    p = state_i.p + v_i * dt + 0.5 * g * dt * dt + so3.quat_rotate(state_i.q, delta_p)
-    v = v_i + g * dt + so3.quat_rotate(state_i.q, delta_v)
-    q = so3.quat_mul(state_i.q, delta_q)
+    q, p, v = apply_deltas(state_i.q, state_i.p, v_i, g,
+                           (delta_q, delta_p, delta_v, pim.delta_t))
     if omega is not None and coriolis_exact:
         dth, p, v = world.leave_inertial(omega, pim.delta_t, g, p, v)
         q = so3.quat_mul(so3.exp(dth), q)
