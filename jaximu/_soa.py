@@ -924,8 +924,9 @@ class LaneForm(NamedTuple):
     rotate_left: Callable  # (x, dθ (…, 3)) -> Exp(dθ) R(x), the form's state
 
 
-_QUAT: dict[str, Any] = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix, tangents=rotation_tangents,
-             rows=rotation_rows, rotate_left=_quat_rotate_left)
+_QUAT: dict[str, Any] = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix,
+                             tangents=rotation_tangents, rows=rotation_rows,
+                             rotate_left=_quat_rotate_left)
 LANE_FORMS = {
     "quaternion": LaneForm("quaternion", advance=_quat_advance, **_QUAT),
     "quaternion_first_order": LaneForm("quaternion_first_order", advance=_quat_first_order,
