@@ -2,7 +2,7 @@
 
 Each case (the public entries, wrapped in ``jax.jit``) runs under three tables:
 
-* ``new``: the dispatch table as it is (``jaximu._dispatch.TABLE``);
+* ``new``: the dispatch table as it is (``jaximu.engine._dispatch.TABLE``);
 * ``generic``: an empty table, so every entry runs the generic ``lax.scan`` kernels;
 * ``soa``: the CPU's structure-of-arrays rows on every backend (the table before the
   accelerator rows, less the CPU's float64-only chunked row), the covariance sequential;
@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)
 import propagation as P  # noqa: E402
 
 import jaximu  # noqa: E402
-import jaximu._dispatch as dsp  # noqa: E402
+import jaximu.engine._dispatch as dsp  # noqa: E402
 
 TABLE0 = dsp.TABLE
 SOA_TABLE = tuple(

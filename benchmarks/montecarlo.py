@@ -6,7 +6,7 @@
 
 The CPU is split into one XLA device per core (``--xla_force_host_platform_device_count``,
 set below before JAX starts) so that ``monte_carlo`` runs one chunk per core. The noise is
-drawn inside the scan (counter-based Threefry, :mod:`jaximu._rng`), so "noise generation
+drawn inside the scan (counter-based Threefry, :mod:`jaximu.kernels.rng`), so "noise generation
 included" is the only way it runs. Peak memory of a study is measured in a fresh
 subprocess (``resource.getrusage(RUSAGE_SELF).ru_maxrss``, the whole process: Python, JAX,
 the compiled code). The filter study (position fix every 20 samples, every run propagating

@@ -16,7 +16,7 @@ jaximu computes the deltas, all five bias Jacobians (the full 15×15 transition)
 covariance and the 15×15 one with the bias random walk. The rows "auto, 9×9 + bias
 Jacobians" time a jitted program that returns only the deltas, the 9×9 covariance and the
 transition (what the C++ reference, GTSAM's Manifold class, Basalt and VINS-Mono compute):
-the 15×15 recursion is then not run (``jaximu._batching``'s dead-code rule); their numbers
+the 15×15 recursion is then not run (``jaximu.engine._batching``'s dead-code rule); their numbers
 are checked equal to the whole result's. The GTSAM baseline is
 ``PreintegratedImuMeasurementsManifold`` (9×9 covariance and bias Jacobians; the Manifold
 class is the one that equals exact Euler preintegration) fed sample by sample from Python,
@@ -89,7 +89,7 @@ def best_time(fn, reps=3, min_time=0.3):
 
 # what the C++ reference, Basalt and VINS-Mono compute: the deltas, the 9×9 covariance and
 # the bias Jacobians (the rows of the transition); a jitted program that reads only these
-# does not compute the 15×15 cov15 (jaximu._batching's dead-code rule)
+# does not compute the 15×15 cov15 (jaximu.engine._batching's dead-code rule)
 NINE = ("delta_t", "delta_q", "delta_v", "delta_p", "cov", "transition")
 
 

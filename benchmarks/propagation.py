@@ -123,7 +123,7 @@ P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4 ** 2] 
 
 EARTH_48 = np.asarray(jaximu.earth_rate(48.0))  # rad/s, east-north-up
 # an IMU rotated 40° and 0.39 m from the body's origin (its covariance couples the gyro into
-# the specific force through ω×(ω×r): jaximu/sensor.py)
+# the specific force through ω×(ω×r): jaximu/geometry/sensor.py)
 LEVER_POSE = jaximu.SensorPose.from_rotation(
     np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15]))
 

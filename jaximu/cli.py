@@ -22,7 +22,7 @@ from jaximu.app.demo import cmd_demo
 from jaximu.app.montecarlo import FIX_SIGMA, cmd_montecarlo
 from jaximu.app.preintegrate import cmd_preintegrate
 from jaximu.app.propagate import REPORT_AT, cmd_propagate
-from jaximu.recording import (
+from jaximu.studies.recording import (
     DEMO_SCHEMES,
     DEMO_SECONDS,
     NOISE_PRESETS,

@@ -68,9 +68,9 @@ def random_inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
 def dispatch_as(backend):
     """Run the engine's dispatch as on ``backend`` (``"cpu"`` or ``"accelerator"``) whatever
     device runs it: the table's rows, the batch blocks, the stage conditionals
-    (jaximu._dispatch.backend). The jit caches are cleared around it: a traced entry does not
+    (jaximu.engine._dispatch.backend). The jit caches are cleared around it: a traced entry does not
     key on the backend."""
-    from jaximu import _dispatch
+    from jaximu.engine import _dispatch
 
     saved = _dispatch.backend
     _dispatch.backend = lambda: backend

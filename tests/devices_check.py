@@ -2,7 +2,7 @@
 be set before JAX starts, so this runs apart from the suite's process).
 
 Each check compares a call under ``jax.set_mesh`` (lanes split over the two devices by
-``jaximu._soa.run_blocked``) with the same call, in this process, without a mesh: the
+``jaximu.kernels.soa.run_blocked``) with the same call, in this process, without a mesh: the
 reference is the single-device kernel, which the rest of the suite tests against the generic
 kernels and the peers. Values and gradients must agree to 1e-12 of their scale (float64;
 the kernels are elementwise in lanes, so the split changes at most the code generated for a

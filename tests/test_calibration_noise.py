@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu import _calibration_noise as cn
+from jaximu.calibration.problem import _noise_fit as cn
 from jaximu import calibration as cal
 from jaximu import kalibr, so3
 from jaximu import simulate as sim
-from jaximu._calibration_model import _group_residuals
+from jaximu.calibration._model import _group_residuals
 from jaximu.errors import InputError
 
 RATE = 200.0

@@ -1,4 +1,4 @@
-"""The covariance of a few long sequences in time chunks (jaximu/_chunked.py) against the
+"""The covariance of a few long sequences in time chunks (jaximu/engine/_chunked.py) against the
 sequential structure-of-arrays scan over the same samples (itself tested against the generic
 kernels and finite differences elsewhere): every scheme, both Jacobian options, a sensor at a
 lever arm in a still and in a turning world, float64 and float32, the final covariance and
@@ -15,7 +15,7 @@ import pytest
 from _shared import dispatch_as, random_inputs
 
 import jaximu
-from jaximu import _dispatch
+from jaximu.engine import _dispatch
 
 NOISE = jaximu.ImuNoise.euroc()
 P0 = jnp.diag(jnp.asarray(np.r_[[3e-4] * 3, [1e-2] * 3, [1e-2] * 3, [1e-6] * 3, [1e-4] * 3]))

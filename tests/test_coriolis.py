@@ -9,7 +9,7 @@ import pytest
 from _shared import central_difference_phi
 
 import jaximu
-from jaximu import _dispatch
+from jaximu.engine import _dispatch
 from jaximu import simulate as sim
 from jaximu.datasets import euroc_v1_02_segment
 
@@ -233,7 +233,7 @@ def test_rotating_world_mean_on_the_soa_kernel_equals_the_generic_kernel(
     """The dispatch table's column: the mean in a rotating world takes the structure-of-arrays
     row, and equals the generic scan of
     jaximu.propagate.rotating_step at every state (float64, relative 1e-12)."""
-    from jaximu.propagate import _propagate
+    from jaximu.engine.propagate import _propagate
 
     assert _dispatch.kernel("mean", scheme, attitude="quaternion", lanes=64,
                             rotating=True, on=_dispatch.CPU) == "soa_mean"
@@ -262,7 +262,7 @@ def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
     equals the generic kernel (float64, relative 1e-12), whose covariance the
     finite-difference test above checks; the cases cover every scheme and model once and
     both Jacobian options."""
-    from jaximu.errorstate import _propagate_covariance
+    from jaximu.engine.errorstate import _propagate_covariance
 
     row = "soa_cov_" + jacobians
     assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,

@@ -1,5 +1,5 @@
 """A jitted program computes only what it returns: the engine entries' dead-code rule
-(jaximu/_batching.py, ``_dce``) prunes the kernel of outputs nothing reads.
+(jaximu/engine/_batching.py, ``_dce``) prunes the kernel of outputs nothing reads.
 
 References: the generic recursion (``fast=False``, which has no dead-code rule of its own)
 for the values, and the structure of the program JAX lowers (the entry's call keeps only
@@ -13,7 +13,7 @@ from jax.extend.core import jaxpr_as_fun
 from jax.interpreters import partial_eval as pe
 
 import jaximu
-from jaximu.preintegration import ImuBias, _preintegrate
+from jaximu.engine.preintegration import ImuBias, _preintegrate
 
 T = 40
 NOISE = jaximu.ImuNoise(2e-3, 3e-2, 1e-4, 2e-3)

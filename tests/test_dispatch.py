@@ -1,4 +1,4 @@
-"""The dispatch table (jaximu/_dispatch.py) against its documented copy, and
+"""The dispatch table (jaximu/engine/_dispatch.py) against its documented copy, and
 ``preintegrate(method="auto")`` against the methods it chooses between."""
 
 import pathlib
@@ -10,7 +10,7 @@ import pytest
 from _shared import dispatch_as
 
 import jaximu
-from jaximu import _dispatch
+from jaximu.engine import _dispatch
 
 DESIGN = pathlib.Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
 

@@ -3,7 +3,7 @@ the rotation matrix (exact exponential, closed-form and autodiff Jacobians), the
 first-order quaternion (autodiff Jacobians) and Euler angles (autodiff Jacobians, their
 pitch singularity reported), against the generic kernels (``fast=False``), which carry the same
 forms as ``(..., 3, 3)`` / ``(..., 4)`` / ``(..., 3)`` arrays and differentiate the
-quaternion state with ``jax.jacfwd`` (jaximu/errorstate.py)."""
+quaternion state with ``jax.jacfwd`` (jaximu/engine/errorstate.py)."""
 
 import functools
 
@@ -14,9 +14,9 @@ import pytest
 from _shared import random_inputs
 
 import jaximu
-from jaximu import _dispatch
-from jaximu.errorstate import _propagate_covariance
-from jaximu.propagate import _propagate
+from jaximu.engine import _dispatch
+from jaximu.engine.errorstate import _propagate_covariance
+from jaximu.engine.propagate import _propagate
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 NOISE = jaximu.ImuNoise(jnp.asarray([1e-3, 2e-3, 3e-3]), 2e-3, 1e-4, 3e-3)

@@ -1,4 +1,4 @@
-"""The structure-of-arrays fast path (jaximu/_fast.py: Euler, exact quaternion exponential,
+"""The structure-of-arrays fast path (jaximu/kernels/fast.py: Euler, exact quaternion exponential,
 batched mean; analytic final covariance) against the generic kernels it replaces."""
 
 import functools
@@ -11,9 +11,10 @@ from _shared import dispatch_as
 from _shared import random_inputs as inputs
 
 import jaximu
-from jaximu import _dispatch, _soa
-from jaximu.errorstate import _propagate_covariance
-from jaximu.propagate import _propagate
+from jaximu.engine import _dispatch
+from jaximu.kernels import soa as _soa
+from jaximu.engine.errorstate import _propagate_covariance
+from jaximu.engine.propagate import _propagate
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 

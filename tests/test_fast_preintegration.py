@@ -1,4 +1,4 @@
-"""The structure-of-arrays preintegration fast path (jaximu/_fast_preint.py: Euler and
+"""The structure-of-arrays preintegration fast path (jaximu/kernels/fast_preint.py: Euler and
 VINS-Mono's midpoint, analytic Jacobians, final i→j only) against the generic recursion it
 replaces."""
 
@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu import _dispatch, _fast_preint
-from jaximu._soa import block_lanes
-from jaximu.preintegration import _preintegrate
+from jaximu.engine import _dispatch
+from jaximu.kernels import fast_preint as _fast_preint
+from jaximu.kernels.soa import block_lanes
+from jaximu.engine.preintegration import _preintegrate
 
 
 def uses_fast_path(scheme, jacobians, prefixes, method="sequential", lanes=1024, fast=True,
@@ -104,7 +105,7 @@ def test_fast_path_equals_generic(batch, T, method, kw):
     ("midpoint", (8,), 60, "sequential", True), ("euler", (2,), 150, "parallel", True)])
 def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per_lane):
     """Samples of a sensor at a lever arm (its specific force moves with the gyro bias and
-    noise: jaximu/sensor.py): the SoA kernels' extra terms equal the generic recursion's
+    noise: jaximu/geometry/sensor.py): the SoA kernels' extra terms equal the generic recursion's
     (Scheme.blocks / VINS-Mono's step with the lever arm), one lever arm per window or one
     for all, on fast-turning samples (|ω| ~ 1.4 rad/s) where the coupling is large."""
     g, a, dt, bias, _ = inputs(batch, T, seed=5)

@@ -1,5 +1,5 @@
 """``jacobians="autodiff"`` on the structure-of-arrays preintegration kernels
-(jaximu/_fast_preint.py: the step's blocks by ``jax.jvp`` of the kernel's own step, then the
+(jaximu/kernels/fast_preint.py: the step's blocks by ``jax.jvp`` of the kernel's own step, then the
 same covariance update as the closed forms) against the generic recursion's autodiff step
 (``jax.jacfwd`` of the step's mean and noise, dense). A file of its own so that the test
 runner's workers balance (its tests compile long)."""

@@ -23,10 +23,10 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu import _rng
+from jaximu.kernels import rng as _rng
 from jaximu import simulate as sim
 from jaximu.errorstate import ekf_update, position_jacobian
-from jaximu.montecarlo import PositionFix, _chunk_runs, load_result, monte_carlo, sample_run
+from jaximu.studies.montecarlo import PositionFix, _chunk_runs, load_result, monte_carlo, sample_run
 from jaximu.state import NavState, boxminus
 
 # A statistic outside ±Z standard errors fails: two-sided false-alarm rate 5.7e-7 per check.
@@ -268,8 +268,8 @@ def test_kalman_update_and_nees_on_soa_lanes_match_the_numpy_transcription():
     """The filter study's update runs the Joseph form on (3, 3, B) lanes with a position
     fix's H given by blocks (no product with its identity or zero blocks), and its NEES by a
     block Cholesky on lanes: both against the plain-numpy Joseph form and eᵀ P⁻¹ e."""
-    from jaximu import _blocks
-    from jaximu._soa import SOA
+    from jaximu.schemes import _blocks
+    from jaximu.kernels.soa import SOA
 
     rng = np.random.default_rng(3)
     B = 4
@@ -358,7 +358,7 @@ def test_filter_study_kernel_calls_no_lapack(setup):
     chunk in flight per core (the pool's threads running the chunks) two chunks deadlocked
     (seen with the dense update: 4096 runs in chunks of 2048 on 2 cores never returned).
     The update and the NEES run unrolled on the lanes instead."""
-    from jaximu.montecarlo import _chunk, _prepare
+    from jaximu.studies.montecarlo import _chunk, _prepare
 
     traj, times, P0, noise = setup
     st = _prepare(traj, times, P0, noise, jax.random.key(0), scheme="euler", gravity=9.81,

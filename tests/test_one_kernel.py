@@ -1,5 +1,5 @@
 """Each batch block of a structure-of-arrays kernel is compiled by XLA:CPU as one kernel
-(jaximu._soa.one_kernel, docs/DESIGN.md "One kernel per block"): the tag reaches the
+(jaximu.kernels.soa.one_kernel, docs/DESIGN.md "One kernel per block"): the tag reaches the
 compiled program, inputs that XLA can fold to constants (samples a user closes over) compile
 and give the numbers of runtime inputs, and a block using an operation outside the emitter's
 list runs as a plain call."""
@@ -11,7 +11,7 @@ import pytest
 from test_fast_path import inputs
 
 import jaximu
-from jaximu import _soa
+from jaximu.kernels import soa as _soa
 
 NOISE = jaximu.ImuNoise.euroc()
 B, T = 4, 400  # each sample array 38 kB: above XLA:CPU's large-constant size

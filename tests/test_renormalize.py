@@ -10,7 +10,7 @@ from _shared import random_inputs
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu import _soa
+from jaximu.kernels import soa as _soa
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -71,7 +71,7 @@ def test_a_start_off_unit_propagates_as_its_rotation(norm):
     generic scan, as the same batch with the unit quaternions would: every state to 1e-12
     of its scale (the engines start from ``q / |q|``; the kernels' renormalisation after a
     step assumes a unit start, and from ``|q| = 2.5`` it would diverge)."""
-    from jaximu.propagate import _propagate
+    from jaximu.engine.propagate import _propagate
 
     state, gyro, accel = random_inputs(4, 200, seed=5)
     scaled = jaximu.NavState(state.q * jnp.asarray([norm, 1.0, norm, 1 / norm])[:, None],

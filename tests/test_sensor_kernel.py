@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu import _dispatch
-from jaximu.errorstate import _propagate_covariance
-from jaximu.propagate import _propagate, _sensor_options, sensor_engine_inputs
+from jaximu.engine import _dispatch
+from jaximu.engine.errorstate import _propagate_covariance
+from jaximu.engine.propagate import _propagate, _sensor_options, sensor_engine_inputs
 from jaximu.sensor import SensorPose
 
 G_W = jnp.array([0.0, 0.0, -9.81])

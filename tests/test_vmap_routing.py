@@ -1,4 +1,4 @@
-"""``jax.vmap`` of the engine entries lands on the batched kernels (jaximu/_batching.py).
+"""``jax.vmap`` of the engine entries lands on the batched kernels (jaximu/engine/_batching.py).
 
 References, independent of the routing: a Python loop over the batch elements, each
 propagated alone through the generic kernels (``fast=False``), for values and gradients;
@@ -13,9 +13,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu.errorstate import _propagate_covariance
-from jaximu.preintegration import _preintegrate
-from jaximu.propagate import _propagate
+from jaximu.engine.errorstate import _propagate_covariance
+from jaximu.engine.preintegration import _preintegrate
+from jaximu.engine.propagate import _propagate
 
 T = 7
 DT = 0.01

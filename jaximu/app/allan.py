@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 
 from jaximu.app.common import UsageError, add_input_options, check_outputs, load_recording
-from jaximu.recording import save_plot as _plot_or_say
+from jaximu.studies.recording import save_plot as _plot_or_say
 
 
 def cmd_allan(args):
-    from jaximu import allan
+    from jaximu.studies import allan
 
     check_outputs(plot=args.plot)
     data = load_recording(args)
@@ -63,7 +63,7 @@ def cmd_allan(args):
     def make():
         import matplotlib.pyplot as plt
 
-        from jaximu.plots import plot_allan
+        from jaximu.studies.plots import plot_allan
 
         fig, axes = plt.subplots(1, 2, figsize=(13, 5))
         for ax, (name, (taus, adev, fit, unit)) in zip(axes, results.items()):

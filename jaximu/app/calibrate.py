@@ -31,8 +31,8 @@ from jaximu.app.common import compute_dtype as _dtype
 from jaximu.app.common import load_recording as _load
 from jaximu.app.common import sensor_and_world as _sensor_and_world
 from jaximu.app.common import start_at_groundtruth as _start_at_groundtruth
-from jaximu.recording import NOISE_PRESETS
-from jaximu.recording import noise_preset as _noise
+from jaximu.studies.recording import NOISE_PRESETS
+from jaximu.studies.recording import noise_preset as _noise
 
 
 class _warnings_as_lines:
@@ -88,7 +88,7 @@ def _estimate(text, cal):
 def cmd_calibrate(args):
     import jax.numpy as jnp
 
-    from jaximu import calibration as cal
+    from jaximu.calibration.problem import problem as cal
 
     estimate = _estimate(args.estimate, cal)
     noise_fit = any(n in cal.NOISE_FIELDS for n in estimate)
@@ -178,7 +178,7 @@ def cmd_calibrate(args):
         pathlib.Path(args.out).write_text(json.dumps(doc, indent=2))
         print(f"calibration written to {args.out}")
     if args.imu_yaml:
-        from jaximu import kalibr
+        from jaximu.calibration.problem import kalibr
 
         iso = cal.ImuNoise(*(float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
                              for n in kalibr.DENSITIES))

@@ -37,7 +37,7 @@ def sensor_and_world(args, rate_hz=None):
     """``--body-P-sensor`` and ``--earth-rate``: ``(body_P_sensor, omega_coriolis, noise)``
     (``noise``: the YAML's densities, which replace ``--noise``, or ``None``)."""
     import jaximu
-    from jaximu import kalibr
+    from jaximu.calibration.problem import kalibr
 
     pose = noise = omega = None
     if getattr(args, "body_P_sensor", None):

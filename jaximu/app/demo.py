@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from jaximu.app.common import UsageError, check_outputs
-from jaximu.recording import DEMO_SCHEMES, DEMO_SECONDS, run_demo
+from jaximu.studies.recording import DEMO_SCHEMES, DEMO_SECONDS, run_demo
 
 
 def cmd_demo(args):

@@ -144,7 +144,7 @@ def cmd_evaluate(args):
         json_out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {json_out}")
     if plot_out is not None:
-        from jaximu.recording import save_plot
+        from jaximu.studies.recording import save_plot
 
         def make():
             import matplotlib.pyplot as plt

@@ -8,9 +8,9 @@ import time
 import numpy as np
 
 from jaximu.app.common import UsageError, add_output_options, check_outputs, compute_dtype
-from jaximu.recording import DEMO_SCHEMES, NOISE_PRESETS
-from jaximu.recording import noise_preset as _noise
-from jaximu.recording import save_plot as _plot_or_say
+from jaximu.studies.recording import DEMO_SCHEMES, NOISE_PRESETS
+from jaximu.studies.recording import noise_preset as _noise
+from jaximu.studies.recording import save_plot as _plot_or_say
 
 FIX_SIGMA = 0.05
 """``--fix-sigma``'s default [m]."""
@@ -20,7 +20,8 @@ def cmd_montecarlo(args):
     import jax
     import jax.numpy as jnp
 
-    from jaximu import montecarlo, simulate
+    from jaximu.studies import montecarlo
+    from jaximu.studies import simulate
 
     if args.runs < 2:
         raise UsageError(f"--runs must be ≥ 2, got {args.runs}")
@@ -90,7 +91,7 @@ def cmd_montecarlo(args):
         say(f"wrote {args.save}")
 
     def make():
-        from jaximu.plots import plot_monte_carlo
+        from jaximu.studies.plots import plot_monte_carlo
 
         return plot_monte_carlo(res)
     _plot_or_say(make, args.plot)

@@ -18,15 +18,15 @@ from jaximu.app.common import (
     load_recording,
     sensor_and_world,
 )
-from jaximu.recording import NOISE_PRESETS
-from jaximu.recording import noise_preset as _noise
+from jaximu.studies.recording import NOISE_PRESETS
+from jaximu.studies.recording import noise_preset as _noise
 
 
 def cmd_preintegrate(args):
     import jax.numpy as jnp
 
     import jaximu
-    from jaximu import keyframes
+    from jaximu.studies import keyframes
 
     check_outputs(out=args.out)
     if not args.window > 0:

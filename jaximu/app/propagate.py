@@ -25,10 +25,10 @@ from jaximu.app.common import (
     sensor_and_world,
     start_at_groundtruth,
 )
-from jaximu.recording import DEMO_SCHEMES, NOISE_PRESETS, propagate_recording
-from jaximu.recording import default_P0 as _default_P0
-from jaximu.recording import noise_preset as _noise
-from jaximu.recording import save_plot as _plot_or_say
+from jaximu.studies.recording import DEMO_SCHEMES, NOISE_PRESETS, propagate_recording
+from jaximu.studies.recording import default_P0 as _default_P0
+from jaximu.studies.recording import noise_preset as _noise
+from jaximu.studies.recording import save_plot as _plot_or_say
 
 REPORT_AT = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600)
 """The seconds after the start at which the drift table reports the error."""
@@ -38,7 +38,7 @@ def _check_gravity(g, dtype):
     """``--gravity``: a finite magnitude ≥ 0, checked before the work (the propagation runs
     under ``jit``, where the library's own check cannot run), in the computation ``dtype``
     (float64 without x64 would be truncated, with a JAX warning)."""
-    from jaximu import _validation as val
+    from jaximu.geometry import _checks as val
 
     if not np.isfinite(g):
         raise UsageError(f"--gravity must be a finite magnitude ≥ 0 [m/s²], got {g}")
@@ -117,7 +117,7 @@ def cmd_propagate(args):
         print(f"states and covariances written to {args.states}")
 
     def make():
-        from jaximu.plots import plot_trajectory
+        from jaximu.studies.plots import plot_trajectory
 
         return plot_trajectory(t, states, data.ground_truth, cov, label=f"jaximu {args.scheme}",
                                title=f"jaximu propagate: {pathlib.Path(args.file).name}")

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaximu import so3
-from jaximu._calibration_checks import QUICK_COMPILE_SAMPLES, _compiled
-from jaximu._calibration_model import (
+from jaximu.geometry import so3
+from jaximu.calibration._checks import QUICK_COMPILE_SAMPLES, _compiled
+from jaximu.calibration._model import (
     _SIZES,
     _TANGENT,
     _VELOCITY_SCALE,

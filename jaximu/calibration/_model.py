@@ -10,16 +10,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu import so3
-from jaximu._preintegration_engine import Preintegrated, _chunk_scan, _pairs
-from jaximu._preintegration_steps import _step as _pim_step
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.engine._preintegration_engine import Preintegrated, _chunk_scan, _pairs
+from jaximu.schemes._preintegration_steps import _step as _pim_step
 from jaximu.errors import InputError
 from jaximu.io._common import GAP_FACTOR
-from jaximu.preintegration import residual
-from jaximu.propagate import propagate_final
-from jaximu.sensor import SensorPose, to_body
-from jaximu.state import ImuBias, NavState
+from jaximu.engine.preintegration import residual
+from jaximu.engine.propagate import propagate_final
+from jaximu.geometry.sensor import SensorPose, to_body
+from jaximu.geometry.state import ImuBias, NavState
 
 FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
           "accel_misalignment", "gravity", "time_offset", "q_BS", "p_BS")
@@ -268,7 +268,7 @@ def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, 
     state_j = NavState(qj, pj, vj, zero, zero)
     pose = calib.body_P_sensor if problem.extrinsics else None
     if problem.model == "preintegration":
-        if pose is not None:  # the sensor's samples as the body's (jaximu/sensor.py)
+        if pose is not None:  # the sensor's samples as the body's (jaximu/geometry/sensor.py)
             gyro_c, accel_c = to_body(pose, gyro_c, accel_c, dt, jnp.zeros_like(pi))
         pim = _preintegrate_mean(gyro_c, accel_c, dt, problem.scheme)
         r = residual(state_i, state_j, pim, gravity=calib.gravity,

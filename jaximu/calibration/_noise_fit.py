@@ -24,7 +24,7 @@ bias Jacobians (columns 9: of the transition), ``v(t)`` the variance per unit ``
 the bias at the window's start about the constant bias of the fit (a random walk about its
 least-squares mean over the span ``T``: ``T/3 - t + t²/T``; about its start value,
 ``t``, when the bias is not estimated), and ``R_k`` the reference's own noise
-(:func:`jaximu._calibration_model._reference_variance`). The white-noise terms grow like
+(:func:`jaximu.calibration._model._reference_variance`). The white-noise terms grow like
 the window's length, the random walk's like its cube (and the drift's like its square),
 the reference's not at all: windows of several lengths separate them.
 
@@ -46,11 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu import so3
-from jaximu._calibration_checks import _apply, _compiled, _preintegrate_sequential
-from jaximu._calibration_fit import _Layout, _n_free, _scale_vector, _unpack
-from jaximu._calibration_model import (
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.calibration._checks import _apply, _compiled, _preintegrate_sequential
+from jaximu.calibration._fit import _Layout, _n_free, _scale_vector, _unpack
+from jaximu.calibration._model import (
     FIELDS,
     CalibrationError,
     CalibrationProblem,
@@ -58,10 +58,10 @@ from jaximu._calibration_model import (
     _preintegrate_mean,
 )
 from jaximu.errors import Fix, InputError
-from jaximu.integrators import compose_deltas
-from jaximu.noise import ImuNoise
-from jaximu.preintegration import compose, residual
-from jaximu.state import ImuBias, NavState
+from jaximu.schemes.integrators import compose_deltas
+from jaximu.geometry.noise import ImuNoise
+from jaximu.engine.preintegration import compose, residual
+from jaximu.geometry.state import ImuBias, NavState
 
 DENSITIES = ("gyroscope_noise_density", "accelerometer_noise_density",
              "gyroscope_random_walk", "accelerometer_random_walk")
@@ -208,7 +208,7 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
                   omega_coriolis) -> NoiseProblem:
     """:func:`jaximu.calibration.calibration_problem` with ``window_lengths`` (``build`` is
     that function, called for the base windows)."""
-    from jaximu.calibration import ImuCalibration, Reference
+    from jaximu.calibration.problem import ImuCalibration, Reference
 
     if model != "preintegration":
         raise InputError("window_lengths: the noise densities are fitted with the "
@@ -384,7 +384,7 @@ def nll_and_gradient(problem: NoiseProblem, u, initial=None):
     """The negative log-likelihood at log-density offsets ``u`` ``(7,)`` (``σ = σ_0 e^u`` for
     the four densities and ``σ_θ, σ_p, σ_v``) at the calibration ``initial``, and its gradient
     in ``u`` (autodiff through the covariance). For checks; :func:`fit` minimises it."""
-    from jaximu.calibration import ImuCalibration
+    from jaximu.calibration.problem import ImuCalibration
 
     dtype = problem.base.gyro.dtype
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
@@ -476,7 +476,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     ``n_windows``."""
     base = problem.base
     dtype = base.gyro.dtype
-    from jaximu._calibration_fit import _flatten
+    from jaximu.calibration._fit import _flatten
 
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
     _check_identifiable(problem, estimate, s0)
@@ -617,8 +617,8 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
     standard errors in physical units and the :class:`CalibrationResult`."""
     import warnings
 
-    from jaximu._calibration_model import _TANGENT
-    from jaximu.calibration import CalibrationResult, ImuCalibration
+    from jaximu.calibration._model import _TANGENT
+    from jaximu.calibration.problem import CalibrationResult, ImuCalibration
 
     dtype = problem.base.gyro.dtype
     rigid = [n for n in ("q_BS", "p_BS") if n in estimate]

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaximu._calibration_noise import DENSITIES, _isotropic
-from jaximu.noise import ImuNoise
+from jaximu.calibration._noise_fit import DENSITIES, _isotropic
+from jaximu.geometry.noise import ImuNoise
 
 _UNITS = {"gyroscope_noise_density": ("rad/s/√Hz", "rad/s"),
           "accelerometer_noise_density": ("m/s²/√Hz", "m/s²"),

@@ -20,9 +20,9 @@ import pathlib
 
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu.noise import ImuNoise
-from jaximu.sensor import SensorPose
+from jaximu.geometry import _checks as val
+from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.sensor import SensorPose
 
 __all__ = ["SensorConfig", "read_sensor_yaml", "parse_body_P_sensor", "write_imu_yaml"]
 

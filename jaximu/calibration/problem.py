@@ -50,9 +50,9 @@ the covariance. optax L-BFGS and Adam on the loss are there too.
 
 The noise densities (and the reference's σ) are fitted by maximum likelihood over windows of
 several lengths: :func:`calibration_problem` with ``window_lengths`` returns a
-:class:`jaximu._calibration_noise.NoiseProblem`, and ``estimate=`` may then name
+:class:`jaximu.calibration._noise_fit.NoiseProblem`, and ``estimate=`` may then name
 :data:`NOISE_FIELDS` beside the fields; the model, its covariance and the fit are in
-:mod:`jaximu._calibration_noise` (docs/guide/noise-densities.md).
+:mod:`jaximu.calibration._noise_fit` (docs/guide/noise-densities.md).
 
 Adding an estimable field (an IMU–body extrinsic, say): a pytree field of
 :class:`ImuCalibration` with its default in :meth:`ImuCalibration.default`; its name in
@@ -71,12 +71,13 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu import so3, world
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.schemes import world
 
 # The model, the checks and the fit live in their own modules; the calibration's public
 # names (and the internals the tests call) are importable from here as before.
-from jaximu._calibration_checks import (
+from jaximu.calibration._checks import (
     QUICK_COMPILE_SAMPLES,
     _apply,
     _check_consistency,
@@ -87,7 +88,7 @@ from jaximu._calibration_checks import (
     _preintegrate_sequential,
     _rotation_vectors,
 )
-from jaximu._calibration_fit import (
+from jaximu.calibration._fit import (
     _flatten,
     _Layout,
     _levenberg_marquardt,
@@ -99,7 +100,7 @@ from jaximu._calibration_fit import (
     _scale_vector,
     _unpack,
 )
-from jaximu._calibration_model import (
+from jaximu.calibration._model import (
     _SIZES,
     _TANGENT,
     _VELOCITY_SCALE,
@@ -119,12 +120,12 @@ from jaximu._calibration_model import (
     calibration_residuals,
     sensor_matrix,  # noqa: F401  (calibration.sensor_matrix)
 )
-from jaximu._calibration_noise import NOISE_FIELDS, NoiseProblem, noise_result
-from jaximu._noise_table import noise_table
+from jaximu.calibration._noise_fit import NOISE_FIELDS, NoiseProblem, noise_result
+from jaximu.calibration._noise_table import noise_table
 from jaximu.errors import Fix, InputError
 from jaximu.io._common import GAP_FACTOR, in_gap
-from jaximu.noise import ImuNoise
-from jaximu.state import ImuBias
+from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.state import ImuBias
 
 __all__ = [
     "ImuCalibration",
@@ -167,7 +168,7 @@ def _check_initial(initial):
 def _sqrt_information(cov, dtype) -> np.ndarray:
     """``L⁻¹`` for the residuals' covariances ``cov = L Lᵀ`` (``(..., 9, 9)``, one per window),
     which whiten the residuals; a covariance singular to the precision of ``dtype``
-    (:func:`jaximu._validation.check_definite`) is refused, naming the window and its axes:
+    (:func:`jaximu.geometry._checks.check_definite`) is refused, naming the window and its axes:
     its whitened residual would be the rounding divided by zero."""
     val.check_definite(
         "the residuals' covariance", cov, dtype, axes=val.ERROR_AXES[:9],
@@ -255,7 +256,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             :func:`calibrate`), e.g. ``(0.25, 1, 4, 16)``: the shortest are the keyframe
             windows, each longer one a whole multiple of the shortest, composed of
             consecutive shortest windows; every length tiles the whole recording (they
-            overlap in time; :mod:`jaximu._calibration_noise`). White noise grows with the
+            overlap in time; :mod:`jaximu.calibration._noise_fit`). White noise grows with the
             length, random walk with its cube, the reference's noise not at all, so the
             lengths should run from a fraction of a second to many seconds, the longest
             fitting ≥ 8 times in the recording. The model is ``"preintegration"``, without
@@ -264,7 +265,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     Returns:
         :class:`CalibrationProblem`, or with ``window_lengths`` a
-        :class:`jaximu._calibration_noise.NoiseProblem` (the shortest windows' problem as
+        :class:`jaximu.calibration._noise_fit.NoiseProblem` (the shortest windows' problem as
         its ``base``).
     """
     if window_lengths is not None:
@@ -272,7 +273,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             raise InputError("keyframe_interval and window_lengths both given: with "
                              "window_lengths the keyframes are the shortest length's",
                              [Fix("keyframe_interval", "leave keyframe_interval out")])
-        from jaximu._calibration_noise import noise_problem
+        from jaximu.calibration._noise_fit import noise_problem
         return noise_problem(calibration_problem, t, gyro, accel, reference, noise,
                              window_lengths=window_lengths, scheme=scheme, model=model,
                              reference_sigma=reference_sigma, initial=initial,

@@ -2,7 +2,7 @@
 
 Every engine entry (``_propagate``, ``_propagate_covariance``, ``_preintegrate``) already
 broadcasts over leading batch axes and chooses its kernel from the *whole* batch it sees
-(see :mod:`jaximu._dispatch`). Under a plain ``jax.vmap`` it would see one trajectory: the
+(see :mod:`jaximu.engine._dispatch`). Under a plain ``jax.vmap`` it would see one trajectory: the
 dispatcher would pick the small-batch kernel and JAX would then batch that kernel's scan
 generically (batch-major carries, conds turned into selects), several times slower than
 the same work passed as leading axes (docs/DESIGN.md, "vmap").

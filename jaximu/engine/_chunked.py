@@ -4,14 +4,14 @@ covariance's (docs/DESIGN.md, "Dispatch" and "On a GPU").
 A sequence of ``n`` steps is cut into ``C`` chunks of ``L`` steps (the last padded with
 steps of ``dt = 0``: exact identities of every scheme, with no noise), lane ``b·C + c``
 holding chunk ``c`` of sequence ``b``. Every chunk runs on the structure-of-arrays kernels
-(:mod:`jaximu._fast`) at once; what each chunk leaves is then composed along the sequence,
+(:mod:`jaximu.kernels.fast`) at once; what each chunk leaves is then composed along the sequence,
 in order or as an associative (parallel prefix) scan:
 
 * the mean: a chunk run from the identity without gravity gives its exact deltas
   ``(ΔR, Δp, Δv, Δt)`` (:func:`jaximu.integrators.compose_deltas`);
 * the covariance: a chunk run with ``P = 0`` gives its noise ``Q_c`` and, multiplying the
   steps' transitions, its ``Φ_c``; ``P ↦ Φ_c P Φ_cᵀ + Q_c`` composes associatively
-  (:func:`jaximu._blocks.compose_transitions`). In a still world the chunks need no mean
+  (:func:`jaximu.schemes._blocks.compose_transitions`). In a still world the chunks need no mean
   first: ``Φ`` does not depend on ``p``, ``v`` or gravity, and a chunk run from the identity
   has the transition and noise of the chunk run from its true start ``R_c`` in coordinates
   turned by ``R_c`` (``T = blockdiag(R_c, R_c, R_c, I, I)`` for the world-frame rotation
@@ -27,19 +27,22 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaximu import _blocks as blk
-from jaximu import _dispatch as dispatch
-from jaximu import _fast, _soa, integrators, so3
-from jaximu._blocks import UPPER
-from jaximu._soa import SOA
-from jaximu.integrators import compose_deltas
+from jaximu.schemes import _blocks as blk
+from jaximu.engine import _dispatch as dispatch
+from jaximu.kernels import fast as _fast
+from jaximu.kernels import soa as _soa
+from jaximu.schemes import integrators
+from jaximu.geometry import so3
+from jaximu.schemes._blocks import UPPER
+from jaximu.kernels.soa import SOA
+from jaximu.schemes.integrators import compose_deltas
 
 # --------------------------------------------------------------------------- layout
 
 
 def chunk_length(steps, chunks) -> int:
     """Steps of one chunk: ``steps / chunks`` rounded up to a length the kernel's own time
-    chunks divide (:func:`jaximu._soa.whole_chunks`: a remainder is a second loop body that
+    chunks divide (:func:`jaximu.kernels.soa.whole_chunks`: a remainder is a second loop body that
     LLVM compiles again)."""
     return _soa.whole_chunks(-(-steps // chunks))
 
@@ -137,7 +140,7 @@ def padded_variances(h, var):
 
 
 def _rotation_maps(R, rotated):
-    """``blockdiag`` of ``R`` on the blocks ``rotated``: :func:`jaximu._blocks.congruence`'s
+    """``blockdiag`` of ``R`` on the blocks ``rotated``: :func:`jaximu.schemes._blocks.congruence`'s
     rows."""
     return {i: {i: R} for i in rotated}
 
@@ -161,11 +164,11 @@ def _frame(q):
 def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, deltas=None,
                        g=None):
     """``P_{c+1} = Φ_c P_c Φ_cᵀ + Q_c`` along the chunks: in order (the CPU: one compiled
-    kernel, :func:`jaximu._soa.one_kernel`) or as an associative scan of the pairs (an
+    kernel, :func:`jaximu.kernels.soa.one_kernel`) or as an associative scan of the pairs (an
     accelerator: ``log2 C`` levels of launches, not ``C``).
 
     ``P0``: upper blocks ``(3, 3, B)``; ``F``: the chunks' transition leaves
-    (:func:`jaximu._blocks.rows_leaves` of ``pattern``) and ``Q`` the 15 upper blocks of
+    (:func:`jaximu.schemes._blocks.rows_leaves` of ``pattern``) and ``Q`` the 15 upper blocks of
     their noise, ``(C, 3, 3, B)`` (scalars ``(C, B)``). Chunks run from the identity
     (``rotated``: the blocks their start's rotation turns, :func:`_in_start_frame`) move the
     state ``start = (q, p, v)`` ``(B, ·)`` by their ``deltas`` ``(C, B, ·)`` under gravity
@@ -261,7 +264,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     """Mean and covariance of ``B`` sequences in time chunks (module docstring): the final
     ``(q, p, v, P)`` ``(B, ·)`` or, with ``save_all``, those after every step ``(B, n, ·)``
     (``q`` in the attitude form ``form``), and Euler angles' locked flags ``(B,)`` (or
-    ``None``). The inputs as :func:`jaximu._fast.propagate_cov`'s (flat lanes; the samples
+    ``None``). The inputs as :func:`jaximu.kernels.fast.propagate_cov`'s (flat lanes; the samples
     already the body's, ``lever`` the sensor's lever arm for the Jacobians; ``dt`` ``(n,)``
     or ``(B, n)``; ``var`` the noise's ``σ²`` ``(12,)`` or ``(B, 12)``), ``q`` in the form,
     normalised."""

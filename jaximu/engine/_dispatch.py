@@ -5,10 +5,10 @@ The engine has two families of kernels:
 * ``generic``: readable ``lax.scan`` kernels on ``(..., 3)`` arrays, for every scheme,
   attitude form and Jacobian option. They are the reference the fast kernels are tested
   against (``fast=False`` forces them).
-* structure-of-arrays kernels (:mod:`jaximu._soa`, :mod:`jaximu._fast`,
-  :mod:`jaximu._fast_preint`): the same mathematics laid out for XLA:CPU's vectoriser.
+* structure-of-arrays kernels (:mod:`jaximu.kernels.soa`, :mod:`jaximu.kernels.fast`,
+  :mod:`jaximu.kernels.fast_preint`): the same mathematics laid out for XLA:CPU's vectoriser.
 
-A ``jax.vmap`` of an entry reaches this table with the whole batch (:mod:`jaximu._batching`),
+A ``jax.vmap`` of an entry reaches this table with the whole batch (:mod:`jaximu.engine._batching`),
 so the same row decides for leading axes and for ``vmap``. The table is read top to bottom;
 the first row whose conditions hold names the kernel.
 """
@@ -74,7 +74,7 @@ class Row(NamedTuple):
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
 """Every attitude form: each runs on the structure-of-arrays kernels as its own lanes
-(:data:`jaximu._soa.LANE_FORMS`), the mean and the autodiff covariance (the closed forms:
+(:data:`jaximu.kernels.soa.LANE_FORMS`), the mean and the autodiff covariance (the closed forms:
 the exact exponentials only)."""
 
 TABLE = (
@@ -96,7 +96,7 @@ TABLE = (
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
     # a few long sequences: time chunks side by side as lanes, their transitions and noise
-    # composed (jaximu/_chunked.py): on the CPU one sequence fills a block of lanes; on an
+    # composed (jaximu/engine/_chunked.py): on the CPU one sequence fills a block of lanes; on an
     # accelerator a sequential step is a launch
     *(Row("covariance", ("euler", "midpoint", "rk4"), attitudes, (jac,), (False, True), 1,
           COV_CHUNK_STEPS[on], "soa_cov_chunked", rotating=(False, True), lever=(False, True),
@@ -185,8 +185,8 @@ def preint_method(method, lanes, steps, dtype) -> str:
     """
     if method != "auto":
         return method
-    from jaximu._fast_preint import MIN_CHUNK
-    from jaximu._soa import block_lanes
+    from jaximu.kernels.fast_preint import MIN_CHUNK
+    from jaximu.kernels.soa import block_lanes
 
     if lanes < block_lanes(jnp.dtype(dtype)) // 2 and steps >= 4 * MIN_CHUNK:
         return "parallel"

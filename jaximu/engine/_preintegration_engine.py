@@ -12,14 +12,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks as blk
-from jaximu import _dispatch as dispatch
-from jaximu import _fast_preint, so3
-from jaximu import _validation as val
-from jaximu._blocks import Blocks
-from jaximu._preintegration_steps import _UPPER9, _step, _step_autodiff
-from jaximu.integrators import get_scheme
-from jaximu.state import ImuBias
+from jaximu.schemes import _blocks as blk
+from jaximu.engine import _dispatch as dispatch
+from jaximu.kernels import fast_preint as _fast_preint
+from jaximu.geometry import so3
+from jaximu.geometry import _checks as val
+from jaximu.schemes._blocks import Blocks
+from jaximu.schemes._preintegration_steps import _UPPER9, _step, _step_autodiff
+from jaximu.schemes.integrators import get_scheme
+from jaximu.geometry.state import ImuBias
 
 
 @jax.tree_util.register_dataclass

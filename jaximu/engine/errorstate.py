@@ -38,16 +38,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks as blk
-from jaximu import _chunked, _fast, _soa, sensor, world
-from jaximu import _dispatch as dispatch
-from jaximu import _validation as val
-from jaximu._batching import ArgSpec, leading_axes
-from jaximu._blocks import Blocks
-from jaximu._vec import V3
-from jaximu.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
-from jaximu.noise import ImuNoise
-from jaximu.propagate import (
+from jaximu.schemes import _blocks as blk
+from jaximu.engine import _chunked
+from jaximu.kernels import fast as _fast
+from jaximu.kernels import soa as _soa
+from jaximu.geometry import sensor
+from jaximu.schemes import world
+from jaximu.engine import _dispatch as dispatch
+from jaximu.geometry import _checks as val
+from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.schemes._blocks import Blocks
+from jaximu.geometry._vec import V3
+from jaximu.schemes.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
+from jaximu.geometry.noise import ImuNoise
+from jaximu.engine.propagate import (
     SAMPLES,
     STATE,
     VECTOR,
@@ -64,7 +68,7 @@ from jaximu.propagate import (
     time_major,
     unit_start,
 )
-from jaximu.state import NavState, boxminus, boxplus
+from jaximu.geometry.state import NavState, boxminus, boxplus
 
 __all__ = [
     "step_jacobians",
@@ -266,7 +270,7 @@ structured_update = blk.structured_update
 
 def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
     """Shape and finiteness of ``P0``, and (eager calls) its symmetry and semi-definiteness
-    relative to each matrix's own scale (:func:`jaximu._validation.check_covariance`: 60 ε
+    relative to each matrix's own scale (:func:`jaximu.geometry._checks.check_covariance`: 60 ε
     of the computation dtype times its largest entry). ``name``: the argument in the
     messages; ``n``: the matrix size (15 for the error state)."""
     P0 = val.to_dtype(name, P0, dtype)
@@ -288,7 +292,7 @@ def compose_transitions(first, then):
     ``then = (Φ_b, Q_b)`` gives ``(Φ_b Φ_a, Φ_b Q_a Φ_bᵀ + Q_b)``, the transition and
     accumulated noise of the covariance recursion over both (associative: any grouping of
     spans composes to the same pair). Dense arrays ``(..., n, n)``: the same composition as
-    :func:`jaximu._blocks.compose_transitions` on the kernels' block layout."""
+    :func:`jaximu.schemes._blocks.compose_transitions` on the kernels' block layout."""
     (Fa, Qa), (Fb, Qb) = first, then
     return (small_matmul(Fb, Fa),
             small_matmul(small_matmul(Fb, Qa), jnp.swapaxes(Fb, -1, -2)) + Qb)
@@ -428,9 +432,9 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
                                omega=None, coriolis="exact", lever=None, save_all=False,
                                attitude="quaternion", pose=None, tangential=True):
     """Mean and covariance (final, or after every step with ``save_all``) on the
-    :mod:`jaximu._fast` layout, any scheme with closed-form or autodiff blocks
-    (:func:`jaximu._fast.cov_step_blocks`), the attitude form's state on lanes
-    (:data:`jaximu._soa.LANE_FORMS`); the block-structured update. ``pose``: the samples are
+    :mod:`jaximu.kernels.fast` layout, any scheme with closed-form or autodiff blocks
+    (:func:`jaximu.kernels.fast.cov_step_blocks`), the attitude form's state on lanes
+    (:data:`jaximu.kernels.soa.LANE_FORMS`); the block-structured update. ``pose``: the samples are
     a sensor's, moved into the body frame in the kernel's time chunks."""
     gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
@@ -471,7 +475,7 @@ def _lane_inputs(P0, noise, omega, lever, batch, dtype):
 def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, scheme,
                                   jacobians, omega, coriolis, lever, save_all, attitude):
     """Mean and covariance of a few long sequences in time chunks side by side
-    (:mod:`jaximu._chunked`); the samples are the body's already."""
+    (:mod:`jaximu.engine._chunked`); the samples are the body's already."""
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
                                                                    dt, g)
@@ -517,7 +521,7 @@ def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact",
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
                       coriolis="exact"):
-    from jaximu.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
+    from jaximu.engine.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
                                                (P0,))
@@ -529,7 +533,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
                                               omega_coriolis)
     lever = None
-    if pose is not None:  # bias errors in S outside, in B inside (jaximu/sensor.py)
+    if pose is not None:  # bias errors in S outside, in B inside (jaximu/geometry/sensor.py)
         T = sensor.bias_transform(pose)
         P0 = sensor.congruence(T, P0)
         noise = sensor.noise_to_body(pose, noise)
@@ -606,7 +610,7 @@ def position_jacobian(dtype=None):
 
 def _check_innovation(S, dtype):
     """``S = H P Hᵀ + R`` must be positive definite to the dtype's precision (its Cholesky
-    factor is the update's; :func:`jaximu._validation.check_definite`), on eager calls."""
+    factor is the update's; :func:`jaximu.geometry._checks.check_definite`), on eager calls."""
     val.check_definite(
         "the innovation covariance S = H P Hᵀ + R", S, dtype, what="the gain K = P Hᵀ S⁻¹",
         fix="R must be positive definite (a measurement noise variance σ² > 0 on every row), "
@@ -637,7 +641,7 @@ def ekf_update(state: NavState, P, residual, H, R):
         R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
             positive semi-definite (as ``P``), finite; with ``P``, ``S = H P Hᵀ + R`` must
             be positive definite to the dtype's precision (the smallest eigenvalue of its
-            correlation matrix above 60 ε: :func:`jaximu._validation.definiteness`), or the
+            correlation matrix above 60 ε: :func:`jaximu.geometry._checks.definiteness`), or the
             update refuses it naming ``S``, ``R`` and ``P``.
 
     The computation dtype is the promotion of the inputs' (at least float32: integer and
@@ -675,7 +679,7 @@ def ekf_update(state: NavState, P, residual, H, R):
 
 
 def _ekf_update(state, P, residual, H, R):
-    """The update on dense arrays: :func:`jaximu._blocks.kalman_update` (the one home of
+    """The update on dense arrays: :func:`jaximu.schemes._blocks.kalman_update` (the one home of
     the Joseph form) on ``P``'s blocks and ``H``'s column blocks. Only ``P``'s upper blocks
     are read: :func:`ekf_update` has checked it symmetric to rounding."""
     batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2],

@@ -38,16 +38,18 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaximu import _blocks as blk
-from jaximu import _validation as val
-from jaximu import sensor, so3, world
-from jaximu._batching import ArgSpec, leading_axes
-from jaximu._blocks import mm
-from jaximu._preintegration_engine import Preintegrated, _Acc, _combine, _finish, _preintegrate
-from jaximu._preintegration_steps import _UPPER9
-from jaximu.integrators import apply_deltas, compose_deltas
-from jaximu.noise import ImuNoise
-from jaximu.state import ImuBias, NavState
+from jaximu.schemes import _blocks as blk
+from jaximu.geometry import _checks as val
+from jaximu.geometry import sensor
+from jaximu.geometry import so3
+from jaximu.schemes import world
+from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.schemes._blocks import mm
+from jaximu.engine._preintegration_engine import Preintegrated, _Acc, _combine, _finish, _preintegrate
+from jaximu.schemes._preintegration_steps import _UPPER9
+from jaximu.schemes.integrators import apply_deltas, compose_deltas
+from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.state import ImuBias, NavState
 
 __all__ = [
     "Preintegrated",
@@ -117,7 +119,7 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
         noise: :class:`ImuNoise` densities (default none: zero covariances).
         scheme: ``"euler"`` (Forster / GTSAM Manifold) or ``"midpoint"`` (VINS-Mono).
         method: ``"auto"`` (default: the fastest for the shape, chosen by
-            :func:`jaximu._dispatch.preint_method`: ``"parallel"`` for few long windows,
+            :func:`jaximu.engine._dispatch.preint_method`: ``"parallel"`` for few long windows,
             ``"sequential"`` otherwise), ``"sequential"`` (``lax.scan``) or ``"parallel"``
             (time chunks side by side composed associatively, O(log T) depth on the generic
             path); all give the same numbers to rounding.
@@ -473,7 +475,7 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
 
     ``cov15`` must be positive definite to the precision of its dtype (the smallest
     eigenvalue of its correlation matrix above 60 ε:
-    :func:`jaximu._validation.definiteness`): preintegrate with ``noise=`` whose densities
+    :func:`jaximu.geometry._checks.definiteness`): preintegrate with ``noise=`` whose densities
     and random walks are all non-zero, over at least two samples (one sample's position and
     velocity noise are the same accelerometer noise, fully correlated). On an eager call a
     ``cov15`` that is not (a measurement preintegrated without noise) raises ``ValueError``
@@ -497,11 +499,11 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
 @jax.jit
 def _whiten(cov15, r):
     """``L⁻¹ r`` for ``cov15 = L Lᵀ``, ``(..., 15, 15)`` and ``(..., 15)`` broadcast together:
-    the block Cholesky of :func:`jaximu._blocks.whiten` (the Monte Carlo NEES's) on lanes,
+    the block Cholesky of :func:`jaximu.schemes._blocks.whiten` (the Monte Carlo NEES's) on lanes,
     3×3 blocks ``(3, 3, N)`` (a batch of 15×15 factorisations as LAPACK calls ran one
     matrix at a time: 2 µs per window). Not positive definite: NaN or inf."""
-    from jaximu._fast import dense_to_blocks
-    from jaximu._soa import SOA, block_lanes, run_blocked
+    from jaximu.kernels.fast import dense_to_blocks
+    from jaximu.kernels.soa import SOA, block_lanes, run_blocked
 
     batch = jnp.broadcast_shapes(cov15.shape[:-2], r.shape[:-1])
     P = jnp.broadcast_to(cov15, batch + (15, 15)).reshape(-1, 15, 15)

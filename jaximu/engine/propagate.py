@@ -2,7 +2,7 @@
 
 Batch axes stay inside the scan step (every kernel broadcasts over leading axes), the
 fastest layout (docs/DESIGN.md, section 3); a ``jax.vmap`` of these functions is routed to
-the same batched kernels (section 4), and :mod:`jaximu._dispatch` picks the kernel.
+the same batched kernels (section 4), and :mod:`jaximu.engine._dispatch` picks the kernel.
 """
 
 from __future__ import annotations
@@ -13,12 +13,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _chunked, _fast, _soa, sensor, so3, world
-from jaximu import _dispatch as dispatch
-from jaximu import _validation as val
-from jaximu._batching import ArgSpec, leading_axes
-from jaximu.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
-from jaximu.state import NavState
+from jaximu.engine import _chunked
+from jaximu.kernels import fast as _fast
+from jaximu.kernels import soa as _soa
+from jaximu.geometry import sensor
+from jaximu.geometry import so3
+from jaximu.schemes import world
+from jaximu.engine import _dispatch as dispatch
+from jaximu.geometry import _checks as val
+from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.schemes.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
+from jaximu.geometry.state import NavState
 
 __all__ = ["propagate", "propagate_final"]
 
@@ -27,7 +32,7 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude, others=()):
     """Validate the public inputs; returns arrays in one float dtype and the batch shape.
 
     The dtype is the promotion of the data: the state, the samples, ``dt`` and ``others``
-    (an entry's further data: the covariance ``P0``; :func:`jaximu._validation.float_dtype`).
+    (an entry's further data: the covariance ``P0``; :func:`jaximu.geometry._checks.float_dtype`).
     Constants of the model (gravity, noise densities, a sensor pose, the world's rate) take
     the data's dtype, as a Python constant does: a float64 ``earth_rate()`` beside float32
     samples must not turn the computation into float64."""
@@ -74,9 +79,9 @@ def unit_start(state: NavState, soa: bool, attitude: str) -> NavState:
     """``state`` with ``q / |q|``: the engines start from the rotation ``q`` stands for.
     Eager calls refuse a ``q`` further from unit than the tolerance; under ``jit`` nothing
     can check it, and the kernels' renormalisation after each step assumes a unit start
-    (:func:`jaximu._soa._quat_renormalize`). For a unit ``q`` it changes nothing but
+    (:func:`jaximu.kernels.soa._quat_renormalize`). For a unit ``q`` it changes nothing but
     rounding. ``soa``: a structure-of-arrays kernel runs; for the quaternion forms it
-    normalises inside the kernel (:func:`jaximu._fast._unit_start`: outside, the O(B)
+    normalises inside the kernel (:func:`jaximu.kernels.fast._unit_start`: outside, the O(B)
     normalisation is more modules for XLA:CPU to compile), so ``state`` stays as it is."""
     if soa and attitude in _fast.QUATERNION_FORMS:
         return state
@@ -191,7 +196,7 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
 
 def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False):
     """The states of a few long sequences, cut into ``C`` time chunks that run side by side
-    as lanes (:mod:`jaximu._chunked`).
+    as lanes (:mod:`jaximu.engine._chunked`).
 
     Every scheme's update is linear in ``(R, v, p)`` once the rotations inside the step are
     known relative to its start, and its acceleration weights sum to ``h`` (in v) and
@@ -366,7 +371,7 @@ VECTOR = ArgSpec(1)
 
 
 def routed_propagate(scheme, attitude, save_all, coriolis="exact", tangential=True):
-    """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu._batching`).
+    """:func:`_propagate` whose ``jax.vmap`` lands on the batched kernels (:mod:`jaximu.engine._batching`).
 
     Its arguments: ``(state, gyro, accel, dt, g, omega, pose)``, ``omega`` ``None`` or
     ``(..., 3)``, ``pose`` ``None`` or a :class:`jaximu.SensorPose`."""

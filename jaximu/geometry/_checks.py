@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.errors import Fix, InputError
-from jaximu.noise import ImuNoise
-from jaximu.state import NavState
+from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.state import NavState
 
 
 def is_concrete(*trees) -> bool:

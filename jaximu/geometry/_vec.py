@@ -2,7 +2,7 @@
 
 A scheme's stages (:mod:`jaximu.integrators`) are written once on :class:`V3`. The
 generic kernels split ``(..., 3)`` arrays into components (:meth:`V3.of`); the
-structure-of-arrays kernels (:mod:`jaximu._soa`) keep ``(B,)`` lanes as components, the
+structure-of-arrays kernels (:mod:`jaximu.kernels.soa`) keep ``(B,)`` lanes as components, the
 layout XLA:CPU vectorises (docs/DESIGN.md, "kernel layout"). Scalars multiplying a
 ``V3`` broadcast against its components (``(...,)`` arrays, or Python/0-d scalars).
 The small matrix products on ``(..., n, m)`` arrays (:func:`matvec`, :func:`matmul`) and

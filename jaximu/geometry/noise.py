@@ -62,7 +62,7 @@ class ImuNoise:
     def _per_axis(self, dtype):
         """The four densities as ``dtype`` arrays ``(..., 3)``, checked as the propagation
         entries check them (numbers, not text or complex; finite and ``≥ 0`` when concrete)."""
-        from jaximu import _validation as val
+        from jaximu.geometry import _checks as val
 
         checked = val.check_noise(self, dtype)  # refuses complex and bool too (to_dtype)
         out = []
@@ -101,7 +101,7 @@ class ImuNoise:
     def variances(self, dtype=None):
         """``[σ_g², σ_a², σ_bg², σ_ba²]`` per axis, ``(..., 12)`` (densities squared), in
         ``dtype`` (float32 or float64; default: JAX's default float dtype)."""
-        from jaximu import _validation as val
+        from jaximu.geometry import _checks as val
 
         dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
         parts = [s * s for s in self._per_axis(dtype)]
@@ -125,7 +125,7 @@ def _dt_array(dt, dtype):
     """``dt`` as an array of the computation dtype: ``dtype`` (float32 or float64) if given,
     else ``dt``'s float dtype (at least float32), else JAX's default float dtype; positive
     and finite before and after the cast, when concrete."""
-    from jaximu import _validation as val
+    from jaximu.geometry import _checks as val
 
     kind = val.kind_of(dt)
     if kind == "b":

@@ -53,10 +53,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu import so3
-from jaximu._vec import V3, matvec, matvec_v3
-from jaximu.noise import ImuNoise
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.geometry._vec import V3, matvec, matvec_v3
+from jaximu.geometry.noise import ImuNoise
 
 __all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
            "centripetal_jacobian", "angular_acceleration"]
@@ -193,7 +193,7 @@ def _central(d_before, d_after, h_before, h_after):
 
 def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
     """:func:`to_body` inside a kernel's time chunks: the ``samples`` function of
-    :func:`jaximu._soa._time_chunks` (its ``w``, ``a``, ``hw``, ``k``), on time-major
+    :func:`jaximu.kernels.soa._time_chunks` (its ``w``, ``a``, ``hw``, ``k``), on time-major
     components ``(n + 3, Bc)`` with ``HALO`` samples before the chunk and one after.
 
     ``R``: ``R_BS`` ``(Bc, 3, 3)`` or ``(3, 3)``; ``b_g``: the gyro bias in the body frame
@@ -202,7 +202,7 @@ def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
     one once more: it gets the derivative of the last). The derivative ``α`` is
     :func:`angular_acceleration`'s: central inside, one-sided at the first and last sample.
     """
-    from jaximu._soa import HALO
+    from jaximu.kernels.soa import HALO
 
     def samples(w, a, hw, k):
         n = k.shape[0]
@@ -253,8 +253,8 @@ def moved_specific_force(accel, omega_hat, omega, r):
 
 def centripetal_jacobian(omega, r, ops):
     """``K = ∂(ω×(ω×r))/∂ω = -[ω×r]x - [ω]x[r]x`` as a 3×3 block of the layout ``ops``
-    (:class:`jaximu._blocks.Layout`), for the body rate ``omega`` and lever arm ``r``
-    (:class:`jaximu._vec.V3`; ``r`` may be shared by every element).
+    (:class:`jaximu.schemes._blocks.Layout`), for the body rate ``omega`` and lever arm ``r``
+    (:class:`jaximu.geometry._vec.V3`; ``r`` may be shared by every element).
 
     The body's specific force ``f_B = R_BS f_S - ω×(ω×r) - α×r`` depends on the rate, so a
     gyro bias or noise ``δω`` moves it by ``-K δω``: ``Φ``'s ``b_g`` column gains

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import so3
+from jaximu.geometry import so3
 
 __all__ = [
     "NavState",
@@ -65,7 +65,7 @@ class NavState:
     @classmethod
     def identity(cls, batch_shape=(), dtype=jnp.float32) -> NavState:
         """Identity attitude, zero position, velocity and biases."""
-        from jaximu._validation import check_batch_shape  # (it imports this module)
+        from jaximu.geometry._checks import check_batch_shape  # (it imports this module)
 
         batch_shape = check_batch_shape(batch_shape)
         z = jnp.zeros(batch_shape + (3,), dtype)
@@ -114,7 +114,7 @@ class ImuBias:
     @classmethod
     def zeros(cls, batch_shape=(), dtype=jnp.float32) -> ImuBias:
         """Zero gyro and accelerometer biases ``batch_shape + (3,)``."""
-        from jaximu._validation import check_batch_shape  # (it imports this module)
+        from jaximu.geometry._checks import check_batch_shape  # (it imports this module)
 
         z = jnp.zeros(check_batch_shape(batch_shape) + (3,), dtype)
         return cls(z, z)

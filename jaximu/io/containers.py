@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError, _max_gap, _seconds, in_gap
 
 

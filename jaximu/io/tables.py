@@ -8,7 +8,7 @@ import pathlib
 
 import numpy as np
 
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.errors import Fix
 from jaximu.io._common import (
     _ACCEL_UNITS,

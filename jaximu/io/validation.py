@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.errors import Fix
 from jaximu.io._common import (
     _ACCEL_MEDIAN_RANGE,

@@ -1,6 +1,6 @@
 """Fast XLA-CPU kernels of propagation: the mean and the final covariance of every scheme
 (exact quaternion exponential; closed-form or autodiff Jacobian blocks), on the
-structure-of-arrays layout of :mod:`jaximu._soa` (why that layout: docs/DESIGN.md).
+structure-of-arrays layout of :mod:`jaximu.kernels.soa` (why that layout: docs/DESIGN.md).
 """
 
 from __future__ import annotations
@@ -8,9 +8,12 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks, sensor, so3, world
-from jaximu._blocks import UPPER, Blocks, block, structured_update
-from jaximu._soa import (
+from jaximu.schemes import _blocks
+from jaximu.geometry import sensor
+from jaximu.geometry import so3
+from jaximu.schemes import world
+from jaximu.schemes._blocks import UPPER, Blocks, block, structured_update
+from jaximu.kernels.soa import (
     LANE_FORMS,
     SOA,
     LaneForm,
@@ -31,8 +34,8 @@ from jaximu._soa import (
     mean_step,
     run_blocked,
 )
-from jaximu._vec import V3
-from jaximu.integrators import GIMBAL_LOCK_COS
+from jaximu.geometry._vec import V3
+from jaximu.schemes.integrators import GIMBAL_LOCK_COS
 
 QUATERNION = LANE_FORMS["quaternion"]
 
@@ -76,7 +79,7 @@ def _lock(locked, q, p, v):
 
 
 def _sensor_samples(pose_q, pose_p, b_g, n_samples, tangential):
-    """The ``samples`` hook of :func:`jaximu._soa._time_chunks` for a block's lanes of a
+    """The ``samples`` hook of :func:`jaximu.kernels.soa._time_chunks` for a block's lanes of a
     sensor at ``(q_BS, p_BS)`` (``None``: no sensor pose), ``b_g`` the body-frame gyro bias's
     components (:func:`jaximu.sensor.chunk_to_body`)."""
     if pose_q is None:
@@ -174,7 +177,7 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
                     world_error=False, form: LaneForm = QUATERNION):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
-    ``jax.jvp`` of :func:`jaximu._soa.mean_step` in the 9 non-structural directions, in
+    ``jax.jvp`` of :func:`jaximu.kernels.soa.mean_step` in the 9 non-structural directions, in
     three groups that each perturb only their own inputs, so that JAX's symbolic zeros skip
     what a direction cannot reach (a ``db_a`` tangent never enters the half angle): ``dθ``
     (the tangent ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``), ``db_g`` and ``db_a`` (``-e_j`` on
@@ -235,7 +238,7 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
-    :func:`jaximu._blocks.structured_update`. ``carry = (q, p, v, Pb)``. ``omega`` (a
+    :func:`jaximu.schemes._blocks.structured_update`. ``carry = (q, p, v, Pb)``. ``omega`` (a
     :class:`V3`, or ``None``): the world turns, and the step runs between the world's maps
     (:func:`jaximu.world.covariance_step`). ``lever`` (a :class:`V3`, or ``None``): the
     samples are a sensor's at that lever arm, moved to the body (:mod:`jaximu.sensor`).
@@ -243,7 +246,7 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
     ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``. ``form``: the
     attitude form of ``q`` (:data:`LANE_FORMS`; closed forms only for the exact ones).
     ``transition``: return the step's whole transition too, as block rows
-    (:func:`jaximu._blocks.transition_rows`, between the world's maps in a turning world)."""
+    (:func:`jaximu.schemes._blocks.transition_rows`, between the world's maps in a turning world)."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -293,8 +296,8 @@ def world_error_frame(omega, save_all, form: LaneForm) -> bool:
 
 def transition_pattern(rotating, world_error):
     """The form of a product of the covariance kernel's step transitions
-    (:func:`jaximu._blocks.conform_rows`): the structure of the module docstring of
-    :mod:`jaximu._blocks` (``Φ_θθ = I`` with ``world_error``), which products keep; in a
+    (:func:`jaximu.schemes._blocks.conform_rows`): the structure of the module docstring of
+    :mod:`jaximu.schemes._blocks` (``Φ_θθ = I`` with ``world_error``), which products keep; in a
     turning world the error maps fill the p and v rows (:func:`jaximu.world.error_map_rows`)."""
     if rotating:
         pv = {j: "X" for j in range(5)}
@@ -307,7 +310,7 @@ def world_error_blocks(Pb, q, inverse=False):
     """``T P Tᵀ`` with ``T = blockdiag(R(q), I, I, I, I)`` on the 15 upper blocks
     (``inverse``: ``Tᵀ P T``): the covariance of the body-frame rotation error ``δθ`` as that
     of the world-frame one ``δθ_W = R δθ``, or back. In the world frame ``Φ_θθ = I`` (the
-    same change of coordinates as the preintegration kernel's, :mod:`jaximu._fast_preint`),
+    same change of coordinates as the preintegration kernel's, :mod:`jaximu.kernels.fast_preint`),
     which saves the covariance update eight 3×3 products a step (closed-form blocks pay two
     to change frame; autodiff makes its blocks in that frame). ``T`` must be a rotation for
     the map back to undo the map in: ``q`` is the kernel's, normalised at its start
@@ -333,11 +336,11 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     (:data:`LANE_FORMS`), which the outputs keep; ``pose``, ``tangential``, ``n_samples``:
     a sensor's samples, moved in the time chunks (:func:`propagate_mean`).
 
-    ``transition``: a time chunk's summary (:mod:`jaximu._chunked`), ``None`` or the form of
-    its transition's block rows (:func:`jaximu._blocks.conform_rows`' ``pattern``). The
+    ``transition``: a time chunk's summary (:mod:`jaximu.engine._chunked`), ``None`` or the form of
+    its transition's block rows (:func:`jaximu.schemes._blocks.conform_rows`' ``pattern``). The
     kernel then also multiplies the steps' transitions, and returns ``(q, p, v, P blocks,
     Φ leaves)`` (final state only): the 15 upper blocks of ``P`` ``(B, 3, 3)`` each and the
-    leaves of ``Φ`` (:func:`jaximu._blocks.rows_leaves`: ``(B, 3, 3)`` blocks, ``(B,)``
+    leaves of ``Φ`` (:func:`jaximu.schemes._blocks.rows_leaves`: ``(B, 3, 3)`` blocks, ``(B,)``
     scalars), both in the kernel's frame (the world-frame rotation error of a final
     covariance, :func:`world_error_blocks`, is not mapped back); Euler angles' locked flags
     after them."""

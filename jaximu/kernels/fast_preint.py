@@ -2,7 +2,7 @@
 Manifold) and VINS-Mono's midpoint.
 
 Same numbers as the generic recursion of :mod:`jaximu.preintegration` (to float rounding),
-with the layout rules of :mod:`jaximu._fast` (structure of arrays, ``(3, 3, B)`` batch-minor
+with the layout rules of :mod:`jaximu.kernels.fast` (structure of arrays, ``(3, 3, B)`` batch-minor
 blocks, polynomial half angle, materialised stages, batch blocks, time chunks) and three
 algebraic simplifications:
 
@@ -36,9 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import sensor
-from jaximu._fast import blocks_autodiff
-from jaximu._soa import (
+from jaximu.geometry import sensor
+from jaximu.kernels.fast import blocks_autodiff
+from jaximu.kernels.soa import (
     _E3,
     _THR,
     SOA,
@@ -72,8 +72,8 @@ from jaximu._soa import (
     run_blocked,
     whole_chunks,
 )
-from jaximu._vec import V3
-from jaximu.integrators import compose_deltas, get_scheme
+from jaximu.geometry._vec import V3
+from jaximu.schemes.integrators import compose_deltas, get_scheme
 
 MIN_CHUNK = 16  # shortest time chunk per lane
 
@@ -123,8 +123,8 @@ def _step_blocks(R, Jl, h, u):
 
 def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
     """Stage 2 by autodiff (``jacobians="autodiff"``): ``Ev``, ``B'``, ``Cv`` (and with a
-    lever arm ``Dk``) as the propagation kernel's :func:`jaximu._fast.blocks_autodiff` makes
-    them, ``jax.jvp`` of the Euler step (:func:`jaximu._soa.mean_step`, zero gravity, from
+    lever arm ``Dk``) as the propagation kernel's :func:`jaximu.kernels.fast.blocks_autodiff` makes
+    them, ``jax.jvp`` of the Euler step (:func:`jaximu.kernels.soa.mean_step`, zero gravity, from
     ``(ΔR_ik, Δp, Δv)``) with the rotation error in the start frame ``B_i``
     (``world_error``): the rotated coordinates of this kernel, where ``Φ'_θθ = I``. The
     other blocks follow from these in an Euler step (``Cp = h/2 Cv``, ``Ep = h/2 Ev``,
@@ -359,7 +359,7 @@ def _mid_autodiff(q, omega, f0, f1, h):
     """The same blocks by autodiff (``jacobians="autodiff"``): ``jax.jvp`` of VINS-Mono's
     mean (:func:`_mid_lane`) in the directions ``δθ`` (the tangent ``q ⊗ [0, ½ e_j]``) and
     ``δω̄``, each a ``vmap`` over its 3 directions; rotation rows ``2 vec(q⁺* ⊗ δq⁺)`` (as
-    :func:`jaximu._fast.blocks_autodiff`). ``∂v/∂f_i = ½ h R_i`` is exact in both."""
+    :func:`jaximu.kernels.fast.blocks_autodiff`). ``∂v/∂f_i = ½ h R_i`` is exact in both."""
     dtype = q[0].dtype
     lanes = q[0].shape
     zero = jnp.zeros(lanes, dtype)
@@ -543,7 +543,7 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
 def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
     """Each of the B sequences as ``C`` time chunks of ``L`` steps side by side as lanes
     (the parallel method; ``L``: ``ceil(T / C)`` rounded up to whole kernel time chunks,
-    :func:`jaximu._soa.whole_chunks`): gyro, accel ``(B, T, k)`` -> ``(B C, L, k)``, dt
+    :func:`jaximu.kernels.soa.whole_chunks`): gyro, accel ``(B, T, k)`` -> ``(B C, L, k)``, dt
     ``(B, T)`` -> ``(B C, L)``, zero-padded at the end (``h = 0`` steps: the kernels'
     ``guard`` makes them identities); ``edge`` ``(B, T, m)``: per-step values appended to
     ``accel``, padded with their last one; ``per_sequence``: ``(B, ·)`` arrays repeated per
@@ -576,7 +576,7 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
     frame ``B_i`` with its rotations given, and the chunk summaries compose without a frame
     change (VINS-Mono's unnormalised rotation makes a change of frame inexact).
     ``jacobians``: :func:`mid_step`."""
-    from jaximu import so3
+    from jaximu.geometry import so3
 
     B, T, _ = gyro.shape
     dtype = gyro.dtype
@@ -709,7 +709,7 @@ def _combine(a, b, rotate=True):
     :func:`jaximu.preintegration.compose`: ``b`` is moved to ``a``'s frame by
     ``T = blockdiag(R, R, R, I, I)`` (``θ'``, p, v all rotate) and composed. With
     ``rotate=False`` both are already in the same frame (plain composition)."""
-    from jaximu.so3 import quat_to_matrix
+    from jaximu.geometry.so3 import quat_to_matrix
 
     deltas = lambda s: (s["q"], s["dp"], s["dv"], s["t"])  # noqa: E731
     if rotate:
@@ -760,7 +760,7 @@ def _reduce_chunks(s, C, rotate=True):
 def _finish(s):
     """Summary in θ' coordinates -> ``(t, q, dv, dp, Φ, Q15, Q9)`` of the generic code: the
     θ rows (and columns) are rotated back with ``ΔR_ijᵀ``."""
-    from jaximu.so3 import quat_normalize, quat_to_matrix
+    from jaximu.geometry.so3 import quat_normalize, quat_to_matrix
 
     Rt = _t(quat_to_matrix(s["q"]))
     T = _frame(Rt, 15, 1)
@@ -773,7 +773,7 @@ def _finish(s):
 
 
 def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
-    """:func:`jaximu._soa.run_blocked` of ``block(gyro, accel, dt, b_g, b_a, var, lever)``
+    """:func:`jaximu.kernels.soa.run_blocked` of ``block(gyro, accel, dt, b_g, b_a, var, lever)``
     over the lanes: a ``dt`` ``(T,)``, biases ``(3,)``, variances ``(12,)`` or a lever arm
     ``(3,)`` (or ``None``) shared by all lanes are read whole by every block."""
     shared = (dt.ndim == 1,) + tuple(x is None or x.ndim == 1 for x in (b_g, b_a, var, lever))

@@ -1,6 +1,6 @@
 """The Monte Carlo study's lane kernel (:func:`jaximu.montecarlo.monte_carlo`): every run is a
-lane of one structure-of-arrays scan (:mod:`jaximu._soa`) that draws its noise inside the
-step from the counter-based generator (:mod:`jaximu._rng`), propagates the estimate (and, in
+lane of one structure-of-arrays scan (:mod:`jaximu.kernels.soa`) that draws its noise inside the
+step from the counter-based generator (:mod:`jaximu.kernels.rng`), propagates the estimate (and, in
 the filter study, its covariance and the position fixes), and reduces the errors at each
 recorded time over the lanes (docs/DESIGN.md section 6)."""
 
@@ -11,12 +11,12 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaximu import _rng
-from jaximu._blocks import UPPER, blocks_to_dense, kalman_update, whiten
-from jaximu._soa import SOA, _materialise, _rows, mean_step
-from jaximu._vec import V3
-from jaximu.integrators import SCHEME_OBJECTS
-from jaximu.state import NavState, boxminus, boxplus
+from jaximu.kernels import rng as _rng
+from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
+from jaximu.kernels.soa import SOA, _materialise, _rows, mean_step
+from jaximu.geometry._vec import V3
+from jaximu.schemes.integrators import SCHEME_OBJECTS
+from jaximu.geometry.state import NavState, boxminus, boxplus
 
 # Streams of the counter-based generator (each a Threefry key; counter = (run, step)):
 # pairs 0-2 white noise of sample j (counter j): (n_gx, n_gy), (n_gz, n_ax), (n_ay, n_az);
@@ -96,7 +96,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
     lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
     """
-    from jaximu._fast import cov_step_blocks, dense_to_blocks
+    from jaximu.kernels.fast import cov_step_blocks, dense_to_blocks
 
     sch = SCHEME_OBJECTS[scheme]
     nxt = sch.uses_next_sample
@@ -154,7 +154,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
 
     def update(carry, i):
         """Position fix ``i`` (measurement noise: streams _MEAS, counter i), on the lanes:
-        :func:`jaximu._blocks.kalman_update` (the mathematics of
+        :func:`jaximu.schemes._blocks.kalman_update` (the mathematics of
         :func:`jaximu.errorstate.ekf_update`) on the covariance blocks."""
         ref_p = c["ref"][1][i]
         nu = _rng.normals(c["keys"][_MEAS:_MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]

@@ -4,7 +4,7 @@ Why this layout (measured on this project's 2-core AVX2 x86 CPU, JAX 0.10.2; the
 and the reasoning are in docs/DESIGN.md, "Kernel layout"):
 
 * **Structure of arrays.** Inside the scan every per-sample quantity is a tuple of ``(B,)``
-  arrays (one per component; :class:`~jaximu._vec.V3` for vectors) and every 3×3 covariance
+  arrays (one per component; :class:`~jaximu.geometry._vec.V3` for vectors) and every 3×3 covariance
   block is a ``(3, 3, B)`` array (batch minor). Each XLA loop fusion is then a plain loop
   over the batch that LLVM vectorises. With the ``(B, 3)`` layout the fusions read several
   components of one buffer through the scan's dynamic-slice index, which LLVM cannot
@@ -35,9 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental.xla_metadata import set_xla_metadata
 
-from jaximu import _dispatch, so3
-from jaximu._blocks import Layout
-from jaximu._vec import V3
+from jaximu.engine import _dispatch
+from jaximu.geometry import so3
+from jaximu.schemes._blocks import Layout
+from jaximu.geometry._vec import V3
 
 _CHUNK = (64, 16)  # preferred largest / smallest time chunk
 HALO = 2
@@ -273,7 +274,7 @@ def _diag_row(s3, dtype):
 
 def _materialise(tree):
     """:func:`_stage` of the identity on a pytree: its array leaves are computed once, in
-    memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu._blocks`) pass
+    memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu.schemes._blocks`) pass
     as they are."""
     if _dispatch.backend() != _dispatch.CPU:  # a stage is the plain call there (_stage)
         return tree
@@ -351,7 +352,7 @@ SOA = Layout(
     cholesky=_cholesky,
     tri_solve=_tri_solve,
 )
-"""The block algebra of :mod:`jaximu._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
+"""The block algebra of :mod:`jaximu.schemes._blocks` on ``(3, 3, B)`` batch-minor blocks; 3-vectors
 per lane are 3-tuples of ``(B,)`` arrays (or scalars)."""
 
 
@@ -580,7 +581,7 @@ one kernel (:func:`one_kernel`) a block's state then stays in L1/L2 (docs/DESIGN
 
 def block_lanes(dtype):
     """Lanes per batch block for ``dtype``: :data:`BLOCK_BYTES` of them on the CPU, a
-    whole GPU's worth on an accelerator (:data:`jaximu._dispatch.ACCELERATOR_LANES`)."""
+    whole GPU's worth on an accelerator (:data:`jaximu.engine._dispatch.ACCELERATOR_LANES`)."""
     if _dispatch.backend() != _dispatch.CPU:
         return _dispatch.ACCELERATOR_LANES
     return BLOCK_BYTES // jnp.dtype(dtype).itemsize
@@ -871,7 +872,7 @@ def _euler_tangents(chi, world=False):
     through ``quat_to_euler_zyx`` (periodic in roll and yaw, so the same for angles carried
     past ±π). Body frame only: the angles' step is no right multiplication of ``R``, so the
     world-frame error's ``Φ_θθ`` is not the identity the kernels' world frame assumes
-    (:func:`jaximu._fast.blocks_autodiff`)."""
+    (:func:`jaximu.kernels.fast.blocks_autodiff`)."""
     if world:
         raise NotImplementedError("Euler angles keep the body-frame rotation error")
     dtype, lanes = chi[0].dtype, chi[0].shape
@@ -934,7 +935,7 @@ LANE_FORMS = {
     "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate, _lanes_matrix,
                        _matrix_tangents, _matrix_rows, _matrix_rotate_left),
     # no closed-form Jacobian (autodiff blocks only), the pitch singularity reported by the
-    # kernels (jaximu._fast.propagate_mean, propagate_cov)
+    # kernels (jaximu.kernels.fast.propagate_mean, propagate_cov)
     "euler_angles": LaneForm(
         "euler_angles", 3, _euler_advance,
         lambda chi, f: _matrix_rotate(_euler_matrix(chi), f),
@@ -951,14 +952,14 @@ def lane_form(name) -> LaneForm:
 def from_quat(form: LaneForm, q):
     """The form's state ``(B, size)`` from quaternions ``(B, 4)``: the generic kernels'
     ``Attitude.from_quat``, a matrix flattened row-major."""
-    from jaximu.integrators import get_attitude
+    from jaximu.schemes.integrators import get_attitude
 
     return get_attitude(form.name).from_quat(q).reshape(q.shape[:-1] + (form.size,))
 
 
 def to_quat(form: LaneForm, x):
     """Quaternions ``(…, 4)`` from the form's states ``(…, size)`` (``Attitude.to_quat``)."""
-    from jaximu.integrators import get_attitude
+    from jaximu.schemes.integrators import get_attitude
 
     shape = (3, 3) if form.size == 9 else (form.size,)
     return get_attitude(form.name).to_quat(x.reshape(x.shape[:-1] + shape))
@@ -988,7 +989,7 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
     Returns:
         ``(q⁺, p⁺, v⁺)``.
     """
-    from jaximu.integrators import stage_sum
+    from jaximu.schemes.integrators import stage_sum
 
     if form.name == "euler_angles" and scheme.name == "rk4":
         return rk4_euler_angles(q, p, v, omega0, f0, omega1, f1, h, g)

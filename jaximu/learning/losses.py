@@ -22,16 +22,16 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaximu import so3
-from jaximu.errorstate import (
+from jaximu.geometry import so3
+from jaximu.engine.errorstate import (
     accumulate_covariance,
     blocks_analytic,
     compose_transitions,
     small_matmul,
     transition_products,
 )
-from jaximu.noise import ImuNoise
-from jaximu.preintegration import preintegrate
+from jaximu.geometry.noise import ImuNoise
+from jaximu.engine.preintegration import preintegrate
 
 __all__ = ["Windows", "windows", "huber", "increment_loss", "rotation_covariance",
            "gaussian_nll", "velocity_residuals"]

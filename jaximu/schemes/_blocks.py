@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg
 
-from jaximu import so3
-from jaximu._vec import V3
+from jaximu.geometry import so3
+from jaximu.geometry._vec import V3
 
 
 class Layout(NamedTuple):
@@ -33,9 +33,9 @@ class Layout(NamedTuple):
     block formula uses (here, and the closed-form Jacobians of
     :meth:`jaximu.integrators.Scheme.blocks`).
 
-    :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu._soa.SOA`:
+    :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu.kernels.soa.SOA`:
     ``(3, 3, B)`` batch-minor blocks (the structure-of-arrays kernels). One copy of the
-    block algebra serves both. Vectors are :class:`~jaximu._vec.V3` of per-element scalars.
+    block algebra serves both. Vectors are :class:`~jaximu.geometry._vec.V3` of per-element scalars.
     """
 
     matmul: Callable[..., Any]  # X @ Y
@@ -193,7 +193,7 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     and midpoint, ``s = dt/2``: :attr:`jaximu.integrators.Scheme.p_over_v`). The p rows'
     products are then those of the v rows, scaled: ``b.Cp``, ``b.Dp``, ``b.Ep`` are not read.
     ``b.A`` may be the string ``"I"`` (an identity block: no product; the rotation error in
-    the world frame, :func:`jaximu._fast.cov_step_blocks`).
+    the world frame, :func:`jaximu.kernels.fast.cov_step_blocks`).
     """
 
     def P(i, j):
@@ -490,7 +490,7 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         b: blocks of ``Φ``; ``G`` follows from them (module docstring).
         qc: the diagonal of ``Q_c`` as four per-axis 3-vectors ``[σ_g², σ_a², σ_bg², σ_ba²]/dt``
             (``(..., 3)`` each, or as ``ops`` stores 3-vectors); a ``(..., 12)`` array is split.
-        ops: the block layout (:data:`ARRAYS` or :data:`jaximu._soa.SOA`).
+        ops: the block layout (:data:`ARRAYS` or :data:`jaximu.kernels.soa.SOA`).
         p_over_v: ``s`` with ``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev`` when the scheme has
             that structure (:func:`phi_p_phit`), or ``None``.
     """
@@ -548,7 +548,7 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
             where zero, the string ``"I"`` for an identity block (``m = 3``): a position fix
             is ``(None, "I", None, None, None)``, which costs no product.
         R: ``m × m`` measurement noise covariance; nu: ``m × 1`` residual ``ν = z - h(x̂)``.
-        ops: the layout (:data:`ARRAYS`, or :data:`jaximu._soa.SOA`: ``(m, n, B)`` lanes).
+        ops: the layout (:data:`ARRAYS`, or :data:`jaximu.kernels.soa.SOA`: ``(m, n, B)`` lanes).
         check: ``check(S)`` called before ``S`` is factored (e.g. a definiteness check).
     """
     def P(i, j):

@@ -10,12 +10,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaximu import _blocks as blk
-from jaximu import _fast_preint, sensor, so3
-from jaximu._blocks import Blocks, mm
-from jaximu._vec import V3
-from jaximu.errorstate import blocks_analytic
-from jaximu.integrators import get_scheme
+from jaximu.schemes import _blocks as blk
+from jaximu.kernels import fast_preint as _fast_preint
+from jaximu.geometry import sensor
+from jaximu.geometry import so3
+from jaximu.schemes._blocks import Blocks, mm
+from jaximu.geometry._vec import V3
+from jaximu.engine.errorstate import blocks_analytic
+from jaximu.schemes.integrators import get_scheme
 
 # --------------------------------------------------------------------------- one step
 
@@ -134,7 +136,7 @@ class PreintegrationStep:
       :mod:`jaximu.sensor`);
     * ``noise_dim``, ``perturb(n, w0, a0, w1, a1)`` and ``variances(σ²/dt)``: how its step
       noise enters, for the autodiff Jacobians (:func:`_step_autodiff`);
-    * ``kernel``: its structure-of-arrays kernel (:mod:`jaximu._fast_preint`).
+    * ``kernel``: its structure-of-arrays kernel (:mod:`jaximu.kernels.fast_preint`).
     """
 
     name: str

@@ -45,9 +45,10 @@ from typing import NamedTuple
 
 import jax
 
-from jaximu import sensor, so3
-from jaximu._vec import V3, matvec
-from jaximu.state import NavState
+from jaximu.geometry import sensor
+from jaximu.geometry import so3
+from jaximu.geometry._vec import V3, matvec
+from jaximu.geometry.state import NavState
 
 __all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "Scheme", "get_attitude", "get_scheme",
            "step", "nav_step"]
@@ -135,7 +136,7 @@ END = "end"
 
 
 class Point(NamedTuple):
-    """One evaluation point of a scheme inside the step, on :class:`~jaximu._vec.V3`s.
+    """One evaluation point of a scheme inside the step, on :class:`~jaximu.geometry._vec.V3`s.
 
     ``phi`` is ``None`` at the start of the step (no rotation), :data:`END` at its end,
     or the rotation vector of an intermediate attitude; ``tau`` the fraction of the step at
@@ -151,9 +152,9 @@ class Point(NamedTuple):
 
 
 class Scheme:
-    """A one-step scheme: its stages, written once on :class:`~jaximu._vec.V3` components so
+    """A one-step scheme: its stages, written once on :class:`~jaximu.geometry._vec.V3` components so
     that the generic kernels (``(..., 3)`` arrays split into components) and the
-    structure-of-arrays kernels (``(B,)`` lanes, :mod:`jaximu._soa`) run the same formulas.
+    structure-of-arrays kernels (``(B,)`` lanes, :mod:`jaximu.kernels.soa`) run the same formulas.
 
     ``points(ω_k, f_k, ω_k+1, f_k+1, h) -> (list[Point], φ_end)`` with bias-corrected inputs
     and ``h`` broadcasting against the components; ``dphi_db(ω_k, ω_k+1, h, τ) -> (a, c)``
@@ -174,22 +175,22 @@ class Scheme:
 
     def p_over_v(self, h):
         """``s`` when every stage's ``wp = s wv`` (then ``Φ``'s p rows are ``s`` times its v
-        rows beyond ``dt I``, and so are ``G``'s: :func:`jaximu._blocks.structured_update`
+        rows beyond ``dt I``, and so are ``G``'s: :func:`jaximu.schemes._blocks.structured_update`
         forms them from the v rows), else ``None``. Euler and midpoint: ``h/2``."""
         return 0.5 * h
 
     @property
     def preintegration(self):
-        """Its :class:`jaximu._preintegration_steps.PreintegrationStep` (generic step, noise
+        """Its :class:`jaximu.schemes._preintegration_steps.PreintegrationStep` (generic step, noise
         mapping, SoA kernel), or ``None`` where :func:`jaximu.preintegrate` has no such
         scheme (RK4)."""
-        from jaximu._preintegration_steps import PREINTEGRATION_STEPS
+        from jaximu.schemes._preintegration_steps import PREINTEGRATION_STEPS
 
         return PREINTEGRATION_STEPS.get(self.name)
 
     def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None, lever=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
-        ``ops`` (:data:`jaximu._blocks.ARRAYS` or :data:`jaximu._soa.SOA`). With the stages
+        ``ops`` (:data:`jaximu.schemes._blocks.ARRAYS` or :data:`jaximu.kernels.soa.SOA`). With the stages
         ``R_s = R̂ Exp(φ_s)``, ``u_s = R_s f_s`` (OpenVINS / Solà; docs/DESIGN.md):
 
             Φ_θθ = Exp(φ_end)ᵀ            Φ_θbg = Jr(φ_end) ∂φ_end/∂b_g
@@ -210,9 +211,9 @@ class Scheme:
                 (:func:`jaximu.sensor.centripetal_jacobian`), exact for every scheme.
 
         Returns:
-            :class:`jaximu._blocks.Blocks`.
+            :class:`jaximu.schemes._blocks.Blocks`.
         """
-        from jaximu._blocks import Blocks, add
+        from jaximu.schemes._blocks import Blocks, add
 
         pts, phi_end = self.points(omega0, f0, omega1, f1, h)
         # ops.barrier: values read by several products are computed once (SoA: XLA:CPU would
@@ -372,7 +373,7 @@ def stage_sum(points, x, x_end, advance, rotate, p: V3, v: V3, h, g: V3):
         v⁺ = v + Σ_s wv_s a_s,   p⁺ = p + v h + Σ_s wp_s a_s,   a_s = (R ⊞ φ_s) f_s + g_W,
 
     with ``x`` the attitude at the start, ``x_end`` at the end, ``advance(x, φ)`` and
-    ``rotate(x, f)`` the layout's ``R ⊞ φ`` and ``R f`` (:class:`~jaximu._vec.V3` vectors)."""
+    ``rotate(x, f)`` the layout's ``R ⊞ φ`` and ``R f`` (:class:`~jaximu.geometry._vec.V3` vectors)."""
     v1, p1 = v, p + v * h
     for pt in points:
         if pt.phi is None:

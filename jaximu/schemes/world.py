@@ -40,10 +40,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _blocks as blk
-from jaximu import _validation as val
-from jaximu import so3
-from jaximu._vec import V3, matmul, matvec, matvec_v3
+from jaximu.schemes import _blocks as blk
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.geometry._vec import V3, matmul, matvec, matvec_v3
 
 __all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
            "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
@@ -166,7 +166,7 @@ def error_map_rows(omega, dt, coriolis):
     """The error-state maps of a step in the turning world, as the 3×3 blocks of the rows
     that differ from the identity (order ``[θ, p, v, b_g, b_a]``, blocks 0–4): ``{row:
     {column: (..., 3, 3)}}``, the string ``"I"`` for an identity block, for
-    :func:`jaximu._blocks.congruence`. Returns ``(Pre, Post)``, the maps before and after the
+    :func:`jaximu.schemes._blocks.congruence`. Returns ``(Pre, Post)``, the maps before and after the
     still-world step's ``Φ`` (``Pre`` ``None`` when there is none).
 
     * ``coriolis="exact"``: ``Pre`` of :func:`to_inertial`, ``δv̄ = δv + [ω]x δp``; ``Post``
@@ -208,10 +208,10 @@ def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None
     ``Pb``: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the still-world step's ``Φ``
     between the error maps of :func:`error_map_rows` (exact transition: into
     and out of the step's inertial frame; classic terms: no ``Pre``, ``Post`` the increments'
-    ``[p, v]`` Jacobian), each applied as a block congruence (:func:`jaximu._blocks.congruence`).
+    ``[p, v]`` Jacobian), each applied as a block congruence (:func:`jaximu.schemes._blocks.congruence`).
     ``ops``: the block layout (the maps' blocks are made as arrays from ``omega``
     ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``); ``p_over_v``: as
-    :func:`jaximu._blocks.structured_update`; ``maps``: :func:`error_maps`' result when the
+    :func:`jaximu.schemes._blocks.structured_update`; ``maps``: :func:`error_maps`' result when the
     caller has it."""
     pre, post = error_maps(omega, h, coriolis, ops) if maps is None else maps
     if pre is not None:

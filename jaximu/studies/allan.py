@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.errors import Fix, InputError
 
 __all__ = [

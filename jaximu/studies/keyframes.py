@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.io import CLOCK_TOLERANCE, GroundTruth
 from jaximu.io._common import in_gap
 

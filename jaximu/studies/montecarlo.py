@@ -4,8 +4,8 @@ For one true motion, N noisy IMU streams are drawn (white noise, bias random wal
 initial-state error from ``P0``), each is propagated, and the errors are compared with the
 covariance that :func:`jaximu.propagate_covariance` predicts. This is what GTSAM's
 ``ScenarioRunner::estimateCovariance`` does in a serial loop; here the runs are the lanes
-of one structure-of-arrays scan (:mod:`jaximu._soa`), and the noise is drawn inside the
-scan step from a counter-based generator (:mod:`jaximu._rng`):
+of one structure-of-arrays scan (:mod:`jaximu.kernels.soa`), and the noise is drawn inside the
+scan step from a counter-based generator (:mod:`jaximu.kernels.rng`):
 
 * the numbers of run ``i`` at step ``k`` are a pure function of ``(key, stream, i, k)``: no
   ``(runs, T, 12)`` array is formed, the result does not depend on the chunk size, on the
@@ -53,17 +53,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _rng
-from jaximu import _validation as val
-from jaximu._montecarlo_lanes import _N_STREAMS, _chunk, _measured
-from jaximu._montecarlo_stats import _Acc, _allgather_f64, _Progress
+from jaximu.kernels import rng as _rng
+from jaximu.geometry import _checks as val
+from jaximu.kernels.montecarlo_lanes import _N_STREAMS, _chunk, _measured
+from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
 from jaximu.errors import Fix, InputError
-from jaximu.errorstate import propagate_covariance
-from jaximu.integrators import SCHEME_OBJECTS
-from jaximu.noise import ImuNoise
-from jaximu.propagate import _propagate
-from jaximu.simulate import Trajectory, ideal_imu, true_states
-from jaximu.state import NavState, boxminus
+from jaximu.engine.errorstate import propagate_covariance
+from jaximu.schemes.integrators import SCHEME_OBJECTS
+from jaximu.geometry.noise import ImuNoise
+from jaximu.engine.propagate import _propagate
+from jaximu.studies.simulate import Trajectory, ideal_imu, true_states
+from jaximu.geometry.state import NavState, boxminus
 
 __all__ = ["MonteCarloResult", "PositionFix", "monte_carlo", "sample_run", "chi2_interval",
            "load_result"]
@@ -93,7 +93,7 @@ class MonteCarloResult(NamedTuple):
             else ``None`` (memory ``N·K``); NaN where the NEES is undefined (below).
         nees_mean: ``(K,)`` average NEES over the runs. NaN at a recorded time where the
             covariance is singular to the precision of the computation dtype
-            (:func:`jaximu._validation.definiteness`; the filter study's judged on the runs'
+            (:func:`jaximu.geometry._checks.definiteness`; the filter study's judged on the runs'
             average): ``eᵀ P⁻¹ e`` is undefined there, e.g. in the first steps from an
             exactly known start (``P0 = 0``), where one step's position and velocity errors
             are the same accelerometer noise (:attr:`nees_defined`).
@@ -250,8 +250,8 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     """Validate the inputs and build the kernel's constants (shared by :func:`monte_carlo`
     and :func:`sample_run`). ``nees``: refuse an open-loop study whose NEES is undefined at
     every recorded time (a single run's errors do not need it)."""
-    from jaximu.errorstate import _check_cov
-    from jaximu.integrators import SCHEMES
+    from jaximu.engine.errorstate import _check_cov
+    from jaximu.schemes.integrators import SCHEMES
 
     if not isinstance(trajectory, Trajectory):
         raise ValueError("trajectory must be a jaximu.simulate.Trajectory (e.g. "

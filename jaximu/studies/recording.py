@@ -38,7 +38,7 @@ def noise_preset(name: str):
     """The :class:`jaximu.ImuNoise` of a dataset's IMU: ``"euroc"`` (ADIS16448, as EuRoC's
     Kalibr file) or ``"tum-vi"`` (BMI160, as TUM-VI's)."""
     import jaximu
-    from jaximu import _validation as val
+    from jaximu.geometry import _checks as val
 
     val.check_choice("noise", name, NOISE_PRESETS, "noise preset")
     return {"euroc": jaximu.ImuNoise.euroc, "tum-vi": jaximu.ImuNoise.tum_vi}[name]()
@@ -122,9 +122,9 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     import jax.numpy as jnp
 
     import jaximu
-    from jaximu import _validation as val
-    from jaximu.errorstate import _check_cov
-    from jaximu.integrators import SCHEMES
+    from jaximu.geometry import _checks as val
+    from jaximu.engine.errorstate import _check_cov
+    from jaximu.schemes.integrators import SCHEMES
 
     # the checks the jit below skips (traced values): run them on the concrete inputs first
     dtype = val.compute_dtype("dtype", dtype)
@@ -135,11 +135,11 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     _check_cov(P0, dtype)
     val.check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
     if body_P_sensor is not None:
-        from jaximu.sensor import check_pose
+        from jaximu.geometry.sensor import check_pose
 
         check_pose(body_P_sensor, dtype)
     if omega_coriolis is not None:
-        from jaximu.world import check_omega
+        from jaximu.schemes.world import check_omega
 
         check_omega(omega_coriolis, dtype)
     step = jax.jit(lambda x, P, w, a, h: jaximu.propagate_covariance(
@@ -196,7 +196,7 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
     import jax
     import jax.numpy as jnp
 
-    from jaximu import _validation as val
+    from jaximu.geometry import _checks as val
     from jaximu import io
     from jaximu.errors import Fix, InputError
 
@@ -251,7 +251,7 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
         states, cov, _ = results[scheme]
 
         def make():
-            from jaximu.plots import plot_trajectory
+            from jaximu.studies.plots import plot_trajectory
 
             return plot_trajectory(
                 data.t, states, gt, cov, label=f"jaximu {scheme}",

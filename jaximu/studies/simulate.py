@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu import _validation as val
-from jaximu import so3
-from jaximu.noise import ImuNoise
-from jaximu.state import NavState
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.state import NavState
 
 __all__ = [
     "Trajectory",
@@ -342,14 +342,14 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
     g = val.gravity_vector(gravity, t.dtype)  # refuses a complex gravity (to_dtype)
     _one("gravity", "magnitude or (3,) vector", g.shape)
     if omega_coriolis is not None:
-        from jaximu.world import check_omega
+        from jaximu.schemes.world import check_omega
 
         w = check_omega(omega_coriolis, t.dtype)
         _one("omega_coriolis", "(3,) world rate", w.shape)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
     else:
-        from jaximu.sensor import check_pose
+        from jaximu.geometry.sensor import check_pose
 
         pose = check_pose(body_P_sensor, t.dtype)
         _one("body_P_sensor.q", "(4,) quaternion", pose.q.shape)
@@ -357,7 +357,7 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     _check_poses(traj, t, q, p, v, omega, a)
     if omega_coriolis is not None:
-        from jaximu.sensor import lever_arm_acceleration
+        from jaximu.geometry.sensor import lever_arm_acceleration
 
         omega = omega + so3.quat_rotate(so3.quat_conj(q), jnp.broadcast_to(w, omega.shape))
         # Coriolis, and ω×(ω×p): a point fixed in the turning world (on components)

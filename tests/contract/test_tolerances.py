@@ -1,7 +1,7 @@
 """Tolerances relative to the data, and singular covariances named where they are inverted.
 
 Every value check that allows rounding allows it relative to its input and to the dtype's
-epsilon (``jaximu._validation``): the same relative defect is refused at every scale, and a
+epsilon (``jaximu.geometry._checks``): the same relative defect is refused at every scale, and a
 legitimate matrix is accepted at every scale. The references are independent of the code
 under test: numpy's eigenvalues of hand-built matrices and of their correlation matrices,
 numpy's Cholesky solve, and the defect each matrix was built with.
@@ -23,7 +23,7 @@ import pytest
 
 import jaximu
 from jaximu import ImuNoise, NavState, montecarlo, simulate
-from jaximu import _validation as val
+from jaximu.geometry import _checks as val
 from jaximu.errorstate import position_jacobian
 
 SCALES = (1e-12, 1.0, 1e12)
