@@ -18,9 +18,6 @@ from jaximu.engine.errorstate import ekf_update as ekf_update
 from jaximu.engine.errorstate import propagate_covariance as propagate_covariance
 from jaximu.engine.errorstate import propagate_covariance_final as propagate_covariance_final
 from jaximu.engine.errorstate import step_jacobians as step_jacobians
-from jaximu.schemes.integrators import ATTITUDES as ATTITUDES
-from jaximu.schemes.integrators import SCHEMES as SCHEMES
-from jaximu.geometry.noise import ImuNoise as ImuNoise
 from jaximu.engine.preintegration import Preintegrated as Preintegrated
 from jaximu.engine.preintegration import bias_jacobians_autodiff as bias_jacobians_autodiff
 from jaximu.engine.preintegration import compose as compose
@@ -32,11 +29,14 @@ from jaximu.engine.preintegration import residual as residual
 from jaximu.engine.preintegration import whitened_residual as whitened_residual
 from jaximu.engine.propagate import propagate as propagate
 from jaximu.engine.propagate import propagate_final as propagate_final
+from jaximu.geometry.noise import ImuNoise as ImuNoise
 from jaximu.geometry.sensor import SensorPose as SensorPose
 from jaximu.geometry.state import ImuBias as ImuBias
 from jaximu.geometry.state import NavState as NavState
 from jaximu.geometry.state import boxminus as boxminus
 from jaximu.geometry.state import boxplus as boxplus
+from jaximu.schemes.integrators import ATTITUDES as ATTITUDES
+from jaximu.schemes.integrators import SCHEMES as SCHEMES
 from jaximu.schemes.world import earth_rate as earth_rate
 
 __version__ = "0.1.0"

@@ -36,8 +36,8 @@ def compute_dtype(args):
 def sensor_and_world(args, rate_hz=None):
     """``--body-P-sensor`` and ``--earth-rate``: ``(body_P_sensor, omega_coriolis, noise)``
     (``noise``: the YAML's densities, which replace ``--noise``, or ``None``)."""
-    import jaximu
     from jaximu.calibration.problem import kalibr
+    from jaximu.schemes.world import earth_rate
 
     pose = noise = omega = None
     if getattr(args, "body_P_sensor", None):
@@ -53,7 +53,7 @@ def sensor_and_world(args, rate_hz=None):
             print(f"note: the YAML's rate {cfg.rate_hz:g} Hz differs from the recording's "
                   f"{rate_hz:.1f} Hz")
     if getattr(args, "earth_rate", None) is not None:
-        omega = np.asarray(jaximu.earth_rate(args.earth_rate), np.float64)
+        omega = np.asarray(earth_rate(args.earth_rate), np.float64)
         print(f"rotating world: Earth's rate at latitude {args.earth_rate:g}° (east-north-up) "
               f"{np.array2string(omega, precision=4)} rad/s")
     return pose, omega, noise

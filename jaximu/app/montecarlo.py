@@ -20,8 +20,7 @@ def cmd_montecarlo(args):
     import jax
     import jax.numpy as jnp
 
-    from jaximu.studies import montecarlo
-    from jaximu.studies import simulate
+    from jaximu.studies import montecarlo, simulate
 
     if args.runs < 2:
         raise UsageError(f"--runs must be ≥ 2, got {args.runs}")

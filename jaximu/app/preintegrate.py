@@ -25,7 +25,8 @@ from jaximu.studies.recording import noise_preset as _noise
 def cmd_preintegrate(args):
     import jax.numpy as jnp
 
-    import jaximu
+    from jaximu.engine.preintegration import preintegrate
+    from jaximu.geometry.state import ImuBias
     from jaximu.studies import keyframes
 
     check_outputs(out=args.out)
@@ -52,11 +53,11 @@ def cmd_preintegrate(args):
     gyro = jnp.asarray(data.gyro[windows.sample_index], dtype)
     accel = jnp.asarray(data.accel[windows.sample_index], dtype)
     dt = jnp.asarray(windows.dt, dtype)
-    b = jaximu.ImuBias(jnp.asarray(bias[:3], dtype), jnp.asarray(bias[3:], dtype))
+    b = ImuBias(jnp.asarray(bias[:3], dtype), jnp.asarray(bias[3:], dtype))
     print(f"{K} windows of {n} samples ({args.window:g} s), scheme {args.scheme}, biases {how}")
     pose, omega, yaml_noise = sensor_and_world(args, data.rate_hz)
     tic = time.perf_counter()
-    pim = jaximu.preintegrate(gyro, accel, dt, b, yaml_noise or _noise(args.noise), args.scheme,
+    pim = preintegrate(gyro, accel, dt, b, yaml_noise or _noise(args.noise), args.scheme,
                               method=args.method, body_P_sensor=pose)
     pim.delta_p.block_until_ready()
     print(f"preintegrated in {time.perf_counter() - tic:.2f} s including compilation")

@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import so3
 from jaximu.calibration._model import CalibrationError
 from jaximu.engine._preintegration_engine import _preintegrate
+from jaximu.geometry import so3
 
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 """XLA options for graphs that run once or a few times on little data: about half the

@@ -13,7 +13,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaximu.geometry import so3
 from jaximu.calibration._checks import QUICK_COMPILE_SAMPLES, _compiled
 from jaximu.calibration._model import (
     _SIZES,
@@ -27,6 +26,7 @@ from jaximu.calibration._model import (
     calibration_loss,
     calibration_residuals,
 )
+from jaximu.geometry import so3
 
 # --------------------------------------------------------------------------- fitting
 

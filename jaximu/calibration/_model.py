@@ -10,16 +10,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
 from jaximu.engine._preintegration_engine import Preintegrated, _chunk_scan, _pairs
-from jaximu.schemes._preintegration_steps import _step as _pim_step
-from jaximu.errors import InputError
-from jaximu.io._common import GAP_FACTOR
 from jaximu.engine.preintegration import residual
 from jaximu.engine.propagate import propagate_final
+from jaximu.errors import InputError
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
 from jaximu.geometry.sensor import SensorPose, to_body
 from jaximu.geometry.state import ImuBias, NavState
+from jaximu.io._common import GAP_FACTOR
+from jaximu.schemes._preintegration_steps import _step as _pim_step
 
 FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
           "accel_misalignment", "gravity", "time_offset", "q_BS", "p_BS")

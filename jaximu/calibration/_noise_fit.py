@@ -46,22 +46,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
 from jaximu.calibration._checks import _apply, _compiled, _preintegrate_sequential
-from jaximu.calibration._fit import _Layout, _n_free, _scale_vector, _unpack
+from jaximu.calibration._fit import _flatten, _Layout, _n_free, _scale_vector, _unpack
 from jaximu.calibration._model import (
+    _TANGENT,
     FIELDS,
     CalibrationError,
     CalibrationProblem,
+    ImuCalibration,
+    Reference,
     _interp,
     _preintegrate_mean,
 )
-from jaximu.errors import Fix, InputError
-from jaximu.schemes.integrators import compose_deltas
-from jaximu.geometry.noise import ImuNoise
 from jaximu.engine.preintegration import compose, residual
+from jaximu.errors import Fix, InputError
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.geometry.noise import ImuNoise
 from jaximu.geometry.state import ImuBias, NavState
+from jaximu.schemes.integrators import compose_deltas
 
 DENSITIES = ("gyroscope_noise_density", "accelerometer_noise_density",
              "gyroscope_random_walk", "accelerometer_random_walk")
@@ -208,8 +211,6 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
                   omega_coriolis) -> NoiseProblem:
     """:func:`jaximu.calibration.calibration_problem` with ``window_lengths`` (``build`` is
     that function, called for the base windows)."""
-    from jaximu.calibration.problem import ImuCalibration, Reference
-
     if model != "preintegration":
         raise InputError("window_lengths: the noise densities are fitted with the "
                          f"preintegration residual, got model={model!r}",
@@ -384,8 +385,6 @@ def nll_and_gradient(problem: NoiseProblem, u, initial=None):
     """The negative log-likelihood at log-density offsets ``u`` ``(7,)`` (``σ = σ_0 e^u`` for
     the four densities and ``σ_θ, σ_p, σ_v``) at the calibration ``initial``, and its gradient
     in ``u`` (autodiff through the covariance). For checks; :func:`fit` minimises it."""
-    from jaximu.calibration.problem import ImuCalibration
-
     dtype = problem.base.gyro.dtype
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     basis, logd = _bases(problem, drift_detrended=(True, True))
@@ -476,8 +475,6 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     ``n_windows``."""
     base = problem.base
     dtype = base.gyro.dtype
-    from jaximu.calibration._fit import _flatten
-
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
     _check_identifiable(problem, estimate, s0)
     free_c = tuple(n for n in FIELDS if n in estimate)
@@ -614,11 +611,9 @@ def _damped_step(H, g, lam):
 
 def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduced_chi2):
     """:func:`jaximu.calibration.calibrate` on a :class:`NoiseProblem`: the fit, its Laplace
-    standard errors in physical units and the :class:`CalibrationResult`."""
+    standard errors in physical units: the fields of the
+    :class:`jaximu.calibration.CalibrationResult` (which :func:`calibrate` makes of them)."""
     import warnings
-
-    from jaximu.calibration._model import _TANGENT
-    from jaximu.calibration.problem import CalibrationResult, ImuCalibration
 
     dtype = problem.base.gyro.dtype
     rigid = [n for n in ("q_BS", "p_BS") if n in estimate]
@@ -660,7 +655,7 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
                       "the model does not explain the reference (frames, units, time offset)",
                       RuntimeWarning, stacklevel=3)
     base = problem.base
-    return CalibrationResult(
+    return dict(
         calibration=out["calibration"], std=ImuCalibration(**std), covariance=cov,
         free=out["free"] + tuple(n for n in NOISE_FIELDS if n in estimate),
         velocities=np.asarray(base.velocities, np.float64), loss_history=out["history"],

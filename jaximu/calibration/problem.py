@@ -71,10 +71,6 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
-from jaximu.schemes import world
-
 # The model, the checks and the fit live in their own modules; the calibration's public
 # names (and the internals the tests call) are importable from here as before.
 from jaximu.calibration._checks import (
@@ -120,12 +116,15 @@ from jaximu.calibration._model import (
     calibration_residuals,
     sensor_matrix,  # noqa: F401  (calibration.sensor_matrix)
 )
-from jaximu.calibration._noise_fit import NOISE_FIELDS, NoiseProblem, noise_result
+from jaximu.calibration._noise_fit import NOISE_FIELDS, NoiseProblem, noise_problem, noise_result
 from jaximu.calibration._noise_table import noise_table
 from jaximu.errors import Fix, InputError
-from jaximu.io._common import GAP_FACTOR, in_gap
-from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry import _checks as val
+from jaximu.geometry import so3
+from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias
+from jaximu.io._common import GAP_FACTOR, in_gap
+from jaximu.schemes import world
 
 __all__ = [
     "ImuCalibration",
@@ -273,7 +272,6 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             raise InputError("keyframe_interval and window_lengths both given: with "
                              "window_lengths the keyframes are the shortest length's",
                              [Fix("keyframe_interval", "leave keyframe_interval out")])
-        from jaximu.calibration._noise_fit import noise_problem
         return noise_problem(calibration_problem, t, gyro, accel, reference, noise,
                              window_lengths=window_lengths, scheme=scheme, model=model,
                              reference_sigma=reference_sigma, initial=initial,
@@ -311,7 +309,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"IMU times must increase strictly; t[{i + 1}] <= t[{i}]")
     val.check_finite("gyro", gyro_np)
     val.check_finite("accel", accel_np)
-    noise = val.check_noise(noise, dtype)
+    noise = check_noise(noise, dtype)
     val.check_unbatched_noise(noise, "a calibration problem")
     if omega_coriolis is not None:
         omega_coriolis = world.check_omega(omega_coriolis, dtype)
@@ -583,7 +581,8 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         tol = val.check_positive("tol", tol, allow_zero=True)
         if max_reduced_chi2 is not None:
             max_reduced_chi2 = val.check_positive("max_reduced_chi2", max_reduced_chi2)
-        return noise_result(problem, initial, estimate, steps, tol, max_reduced_chi2)
+        return CalibrationResult(**noise_result(problem, initial, estimate, steps, tol,
+                                                max_reduced_chi2))
     noise_names = [n for n in estimate if n in NOISE_FIELDS]
     if noise_names:
         raise InputError(

@@ -27,14 +27,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaximu.schemes import _blocks as blk
 from jaximu.engine import _dispatch as dispatch
+from jaximu.geometry import so3
 from jaximu.kernels import fast as _fast
 from jaximu.kernels import soa as _soa
-from jaximu.schemes import integrators
-from jaximu.geometry import so3
-from jaximu.schemes._blocks import UPPER
 from jaximu.kernels.soa import SOA
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes import integrators
+from jaximu.schemes._blocks import UPPER
 from jaximu.schemes.integrators import compose_deltas
 
 # --------------------------------------------------------------------------- layout

@@ -17,25 +17,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 
-CPU, ACCELERATOR = "cpu", "accelerator"
-
-
-def backend() -> str:
-    """The kind of device the kernels are compiled for: :data:`CPU`, or :data:`ACCELERATOR`
-    (a GPU or TPU: JAX's default backend when it is not the CPU). The structure-of-arrays
-    layout is tuned for XLA:CPU; on an accelerator a step is one launch over every lane, so
-    a batch is one block and the table's ``backends`` column keeps only the rows measured to
-    pay there (docs/DESIGN.md, "Dispatch" and "On a GPU")."""
-    return CPU if jax.default_backend() == "cpu" else ACCELERATOR
-
-
-ACCELERATOR_LANES = 1 << 16
-"""Lanes of one batch block on an accelerator, and the lanes the time chunks of long
-sequences aim to fill there: a launch over 65536 lanes fills a GPU (an H100 holds about
-270 000 threads), and every block or chunk fewer is a sequential step fewer."""
+from jaximu.kernels import soa as _soa
+from jaximu.kernels.device import ACCELERATOR as ACCELERATOR
+from jaximu.kernels.device import ACCELERATOR_LANES as ACCELERATOR_LANES
+from jaximu.kernels.device import CPU as CPU
+from jaximu.kernels.device import backend as backend
+from jaximu.kernels.fast_preint import MIN_CHUNK
 
 LONG_STEPS = 2048
 """From this many steps an accelerator computes the mean of a sequence of a small batch in
@@ -185,10 +174,7 @@ def preint_method(method, lanes, steps, dtype) -> str:
     """
     if method != "auto":
         return method
-    from jaximu.kernels.fast_preint import MIN_CHUNK
-    from jaximu.kernels.soa import block_lanes
-
-    if lanes < block_lanes(jnp.dtype(dtype)) // 2 and steps >= 4 * MIN_CHUNK:
+    if lanes < _soa.block_lanes(jnp.dtype(dtype)) // 2 and steps >= 4 * MIN_CHUNK:
         return "parallel"
     return "sequential"
 

@@ -12,15 +12,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.schemes import _blocks as blk
 from jaximu.engine import _dispatch as dispatch
-from jaximu.kernels import fast_preint as _fast_preint
-from jaximu.geometry import so3
 from jaximu.geometry import _checks as val
-from jaximu.schemes._blocks import Blocks
-from jaximu.schemes._preintegration_steps import _UPPER9, _step, _step_autodiff
-from jaximu.schemes.integrators import get_scheme
+from jaximu.geometry import so3
 from jaximu.geometry.state import ImuBias
+from jaximu.kernels import fast_preint as _fast_preint
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks
+from jaximu.schemes._preintegration_steps import _UPPER9, _step, _step_autodiff, preintegration_step
 
 
 @jax.tree_util.register_dataclass
@@ -254,7 +253,7 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     dtype = gyro.dtype
     B = int(np.prod(batch, dtype=np.int64))
     flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
-    pre = get_scheme(scheme).preintegration
+    pre = preintegration_step(scheme)
     if pre.uses_next_sample:  # samples k and k+1 side by side (as _pairs)
         def pair(x):
             x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
@@ -277,8 +276,9 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     C = _fast_preint.num_chunks(B, n, method, dtype)
     # a scalar accelerometer density: the same noise on every axis (the kernel's R D Rᵀ = σ² I)
     iso = noise is None or jnp.ndim(noise.accelerometer_noise_density) == 0
-    t, q, dv, dp, Phi, Q15, Q9 = pre.kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
-                                            jacobians, iso)
+    kernel = _fast_preint.KERNELS[pre.name]
+    t, q, dv, dp, Phi, Q15, Q9 = kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
+                                        jacobians, iso)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
         delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),

@@ -38,19 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.schemes import _blocks as blk
 from jaximu.engine import _chunked
-from jaximu.kernels import fast as _fast
-from jaximu.kernels import soa as _soa
-from jaximu.geometry import sensor
-from jaximu.schemes import world
 from jaximu.engine import _dispatch as dispatch
-from jaximu.geometry import _checks as val
 from jaximu.engine._batching import ArgSpec, leading_axes
-from jaximu.schemes._blocks import Blocks
-from jaximu.geometry._vec import V3
-from jaximu.schemes.integrators import Attitude, check_scheme, get_attitude, get_scheme, nav_step
-from jaximu.geometry.noise import ImuNoise
 from jaximu.engine.propagate import (
     SAMPLES,
     STATE,
@@ -68,7 +58,23 @@ from jaximu.engine.propagate import (
     time_major,
     unit_start,
 )
-from jaximu.geometry.state import NavState, boxminus, boxplus
+from jaximu.geometry import _checks as val
+from jaximu.geometry import sensor
+from jaximu.geometry.noise import ImuNoise, check_noise
+from jaximu.geometry.state import NavState, boxminus, boxplus, check_state, require_navstate
+from jaximu.kernels import fast as _fast
+from jaximu.kernels import soa as _soa
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes import world
+from jaximu.schemes._blocks import Blocks
+from jaximu.schemes.integrators import (
+    Attitude,
+    blocks_analytic,
+    check_scheme,
+    get_attitude,
+    get_scheme,
+    nav_step,
+)
 
 __all__ = [
     "step_jacobians",
@@ -149,21 +155,6 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
                   Dv=blk_(2, 1), Ep=blk_(1, 2), Ev=blk_(2, 2), dt=h)
 
 
-def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h, lever=None) -> Blocks:
-    """Closed-form blocks of ``Φ`` for the exact-exponential forms (module docstring;
-    :meth:`jaximu.integrators.Scheme.blocks`, the one home of the formulas) on arrays.
-
-    Args:
-        R0: ``(..., 3, 3)`` attitude ``R̂`` at the start of the step.
-        omega0, f0, omega1, f1: bias-corrected samples k and k+1, ``(..., 3)``.
-        h: ``(...,)`` step [s].
-        lever: optional ``(..., 3)`` lever arm of samples moved to the body
-            (:meth:`jaximu.integrators.Scheme.blocks`).
-    """
-    return get_scheme(scheme).blocks(R0, V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1),
-                                     h, blk.ARRAYS, lever=None if lever is None else V3.of(lever))
-
-
 def dense_from_blocks(b: Blocks):
     """Assemble ``Φ`` ``(..., 15, 15)`` and ``G`` ``(..., 15, 12)`` from the blocks."""
     Phi = blk.phi_to_dense(b)
@@ -197,9 +188,9 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     """
     check_scheme(scheme)
     att = get_attitude(attitude)
-    val.require_navstate(state)
+    require_navstate(state)
     dtype = val.float_dtype(state, gyro, accel, dt, gyro_next, accel_next)
-    state = val.check_state(state, dtype)
+    state = check_state(state, dtype)
     w0, a0 = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
     w1 = w0 if gyro_next is None else val.to_dtype("gyro_next", gyro_next, dtype)
     a1 = a0 if accel_next is None else val.to_dtype("accel_next", accel_next, dtype)
@@ -252,7 +243,7 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
         raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
                          f"{tuple(G.shape)}")
     val.check_finite("G", G)
-    noise = val.check_noise(noise, dtype)
+    noise = check_noise(noise, dtype)
     try:
         dt_batch = jnp.shape(dt)
     except (TypeError, ValueError):  # not numbers: discrete_variances names dt
@@ -527,7 +518,7 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
                                                (P0,))
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
-    noise = val.check_noise(noise, dtype)
+    noise = check_noise(noise, dtype)
     val.batch_shape(batch, P0.shape[:-2], names=("state and samples", "P0"), noise=noise)
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
     tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
@@ -655,9 +646,9 @@ def ekf_update(state: NavState, P, residual, H, R):
     Raises:
         ValueError: naming the argument, for any of them outside the domain above.
     """
-    val.require_navstate(state)
+    require_navstate(state)
     dtype = val.float_dtype(state, P, residual, H, R)  # every field of the state counts
-    state = val.check_state(state, dtype)
+    state = check_state(state, dtype)
     P = _check_cov(P, dtype, "P")
     residual, H, R = (val.to_dtype(n, x, dtype) for n, x in
                       (("residual", residual), ("H", H), ("R", R)))

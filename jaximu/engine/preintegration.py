@@ -38,18 +38,23 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaximu.schemes import _blocks as blk
-from jaximu.geometry import _checks as val
-from jaximu.geometry import sensor
-from jaximu.geometry import so3
-from jaximu.schemes import world
 from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.engine._preintegration_engine import (
+    Preintegrated,
+    _Acc,
+    _combine,
+    _finish,
+    _preintegrate,
+)
+from jaximu.geometry import _checks as val
+from jaximu.geometry import sensor, so3
+from jaximu.geometry.noise import ImuNoise, check_noise
+from jaximu.geometry.state import ImuBias, NavState, check_state
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes import world
 from jaximu.schemes._blocks import mm
-from jaximu.engine._preintegration_engine import Preintegrated, _Acc, _combine, _finish, _preintegrate
 from jaximu.schemes._preintegration_steps import _UPPER9
 from jaximu.schemes.integrators import apply_deltas, compose_deltas
-from jaximu.geometry.noise import ImuNoise
-from jaximu.geometry.state import ImuBias, NavState
 
 __all__ = [
     "Preintegrated",
@@ -157,7 +162,7 @@ def preintegrate(gyro, accel, dt, bias: ImuBias | None = None, noise: ImuNoise |
     gyro, accel, dt, _ = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     bias = _check_bias(bias, dtype)
     if noise is not None:
-        noise = val.check_noise(noise, dtype)
+        noise = check_noise(noise, dtype)
     val.batch_shape(gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
                     bias.b_a.shape[:-1], names=("gyro", "accel", "dt", "bias.b_g", "bias.b_a"),
                     noise=noise)  # the densities' batch axes too, each named
@@ -215,7 +220,7 @@ def _check_state_arg(name, state):
     if not isinstance(state, NavState):
         raise ValueError(f"{name} must be a jaximu.NavState, got {type(state).__name__}")
     try:
-        val.check_state(state, val.float_dtype(*jax.tree_util.tree_leaves(state)))
+        check_state(state, val.float_dtype(*jax.tree_util.tree_leaves(state)))
     except ValueError as e:
         raise ValueError(str(e).replace("state", name, 1)) from None
     return state.batch_shape

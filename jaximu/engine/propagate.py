@@ -14,16 +14,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.engine import _chunked
+from jaximu.engine import _dispatch as dispatch
+from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.geometry import _checks as val
+from jaximu.geometry import sensor, so3
+from jaximu.geometry.state import NavState, check_state, require_navstate
 from jaximu.kernels import fast as _fast
 from jaximu.kernels import soa as _soa
-from jaximu.geometry import sensor
-from jaximu.geometry import so3
 from jaximu.schemes import world
-from jaximu.engine import _dispatch as dispatch
-from jaximu.geometry import _checks as val
-from jaximu.engine._batching import ArgSpec, leading_axes
 from jaximu.schemes.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
-from jaximu.geometry.state import NavState
 
 __all__ = ["propagate", "propagate_final"]
 
@@ -38,9 +37,9 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude, others=()):
     samples must not turn the computation into float64."""
     check_scheme(scheme)
     get_attitude(attitude)
-    val.require_navstate(state)
+    require_navstate(state)
     dtype = val.float_dtype(state, gyro, accel, dt, *others)
-    state = val.check_state(state, dtype)
+    state = check_state(state, dtype)
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
     batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],

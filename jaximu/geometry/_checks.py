@@ -17,8 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.errors import Fix, InputError
-from jaximu.geometry.noise import ImuNoise
-from jaximu.geometry.state import NavState
 
 
 def is_concrete(*trees) -> bool:
@@ -442,33 +440,6 @@ def _time_whole(x, n_minor):
         return jax.sharding.reshard(x, P(*spec[:x.ndim - n_minor], *(None,) * n_minor))
 
 
-def require_navstate(state):
-    if not isinstance(state, NavState):
-        raise ValueError(f"state must be a jaximu.NavState, got {type(state).__name__}")
-
-
-def check_state(state: NavState, dtype) -> NavState:
-    """Shapes, finiteness and unit norm of ``state.q`` (never normalised for the caller)."""
-    require_navstate(state)
-    fields = {"q": 4, "p": 3, "v": 3, "b_g": 3, "b_a": 3}
-    out = {}
-    for name, dim in fields.items():
-        x = to_dtype(f"state.{name}", getattr(state, name), dtype)
-        if x.ndim < 1 or x.shape[-1] != dim:
-            raise ValueError(f"state.{name} must have shape (..., {dim}), got {tuple(x.shape)}")
-        check_finite(f"state.{name}", x)
-        out[name] = x
-    try:
-        jnp.broadcast_shapes(*(x.shape[:-1] for x in out.values()))
-    except ValueError:
-        raise ValueError(
-            "state fields have incompatible batch shapes: "
-            + ", ".join(f"{k}{tuple(v.shape)}" for k, v in out.items())
-        ) from None
-    check_unit_norm("state.q", out["q"], dtype)
-    return NavState(**out)
-
-
 def gravity_vector(gravity, dtype):
     """``g_W`` from a magnitude ``g ≥ 0`` (→ ``[0, 0, -g]``) or a ``(..., 3)`` vector (any
     direction). A negative magnitude is refused: it would flip gravity (a still IMU climbing
@@ -568,23 +539,6 @@ def batch_shape(*shapes, names=None, noise=None):
             "batch shapes of the inputs do not broadcast: " + ", ".join(listed)
             + ("; give them equal leading axes or axes of size 1" if names else "")
         ) from None
-
-
-def check_noise(noise, dtype):
-    """Types, shapes, finiteness and signs of the four densities."""
-    if not isinstance(noise, ImuNoise):
-        raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
-    fields = {}
-    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
-                 "gyroscope_random_walk", "accelerometer_random_walk"):
-        x = to_dtype(f"noise.{name}", getattr(noise, name), dtype)
-        if x.ndim > 0 and x.shape[-1] != 3:
-            raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
-        check_finite(f"noise.{name}", x)
-        if is_concrete(x) and np.any(np.asarray(x) < 0):
-            raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
-        fields[name] = x
-    return ImuNoise(**fields)
 
 
 # --------------------------------------------------------------------------- scalar options

@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.geometry import _checks as val
+
 __all__ = ["ImuNoise"]
 
 
@@ -62,9 +64,7 @@ class ImuNoise:
     def _per_axis(self, dtype):
         """The four densities as ``dtype`` arrays ``(..., 3)``, checked as the propagation
         entries check them (numbers, not text or complex; finite and ``≥ 0`` when concrete)."""
-        from jaximu.geometry import _checks as val
-
-        checked = val.check_noise(self, dtype)  # refuses complex and bool too (to_dtype)
+        checked = check_noise(self, dtype)  # refuses complex and bool too (to_dtype)
         out = []
         for name in _FIELDS:
             f = getattr(checked, name)
@@ -101,8 +101,6 @@ class ImuNoise:
     def variances(self, dtype=None):
         """``[σ_g², σ_a², σ_bg², σ_ba²]`` per axis, ``(..., 12)`` (densities squared), in
         ``dtype`` (float32 or float64; default: JAX's default float dtype)."""
-        from jaximu.geometry import _checks as val
-
         dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
         parts = [s * s for s in self._per_axis(dtype)]
         shape = jnp.broadcast_shapes(*(x.shape for x in parts))
@@ -125,8 +123,6 @@ def _dt_array(dt, dtype):
     """``dt`` as an array of the computation dtype: ``dtype`` (float32 or float64) if given,
     else ``dt``'s float dtype (at least float32), else JAX's default float dtype; positive
     and finite before and after the cast, when concrete."""
-    from jaximu.geometry import _checks as val
-
     kind = val.kind_of(dt)
     if kind == "b":
         raise ValueError("dt must be a time step in seconds, got a bool (True would be 1 s)")
@@ -158,3 +154,20 @@ def _check_dt(dt):
         value = arr[tuple(np.argwhere(bad)[0])] if arr.ndim else arr
         raise ValueError(f"dt must be positive and finite; dt{where} = {value} (the noise "
                          "variances are σ²/dt)")
+
+
+def check_noise(noise, dtype):
+    """Types, shapes, finiteness and signs of the four densities."""
+    if not isinstance(noise, ImuNoise):
+        raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
+    fields = {}
+    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
+                 "gyroscope_random_walk", "accelerometer_random_walk"):
+        x = val.to_dtype(f"noise.{name}", getattr(noise, name), dtype)
+        if x.ndim > 0 and x.shape[-1] != 3:
+            raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
+        val.check_finite(f"noise.{name}", x)
+        if val.is_concrete(x) and np.any(np.asarray(x) < 0):
+            raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
+        fields[name] = x
+    return ImuNoise(**fields)

@@ -191,10 +191,11 @@ def _central(d_before, d_after, h_before, h_after):
     return (h_after * d_before + h_before * d_after) / (h_before + h_after)
 
 
-def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
+def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool, halo: int):
     """:func:`to_body` inside a kernel's time chunks: the ``samples`` function of
     :func:`jaximu.kernels.soa._time_chunks` (its ``w``, ``a``, ``hw``, ``k``), on time-major
-    components ``(n + 3, Bc)`` with ``HALO`` samples before the chunk and one after.
+    components ``(n + halo + 1, Bc)`` with ``halo`` samples before the chunk and one after
+    (the kernel's :data:`jaximu.kernels.soa.HALO`).
 
     ``R``: ``R_BS`` ``(Bc, 3, 3)`` or ``(3, 3)``; ``b_g``: the gyro bias in the body frame
     (``R_BS b_g``) and ``r`` the lever arm, components ``(Bc,)`` or scalars;
@@ -202,19 +203,17 @@ def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool):
     one once more: it gets the derivative of the last). The derivative ``α`` is
     :func:`angular_acceleration`'s: central inside, one-sided at the first and last sample.
     """
-    from jaximu.kernels.soa import HALO
-
     def samples(w, a, hw, k):
         n = k.shape[0]
         gyro_b = matvec_v3(R, V3(*w))  # (n + 3, Bc)
-        own = lambda x: V3(*(c[HALO:HALO + n] for c in x))  # noqa: E731
+        own = lambda x: V3(*(c[halo:halo + n] for c in x))  # noqa: E731
         alpha = None
         if tangential and n_samples > 1:
             h = hw[:, None] if hw.ndim == 1 else hw
             d = V3(*((c[1:] - c[:-1]) / h for c in gyro_b))  # slopes, (n + 2, Bc)
-            at = lambda j: V3(*(c[j:j + n] for c in d))  # noqa: E731 (interval k - HALO + j)
-            before, after, held = at(HALO - 1), at(HALO), at(HALO - 2)
-            mid = V3(*(_central(b, f, h[HALO - 1:HALO - 1 + n], h[HALO:HALO + n])
+            at = lambda j: V3(*(c[j:j + n] for c in d))  # noqa: E731 (interval k - halo + j)
+            before, after, held = at(halo - 1), at(halo), at(halo - 2)
+            mid = V3(*(_central(b, f, h[halo - 1:halo - 1 + n], h[halo:halo + n])
                        for b, f in zip(before, after)))
             kk = k[:, None]
             pick = lambda c0, cb, ch, cm: jnp.where(  # noqa: E731

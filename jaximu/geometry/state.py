@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry import so3
+from jaximu.geometry._checks import check_batch_shape, check_finite, check_unit_norm, to_dtype
 
 __all__ = [
     "NavState",
@@ -65,8 +66,6 @@ class NavState:
     @classmethod
     def identity(cls, batch_shape=(), dtype=jnp.float32) -> NavState:
         """Identity attitude, zero position, velocity and biases."""
-        from jaximu.geometry._checks import check_batch_shape  # (it imports this module)
-
         batch_shape = check_batch_shape(batch_shape)
         z = jnp.zeros(batch_shape + (3,), dtype)
         return cls(so3.quat_identity(batch_shape, dtype), z, z, z, z)
@@ -114,8 +113,6 @@ class ImuBias:
     @classmethod
     def zeros(cls, batch_shape=(), dtype=jnp.float32) -> ImuBias:
         """Zero gyro and accelerometer biases ``batch_shape + (3,)``."""
-        from jaximu.geometry._checks import check_batch_shape  # (it imports this module)
-
         z = jnp.zeros(check_batch_shape(batch_shape) + (3,), dtype)
         return cls(z, z)
 
@@ -179,3 +176,30 @@ def boxminus(state: NavState, reference: NavState) -> jax.Array:
     ]
     shape = jnp.broadcast_shapes(*(x.shape for x in parts))
     return jnp.concatenate([jnp.broadcast_to(x, shape) for x in parts], axis=-1)
+
+
+def require_navstate(state):
+    if not isinstance(state, NavState):
+        raise ValueError(f"state must be a jaximu.NavState, got {type(state).__name__}")
+
+
+def check_state(state: NavState, dtype) -> NavState:
+    """Shapes, finiteness and unit norm of ``state.q`` (never normalised for the caller)."""
+    require_navstate(state)
+    fields = {"q": 4, "p": 3, "v": 3, "b_g": 3, "b_a": 3}
+    out = {}
+    for name, dim in fields.items():
+        x = to_dtype(f"state.{name}", getattr(state, name), dtype)
+        if x.ndim < 1 or x.shape[-1] != dim:
+            raise ValueError(f"state.{name} must have shape (..., {dim}), got {tuple(x.shape)}")
+        check_finite(f"state.{name}", x)
+        out[name] = x
+    try:
+        jnp.broadcast_shapes(*(x.shape[:-1] for x in out.values()))
+    except ValueError:
+        raise ValueError(
+            "state fields have incompatible batch shapes: "
+            + ", ".join(f"{k}{tuple(v.shape)}" for k, v in out.items())
+        ) from None
+    check_unit_norm("state.q", out["q"], dtype)
+    return NavState(**out)

@@ -8,8 +8,8 @@ import pathlib
 
 import numpy as np
 
-from jaximu.geometry import _checks as val
 from jaximu.errors import Fix
+from jaximu.geometry import _checks as val
 from jaximu.io._common import (
     _ACCEL_UNITS,
     _GYRO_UNITS,

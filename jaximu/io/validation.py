@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaximu.geometry import _checks as val
 from jaximu.errors import Fix
+from jaximu.geometry import _checks as val
 from jaximu.io._common import (
     _ACCEL_MEDIAN_RANGE,
     _DT_RANGE,

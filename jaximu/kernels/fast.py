@@ -8,12 +8,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.schemes import _blocks
-from jaximu.geometry import sensor
-from jaximu.geometry import so3
-from jaximu.schemes import world
-from jaximu.schemes._blocks import UPPER, Blocks, block, structured_update
+from jaximu.geometry import sensor, so3
+from jaximu.geometry._vec import V3
 from jaximu.kernels.soa import (
+    HALO,
     LANE_FORMS,
     SOA,
     LaneForm,
@@ -34,7 +32,8 @@ from jaximu.kernels.soa import (
     mean_step,
     run_blocked,
 )
-from jaximu.geometry._vec import V3
+from jaximu.schemes import _blocks, world
+from jaximu.schemes._blocks import UPPER, Blocks, block, structured_update
 from jaximu.schemes.integrators import GIMBAL_LOCK_COS
 
 QUATERNION = LANE_FORMS["quaternion"]
@@ -85,7 +84,7 @@ def _sensor_samples(pose_q, pose_p, b_g, n_samples, tangential):
     if pose_q is None:
         return None
     return sensor.chunk_to_body(so3.quat_to_matrix(pose_q), V3(*b_g), V3(*_components(pose_p)),
-                                n_samples, tangential)
+                                n_samples, tangential, HALO)
 
 
 QUATERNION_FORMS = ("quaternion", "quaternion_first_order")

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry import sensor
+from jaximu.geometry._vec import V3
 from jaximu.kernels.fast import blocks_autodiff
 from jaximu.kernels.soa import (
     _E3,
@@ -72,7 +73,6 @@ from jaximu.kernels.soa import (
     run_blocked,
     whole_chunks,
 )
-from jaximu.geometry._vec import V3
 from jaximu.schemes.integrators import compose_deltas, get_scheme
 
 MIN_CHUNK = 16  # shortest time chunk per lane
@@ -835,3 +835,8 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians=
         summ = _reduce_chunks(summ, C)
     return _finish(summ)
 
+
+
+KERNELS = {"euler": preintegrate_euler, "midpoint": preintegrate_midpoint}
+"""The structure-of-arrays kernel of each scheme's preintegration step
+(:data:`jaximu.schemes._preintegration_steps.PREINTEGRATION_STEPS`, by the same name)."""

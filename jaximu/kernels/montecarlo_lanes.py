@@ -11,12 +11,12 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaximu.kernels import rng as _rng
-from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
-from jaximu.kernels.soa import SOA, _materialise, _rows, mean_step
 from jaximu.geometry._vec import V3
-from jaximu.schemes.integrators import SCHEME_OBJECTS
 from jaximu.geometry.state import NavState, boxminus, boxplus
+from jaximu.kernels import rng as _rng
+from jaximu.kernels.soa import SOA, _materialise, _rows, mean_step
+from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
+from jaximu.schemes.integrators import SCHEME_OBJECTS
 
 # Streams of the counter-based generator (each a Threefry key; counter = (run, step)):
 # pairs 0-2 white noise of sample j (counter j): (n_gx, n_gy), (n_gz, n_ax), (n_ay, n_az);

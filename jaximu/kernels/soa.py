@@ -35,10 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental.xla_metadata import set_xla_metadata
 
-from jaximu.engine import _dispatch
 from jaximu.geometry import so3
-from jaximu.schemes._blocks import Layout
 from jaximu.geometry._vec import V3
+from jaximu.kernels import device
+from jaximu.schemes._blocks import Layout
 
 _CHUNK = (64, 16)  # preferred largest / smallest time chunk
 HALO = 2
@@ -276,7 +276,7 @@ def _materialise(tree):
     """:func:`_stage` of the identity on a pytree: its array leaves are computed once, in
     memory; other leaves (the identity block marker ``"I"`` of :mod:`jaximu.schemes._blocks`) pass
     as they are."""
-    if _dispatch.backend() != _dispatch.CPU:  # a stage is the plain call there (_stage)
+    if device.backend() != device.CPU:  # a stage is the plain call there (_stage)
         return tree
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     marks = [isinstance(x, str) for x in leaves]
@@ -372,7 +372,7 @@ def _cond(pred, true_fn, false_fn, *args):
     copies its predicate to the host and waits for it (each step of a scan then costs a
     round trip). Only for conds whose ``true_fn`` is right for every input (the range-reduced
     branch, a stage's identical branches)."""
-    if _dispatch.backend() != _dispatch.CPU:
+    if device.backend() != device.CPU:
         return true_fn(*args)
     return jax.lax.cond(pred, true_fn, false_fn, *args)
 
@@ -581,9 +581,9 @@ one kernel (:func:`one_kernel`) a block's state then stays in L1/L2 (docs/DESIGN
 
 def block_lanes(dtype):
     """Lanes per batch block for ``dtype``: :data:`BLOCK_BYTES` of them on the CPU, a
-    whole GPU's worth on an accelerator (:data:`jaximu.engine._dispatch.ACCELERATOR_LANES`)."""
-    if _dispatch.backend() != _dispatch.CPU:
-        return _dispatch.ACCELERATOR_LANES
+    whole GPU's worth on an accelerator (:data:`jaximu.kernels.device.ACCELERATOR_LANES`)."""
+    if device.backend() != device.CPU:
+        return device.ACCELERATOR_LANES
     return BLOCK_BYTES // jnp.dtype(dtype).itemsize
 
 

@@ -22,13 +22,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import so3
 from jaximu.engine.errorstate import accumulate_covariance, transition_products
+from jaximu.engine.propagate import propagate, propagate_final
+from jaximu.geometry import so3
+from jaximu.geometry.state import NavState
 from jaximu.learning.data import Sequence, check_rate, check_sequence
 from jaximu.learning.losses import rotation_step_blocks
 from jaximu.learning.model import check_model
-from jaximu.engine.propagate import propagate, propagate_final
-from jaximu.geometry.state import NavState
 
 __all__ = ["integrate_attitude", "orientation_errors", "attitude_covariance", "Metrics",
            "SequenceReport", "evaluate_sequence", "window_errors", "CHI2_3_3SIGMA"]

@@ -22,7 +22,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaximu.geometry import so3
 from jaximu.engine.errorstate import (
     accumulate_covariance,
     blocks_analytic,
@@ -30,8 +29,9 @@ from jaximu.engine.errorstate import (
     small_matmul,
     transition_products,
 )
-from jaximu.geometry.noise import ImuNoise
 from jaximu.engine.preintegration import preintegrate
+from jaximu.geometry import so3
+from jaximu.geometry.noise import ImuNoise
 
 __all__ = ["Windows", "windows", "huber", "increment_loss", "rotation_covariance",
            "gaussian_nll", "velocity_residuals"]

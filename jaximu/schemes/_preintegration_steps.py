@@ -10,14 +10,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaximu.schemes import _blocks as blk
-from jaximu.kernels import fast_preint as _fast_preint
-from jaximu.geometry import sensor
-from jaximu.geometry import so3
-from jaximu.schemes._blocks import Blocks, mm
+from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3
-from jaximu.engine.errorstate import blocks_analytic
-from jaximu.schemes.integrators import get_scheme
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks, mm
+from jaximu.schemes.integrators import blocks_analytic, get_scheme
 
 # --------------------------------------------------------------------------- one step
 
@@ -128,15 +125,17 @@ def _vins_variances(v):
 
 @dataclasses.dataclass(frozen=True)
 class PreintegrationStep:
-    """What a scheme brings to preintegration (:attr:`jaximu.integrators.Scheme.preintegration`):
+    """What a scheme brings to preintegration (:func:`preintegration_step`):
 
     * ``step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever) -> (dq, acc, F, Q9, (σ_bg², σ_ba²))``:
       the generic step on ``(..., 3)`` arrays, with closed-form ``F`` and white-noise blocks
       (``lever``: ``None``, or the lever arm of samples moved from a sensor,
       :mod:`jaximu.sensor`);
     * ``noise_dim``, ``perturb(n, w0, a0, w1, a1)`` and ``variances(σ²/dt)``: how its step
-      noise enters, for the autodiff Jacobians (:func:`_step_autodiff`);
-    * ``kernel``: its structure-of-arrays kernel (:mod:`jaximu.kernels.fast_preint`).
+      noise enters, for the autodiff Jacobians (:func:`_step_autodiff`).
+
+    Its structure-of-arrays kernel is :data:`jaximu.kernels.fast_preint.KERNELS`'s entry of
+    the same name (the kernels sit above the schemes).
     """
 
     name: str
@@ -145,19 +144,25 @@ class PreintegrationStep:
     noise_dim: int
     perturb: object
     variances: object
-    kernel: object
 
 
 PREINTEGRATION_STEPS = {
     # Forster / GTSAM Manifold: the propagation Euler step from the identity, without gravity
     "euler": PreintegrationStep("euler", False,
                                 lambda dR, w0, a0, w1, a1, h, *r: _euler_step(dR, w0, a0, h, *r),
-                                12, _euler_noise, lambda v: v, _fast_preint.preintegrate_euler),
+                                12, _euler_noise, lambda v: v),
     # VINS-Mono's midpoint (first-order quaternion, its F and 18-dim noise), kept exactly so
     # that results agree with VINS-Mono; the propagation midpoint uses the exact exponential
     "midpoint": PreintegrationStep("midpoint", True, _vins_midpoint_step, 18, _vins_noise,
-                                   _vins_variances, _fast_preint.preintegrate_midpoint),
+                                   _vins_variances),
 }
+
+
+def preintegration_step(scheme) -> PreintegrationStep | None:
+    """The :class:`PreintegrationStep` of ``scheme`` (a name or a
+    :class:`jaximu.integrators.Scheme`), or ``None`` where :func:`jaximu.preintegrate` has no
+    such scheme (RK4)."""
+    return PREINTEGRATION_STEPS.get(get_scheme(scheme).name)
 
 
 def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
@@ -167,7 +172,7 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
         var = [jnp.zeros(h.shape + (3,), dtype)] * 4
     else:
         var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
-    dq, acc, F, Q9, (sbg, sba) = get_scheme(scheme).preintegration.step(
+    dq, acc, F, Q9, (sbg, sba) = preintegration_step(scheme).step(
         dR, w0, a0, w1, a1, h, b_g, b_a, var, lever)
     eye = jnp.eye(3, dtype=dtype)
     h2 = (h * h)[..., None, None]
@@ -182,7 +187,7 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
     With a ``lever`` arm the specific force carries ``-ω×(ω×r)`` of the perturbed rate
     (:mod:`jaximu.sensor`), so gyro bias and noise reach it."""
     dtype = w0.dtype
-    pre = get_scheme(scheme).preintegration
+    pre = preintegration_step(scheme)
     nominal = _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, None)
 
     def mean(delta, n):

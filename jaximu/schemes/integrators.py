@@ -45,10 +45,11 @@ from typing import NamedTuple
 
 import jax
 
-from jaximu.geometry import sensor
-from jaximu.geometry import so3
+from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3, matvec
 from jaximu.geometry.state import NavState
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks, add
 
 __all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "Scheme", "get_attitude", "get_scheme",
            "step", "nav_step"]
@@ -179,15 +180,6 @@ class Scheme:
         forms them from the v rows), else ``None``. Euler and midpoint: ``h/2``."""
         return 0.5 * h
 
-    @property
-    def preintegration(self):
-        """Its :class:`jaximu.schemes._preintegration_steps.PreintegrationStep` (generic step, noise
-        mapping, SoA kernel), or ``None`` where :func:`jaximu.preintegrate` has no such
-        scheme (RK4)."""
-        from jaximu.schemes._preintegration_steps import PREINTEGRATION_STEPS
-
-        return PREINTEGRATION_STEPS.get(self.name)
-
     def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None, lever=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
         ``ops`` (:data:`jaximu.schemes._blocks.ARRAYS` or :data:`jaximu.kernels.soa.SOA`). With the stages
@@ -213,8 +205,6 @@ class Scheme:
         Returns:
             :class:`jaximu.schemes._blocks.Blocks`.
         """
-        from jaximu.schemes._blocks import Blocks, add
-
         pts, phi_end = self.points(omega0, f0, omega1, f1, h)
         # ops.barrier: values read by several products are computed once (SoA: XLA:CPU would
         # recompute them inside every consumer; docs/DESIGN.md "Kernel layout")
@@ -438,3 +428,18 @@ def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, 
         b_g = b_g + h[..., None] * noise[..., 6:9]
         b_a = b_a + h[..., None] * noise[..., 9:12]
     return NavState(attitude.to_quat(x), p, v, b_g, b_a)
+
+
+def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h, lever=None) -> Blocks:
+    """Closed-form blocks of ``Φ`` for the exact-exponential forms on ``(..., 3, 3)`` arrays
+    (:meth:`Scheme.blocks`, the one home of the formulas, in the array layout).
+
+    Args:
+        R0: ``(..., 3, 3)`` attitude ``R̂`` at the start of the step.
+        omega0, f0, omega1, f1: bias-corrected samples k and k+1, ``(..., 3)``.
+        h: ``(...,)`` step [s].
+        lever: optional ``(..., 3)`` lever arm of samples moved to the body
+            (:meth:`jaximu.integrators.Scheme.blocks`).
+    """
+    return get_scheme(scheme).blocks(R0, V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1),
+                                     h, blk.ARRAYS, lever=None if lever is None else V3.of(lever))

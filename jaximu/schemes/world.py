@@ -40,10 +40,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.schemes import _blocks as blk
 from jaximu.geometry import _checks as val
 from jaximu.geometry import so3
 from jaximu.geometry._vec import V3, matmul, matvec, matvec_v3
+from jaximu.schemes import _blocks as blk
 
 __all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
            "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]

@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaximu.geometry import _checks as val
 from jaximu.errors import Fix, InputError
+from jaximu.geometry import _checks as val
 
 __all__ = [
     "GYRO_WHITE_MAX",

@@ -159,7 +159,8 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
     import jax
     import jax.numpy as jnp
 
-    import jaximu
+    from jaximu.engine.preintegration import Preintegrated, residual
+    from jaximu.geometry.state import ImuBias, NavState
 
     gt = _ground_truth(ground_truth)
     if gt.v is None:
@@ -167,10 +168,10 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
                          "(a pose-only ground truth cannot check a preintegrated measurement)")
     checked = groundtruth_coverage(gt, t_i, t_j).checked
     K = len(checked)
-    if not isinstance(pim, jaximu.Preintegrated) or np.shape(pim.delta_t) != (K,):
+    if not isinstance(pim, Preintegrated) or np.shape(pim.delta_t) != (K,):
         raise ValueError(f"pim must be a Preintegrated of {K} windows (one per t_i), got "
                          f"{type(pim).__name__} of shape {np.shape(getattr(pim, 'delta_t', ()))}")
-    if not isinstance(bias, jaximu.ImuBias):
+    if not isinstance(bias, ImuBias):
         raise ValueError(f"bias must be an ImuBias, got {type(bias).__name__}")
     out = np.full((K, 15), np.nan)
     if not checked.any():
@@ -180,10 +181,10 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
     states = []
     for tt in (_times("t_i", t_i)[rows], _times("t_j", t_j)[rows]):
         q, p, v = gt.interpolate(tt)
-        states.append(jaximu.NavState(jnp.asarray(q, dtype), jnp.asarray(p, dtype),
+        states.append(NavState(jnp.asarray(q, dtype), jnp.asarray(p, dtype),
                                       jnp.asarray(v, dtype), bias.b_g, bias.b_a))
     sel = jax.tree_util.tree_map(lambda x: x[rows], pim)
-    out[rows] = np.asarray(jaximu.residual(states[0], states[1], sel, gravity,
+    out[rows] = np.asarray(residual(states[0], states[1], sel, gravity,
                                            omega_coriolis=omega_coriolis), np.float64)
     return out
 

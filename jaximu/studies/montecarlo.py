@@ -53,17 +53,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.kernels import rng as _rng
-from jaximu.geometry import _checks as val
-from jaximu.kernels.montecarlo_lanes import _N_STREAMS, _chunk, _measured
-from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
-from jaximu.errors import Fix, InputError
 from jaximu.engine.errorstate import propagate_covariance
-from jaximu.schemes.integrators import SCHEME_OBJECTS
-from jaximu.geometry.noise import ImuNoise
 from jaximu.engine.propagate import _propagate
-from jaximu.studies.simulate import Trajectory, ideal_imu, true_states
+from jaximu.errors import Fix, InputError
+from jaximu.geometry import _checks as val
+from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState, boxminus
+from jaximu.kernels import rng as _rng
+from jaximu.kernels.montecarlo_lanes import _N_STREAMS, _chunk, _measured
+from jaximu.schemes.integrators import SCHEME_OBJECTS
+from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
+from jaximu.studies.simulate import Trajectory, ideal_imu, true_states
 
 __all__ = ["MonteCarloResult", "PositionFix", "monte_carlo", "sample_run", "chi2_interval",
            "load_result"]
@@ -303,8 +303,8 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     _check_cov(P0, dtype)
     lam, V = np.linalg.eigh(0.5 * (P0 + P0.T))
     L0 = V * np.sqrt(np.clip(lam, 0, None))  # L0 L0ᵀ = P0, also if singular
-    model_noise = val.check_noise(model_noise, dtype)
-    draw_noise = val.check_noise(draw_noise, dtype)
+    model_noise = check_noise(model_noise, dtype)
+    draw_noise = check_noise(draw_noise, dtype)
     val.check_unbatched_noise(model_noise, "a Monte Carlo study")
     val.check_unbatched_noise(draw_noise, "a Monte Carlo study")
     g = val.gravity_vector(gravity, dtype)

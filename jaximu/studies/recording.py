@@ -37,11 +37,11 @@ _DEMO_REPORT_AT = (1, 2, 5, 10, 20, 30, 60)
 def noise_preset(name: str):
     """The :class:`jaximu.ImuNoise` of a dataset's IMU: ``"euroc"`` (ADIS16448, as EuRoC's
     Kalibr file) or ``"tum-vi"`` (BMI160, as TUM-VI's)."""
-    import jaximu
     from jaximu.geometry import _checks as val
+    from jaximu.geometry.noise import ImuNoise
 
     val.check_choice("noise", name, NOISE_PRESETS, "noise preset")
-    return {"euroc": jaximu.ImuNoise.euroc, "tum-vi": jaximu.ImuNoise.tum_vi}[name]()
+    return {"euroc": ImuNoise.euroc, "tum-vi": ImuNoise.tum_vi}[name]()
 
 
 def default_P0(from_groundtruth: bool) -> np.ndarray:
@@ -121,9 +121,10 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     import jax
     import jax.numpy as jnp
 
-    import jaximu
+    from jaximu.engine.errorstate import _check_cov, propagate_covariance
     from jaximu.geometry import _checks as val
-    from jaximu.engine.errorstate import _check_cov
+    from jaximu.geometry.noise import check_noise
+    from jaximu.geometry.state import check_state
     from jaximu.schemes.integrators import SCHEMES
 
     # the checks the jit below skips (traced values): run them on the concrete inputs first
@@ -131,9 +132,9 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     val.check_choice("scheme", scheme, SCHEMES)
     chunk = val.check_int("chunk", chunk, 1)
     val.gravity_vector(gravity, dtype)
-    noise = val.check_noise(noise, dtype)
+    noise = check_noise(noise, dtype)
     _check_cov(P0, dtype)
-    val.check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
+    check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
     if body_P_sensor is not None:
         from jaximu.geometry.sensor import check_pose
 
@@ -142,7 +143,7 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
         from jaximu.schemes.world import check_omega
 
         check_omega(omega_coriolis, dtype)
-    step = jax.jit(lambda x, P, w, a, h: jaximu.propagate_covariance(
+    step = jax.jit(lambda x, P, w, a, h: propagate_covariance(
         x, P, w, a, h, noise, scheme, gravity=gravity, body_P_sensor=body_P_sensor,
         omega_coriolis=omega_coriolis))
     gyro = jnp.asarray(data.gyro, dtype)
@@ -196,9 +197,9 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
     import jax
     import jax.numpy as jnp
 
-    from jaximu.geometry import _checks as val
     from jaximu import io
     from jaximu.errors import Fix, InputError
+    from jaximu.geometry import _checks as val
 
     out = out if out is not None else sys.stdout
     seconds = val.check_positive("seconds", seconds)

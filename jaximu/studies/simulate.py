@@ -27,7 +27,7 @@ import numpy as np
 
 from jaximu.geometry import _checks as val
 from jaximu.geometry import so3
-from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState
 
 __all__ = [
@@ -416,7 +416,7 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         raise ValueError("gyro and accel hold no samples (T = 0)")
     val.check_finite("gyro", gyro)
     val.check_finite("accel", accel)
-    noise = val.check_noise(noise, dtype)
+    noise = check_noise(noise, dtype)
     batch_shape = val.check_batch_shape(batch_shape)
     mis = {}
     for name, M in (("gyro_misalignment", gyro_misalignment),
