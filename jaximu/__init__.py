@@ -7,11 +7,20 @@ with the rotation error on the right; Kalibr noise densities.
 
 from jaximu import allan as allan
 from jaximu import errors as errors
+from jaximu import errorstate as errorstate
+from jaximu import integrators as integrators
 from jaximu import io as io
 from jaximu import montecarlo as montecarlo
+from jaximu import noise as noise
+from jaximu import preintegration as preintegration
+
+# the module jaximu.propagate is loaded before the name is bound to the function, as it was
+# when the module lived here (a later ``import jaximu.propagate`` then leaves the name alone)
+from jaximu import propagate as _propagate_module  # noqa: F401
 from jaximu import sensor as sensor
 from jaximu import simulate as simulate
 from jaximu import so3 as so3
+from jaximu import state as state
 from jaximu import world as world
 from jaximu.engine.errorstate import discrete_process_noise as discrete_process_noise
 from jaximu.engine.errorstate import ekf_update as ekf_update

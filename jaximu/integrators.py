@@ -1,4 +1,10 @@
 """``jaximu.integrators``: the import path of :mod:`jaximu.schemes.integrators`, where the module lives."""
 
+from jaximu.schemes import integrators as _home
 from jaximu.schemes.integrators import *  # noqa: F403
 from jaximu.schemes.integrators import __all__ as __all__
+
+
+def __getattr__(name):
+    """The module's other names (those outside ``__all__``), for code that reaches them here."""
+    return getattr(_home, name)

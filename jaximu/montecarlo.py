@@ -1,4 +1,10 @@
 """``jaximu.montecarlo``: the import path of :mod:`jaximu.studies.montecarlo`, where the module lives."""
 
+from jaximu.studies import montecarlo as _home
 from jaximu.studies.montecarlo import *  # noqa: F403
 from jaximu.studies.montecarlo import __all__ as __all__
+
+
+def __getattr__(name):
+    """The module's other names (those outside ``__all__``), for code that reaches them here."""
+    return getattr(_home, name)

@@ -1,4 +1,10 @@
 """``jaximu.recording``: the import path of :mod:`jaximu.studies.recording`, where the module lives."""
 
+from jaximu.studies import recording as _home
 from jaximu.studies.recording import *  # noqa: F403
 from jaximu.studies.recording import __all__ as __all__
+
+
+def __getattr__(name):
+    """The module's other names (those outside ``__all__``), for code that reaches them here."""
+    return getattr(_home, name)

@@ -1,4 +1,10 @@
 """``jaximu.simulate``: the import path of :mod:`jaximu.studies.simulate`, where the module lives."""
 
+from jaximu.studies import simulate as _home
 from jaximu.studies.simulate import *  # noqa: F403
 from jaximu.studies.simulate import __all__ as __all__
+
+
+def __getattr__(name):
+    """The module's other names (those outside ``__all__``), for code that reaches them here."""
+    return getattr(_home, name)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu.calibration.problem import _noise_fit as cn
+from jaximu.calibration import _noise_fit as cn
 from jaximu import calibration as cal
 from jaximu import kalibr, so3
 from jaximu import simulate as sim

@@ -88,7 +88,7 @@ def _estimate(text, cal):
 def cmd_calibrate(args):
     import jax.numpy as jnp
 
-    from jaximu.calibration.problem import problem as cal
+    from jaximu import calibration as cal
 
     estimate = _estimate(args.estimate, cal)
     noise_fit = any(n in cal.NOISE_FIELDS for n in estimate)
@@ -178,7 +178,7 @@ def cmd_calibrate(args):
         pathlib.Path(args.out).write_text(json.dumps(doc, indent=2))
         print(f"calibration written to {args.out}")
     if args.imu_yaml:
-        from jaximu.calibration.problem import kalibr
+        from jaximu.calibration import kalibr
 
         iso = cal.ImuNoise(*(float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
                              for n in kalibr.DENSITIES))

@@ -36,7 +36,7 @@ def compute_dtype(args):
 def sensor_and_world(args, rate_hz=None):
     """``--body-P-sensor`` and ``--earth-rate``: ``(body_P_sensor, omega_coriolis, noise)``
     (``noise``: the YAML's densities, which replace ``--noise``, or ``None``)."""
-    from jaximu.calibration.problem import kalibr
+    from jaximu.calibration import kalibr
     from jaximu.schemes.world import earth_rate
 
     pose = noise = omega = None
