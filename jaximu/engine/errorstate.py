@@ -45,6 +45,8 @@ from jaximu.engine.propagate import (
     SAMPLES,
     STATE,
     VECTOR,
+    _report_gimbal_lock,
+    _sensor_options,
     broadcast_state,
     coriolis_mode,
     flatten_batch,
@@ -53,6 +55,7 @@ from jaximu.engine.propagate import (
     mean_body,
     n_steps,
     prepare,
+    sensor_biases,
     sensor_engine_inputs,
     soa_samples,
     time_major,
@@ -512,7 +515,6 @@ def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact",
 def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
                       save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
                       coriolis="exact"):
-    from jaximu.engine.propagate import _report_gimbal_lock, _sensor_options, sensor_biases
 
     state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
                                                (P0,))

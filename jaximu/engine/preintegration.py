@@ -50,6 +50,8 @@ from jaximu.geometry import _checks as val
 from jaximu.geometry import sensor, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias, NavState, check_state
+from jaximu.kernels.fast import dense_to_blocks
+from jaximu.kernels.soa import SOA, block_lanes, run_blocked
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import world
 from jaximu.schemes._blocks import mm
@@ -511,9 +513,6 @@ def _whiten(cov15, r):
     the block Cholesky of :func:`jaximu.schemes._blocks.whiten` (the Monte Carlo NEES's) on lanes,
     3×3 blocks ``(3, 3, N)`` (a batch of 15×15 factorisations as LAPACK calls ran one
     matrix at a time: 2 µs per window). Not positive definite: NaN or inf."""
-    from jaximu.kernels.fast import dense_to_blocks
-    from jaximu.kernels.soa import SOA, block_lanes, run_blocked
-
     batch = jnp.broadcast_shapes(cov15.shape[:-2], r.shape[:-1])
     P = jnp.broadcast_to(cov15, batch + (15, 15)).reshape(-1, 15, 15)
     e = jnp.broadcast_to(r, batch + (15,)).reshape(-1, 15)

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from jaximu.geometry import _checks as val
+from jaximu.geometry.state import NavState  # noqa: PLC0415
 from jaximu.io._common import CLOCK_TOLERANCE, QUATERNION_NORM_TOLERANCE, DataError, _seconds
 from jaximu.io.containers import GroundTruth, ImuData, _qmul
 from jaximu.io.writers import _check_cov, _check_times, _pose_arrays, _sigma
@@ -46,8 +47,6 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     Returns:
         ``(state, description)``: the state and one sentence saying where each part came from.
     """
-    from jaximu.geometry.state import NavState  # noqa: PLC0415
-
     from_groundtruth = val.check_bool("from_groundtruth", from_groundtruth)
     still_seconds = _seconds("still_seconds", still_seconds, positive=True)
     b = np.zeros(6) if bias is None else val.as_numbers("bias", bias)
@@ -99,7 +98,6 @@ class TrajectoryErrors:
         velocity: ``(K, 3)`` ``v̂ - v`` [m/s] or ``None``; sigma: ``(K, 15)`` standard
             deviations of the estimate (interpolated), or ``None``.
     """
-
     t: np.ndarray
     position: np.ndarray
     rotation: np.ndarray

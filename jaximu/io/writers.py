@@ -7,6 +7,7 @@ import pathlib
 import numpy as np
 
 from jaximu.geometry import _checks as val
+from jaximu.geometry.state import NavState  # noqa: PLC0415
 from jaximu.io._common import DataError
 from jaximu.io._text import _parse, _parse_tum, _read_table
 
@@ -194,8 +195,6 @@ def read_states(path):
         float64 arrays, and ``(T, 15, 15)`` (``None`` if not written; from a CSV without the
         full covariance, diagonal from the standard deviations).
     """
-    from jaximu.geometry.state import NavState  # noqa: PLC0415
-
     path = pathlib.Path(path)
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:

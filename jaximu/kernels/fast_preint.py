@@ -36,8 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry import sensor
+from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3
+from jaximu.geometry.so3 import quat_normalize, quat_to_matrix
 from jaximu.kernels.fast import blocks_autodiff
 from jaximu.kernels.soa import (
     _E3,
@@ -83,7 +84,6 @@ MIN_CHUNK = 16  # shortest time chunk per lane
 
 def _lane_scalars(big):
     """Stage 1 (per lane): the mean update and the scalars of the step."""
-
     def f(q, dv, dp, t, omega, fsp, h):
         u = _quat_rotate(q, fsp)
         phi = tuple(h * w for w in omega)
@@ -576,8 +576,6 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
     frame ``B_i`` with its rotations given, and the chunk summaries compose without a frame
     change (VINS-Mono's unnormalised rotation makes a change of frame inexact).
     ``jacobians``: :func:`mid_step`."""
-    from jaximu.geometry import so3
-
     B, T, _ = gyro.shape
     dtype = gyro.dtype
     guard = False
@@ -709,8 +707,6 @@ def _combine(a, b, rotate=True):
     :func:`jaximu.preintegration.compose`: ``b`` is moved to ``a``'s frame by
     ``T = blockdiag(R, R, R, I, I)`` (``θ'``, p, v all rotate) and composed. With
     ``rotate=False`` both are already in the same frame (plain composition)."""
-    from jaximu.geometry.so3 import quat_to_matrix
-
     deltas = lambda s: (s["q"], s["dp"], s["dv"], s["t"])  # noqa: E731
     if rotate:
         R = quat_to_matrix(a["q"])
@@ -760,8 +756,6 @@ def _reduce_chunks(s, C, rotate=True):
 def _finish(s):
     """Summary in θ' coordinates -> ``(t, q, dv, dp, Φ, Q15, Q9)`` of the generic code: the
     θ rows (and columns) are rotated back with ``ΔR_ijᵀ``."""
-    from jaximu.geometry.so3 import quat_normalize, quat_to_matrix
-
     Rt = _t(quat_to_matrix(s["q"]))
     T = _frame(Rt, 15, 1)
     T9 = T[..., :9, :9]

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 from jaximu.geometry._vec import V3
 from jaximu.geometry.state import NavState, boxminus, boxplus
 from jaximu.kernels import rng as _rng
+from jaximu.kernels.fast import cov_step_blocks, dense_to_blocks
 from jaximu.kernels.soa import SOA, _materialise, _rows, mean_step
 from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
 from jaximu.schemes.integrators import SCHEME_OBJECTS
@@ -96,8 +97,6 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
     lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
     """
-    from jaximu.kernels.fast import cov_step_blocks, dense_to_blocks
-
     sch = SCHEME_OBJECTS[scheme]
     nxt = sch.uses_next_sample
     L, n_seg, rem = seg

@@ -39,6 +39,7 @@ from jaximu.geometry import so3
 from jaximu.geometry._vec import V3
 from jaximu.kernels import device
 from jaximu.schemes._blocks import Layout
+from jaximu.schemes.integrators import get_attitude, stage_sum
 
 _CHUNK = (64, 16)  # preferred largest / smallest time chunk
 HALO = 2
@@ -300,7 +301,6 @@ def half_angle_jr(t2):
     """``(cos(θ/2), sin(θ/2)/θ, (θ - sin θ)/θ³)`` for per-lane ``θ² = t2``: polynomials in
     θ² (the range-reduced half angle only when some lane needs it); finite values and
     derivatives at θ = 0 (double ``where``)."""
-
     def small(t2):
         c, k = _half_small(t2)
         return c, k, _jr_b_small(t2)
@@ -894,7 +894,6 @@ def _euler_rows(tchi1, chi1, world=False):
 def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
     """Classical RK4 on ``(χ, p, v)`` with ω, f linear inside the step, on lanes
     (:func:`jaximu.integrators._rk4_euler_angles`, the ``"euler_angles"`` form's RK4)."""
-
     def deriv(c, w, f):
         trig = _euler_trig(c)
         return _euler_rate(c, w, trig), V3(*_matrix_rotate(_euler_matrix(c, trig), f)) + g
@@ -914,7 +913,6 @@ def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
 
 class LaneForm(NamedTuple):
     """An attitude form (:class:`jaximu.integrators.Attitude`) on SoA lanes."""
-
     name: str
     size: int  # lanes of its state
     advance: Callable  # (x, φ: V3, half=None) -> x ⊞ φ
@@ -952,15 +950,11 @@ def lane_form(name) -> LaneForm:
 def from_quat(form: LaneForm, q):
     """The form's state ``(B, size)`` from quaternions ``(B, 4)``: the generic kernels'
     ``Attitude.from_quat``, a matrix flattened row-major."""
-    from jaximu.schemes.integrators import get_attitude
-
     return get_attitude(form.name).from_quat(q).reshape(q.shape[:-1] + (form.size,))
 
 
 def to_quat(form: LaneForm, x):
     """Quaternions ``(…, 4)`` from the form's states ``(…, size)`` (``Attitude.to_quat``)."""
-    from jaximu.schemes.integrators import get_attitude
-
     shape = (3, 3) if form.size == 9 else (form.size,)
     return get_attitude(form.name).to_quat(x.reshape(x.shape[:-1] + shape))
 
@@ -989,8 +983,6 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
     Returns:
         ``(q⁺, p⁺, v⁺)``.
     """
-    from jaximu.schemes.integrators import stage_sum
-
     if form.name == "euler_angles" and scheme.name == "rk4":
         return rk4_euler_angles(q, p, v, omega0, f0, omega1, f1, h, g)
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)

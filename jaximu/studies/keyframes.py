@@ -21,7 +21,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaximu.engine.preintegration import Preintegrated, residual
 from jaximu.geometry import _checks as val
+from jaximu.geometry.state import ImuBias, NavState
 from jaximu.io import CLOCK_TOLERANCE, GroundTruth
 from jaximu.io._common import in_gap
 
@@ -41,7 +43,6 @@ class KeyframeWindows(NamedTuple):
         t_i: ``(K,)`` time of each window's first keyframe [s].
         t_j: ``(K,)`` time of each window's last keyframe [s].
     """
-
     sample_index: np.ndarray
     dt: np.ndarray
     t_i: np.ndarray
@@ -56,7 +57,6 @@ class GroundTruthCoverage(NamedTuple):
             :data:`jaximu.io.CLOCK_TOLERANCE`).
         in_gap: ``(K,)`` inside, with a keyframe in one of the ground truth's gaps.
     """
-
     inside: np.ndarray
     in_gap: np.ndarray
 
@@ -158,9 +158,6 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
     """
     import jax
     import jax.numpy as jnp
-
-    from jaximu.engine.preintegration import Preintegrated, residual
-    from jaximu.geometry.state import ImuBias, NavState
 
     gt = _ground_truth(ground_truth)
     if gt.v is None:

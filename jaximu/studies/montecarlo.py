@@ -53,7 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.engine.errorstate import propagate_covariance
+from jaximu.engine.errorstate import _check_cov, propagate_covariance
 from jaximu.engine.propagate import _propagate
 from jaximu.errors import Fix, InputError
 from jaximu.geometry import _checks as val
@@ -61,7 +61,7 @@ from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState, boxminus
 from jaximu.kernels import rng as _rng
 from jaximu.kernels.montecarlo_lanes import _N_STREAMS, _chunk, _measured
-from jaximu.schemes.integrators import SCHEME_OBJECTS
+from jaximu.schemes.integrators import SCHEME_OBJECTS, SCHEMES
 from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
 from jaximu.studies.simulate import Trajectory, ideal_imu, true_states
 
@@ -76,7 +76,6 @@ class PositionFix(NamedTuple):
     Attributes:
         sigma: standard deviation of each axis [m], a scalar or ``(3,)``, ``> 0``.
     """
-
     sigma: float | tuple = 0.1
 
 
@@ -111,7 +110,6 @@ class MonteCarloResult(NamedTuple):
         nis_bounds: filter study: ``(2,)`` its interval (dof ``m N``), else ``None``.
         settings: the options that produced the result (a dict; JSON-serialisable).
     """
-
     times: np.ndarray
     mean_error: np.ndarray
     error_cov: np.ndarray
@@ -250,9 +248,6 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     """Validate the inputs and build the kernel's constants (shared by :func:`monte_carlo`
     and :func:`sample_run`). ``nees``: refuse an open-loop study whose NEES is undefined at
     every recorded time (a single run's errors do not need it)."""
-    from jaximu.engine.errorstate import _check_cov
-    from jaximu.schemes.integrators import SCHEMES
-
     if not isinstance(trajectory, Trajectory):
         raise ValueError("trajectory must be a jaximu.simulate.Trajectory (e.g. "
                          f"jaximu.simulate.circle()), got {type(trajectory).__name__}")
@@ -634,7 +629,6 @@ class Run(NamedTuple):
         start: the estimator's initial state ``x̂_0`` (:class:`NavState`, biases included).
         b_g, b_a: ``(T+1, 3)`` the true biases during each sample.
     """
-
     errors: np.ndarray
     times: np.ndarray
     gyro: np.ndarray

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaximu.io import trajectory_errors
+
 __all__ = ["plot_trajectory", "plot_monte_carlo", "plot_nees", "plot_allan"]
 
 _BLOCKS = (("attitude error [deg]", 0, np.rad2deg(1.0)), ("position error [m]", 3, 1.0),
@@ -107,8 +109,6 @@ def plot_trajectory(t, states, ground_truth=None, cov=None, *, label: str = "jax
         ground_truth: :class:`jaximu.io.GroundTruth` on the same clock, or ``None``;
         cov: ``(T, 15, 15)`` covariances of ``[dθ, dp, dv, db_g, db_a]``, or ``None``.
     """
-    from jaximu.io import trajectory_errors  # noqa: PLC0415
-
     plt = _plt()
     t = np.asarray(t, np.float64)
     p = np.asarray(states.p, np.float64)

@@ -22,6 +22,17 @@ import time
 
 import numpy as np
 
+from jaximu import io
+from jaximu.engine.errorstate import _check_cov, propagate_covariance
+from jaximu.errors import Fix, InputError
+from jaximu.geometry import _checks as val
+from jaximu.geometry.noise import ImuNoise, check_noise
+from jaximu.geometry.sensor import check_pose
+from jaximu.geometry.state import check_state
+from jaximu.schemes.integrators import SCHEMES
+from jaximu.schemes.world import check_omega
+from jaximu.studies.plots import plot_trajectory
+
 __all__ = ["DEMO_SCHEMES", "DEMO_SECONDS", "NOISE_PRESETS", "default_P0", "noise_preset",
            "propagate_recording", "run_demo"]
 
@@ -37,9 +48,6 @@ _DEMO_REPORT_AT = (1, 2, 5, 10, 20, 30, 60)
 def noise_preset(name: str):
     """The :class:`jaximu.ImuNoise` of a dataset's IMU: ``"euroc"`` (ADIS16448, as EuRoC's
     Kalibr file) or ``"tum-vi"`` (BMI160, as TUM-VI's)."""
-    from jaximu.geometry import _checks as val
-    from jaximu.geometry.noise import ImuNoise
-
     val.check_choice("noise", name, NOISE_PRESETS, "noise preset")
     return {"euroc": ImuNoise.euroc, "tum-vi": ImuNoise.tum_vi}[name]()
 
@@ -121,12 +129,6 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     import jax
     import jax.numpy as jnp
 
-    from jaximu.engine.errorstate import _check_cov, propagate_covariance
-    from jaximu.geometry import _checks as val
-    from jaximu.geometry.noise import check_noise
-    from jaximu.geometry.state import check_state
-    from jaximu.schemes.integrators import SCHEMES
-
     # the checks the jit below skips (traced values): run them on the concrete inputs first
     dtype = val.compute_dtype("dtype", dtype)
     val.check_choice("scheme", scheme, SCHEMES)
@@ -136,12 +138,8 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     _check_cov(P0, dtype)
     check_state(jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), state0), dtype)
     if body_P_sensor is not None:
-        from jaximu.geometry.sensor import check_pose
-
         check_pose(body_P_sensor, dtype)
     if omega_coriolis is not None:
-        from jaximu.schemes.world import check_omega
-
         check_omega(omega_coriolis, dtype)
     step = jax.jit(lambda x, P, w, a, h: propagate_covariance(
         x, P, w, a, h, noise, scheme, gravity=gravity, body_P_sensor=body_P_sensor,
@@ -197,10 +195,6 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
     import jax
     import jax.numpy as jnp
 
-    from jaximu import io
-    from jaximu.errors import Fix, InputError
-    from jaximu.geometry import _checks as val
-
     out = out if out is not None else sys.stdout
     seconds = val.check_positive("seconds", seconds)
     if seconds > DEMO_SECONDS:
@@ -252,7 +246,6 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
         states, cov, _ = results[scheme]
 
         def make():
-            from jaximu.studies.plots import plot_trajectory
 
             return plot_trajectory(
                 data.t, states, gt, cov, label=f"jaximu {scheme}",

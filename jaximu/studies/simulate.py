@@ -28,7 +28,9 @@ import numpy as np
 from jaximu.geometry import _checks as val
 from jaximu.geometry import so3
 from jaximu.geometry.noise import ImuNoise, check_noise
+from jaximu.geometry.sensor import check_pose, lever_arm_acceleration
 from jaximu.geometry.state import NavState
+from jaximu.schemes.world import check_omega
 
 __all__ = [
     "Trajectory",
@@ -52,7 +54,6 @@ class Trajectory:
         pose: the pose function (jax-traceable, twice differentiable in ``t``).
         name: a label for plots and reports.
     """
-
     pose: Callable
     name: str = "trajectory"
 
@@ -342,23 +343,17 @@ def ideal_imu(traj: Trajectory, t, gravity=9.81, *, body_P_sensor=None, omega_co
     g = val.gravity_vector(gravity, t.dtype)  # refuses a complex gravity (to_dtype)
     _one("gravity", "magnitude or (3,) vector", g.shape)
     if omega_coriolis is not None:
-        from jaximu.schemes.world import check_omega
-
         w = check_omega(omega_coriolis, t.dtype)
         _one("omega_coriolis", "(3,) world rate", w.shape)
     if body_P_sensor is None:
         q, p, v, omega, a = _kinematics_at(traj, t)
     else:
-        from jaximu.geometry.sensor import check_pose
-
         pose = check_pose(body_P_sensor, t.dtype)
         _one("body_P_sensor.q", "(4,) quaternion", pose.q.shape)
         _one("body_P_sensor.p", "(3,) lever arm", pose.p.shape)
         q, p, v, omega, a = _sensor_kinematics_at(traj, t, pose.q, pose.p)
     _check_poses(traj, t, q, p, v, omega, a)
     if omega_coriolis is not None:
-        from jaximu.geometry.sensor import lever_arm_acceleration
-
         omega = omega + so3.quat_rotate(so3.quat_conj(q), jnp.broadcast_to(w, omega.shape))
         # Coriolis, and ω×(ω×p): a point fixed in the turning world (on components)
         a = a + 2 * jnp.cross(w, v) + lever_arm_acceleration(w, None, p)
@@ -373,7 +368,6 @@ class ImuErrors(NamedTuple):
         b_g, b_a: ``(..., T, 3)`` the true biases during each sample (turn-on + random walk).
         b_g_end, b_a_end: ``(..., 3)`` the true biases after the last sample.
     """
-
     b_g: jax.Array
     b_a: jax.Array
     b_g_end: jax.Array
