@@ -28,8 +28,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaximu  # noqa: E402
-from jaximu.calibration import _noise_fit as cn  # noqa: E402
 from jaximu import calibration as cal  # noqa: E402
+from jaximu.calibration import _noise_fit as cn  # noqa: E402
 from jaximu.io import read_euroc  # noqa: E402
 
 DATASHEET = jaximu.ImuNoise.euroc()

@@ -29,10 +29,10 @@ import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
 import jaximu  # noqa: E402
-from jaximu.calibration import _noise_fit as cn  # noqa: E402
 from jaximu import calibration as cal  # noqa: E402
 from jaximu import simulate as sim  # noqa: E402
 from jaximu import so3  # noqa: E402
+from jaximu.calibration import _noise_fit as cn  # noqa: E402
 
 REF_SIGMA = np.array([1e-3, 1e-3, 1e-2])
 GRADES = {"euroc": jaximu.ImuNoise.euroc(),

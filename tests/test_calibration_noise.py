@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import jaximu
-from jaximu.calibration import _noise_fit as cn
 from jaximu import calibration as cal
 from jaximu import kalibr, so3
 from jaximu import simulate as sim
+from jaximu.calibration import _noise_fit as cn
 from jaximu.calibration._model import _group_residuals
 from jaximu.errors import InputError
 

@@ -9,9 +9,9 @@ import pytest
 from _shared import central_difference_phi
 
 import jaximu
-from jaximu.engine import _dispatch
 from jaximu import simulate as sim
 from jaximu.datasets import euroc_v1_02_segment
+from jaximu.engine import _dispatch
 
 try:
     import gtsam

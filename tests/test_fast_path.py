@@ -12,9 +12,10 @@ from _shared import random_inputs as inputs
 
 import jaximu
 from jaximu.engine import _dispatch
-from jaximu.kernels import soa as _soa
 from jaximu.engine.errorstate import _propagate_covariance
 from jaximu.engine.propagate import _propagate
+from jaximu.kernels import lane_math
+from jaximu.kernels import soa as _soa
 
 G_W = jnp.array([0.0, 0.0, -9.81])
 
@@ -105,7 +106,7 @@ def test_half_angle_kernels_match_trig(dtype):
     theta = np.r_[0.0, 1e-8, 1e-3, np.linspace(0.01, 3.2, 400), np.linspace(3.2, 200.0, 400)]
     t2 = jnp.asarray(theta**2, dtype)
     theta = np.sqrt(np.asarray(t2, np.float64))  # the angle the kernel actually sees
-    c, k = jax.jit(_soa._half_any)(t2)
+    c, k = jax.jit(lane_math._half_any)(t2)
     safe = np.where(theta > 0, theta, 1.0)
     k_ref = np.where(theta > 0, np.sin(theta / 2) / safe, 0.5)
     eps = np.finfo(dtype).eps
@@ -113,8 +114,8 @@ def test_half_angle_kernels_match_trig(dtype):
     assert np.all(np.abs(np.asarray(c, np.float64) - np.cos(theta / 2))
                   <= 8 * eps * np.maximum(1, theta))
     np.testing.assert_allclose(k, k_ref, rtol=0, atol=8 * eps)
-    small = theta**2 < _soa._THR
-    cs, ks = jax.jit(_soa._half_small)(t2[small])
+    small = theta**2 < lane_math._THR
+    cs, ks = jax.jit(lane_math._half_small)(t2[small])
     np.testing.assert_allclose(cs, np.cos(theta[small] / 2), rtol=0, atol=4 * eps)
     np.testing.assert_allclose(ks, k_ref[small], rtol=0, atol=4 * eps)
 

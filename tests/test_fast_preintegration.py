@@ -11,9 +11,9 @@ import pytest
 
 import jaximu
 from jaximu.engine import _dispatch
+from jaximu.engine.preintegration import _preintegrate
 from jaximu.kernels import fast_preint as _fast_preint
 from jaximu.kernels.soa import block_lanes
-from jaximu.engine.preintegration import _preintegrate
 
 
 def uses_fast_path(scheme, jacobians, prefixes, method="sequential", lanes=1024, fast=True,

@@ -76,7 +76,8 @@ def test_every_module_has_a_layer():
         if name in ("jaximu", "jaximu.__main__"):
             continue
         tree = ast.parse(MODULES[name].read_text(encoding="utf-8"))
-        defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))]
+        defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))
+                and n.name != "__getattr__"]  # a module's forwarding of its other names
         assert not defs, f"{name} sits at the package root but defines {defs[0].name}: " \
                          f"give it a home in one of {LAYERS}"
 

@@ -23,11 +23,11 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu.kernels import rng as _rng
 from jaximu import simulate as sim
 from jaximu.errorstate import ekf_update, position_jacobian
-from jaximu.studies.montecarlo import PositionFix, _chunk_runs, load_result, monte_carlo, sample_run
+from jaximu.kernels import rng as _rng
 from jaximu.state import NavState, boxminus
+from jaximu.studies.montecarlo import PositionFix, _chunk_runs, load_result, monte_carlo, sample_run
 
 # A statistic outside ±Z standard errors fails: two-sided false-alarm rate 5.7e-7 per check.
 Z = 5.0
@@ -268,8 +268,8 @@ def test_kalman_update_and_nees_on_soa_lanes_match_the_numpy_transcription():
     """The filter study's update runs the Joseph form on (3, 3, B) lanes with a position
     fix's H given by blocks (no product with its identity or zero blocks), and its NEES by a
     block Cholesky on lanes: both against the plain-numpy Joseph form and eᵀ P⁻¹ e."""
+    from jaximu.kernels.lane_math import SOA
     from jaximu.schemes import _blocks
-    from jaximu.kernels.soa import SOA
 
     rng = np.random.default_rng(3)
     B = 4

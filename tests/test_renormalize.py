@@ -1,4 +1,4 @@
-"""``_soa._quat_renormalize`` (``q (3 - |q|²)/2``, the kernels' normalisation after a unit
+"""``lane_math._quat_renormalize`` (``q (3 - |q|²)/2``, the kernels' normalisation after a unit
 increment) against numpy's division by the norm, and the engines from a start quaternion
 off unit against the same start normalised."""
 
@@ -10,7 +10,7 @@ from _shared import random_inputs
 from scipy.spatial.transform import Rotation
 
 import jaximu
-from jaximu.kernels import soa as _soa
+from jaximu.kernels import lane_math
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -25,17 +25,17 @@ def test_renormalize_after_unit_increments_is_the_division(dtype):
     q = Rotation.random(n, random_state=1).as_quat(scalar_first=True)
     ref = q.copy()
     qs = tuple(jnp.asarray(q[:, i], dtype) for i in range(4))
-    renorm = jax.jit(lambda a, b: _soa._quat_renormalize(_soa._quat_mul(a, b)))
+    renorm = jax.jit(lambda a, b: lane_math._quat_renormalize(lane_math._quat_mul(a, b)))
     for k in range(500):
         d = Rotation.random(n, random_state=10 + k).as_quat(scalar_first=True)
         ds = tuple(jnp.asarray(d[:, i], dtype) for i in range(4))
         if k == 0:  # one step against the division of the same (rounded) product
-            p64 = np.stack([np.asarray(x, np.float64) for x in _soa._quat_mul(qs, ds)], -1)
+            p64 = np.stack([np.asarray(x, np.float64) for x in lane_math._quat_mul(qs, ds)], -1)
             np.testing.assert_allclose(np.stack([np.asarray(x) for x in renorm(qs, ds)], -1),
                                        p64 / np.linalg.norm(p64, axis=-1, keepdims=True),
                                        rtol=0, atol=2 * eps)
         qs = renorm(qs, ds)
-        r = np.stack(_soa._quat_mul(tuple(ref.T), tuple(d.T)), -1)
+        r = np.stack(lane_math._quat_mul(tuple(ref.T), tuple(d.T)), -1)
         ref = r / np.linalg.norm(r, axis=-1, keepdims=True)
     got = np.stack([np.asarray(x, np.float64) for x in qs], -1)
     np.testing.assert_allclose(np.linalg.norm(got, axis=-1), 1.0, rtol=0, atol=4 * eps)
@@ -52,13 +52,13 @@ def test_renormalize_off_unit_keeps_the_direction():
     u /= np.linalg.norm(u, axis=-1, keepdims=True)
     scale = 1.0 + rng.uniform(-1e-6, 1e-6, size=(1000, 1))
     q = u * scale
-    once = np.stack(_soa._quat_renormalize(tuple(jnp.asarray(q[:, i]) for i in range(4))), -1)
+    once = np.stack(lane_math._quat_renormalize(tuple(jnp.asarray(q[:, i]) for i in range(4))), -1)
     norm = np.linalg.norm(once, axis=-1)
     eps2 = (scale[:, 0] ** 2 - 1.0) ** 2
     assert np.all(np.abs(norm - 1.0) <= 0.375 * eps2 * (1 + 1e-3) + 4e-16)
     assert np.abs(norm - 1.0).max() > 0.1 * 0.375 * eps2.max()  # the bound is the error's
     np.testing.assert_allclose(once / norm[:, None], u, rtol=0, atol=4e-16)
-    twice = np.stack(_soa._quat_renormalize(tuple(jnp.asarray(once[:, i]) for i in range(4))),
+    twice = np.stack(lane_math._quat_renormalize(tuple(jnp.asarray(once[:, i]) for i in range(4))),
                      -1)
     np.testing.assert_allclose(np.linalg.norm(twice, axis=-1), 1.0, rtol=0, atol=4e-16)
 

@@ -30,8 +30,9 @@ import jax.numpy as jnp
 from jaximu.engine import _dispatch as dispatch
 from jaximu.geometry import so3
 from jaximu.kernels import fast as _fast
+from jaximu.kernels import lane_forms, lane_math
 from jaximu.kernels import soa as _soa
-from jaximu.kernels.soa import SOA
+from jaximu.kernels.lane_math import SOA
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import integrators
 from jaximu.schemes._blocks import UPPER
@@ -284,7 +285,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     locked = None
     if local:  # from the identity, without gravity: the deltas, Φ_c and Q_c in one pass
         q_id = jnp.zeros((B * C, 4), dtype).at[:, 0].set(1)
-        x_s = _soa.from_quat(form, q_id)
+        x_s = lane_forms.from_quat(form, q_id)
         p_s = v_s = jnp.zeros((B * C, 3), dtype)
         g_s = jnp.zeros(3, dtype)
     else:  # from the true starts: the mean's own pass first
@@ -310,9 +311,9 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     deltas = start = None
     rotated = ()
     if local:  # the chunks' deltas move the state from one chunk's start to the next
-        deltas = (_soa.to_quat(form, out[0]), out[1], out[2], jnp.sum(dt_c, axis=-1))
+        deltas = (lane_forms.to_quat(form, out[0]), out[1], out[2], jnp.sum(dt_c, axis=-1))
         deltas = tuple(by_chunk(x, B, C) for x in deltas)  # (C, B, ·)
-        start = (so3.quat_normalize(_soa.to_quat(form, q)), p, v)
+        start = (so3.quat_normalize(lane_forms.to_quat(form, q)), p, v)
         rotated = (0, 1, 2) if world_error else (1, 2)
     Pb = dict(zip(UPPER, _fast.dense_to_blocks(P0)))
     if world_error:  # the user's body-frame rotation error into the world frame
@@ -321,21 +322,21 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
                                         deltas, g_b)
     if not save_all:
         if local:
-            xf, pf, vf = _soa.from_quat(form, end[0]), end[1], end[2]
+            xf, pf, vf = lane_forms.from_quat(form, end[0]), end[1], end[2]
         else:
             xf, pf, vf = (x[:, -1] for x in mean[:3])
         if world_error:
-            P = blk.congruence(P, {0: {0: _soa._bt(_frame(end[0]))}}, SOA)
+            P = blk.congruence(P, {0: {0: lane_math._bt(_frame(end[0]))}}, SOA)
         return xf, pf, vf, _fast.blocks_to_dense(tuple(P[k] for k in UPPER)), locked
     # every covariance: the chunks again, from their starts, storing every step
     if local:
-        x_s = _soa.from_quat(form, by_lane(starts[0][0]))
+        x_s = lane_forms.from_quat(form, by_lane(starts[0][0]))
         p_s, v_s = by_lane(starts[0][1]), by_lane(starts[0][2])
     # (C, 3, 3, B) -> (3, 3, B·C), lane b·C + c
     lanes = lambda x: jnp.moveaxis(x, 0, -1).reshape(x.shape[1:3] + (B * C,))
     P_starts = {k: lanes(x) for k, x in starts[1].items()}
     if world_error:  # the starts' covariances in the body frame, as the kernel keeps them
-        P_starts = blk.congruence(P_starts, {0: {0: _soa._bt(_frame(by_lane(starts[0][0])))}},
+        P_starts = blk.congruence(P_starts, {0: {0: lane_math._bt(_frame(by_lane(starts[0][0])))}},
                                   SOA)
     P_s = _fast.blocks_to_dense(tuple(P_starts[k] for k in UPPER))
     x_t, p_t, v_t, P_t, *_ = _fast.propagate_cov(

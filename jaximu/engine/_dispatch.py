@@ -63,7 +63,7 @@ class Row(NamedTuple):
 
 LANE_ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
 """Every attitude form: each runs on the structure-of-arrays kernels as its own lanes
-(:data:`jaximu.kernels.soa.LANE_FORMS`), the mean and the autodiff covariance (the closed forms:
+(:data:`jaximu.kernels.lane_forms.LANE_FORMS`), the mean and the autodiff covariance (the closed forms:
 the exact exponentials only)."""
 
 TABLE = (

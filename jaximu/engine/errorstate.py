@@ -66,7 +66,7 @@ from jaximu.geometry import sensor
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState, boxminus, boxplus, check_state, require_navstate
 from jaximu.kernels import fast as _fast
-from jaximu.kernels import soa as _soa
+from jaximu.kernels import lane_forms
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import world
 from jaximu.schemes._blocks import Blocks
@@ -428,7 +428,7 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     """Mean and covariance (final, or after every step with ``save_all``) on the
     :mod:`jaximu.kernels.fast` layout, any scheme with closed-form or autodiff blocks
     (:func:`jaximu.kernels.fast.cov_step_blocks`), the attitude form's state on lanes
-    (:data:`jaximu.kernels.soa.LANE_FORMS`); the block-structured update. ``pose``: the samples are
+    (:data:`jaximu.kernels.lane_forms.LANE_FORMS`); the block-structured update. ``pose``: the samples are
     a sensor's, moved into the body frame in the kernel's time chunks."""
     gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
@@ -437,13 +437,13 @@ def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, sche
     def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
         return var / (h[..., None] if jnp.ndim(h) else h)
 
-    form = _soa.lane_form(attitude)
-    x, p, v, P, *locked = _fast.propagate_cov(_soa.from_quat(form, q), p, v, b_g, b_a, P0_f,
+    form = lane_forms.lane_form(attitude)
+    x, p, v, P, *locked = _fast.propagate_cov(lane_forms.from_quat(form, q), p, v, b_g, b_a, P0_f,
                                               gyro_f, accel_f, dt_f, g_f, qc_fn, var,
                                               get_scheme(scheme), jacobians, omega, coriolis,
                                               lever, save_all, form, pose, tangential,
                                               n_samples)
-    q = _soa.to_quat(form, x)
+    q = lane_forms.to_quat(form, x)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
     st = NavState(unflat(q), unflat(p), unflat(v),
@@ -474,11 +474,11 @@ def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, s
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
                                                                    dt, g)
     P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
-    form = _soa.lane_form(attitude)
-    x, p, v, P, locked = _chunked.covariance(get_scheme(scheme), form, _soa.from_quat(form, q),
+    form = lane_forms.lane_form(attitude)
+    x, p, v, P, locked = _chunked.covariance(get_scheme(scheme), form, lane_forms.from_quat(form, q),
                                              p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
                                              var, jacobians, omega, coriolis, lever, save_all)
-    q = _soa.to_quat(form, x)
+    q = lane_forms.to_quat(form, x)
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())
 
     def unflat(x):

@@ -51,7 +51,8 @@ from jaximu.geometry import sensor, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias, NavState, check_state
 from jaximu.kernels.fast import dense_to_blocks
-from jaximu.kernels.soa import SOA, block_lanes, run_blocked
+from jaximu.kernels.lane_math import SOA
+from jaximu.kernels.soa import block_lanes, run_blocked
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import world
 from jaximu.schemes._blocks import mm

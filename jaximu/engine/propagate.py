@@ -20,7 +20,7 @@ from jaximu.geometry import _checks as val
 from jaximu.geometry import sensor, so3
 from jaximu.geometry.state import NavState, check_state, require_navstate
 from jaximu.kernels import fast as _fast
-from jaximu.kernels import soa as _soa
+from jaximu.kernels import lane_forms
 from jaximu.schemes import world
 from jaximu.schemes.integrators import GIMBAL_LOCK_COS, check_scheme, get_attitude, get_scheme, step
 
@@ -78,7 +78,7 @@ def unit_start(state: NavState, soa: bool, attitude: str) -> NavState:
     """``state`` with ``q / |q|``: the engines start from the rotation ``q`` stands for.
     Eager calls refuse a ``q`` further from unit than the tolerance; under ``jit`` nothing
     can check it, and the kernels' renormalisation after each step assumes a unit start
-    (:func:`jaximu.kernels.soa._quat_renormalize`). For a unit ``q`` it changes nothing but
+    (:func:`jaximu.kernels.lane_math._quat_renormalize`). For a unit ``q`` it changes nothing but
     rounding. ``soa``: a structure-of-arrays kernel runs; for the quaternion forms it
     normalises inside the kernel (:func:`jaximu.kernels.fast._unit_start`: outside, the O(B)
     normalisation is more modules for XLA:CPU to compile), so ``state`` stays as it is."""
@@ -174,12 +174,12 @@ def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=No
     (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
     if omega is not None:  # a world rate shared, or per batch element
         omega = lane_values(omega, batch)
-    form = _soa.lane_form(attitude)  # the attitude form's state on lanes, and back after
-    out = _fast.propagate_mean(get_scheme(scheme), _soa.from_quat(form, q), p, v, b_g, b_a,
+    form = lane_forms.lane_form(attitude)  # the attitude form's state on lanes, and back after
+    out = _fast.propagate_mean(get_scheme(scheme), lane_forms.from_quat(form, q), p, v, b_g, b_a,
                                gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form,
                                pose, tangential, n_samples)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    q, p, v = (unflat(x) for x in (_soa.to_quat(form, out[0]),) + tuple(out[1:3]))
+    q, p, v = (unflat(x) for x in (lane_forms.to_quat(form, out[0]),) + tuple(out[1:3]))
     # Euler angles: the lanes that reached the pitch singularity (by the last step)
     locked = unflat(out[3][..., -1, 0] if save_all else out[3][..., 0]) if len(out) > 3 \
         else jnp.zeros(batch, bool)

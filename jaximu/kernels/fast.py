@@ -10,26 +10,23 @@ import numpy as np
 
 from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3
-from jaximu.kernels.soa import (
-    HALO,
-    LANE_FORMS,
+from jaximu.kernels.lane_directions import direction_block, jvp_directions, lane_directions
+from jaximu.kernels.lane_forms import LANE_FORMS, LaneForm, _sincos, mean_step
+from jaximu.kernels.lane_math import (
     SOA,
-    LaneForm,
     _bmm,
     _bt,
-    _components,
     _materialise,
     _quat_normalize,
-    _sincos,
+    exp_jr,
+    half_angle_jr,
+)
+from jaximu.kernels.soa import (
+    HALO,
+    _components,
     _stack_last,
     _time_chunks,
     block_lanes,
-    direction_block,
-    exp_jr,
-    half_angle_jr,
-    jvp_directions,
-    lane_directions,
-    mean_step,
     run_blocked,
 )
 from jaximu.schemes import _blocks, world
@@ -176,7 +173,7 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
                     world_error=False, form: LaneForm = QUATERNION):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
-    ``jax.jvp`` of :func:`jaximu.kernels.soa.mean_step` in the 9 non-structural directions, in
+    ``jax.jvp`` of :func:`jaximu.kernels.lane_forms.mean_step` in the 9 non-structural directions, in
     three groups that each perturb only their own inputs, so that JAX's symbolic zeros skip
     what a direction cannot reach (a ``db_a`` tangent never enters the half angle): ``dθ``
     (the tangent ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``), ``db_g`` and ``db_a`` (``-e_j`` on

@@ -40,7 +40,14 @@ from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3
 from jaximu.geometry.so3 import quat_normalize, quat_to_matrix
 from jaximu.kernels.fast import blocks_autodiff
-from jaximu.kernels.soa import (
+from jaximu.kernels.lane_directions import (
+    direction_block,
+    jvp_directions,
+    lane_directions,
+    rotation_rows,
+    rotation_tangents,
+)
+from jaximu.kernels.lane_math import (
     _E3,
     _THR,
     SOA,
@@ -48,7 +55,6 @@ from jaximu.kernels.soa import (
     _bmm,
     _bsym,
     _bt,
-    _components,
     _cond,
     _diag_row,
     _half_any,
@@ -63,17 +69,9 @@ from jaximu.kernels.soa import (
     _rows,
     _skew3,
     _stage,
-    _time_chunks,
-    block_lanes,
-    direction_block,
-    jvp_directions,
-    lane_directions,
     quat_matrix,
-    rotation_rows,
-    rotation_tangents,
-    run_blocked,
-    whole_chunks,
 )
+from jaximu.kernels.soa import _components, _time_chunks, block_lanes, run_blocked, whole_chunks
 from jaximu.schemes.integrators import compose_deltas, get_scheme
 
 MIN_CHUNK = 16  # shortest time chunk per lane
@@ -124,7 +122,7 @@ def _step_blocks(R, Jl, h, u):
 def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
     """Stage 2 by autodiff (``jacobians="autodiff"``): ``Ev``, ``B'``, ``Cv`` (and with a
     lever arm ``Dk``) as the propagation kernel's :func:`jaximu.kernels.fast.blocks_autodiff` makes
-    them, ``jax.jvp`` of the Euler step (:func:`jaximu.kernels.soa.mean_step`, zero gravity, from
+    them, ``jax.jvp`` of the Euler step (:func:`jaximu.kernels.lane_forms.mean_step`, zero gravity, from
     ``(ΔR_ik, Δp, Δv)``) with the rotation error in the start frame ``B_i``
     (``world_error``): the rotated coordinates of this kernel, where ``Φ'_θθ = I``. The
     other blocks follow from these in an Euler step (``Cp = h/2 Cv``, ``Ep = h/2 Ev``,

@@ -15,7 +15,8 @@ from jaximu.geometry._vec import V3
 from jaximu.geometry.state import NavState, boxminus, boxplus
 from jaximu.kernels import rng as _rng
 from jaximu.kernels.fast import cov_step_blocks, dense_to_blocks
-from jaximu.kernels.soa import SOA, _materialise, _rows, mean_step
+from jaximu.kernels.lane_forms import mean_step
+from jaximu.kernels.lane_math import SOA, _materialise, _rows
 from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
 from jaximu.schemes.integrators import SCHEME_OBJECTS
 

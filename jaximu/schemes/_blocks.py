@@ -33,7 +33,7 @@ class Layout(NamedTuple):
     block formula uses (here, and the closed-form Jacobians of
     :meth:`jaximu.integrators.Scheme.blocks`).
 
-    :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu.kernels.soa.SOA`:
+    :data:`ARRAYS`: ``(..., 3, 3)`` arrays (the generic kernels); :data:`jaximu.kernels.lane_math.SOA`:
     ``(3, 3, B)`` batch-minor blocks (the structure-of-arrays kernels). One copy of the
     block algebra serves both. Vectors are :class:`~jaximu.geometry._vec.V3` of per-element scalars.
     """
@@ -490,7 +490,7 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         b: blocks of ``Φ``; ``G`` follows from them (module docstring).
         qc: the diagonal of ``Q_c`` as four per-axis 3-vectors ``[σ_g², σ_a², σ_bg², σ_ba²]/dt``
             (``(..., 3)`` each, or as ``ops`` stores 3-vectors); a ``(..., 12)`` array is split.
-        ops: the block layout (:data:`ARRAYS` or :data:`jaximu.kernels.soa.SOA`).
+        ops: the block layout (:data:`ARRAYS` or :data:`jaximu.kernels.lane_math.SOA`).
         p_over_v: ``s`` with ``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev`` when the scheme has
             that structure (:func:`phi_p_phit`), or ``None``.
     """
@@ -548,7 +548,7 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
             where zero, the string ``"I"`` for an identity block (``m = 3``): a position fix
             is ``(None, "I", None, None, None)``, which costs no product.
         R: ``m × m`` measurement noise covariance; nu: ``m × 1`` residual ``ν = z - h(x̂)``.
-        ops: the layout (:data:`ARRAYS`, or :data:`jaximu.kernels.soa.SOA`: ``(m, n, B)`` lanes).
+        ops: the layout (:data:`ARRAYS`, or :data:`jaximu.kernels.lane_math.SOA`: ``(m, n, B)`` lanes).
         check: ``check(S)`` called before ``S`` is factored (e.g. a definiteness check).
     """
     def P(i, j):

@@ -182,7 +182,7 @@ class Scheme:
 
     def blocks(self, R0, omega0, f0, omega1, f1, h, ops, end=None, lever=None):
         """Closed-form blocks of ``Φ`` (exact-exponential attitude forms) in the layout
-        ``ops`` (:data:`jaximu.schemes._blocks.ARRAYS` or :data:`jaximu.kernels.soa.SOA`). With the stages
+        ``ops`` (:data:`jaximu.schemes._blocks.ARRAYS` or :data:`jaximu.kernels.lane_math.SOA`). With the stages
         ``R_s = R̂ Exp(φ_s)``, ``u_s = R_s f_s`` (OpenVINS / Solà; docs/DESIGN.md):
 
             Φ_θθ = Exp(φ_end)ᵀ            Φ_θbg = Jr(φ_end) ∂φ_end/∂b_g

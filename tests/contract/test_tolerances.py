@@ -23,8 +23,8 @@ import pytest
 
 import jaximu
 from jaximu import ImuNoise, NavState, montecarlo, simulate
-from jaximu.geometry import _checks as val
 from jaximu.errorstate import position_jacobian
+from jaximu.geometry import _checks as val
 
 SCALES = (1e-12, 1.0, 1e12)
 DTYPES = (np.float32, np.float64)
