@@ -22,11 +22,10 @@ from jaximu import simulate as simulate
 from jaximu import so3 as so3
 from jaximu import state as state
 from jaximu import world as world
-from jaximu.engine.errorstate import discrete_process_noise as discrete_process_noise
-from jaximu.engine.errorstate import ekf_update as ekf_update
 from jaximu.engine.errorstate import propagate_covariance as propagate_covariance
 from jaximu.engine.errorstate import propagate_covariance_final as propagate_covariance_final
-from jaximu.engine.errorstate import step_jacobians as step_jacobians
+from jaximu.engine.jacobians import discrete_process_noise as discrete_process_noise
+from jaximu.engine.jacobians import step_jacobians as step_jacobians
 from jaximu.engine.preintegration import Preintegrated as Preintegrated
 from jaximu.engine.preintegration import bias_jacobians_autodiff as bias_jacobians_autodiff
 from jaximu.engine.preintegration import compose as compose
@@ -38,6 +37,7 @@ from jaximu.engine.preintegration import residual as residual
 from jaximu.engine.preintegration import whitened_residual as whitened_residual
 from jaximu.engine.propagate import propagate as propagate
 from jaximu.engine.propagate import propagate_final as propagate_final
+from jaximu.engine.update import ekf_update as ekf_update
 from jaximu.geometry.noise import ImuNoise as ImuNoise
 from jaximu.geometry.sensor import SensorPose as SensorPose
 from jaximu.geometry.state import ImuBias as ImuBias

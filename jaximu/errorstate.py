@@ -1,10 +1,19 @@
-"""``jaximu.errorstate``: the import path of :mod:`jaximu.engine.errorstate`, where the module lives."""
+"""``jaximu.errorstate``: the import path of the error-state functions, which live in
+:mod:`jaximu.engine.errorstate` (covariance propagation), :mod:`jaximu.engine.jacobians` (the
+step's ``Φ``, ``G`` and ``Q_d``) and :mod:`jaximu.engine.update` (the filter update)."""
 
-from jaximu.engine import errorstate as _home
+from jaximu.engine import errorstate as _covariance
+from jaximu.engine import jacobians as _jacobians
+from jaximu.engine import update as _update
 from jaximu.engine.errorstate import *  # noqa: F403
-from jaximu.engine.errorstate import __all__ as __all__
+from jaximu.engine.update import *  # noqa: F403
+
+__all__ = [*_covariance.__all__, *_update.__all__]
 
 
 def __getattr__(name):
-    """The module's other names (those outside ``__all__``), for code that reaches them here."""
-    return getattr(_home, name)
+    """The modules' other names (those outside ``__all__``), for code that reaches them here."""
+    for home in (_covariance, _jacobians, _update):
+        if hasattr(home, name):
+            return getattr(home, name)
+    raise AttributeError(f"module 'jaximu.errorstate' has no attribute {name!r}")

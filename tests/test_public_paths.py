@@ -289,9 +289,10 @@ def test_old_and_new_paths_are_the_same_objects():
     import jaximu
     import jaximu.errorstate
     import jaximu.so3
-    from jaximu.engine import errorstate
+    from jaximu.engine import errorstate, jacobians, update
     from jaximu.geometry import so3
 
-    assert jaximu.so3.exp is so3.exp and jaximu.errorstate.position_jacobian is errorstate.position_jacobian
+    assert jaximu.so3.exp is so3.exp and jaximu.errorstate.position_jacobian is update.position_jacobian
     assert jaximu.errorstate._check_cov is errorstate._check_cov
+    assert jaximu.errorstate.blocks_autodiff is jacobians.blocks_autodiff
     assert callable(jaximu.propagate)  # the function, as before (not the module of that name)

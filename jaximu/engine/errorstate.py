@@ -32,7 +32,6 @@ a handful of 3×3 products on the upper blocks of the symmetric ``P``) instead o
 from __future__ import annotations
 
 import functools
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +40,13 @@ import numpy as np
 from jaximu.engine import _chunked
 from jaximu.engine import _dispatch as dispatch
 from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.engine.jacobians import (
+    JACOBIANS,
+    _resolve_jacobians,
+    blocks_autodiff,
+    discrete_process_noise,
+    step_jacobians,
+)
 from jaximu.engine.propagate import (
     SAMPLES,
     STATE,
@@ -64,19 +70,15 @@ from jaximu.engine.propagate import (
 from jaximu.geometry import _checks as val
 from jaximu.geometry import sensor
 from jaximu.geometry.noise import ImuNoise, check_noise
-from jaximu.geometry.state import NavState, boxminus, boxplus, check_state, require_navstate
+from jaximu.geometry.state import NavState
 from jaximu.kernels import fast as _fast
 from jaximu.kernels import lane_forms
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import world
-from jaximu.schemes._blocks import Blocks
 from jaximu.schemes.integrators import (
-    Attitude,
     blocks_analytic,
-    check_scheme,
     get_attitude,
     get_scheme,
-    nav_step,
 )
 
 __all__ = [
@@ -87,173 +89,8 @@ __all__ = [
     "accumulate_covariance",
     "compose_transitions",
     "transition_products",
-    "ekf_update",
-    "position_jacobian",
     "JACOBIANS",
 ]
-
-JACOBIANS = ("auto", "analytic", "autodiff")
-
-
-# --------------------------------------------------------------------------- Jacobians
-
-
-def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g):
-    """``(Φ, G)`` of one step by ``jax.jacfwd`` through boxplus/boxminus; ``(..., 15, 15/12)``.
-
-    The perturbation is shared by every batch element, so one forward pass with 27
-    tangents gives the per-element Jacobians.
-    """
-    nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
-    dtype = state.q.dtype
-
-    def f_delta(delta):
-        return boxminus(nav_step(scheme, att, boxplus(state, delta), w0, a0, w1, a1, h, g), nominal)
-
-    def f_noise(n):
-        return boxminus(nav_step(scheme, att, state, w0, a0, w1, a1, h, g, noise=n), nominal)
-
-    Phi = jax.jacfwd(f_delta)(jnp.zeros(15, dtype))
-    G = jax.jacfwd(f_noise)(jnp.zeros(12, dtype))
-    return Phi, G
-
-
-def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g,
-                    lever=None) -> Blocks:
-    """The blocks of ``Φ`` by ``jax.jacfwd`` of the step, in the 9 directions that are not
-    structural: ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form).
-
-    The rest of ``Φ`` is known for every step of this library: ``p⁺``, ``v⁺`` depend on
-    ``p``, ``v`` through ``I`` and ``dt I`` only, ``θ⁺`` not at all, the biases are carried.
-    ``G`` is known from ``Φ`` (the white noises enter exactly as the biases do,
-    ``ω = w - b_g - n_g``, ``f = a - b_a - n_a``; the walks as ``dt I``), so
-    :func:`structured_update` serves both Jacobian options. 9 tangents instead of 27, and
-    no dense 15×15 products; tested equal to :func:`jacobians_autodiff` (dense) and to the
-    closed forms.
-
-    ``lever``: the lever arm ``r`` (``(..., 3)`` [m]) of samples moved from a sensor to the
-    body (:mod:`jaximu.sensor`): their specific force carries ``-ω×(ω×r)``, so it moves with
-    the gyro bias, and the derivative sees it (:func:`jaximu.sensor.moved_specific_force`).
-    """
-    nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
-    dtype = state.q.dtype
-    z6 = jnp.zeros(6, dtype)
-
-    def rows(d9):
-        delta = jnp.concatenate([d9[0:3], z6, d9[3:9]])
-        at = boxplus(state, delta)
-        a0_, a1_ = a0, a1
-        if lever is not None:
-            a0_ = sensor.moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, lever)
-            a1_ = sensor.moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, lever)
-        moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
-        return boxminus(moved, nominal)[..., :9]
-
-    J = jax.jacfwd(rows)(jnp.zeros(9, dtype))  # (..., 9 rows θ p v, 9 cols θ b_g b_a)
-
-    def blk_(r, c):
-        return J[..., 3 * r:3 * r + 3, 3 * c:3 * c + 3]
-
-    return Blocks(A=blk_(0, 0), B=blk_(0, 1), Cp=blk_(1, 0), Cv=blk_(2, 0), Dp=blk_(1, 1),
-                  Dv=blk_(2, 1), Ep=blk_(1, 2), Ev=blk_(2, 2), dt=h)
-
-
-def dense_from_blocks(b: Blocks):
-    """Assemble ``Φ`` ``(..., 15, 15)`` and ``G`` ``(..., 15, 12)`` from the blocks."""
-    Phi = blk.phi_to_dense(b)
-    batch = Phi.shape[:-2]
-    Z = jnp.zeros(batch + (3, 3), Phi.dtype)
-    hI = jnp.broadcast_to(b.dt[..., None, None] * jnp.eye(3, dtype=Phi.dtype), batch + (3, 3))
-
-    def f(x):
-        return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
-
-    rows: list[list[Any]] = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
-            [Z, Z, Z, hI]]
-    G = jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
-    return Phi, G
-
-
-def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_next=None,
-                   scheme: str = "euler", attitude: str = "quaternion", gravity=9.81,
-                   method: str = "autodiff"):
-    """``Φ`` and ``G`` of one propagation step at ``state``.
-
-    Args:
-        state: linearisation point (fields ``(..., 4)``/``(..., 3)``).
-        gyro, accel: ``(..., 3)`` raw sample k; ``gyro_next``, ``accel_next``: sample k+1
-            (midpoint, RK4; default: sample k held).
-        dt: ``(...,)`` step [s].
-        method: ``"autodiff"`` or ``"analytic"`` (exact-exponential attitude forms only).
-
-    Returns:
-        ``(Φ, G)``: ``(..., 15, 15)`` and ``(..., 15, 12)``.
-    """
-    check_scheme(scheme)
-    att = get_attitude(attitude)
-    require_navstate(state)
-    dtype = val.float_dtype(state, gyro, accel, dt, gyro_next, accel_next)
-    state = check_state(state, dtype)
-    w0, a0 = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
-    w1 = w0 if gyro_next is None else val.to_dtype("gyro_next", gyro_next, dtype)
-    a1 = a0 if accel_next is None else val.to_dtype("accel_next", accel_next, dtype)
-    for name, x in (("gyro", w0), ("accel", a0), ("gyro_next", w1), ("accel_next", a1)):
-        val.check_vector(name, x, time_axis=False)
-        val.check_finite(name, x)
-    h = val.to_dtype("dt", dt, dtype)
-    if val.is_concrete(h) and not np.all(np.isfinite(np.asarray(h)) & (np.asarray(h) > 0)):
-        raise ValueError(f"dt must be positive and finite, got {np.asarray(h)}")
-    g = val.gravity_vector(gravity, dtype)
-    val.batch_shape(state.batch_shape, w0.shape[:-1], a0.shape[:-1], w1.shape[:-1],
-                    a1.shape[:-1], h.shape, g.shape[:-1],
-                    names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"))
-    if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
-        return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
-    if method == "analytic":
-        _require_analytic(att)
-        b = blocks_analytic(scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g,
-                            a1 - state.b_a, h)
-        return dense_from_blocks(b)
-    raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
-
-
-def _require_analytic(att: Attitude):
-    if not att.exact_exponential:
-        raise ValueError(
-            f"analytic Jacobians are derived for the exact-exponential attitude forms "
-            f"('quaternion', 'matrix'), not {att.name!r}; use jacobians='autodiff'"
-        )
-
-
-def discrete_process_noise(G, noise: ImuNoise, dt):
-    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``.
-
-    Args:
-        G: ``(..., 15, 12)`` noise Jacobian (error state ``[dθ, dp, dv, db_g, db_a]`` by
-            noise ``[n_g, n_a, n_wg, n_wa]``, as :func:`step_jacobians` returns), finite.
-        noise: :class:`jaximu.ImuNoise` (continuous densities, ``≥ 0``, finite).
-        dt: scalar or ``(...,)`` step [s], ``> 0`` and finite.
-
-    Returns:
-        ``(..., 15, 15)`` in the promoted dtype of ``G`` and ``dt`` (a float64 ``dt`` beside
-        a float32 ``G`` is not rounded to float32; a Python scalar is weak; float32 for
-        integer or half-precision data). Shapes, types and batch shapes (``G``'s, ``dt``'s
-        and the densities') are checked always, values on eager calls.
-    """
-    dtype = val.float_dtype(G, dt)
-    G = val.to_dtype("G", G, dtype)
-    if G.ndim < 2 or G.shape[-2:] != (15, 12):
-        raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
-                         f"{tuple(G.shape)}")
-    val.check_finite("G", G)
-    noise = check_noise(noise, dtype)
-    try:
-        dt_batch = jnp.shape(dt)
-    except (TypeError, ValueError):  # not numbers: discrete_variances names dt
-        dt_batch = ()
-    val.batch_shape(G.shape[:-2], dt_batch, names=("G", "dt"), noise=noise)
-    qc = noise.discrete_variances(dt, dtype)
-    return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
 
 
 # --------------------------------------------------------------------------- covariance
@@ -334,16 +171,6 @@ def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
     xs = tuple(jnp.moveaxis(jnp.broadcast_to(x, batch + x.shape[-3:]), -3, 0) for x in (Phi, Q))
     P, every = jax.lax.scan(step, P, xs)
     return jnp.moveaxis(every, 0, -3) if save_all else P
-
-
-def _resolve_jacobians(jacobians, att):
-    if jacobians not in JACOBIANS:
-        raise ValueError(f"unknown jacobians {jacobians!r}; choose one of {JACOBIANS}")
-    if jacobians == "auto":
-        return "analytic" if att.exact_exponential else "autodiff"
-    if jacobians == "analytic":
-        _require_analytic(att)
-    return jacobians
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
@@ -492,6 +319,8 @@ def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, s
 
 
 NOISE = ArgSpec(1, lambda args, batched: 3)  # a density: scalar (isotropic) or (..., 3)
+
+
 COVARIANCE = ArgSpec(2)
 
 
@@ -586,101 +415,3 @@ def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuN
     return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
                              jacobians, False, body_P_sensor, tangential, omega_coriolis,
                              coriolis_mode(coriolis_exact, coriolis_second_order))
-
-
-# --------------------------------------------------------------------------- EKF update
-
-
-def position_jacobian(dtype=None):
-    """``H = [0, I, 0, 0, 0]``, ``(3, 15)``: a position fix ``z = p + ν`` in the error state
-    (the residual is ``z - p̂``). ``dtype``: float32, float64 (needs ``jax_enable_x64``) or
-    ``None`` (JAX's default float)."""
-    dtype = jnp.result_type(float) if dtype is None else val.compute_dtype("dtype", dtype)
-    H = np.zeros((3, 15))
-    H[:, 3:6] = np.eye(3)
-    return jnp.asarray(H, dtype)
-
-
-def _check_innovation(S, dtype):
-    """``S = H P Hᵀ + R`` must be positive definite to the dtype's precision (its Cholesky
-    factor is the update's; :func:`jaximu.geometry._checks.check_definite`), on eager calls."""
-    val.check_definite(
-        "the innovation covariance S = H P Hᵀ + R", S, dtype, what="the gain K = P Hᵀ S⁻¹",
-        fix="R must be positive definite (a measurement noise variance σ² > 0 on every row), "
-            "or P positive in the measured directions")
-
-
-def ekf_update(state: NavState, P, residual, H, R):
-    """Error-state EKF update, Joseph form (batched over leading axes, differentiable).
-
-    With the innovation covariance ``S = H P Hᵀ + R`` and gain ``K = P Hᵀ S⁻¹``::
-
-        δx = K ν,   x⁺ = x ⊞ δx,   P⁺ = (I - K H) P (I - K H)ᵀ + K R Kᵀ,   NIS = νᵀ S⁻¹ ν.
-
-    The Joseph form keeps ``P⁺`` symmetric positive semi-definite under rounding and for any
-    gain. ``S`` is factored by Cholesky (no explicit inverse). The error state is not reset
-    through ``∂(x ⊞ δx)``'s rotation Jacobian (first order, as OpenVINS).
-
-    Args:
-        state: the estimate :class:`NavState` (fields ``batch + (·)``; ``q`` unit, never
-            normalised for you; finite).
-        P: ``batch + (15, 15)`` its error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
-            positive semi-definite (relative to its largest entry, as
-            :func:`propagate_covariance`'s ``P0``), finite.
-        residual: ``batch + (m,)`` ``ν = z - h(x̂)`` (e.g. ``z - p̂`` for a position fix),
-            finite.
-        H: ``(m, 15)`` or ``batch + (m, 15)`` measurement Jacobian ``∂h/∂δ``
-            (:func:`position_jacobian`), finite.
-        R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
-            positive semi-definite (as ``P``), finite; with ``P``, ``S = H P Hᵀ + R`` must
-            be positive definite to the dtype's precision (the smallest eigenvalue of its
-            correlation matrix above 60 ε: :func:`jaximu.geometry._checks.definiteness`), or the
-            update refuses it naming ``S``, ``R`` and ``P``.
-
-    The computation dtype is the promotion of the inputs' (at least float32: integer and
-    half-precision inputs are computed in float32). Shapes and batch shapes are checked
-    always; values (finiteness, symmetry, definiteness, unit ``q``) on eager calls only,
-    not inside a caller's ``jit``/``vmap``/``grad``, where a singular ``S`` gives NaN.
-
-    Returns:
-        ``(state⁺, P⁺, nis)`` with ``nis`` of shape ``batch``.
-
-    Raises:
-        ValueError: naming the argument, for any of them outside the domain above.
-    """
-    require_navstate(state)
-    dtype = val.float_dtype(state, P, residual, H, R)  # every field of the state counts
-    state = check_state(state, dtype)
-    P = _check_cov(P, dtype, "P")
-    residual, H, R = (val.to_dtype(n, x, dtype) for n, x in
-                      (("residual", residual), ("H", H), ("R", R)))
-    if H.ndim < 2 or H.shape[-1] != 15:
-        raise ValueError(f"H must have shape (..., m, 15), got {tuple(H.shape)}")
-    m = H.shape[-2]
-    if m < 1:
-        raise ValueError("H has no rows (m = 0): a measurement needs at least one")
-    if residual.ndim < 1 or residual.shape[-1:] != (m,):
-        raise ValueError(f"residual must have shape (..., {m}) to match H {tuple(H.shape)}, got "
-                         f"{tuple(residual.shape)}")
-    R = _check_cov(R, dtype, "R", m)
-    val.check_finite("residual", residual)
-    val.check_finite("H", H)
-    val.batch_shape(state.batch_shape, P.shape[:-2], residual.shape[:-1], H.shape[:-2],
-                    R.shape[:-2], names=("state", "P", "residual", "H", "R"))
-    out = _ekf_update(state, P, residual, H, R)
-    return val.check_output("ekf_update", out, "the inputs are too large")
-
-
-def _ekf_update(state, P, residual, H, R):
-    """The update on dense arrays: :func:`jaximu.schemes._blocks.kalman_update` (the one home of
-    the Joseph form) on ``P``'s blocks and ``H``'s column blocks. Only ``P``'s upper blocks
-    are read: :func:`ekf_update` has checked it symmetric to rounding."""
-    batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2],
-                                 R.shape[:-2])
-    out = blk.kalman_update(blk.dense_to_blocks(P),
-                            [H[..., :, 3 * k:3 * k + 3] for k in range(5)], R,
-                            residual[..., None], blk.ARRAYS,
-                            check=lambda S: _check_innovation(S, S.dtype))
-    dx = jnp.concatenate([jnp.broadcast_to(d, batch + (3, 1)) for d in out.dx], -2)[..., 0]
-    P_new = blk.blocks_to_dense(out.P, batch=batch)
-    return boxplus(state, dx), P_new, jnp.broadcast_to(out.nis[..., 0, 0], batch)

@@ -24,7 +24,6 @@ import jax.numpy as jnp
 
 from jaximu.engine.errorstate import (
     accumulate_covariance,
-    blocks_analytic,
     compose_transitions,
     small_matmul,
     transition_products,
@@ -32,6 +31,7 @@ from jaximu.engine.errorstate import (
 from jaximu.engine.preintegration import preintegrate
 from jaximu.geometry import so3
 from jaximu.geometry.noise import ImuNoise
+from jaximu.schemes.integrators import blocks_analytic
 
 __all__ = ["Windows", "windows", "huber", "increment_loss", "rotation_covariance",
            "gaussian_nll", "velocity_residuals"]

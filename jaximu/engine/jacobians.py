@@ -1,0 +1,202 @@
+"""The error-state Jacobians of one step: ``Φ`` and ``G`` by autodiff or in closed form
+(:func:`step_jacobians`, the definitions in :mod:`jaximu.engine.errorstate`'s docstring), their
+blocks, and the discrete process noise ``Q_d``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaximu.geometry import _checks as val
+from jaximu.geometry import sensor
+from jaximu.geometry.noise import ImuNoise, check_noise
+from jaximu.geometry.state import NavState, boxminus, boxplus, check_state, require_navstate
+from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks
+from jaximu.schemes.integrators import (
+    Attitude,
+    blocks_analytic,
+    check_scheme,
+    get_attitude,
+    nav_step,
+)
+
+__all__ = ["JACOBIANS", "step_jacobians", "discrete_process_noise"]
+
+
+JACOBIANS = ("auto", "analytic", "autodiff")
+
+
+# --------------------------------------------------------------------------- Jacobians
+
+
+def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g):
+    """``(Φ, G)`` of one step by ``jax.jacfwd`` through boxplus/boxminus; ``(..., 15, 15/12)``.
+
+    The perturbation is shared by every batch element, so one forward pass with 27
+    tangents gives the per-element Jacobians.
+    """
+    nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
+    dtype = state.q.dtype
+
+    def f_delta(delta):
+        return boxminus(nav_step(scheme, att, boxplus(state, delta), w0, a0, w1, a1, h, g), nominal)
+
+    def f_noise(n):
+        return boxminus(nav_step(scheme, att, state, w0, a0, w1, a1, h, g, noise=n), nominal)
+
+    Phi = jax.jacfwd(f_delta)(jnp.zeros(15, dtype))
+    G = jax.jacfwd(f_noise)(jnp.zeros(12, dtype))
+    return Phi, G
+
+
+def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g,
+                    lever=None) -> Blocks:
+    """The blocks of ``Φ`` by ``jax.jacfwd`` of the step, in the 9 directions that are not
+    structural: ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form).
+
+    The rest of ``Φ`` is known for every step of this library: ``p⁺``, ``v⁺`` depend on
+    ``p``, ``v`` through ``I`` and ``dt I`` only, ``θ⁺`` not at all, the biases are carried.
+    ``G`` is known from ``Φ`` (the white noises enter exactly as the biases do,
+    ``ω = w - b_g - n_g``, ``f = a - b_a - n_a``; the walks as ``dt I``), so
+    :func:`structured_update` serves both Jacobian options. 9 tangents instead of 27, and
+    no dense 15×15 products; tested equal to :func:`jacobians_autodiff` (dense) and to the
+    closed forms.
+
+    ``lever``: the lever arm ``r`` (``(..., 3)`` [m]) of samples moved from a sensor to the
+    body (:mod:`jaximu.sensor`): their specific force carries ``-ω×(ω×r)``, so it moves with
+    the gyro bias, and the derivative sees it (:func:`jaximu.sensor.moved_specific_force`).
+    """
+    nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
+    dtype = state.q.dtype
+    z6 = jnp.zeros(6, dtype)
+
+    def rows(d9):
+        delta = jnp.concatenate([d9[0:3], z6, d9[3:9]])
+        at = boxplus(state, delta)
+        a0_, a1_ = a0, a1
+        if lever is not None:
+            a0_ = sensor.moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, lever)
+            a1_ = sensor.moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, lever)
+        moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
+        return boxminus(moved, nominal)[..., :9]
+
+    J = jax.jacfwd(rows)(jnp.zeros(9, dtype))  # (..., 9 rows θ p v, 9 cols θ b_g b_a)
+
+    def blk_(r, c):
+        return J[..., 3 * r:3 * r + 3, 3 * c:3 * c + 3]
+
+    return Blocks(A=blk_(0, 0), B=blk_(0, 1), Cp=blk_(1, 0), Cv=blk_(2, 0), Dp=blk_(1, 1),
+                  Dv=blk_(2, 1), Ep=blk_(1, 2), Ev=blk_(2, 2), dt=h)
+
+
+def dense_from_blocks(b: Blocks):
+    """Assemble ``Φ`` ``(..., 15, 15)`` and ``G`` ``(..., 15, 12)`` from the blocks."""
+    Phi = blk.phi_to_dense(b)
+    batch = Phi.shape[:-2]
+    Z = jnp.zeros(batch + (3, 3), Phi.dtype)
+    hI = jnp.broadcast_to(b.dt[..., None, None] * jnp.eye(3, dtype=Phi.dtype), batch + (3, 3))
+
+    def f(x):
+        return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
+
+    rows: list[list[Any]] = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
+            [Z, Z, Z, hI]]
+    G = jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
+    return Phi, G
+
+
+def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_next=None,
+                   scheme: str = "euler", attitude: str = "quaternion", gravity=9.81,
+                   method: str = "autodiff"):
+    """``Φ`` and ``G`` of one propagation step at ``state``.
+
+    Args:
+        state: linearisation point (fields ``(..., 4)``/``(..., 3)``).
+        gyro, accel: ``(..., 3)`` raw sample k; ``gyro_next``, ``accel_next``: sample k+1
+            (midpoint, RK4; default: sample k held).
+        dt: ``(...,)`` step [s].
+        method: ``"autodiff"`` or ``"analytic"`` (exact-exponential attitude forms only).
+
+    Returns:
+        ``(Φ, G)``: ``(..., 15, 15)`` and ``(..., 15, 12)``.
+    """
+    check_scheme(scheme)
+    att = get_attitude(attitude)
+    require_navstate(state)
+    dtype = val.float_dtype(state, gyro, accel, dt, gyro_next, accel_next)
+    state = check_state(state, dtype)
+    w0, a0 = val.to_dtype("gyro", gyro, dtype), val.to_dtype("accel", accel, dtype)
+    w1 = w0 if gyro_next is None else val.to_dtype("gyro_next", gyro_next, dtype)
+    a1 = a0 if accel_next is None else val.to_dtype("accel_next", accel_next, dtype)
+    for name, x in (("gyro", w0), ("accel", a0), ("gyro_next", w1), ("accel_next", a1)):
+        val.check_vector(name, x, time_axis=False)
+        val.check_finite(name, x)
+    h = val.to_dtype("dt", dt, dtype)
+    if val.is_concrete(h) and not np.all(np.isfinite(np.asarray(h)) & (np.asarray(h) > 0)):
+        raise ValueError(f"dt must be positive and finite, got {np.asarray(h)}")
+    g = val.gravity_vector(gravity, dtype)
+    val.batch_shape(state.batch_shape, w0.shape[:-1], a0.shape[:-1], w1.shape[:-1],
+                    a1.shape[:-1], h.shape, g.shape[:-1],
+                    names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"))
+    if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
+        return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
+    if method == "analytic":
+        _require_analytic(att)
+        b = blocks_analytic(scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g,
+                            a1 - state.b_a, h)
+        return dense_from_blocks(b)
+    raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
+
+
+def _require_analytic(att: Attitude):
+    if not att.exact_exponential:
+        raise ValueError(
+            f"analytic Jacobians are derived for the exact-exponential attitude forms "
+            f"('quaternion', 'matrix'), not {att.name!r}; use jacobians='autodiff'"
+        )
+
+
+def discrete_process_noise(G, noise: ImuNoise, dt):
+    """``Q_d = G Q_c Gᵀ`` with ``Q_c = noise.discrete_covariance(dt)``.
+
+    Args:
+        G: ``(..., 15, 12)`` noise Jacobian (error state ``[dθ, dp, dv, db_g, db_a]`` by
+            noise ``[n_g, n_a, n_wg, n_wa]``, as :func:`step_jacobians` returns), finite.
+        noise: :class:`jaximu.ImuNoise` (continuous densities, ``≥ 0``, finite).
+        dt: scalar or ``(...,)`` step [s], ``> 0`` and finite.
+
+    Returns:
+        ``(..., 15, 15)`` in the promoted dtype of ``G`` and ``dt`` (a float64 ``dt`` beside
+        a float32 ``G`` is not rounded to float32; a Python scalar is weak; float32 for
+        integer or half-precision data). Shapes, types and batch shapes (``G``'s, ``dt``'s
+        and the densities') are checked always, values on eager calls.
+    """
+    dtype = val.float_dtype(G, dt)
+    G = val.to_dtype("G", G, dtype)
+    if G.ndim < 2 or G.shape[-2:] != (15, 12):
+        raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
+                         f"{tuple(G.shape)}")
+    val.check_finite("G", G)
+    noise = check_noise(noise, dtype)
+    try:
+        dt_batch = jnp.shape(dt)
+    except (TypeError, ValueError):  # not numbers: discrete_variances names dt
+        dt_batch = ()
+    val.batch_shape(G.shape[:-2], dt_batch, names=("G", "dt"), noise=noise)
+    qc = noise.discrete_variances(dt, dtype)
+    return (G * qc[..., None, :]) @ jnp.swapaxes(G, -1, -2)
+
+
+def _resolve_jacobians(jacobians, att):
+    if jacobians not in JACOBIANS:
+        raise ValueError(f"unknown jacobians {jacobians!r}; choose one of {JACOBIANS}")
+    if jacobians == "auto":
+        return "analytic" if att.exact_exponential else "autodiff"
+    if jacobians == "analytic":
+        _require_analytic(att)
+    return jacobians
