@@ -23,7 +23,7 @@ import jaximu
 ])
 def test_autodiff_fast_path_equals_generic_autodiff(scheme, batch, T, method, kw, lever):
     """``jacobians="autodiff"`` on the SoA kernels (their blocks by ``jax.jvp`` of the SoA
-    step: _fast_preint._autodiff_blocks, _mid_autodiff) against the generic recursion's
+    step: preint_euler._autodiff_blocks, preint_midpoint._mid_autodiff) against the generic recursion's
     autodiff step (``jax.jacfwd`` of the step's mean and noise, dense): the same numbers to
     rounding, with a lever arm too (its gyro bias and noise then move the specific force).
     For the midpoint these are the exact derivatives, not VINS-Mono's linearisation (the
