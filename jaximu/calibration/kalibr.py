@@ -20,7 +20,7 @@ import pathlib
 
 import numpy as np
 
-from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.geometry.noise import ImuNoise
 from jaximu.geometry.sensor import SensorPose
 
@@ -170,8 +170,8 @@ def parse_body_P_sensor(text: str, camera: str = "cam0") -> SensorConfig:
                          "(q_BS Hamilton, p_BS in metres) or a sensor YAML file")
     q = vals[:4]
     norm = float(np.linalg.norm(q))
-    val.check_unit_norm(f"--body-P-sensor: q_BS = {q.tolist()}", q, np.float64,
-                        tol=val.ROUNDED_QUATERNION, fix="give a unit quaternion [w, x, y, z]")
+    _tolerances.check_unit_norm(f"--body-P-sensor: q_BS = {q.tolist()}", q, np.float64,
+                        tol=_tolerances.ROUNDED_QUATERNION, fix="give a unit quaternion [w, x, y, z]")
     note = "" if abs(norm - 1) < 1e-12 else f" (q normalised from |q| = {norm:.6g})"
     pose = SensorPose(np.asarray(q / norm), np.asarray(vals[4:]))
     return SensorConfig(pose, None, None, f"--body-P-sensor{note}")

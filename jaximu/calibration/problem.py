@@ -120,7 +120,7 @@ from jaximu.calibration._noise_fit import NOISE_FIELDS, NoiseProblem, noise_prob
 from jaximu.calibration._noise_table import noise_table
 from jaximu.errors import Fix, InputError
 from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
+from jaximu.geometry import _tolerances, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias
 from jaximu.io._common import GAP_FACTOR, in_gap
@@ -156,8 +156,8 @@ def _check_initial(initial):
         if x.shape != shape:
             raise ValueError(f"initial.{name} must have shape {shape}, got {x.shape}")
         val.check_finite(f"initial.{name}", x)
-    val.check_unit_norm("initial.q_BS", np.asarray(initial.q_BS, np.float64), np.float64,
-                        tol=val.ROUNDED_QUATERNION, fix="normalise it: q / |q|",
+    _tolerances.check_unit_norm("initial.q_BS", np.asarray(initial.q_BS, np.float64), np.float64,
+                        tol=_tolerances.ROUNDED_QUATERNION, fix="normalise it: q / |q|",
                         what="must be a unit quaternion [w, x, y, z]")
     if float(np.asarray(initial.gravity)) < 0:
         raise ValueError(f"initial.gravity is a magnitude [m/s²] and must be ≥ 0, got "
@@ -167,10 +167,10 @@ def _check_initial(initial):
 def _sqrt_information(cov, dtype) -> np.ndarray:
     """``L⁻¹`` for the residuals' covariances ``cov = L Lᵀ`` (``(..., 9, 9)``, one per window),
     which whiten the residuals; a covariance singular to the precision of ``dtype``
-    (:func:`jaximu.geometry._checks.check_definite`) is refused, naming the window and its axes:
+    (:func:`jaximu.geometry._tolerances.check_definite`) is refused, naming the window and its axes:
     its whitened residual would be the rounding divided by zero."""
-    val.check_definite(
-        "the residuals' covariance", cov, dtype, axes=val.ERROR_AXES[:9],
+    _tolerances.check_definite(
+        "the residuals' covariance", cov, dtype, axes=_tolerances.ERROR_AXES[:9],
         what="the residuals are whitened by its inverse Cholesky factor",
         fix="noise (its white-noise densities) and reference_sigma leave some residual "
             "without variance; give noise positive densities (its datasheet's or an Allan "
@@ -326,7 +326,7 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
     for name, x in (("reference.q", rq), ("reference.p", rp)):
         val.check_finite(name, x)
-    val.check_unit_norm("reference.q", rq, np.float64, tol=val.ROUNDED_QUATERNION,
+    _tolerances.check_unit_norm("reference.q", rq, np.float64, tol=_tolerances.ROUNDED_QUATERNION,
                         what="is not unit ([w, x, y, z] quaternions)",
                         where=lambda i: f" at row {i[0]}",
                         fix="pass unit quaternions (a normalised copy is used within this "

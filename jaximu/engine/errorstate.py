@@ -68,7 +68,7 @@ from jaximu.engine.propagate import (
     unit_start,
 )
 from jaximu.geometry import _checks as val
-from jaximu.geometry import sensor
+from jaximu.geometry import _tolerances, sensor
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState
 from jaximu.kernels import fast as _fast
@@ -101,14 +101,14 @@ structured_update = blk.structured_update
 
 def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
     """Shape and finiteness of ``P0``, and (eager calls) its symmetry and semi-definiteness
-    relative to each matrix's own scale (:func:`jaximu.geometry._checks.check_covariance`: 60 ε
+    relative to each matrix's own scale (:func:`jaximu.geometry._tolerances.check_covariance`: 60 ε
     of the computation dtype times its largest entry). ``name``: the argument in the
     messages; ``n``: the matrix size (15 for the error state)."""
     P0 = val.to_dtype(name, P0, dtype)
     if P0.ndim < 2 or P0.shape[-2:] != (n, n):
         raise ValueError(f"{name} must have shape (..., {n}, {n}), got {tuple(P0.shape)}")
     val.check_finite(name, P0)
-    val.check_covariance(name, P0, P0.dtype)
+    _tolerances.check_covariance(name, P0, P0.dtype)
     return P0
 
 

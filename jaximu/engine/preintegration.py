@@ -47,7 +47,7 @@ from jaximu.engine._preintegration_engine import (
     _preintegrate,
 )
 from jaximu.geometry import _checks as val
-from jaximu.geometry import sensor, so3
+from jaximu.geometry import _tolerances, sensor, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias, NavState, check_state
 from jaximu.kernels.fast import dense_to_blocks
@@ -487,7 +487,7 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
 
     ``cov15`` must be positive definite to the precision of its dtype (the smallest
     eigenvalue of its correlation matrix above 60 ε:
-    :func:`jaximu.geometry._checks.definiteness`): preintegrate with ``noise=`` whose densities
+    :func:`jaximu.geometry._tolerances.definiteness`): preintegrate with ``noise=`` whose densities
     and random walks are all non-zero, over at least two samples (one sample's position and
     velocity noise are the same accelerometer noise, fully correlated). On an eager call a
     ``cov15`` that is not (a measurement preintegrated without noise) raises ``ValueError``
@@ -500,8 +500,8 @@ def whitened_residual(state_i: NavState, state_j: NavState, pim: Preintegrated, 
     """
     r = residual(state_i, state_j, pim, gravity, omega_coriolis=omega_coriolis,
                  coriolis_exact=coriolis_exact, coriolis_second_order=coriolis_second_order)
-    val.check_definite(
-        "pim.cov15", pim.cov15, pim.cov15.dtype, axes=val.ERROR_AXES,
+    _tolerances.check_definite(
+        "pim.cov15", pim.cov15, pim.cov15.dtype, axes=_tolerances.ERROR_AXES,
         what="the residual is whitened by its Cholesky factor",
         fix="preintegrate with noise=jaximu.ImuNoise(...) whose four densities are > 0, over "
             "at least two samples")

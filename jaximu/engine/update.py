@@ -9,6 +9,7 @@ import numpy as np
 
 from jaximu.engine.errorstate import _check_cov
 from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.geometry.state import NavState, boxplus, check_state, require_navstate
 from jaximu.schemes import _blocks as blk
 
@@ -30,8 +31,8 @@ def position_jacobian(dtype=None):
 
 def _check_innovation(S, dtype):
     """``S = H P Hᵀ + R`` must be positive definite to the dtype's precision (its Cholesky
-    factor is the update's; :func:`jaximu.geometry._checks.check_definite`), on eager calls."""
-    val.check_definite(
+    factor is the update's; :func:`jaximu.geometry._tolerances.check_definite`), on eager calls."""
+    _tolerances.check_definite(
         "the innovation covariance S = H P Hᵀ + R", S, dtype, what="the gain K = P Hᵀ S⁻¹",
         fix="R must be positive definite (a measurement noise variance σ² > 0 on every row), "
             "or P positive in the measured directions")
@@ -61,7 +62,7 @@ def ekf_update(state: NavState, P, residual, H, R):
         R: ``(m, m)`` or ``batch + (m, m)`` measurement noise covariance, symmetric
             positive semi-definite (as ``P``), finite; with ``P``, ``S = H P Hᵀ + R`` must
             be positive definite to the dtype's precision (the smallest eigenvalue of its
-            correlation matrix above 60 ε: :func:`jaximu.geometry._checks.definiteness`), or the
+            correlation matrix above 60 ε: :func:`jaximu.geometry._tolerances.definiteness`), or the
             update refuses it naming ``S``, ``R`` and ``P``.
 
     The computation dtype is the promotion of the inputs' (at least float32: integer and

@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
+from jaximu.geometry import _tolerances, so3
 from jaximu.geometry._vec import V3, matvec, matvec_v3
 from jaximu.geometry.noise import ImuNoise
 
@@ -116,7 +116,7 @@ class SensorPose:
         if R.shape != (3, 3):
             raise ValueError(f"{NAME}: R_BS must have shape (3, 3), got {R.shape}")
         err = np.max(np.abs(R.T @ R - np.eye(3)))  # as a unit quaternion's norm in float64
-        if not np.isfinite(err) or err > val.unit_tolerance(np.float64) or np.linalg.det(R) < 0:
+        if not np.isfinite(err) or err > _tolerances.unit_tolerance(np.float64) or np.linalg.det(R) < 0:
             raise ValueError(
                 f"{NAME}: R_BS is not a rotation matrix (max |RᵀR - I| = {err:.3g}, det = "
                 f"{np.linalg.det(R):.6g}); pass an orthonormal matrix with determinant +1 "
@@ -153,7 +153,7 @@ def check_pose(pose, dtype, name: str = NAME, batch=None, batch_name: str = "the
                     names=(f"{name}.q", f"{name}.p") + (() if batch is None else (batch_name,)))
     val.check_finite(f"{name}.q", q)
     val.check_finite(f"{name}.p", p)
-    val.check_unit_norm(f"{name}.q", q, dtype, fix="normalise it first "
+    _tolerances.check_unit_norm(f"{name}.q", q, dtype, fix="normalise it first "
                         "(jaximu.so3.quat_normalize), or build the pose with "
                         "SensorPose.from_rotation(R_BS, p_BS)")
     return SensorPose(q, p)

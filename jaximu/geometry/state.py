@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry import so3
-from jaximu.geometry._checks import check_batch_shape, check_finite, check_unit_norm, to_dtype
+from jaximu.geometry._checks import check_batch_shape, check_finite, to_dtype
+from jaximu.geometry._tolerances import check_unit_norm
 
 __all__ = [
     "NavState",

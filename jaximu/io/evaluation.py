@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.geometry.state import NavState  # noqa: PLC0415
 from jaximu.io._common import CLOCK_TOLERANCE, QUATERNION_NORM_TOLERANCE, DataError, _seconds
 from jaximu.io.containers import GroundTruth, ImuData, _qmul
@@ -140,7 +141,7 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
         raise ValueError(f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
                          f"t[{i}] = {t[i]:.9g} s; pass the states in time order")
     # the readers' tolerance: rounding passes, a scaled q does not
-    val.check_unit_norm("states.q", q, np.float64, tol=QUATERNION_NORM_TOLERANCE,
+    _tolerances.check_unit_norm("states.q", q, np.float64, tol=QUATERNION_NORM_TOLERANCE,
                         where=lambda i: f" at row {i[0]}",
                         fix="trajectory_errors does not normalise it for you; pass unit "
                             "quaternions (q / |q|) if the norm is only rounding, else check "

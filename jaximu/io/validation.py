@@ -7,6 +7,7 @@ import numpy as np
 
 from jaximu.errors import Fix
 from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.io._common import (
     _ACCEL_MEDIAN_RANGE,
     _DT_RANGE,
@@ -151,7 +152,7 @@ def _validate_groundtruth(stamps_ns, values, lines, label):
         raise DataError(f"{label}: timestamps not increasing at {_rows(labels, nonincr)}")
     qn = np.abs(np.linalg.norm(values[:, 3:7], axis=1) - 1)
     off = np.flatnonzero(~(qn <= QUATERNION_NORM_TOLERANCE))
-    val.check_unit_norm(f"{label}: the quaternion", values[:, 3:7], np.float64,
+    _tolerances.check_unit_norm(f"{label}: the quaternion", values[:, 3:7], np.float64,
                         tol=QUATERNION_NORM_TOLERANCE, error=DataError,
                         what="is not a [w, x, y, z] unit quaternion",
                         where=lambda i: f" at {_rows(labels, off)}",

@@ -7,13 +7,14 @@ import pathlib
 import numpy as np
 
 from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.geometry.state import NavState  # noqa: PLC0415
 from jaximu.io._common import DataError
 from jaximu.io._text import _parse, _parse_tum, _read_table
 
 _INT64_MAX = np.iinfo(np.int64).max
 # the covariances are judged with float32's rounding whatever dtype they arrive in (one
-# computed in float32 and stored as float64 passes): val.check_variances
+# computed in float32 and stored as float64 passes): _tolerances.check_variances
 _COV_DTYPE = np.float32
 
 
@@ -66,7 +67,7 @@ def _check_cov(cov, T, name="cov") -> np.ndarray:
         raise ValueError(f"{name} must have shape ({T}, 15, 15) (one 15×15 covariance per "
                          f"state), got {cov.shape}")
     val.check_finite(name, cov)
-    val.check_variances(name, cov, _COV_DTYPE, fix="pass the covariance the propagation "
+    _tolerances.check_variances(name, cov, _COV_DTYPE, fix="pass the covariance the propagation "
                         "returned, not a difference of covariances")
     return cov
 

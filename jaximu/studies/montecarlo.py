@@ -57,6 +57,7 @@ from jaximu.engine.errorstate import _check_cov, propagate_covariance
 from jaximu.engine.propagate import _propagate
 from jaximu.errors import Fix, InputError
 from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState, boxminus
 from jaximu.kernels import rng as _rng
@@ -92,7 +93,7 @@ class MonteCarloResult(NamedTuple):
             else ``None`` (memory ``N·K``); NaN where the NEES is undefined (below).
         nees_mean: ``(K,)`` average NEES over the runs. NaN at a recorded time where the
             covariance is singular to the precision of the computation dtype
-            (:func:`jaximu.geometry._checks.definiteness`; the filter study's judged on the runs'
+            (:func:`jaximu.geometry._tolerances.definiteness`; the filter study's judged on the runs'
             average): ``eᵀ P⁻¹ e`` is undefined there, e.g. in the first steps from an
             exactly known start (``P0 = 0``), where one step's position and velocity errors
             are the same accelerometer noise (:attr:`nees_defined`).
@@ -334,12 +335,12 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         P_rec = np.asarray(P, np.float64)[rec]
         # NEES = |W e|², W = L⁻¹, P = L Lᵀ, where P is positive definite to the dtype's
         # precision; elsewhere the NEES is undefined (NaN in the result, W = 0 meanwhile)
-        defined = val.definiteness(P_rec, dtype)[0]
+        defined = _tolerances.definiteness(P_rec, dtype)[0]
         if nees and not defined.any():
             k = len(rec) - 1
-            val.check_definite(
+            _tolerances.check_definite(
                 f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} "
-                "(and at every recorded time)", P_rec[k], dtype, axes=val.ERROR_AXES,
+                "(and at every recorded time)", P_rec[k], dtype, axes=_tolerances.ERROR_AXES,
                 what="the NEES eᵀ P⁻¹ e, undefined at every recorded time",
                 fix="P0 with the noise leaves some error direction without variance for the "
                     "whole study; give P0 positive variances on every axis (e.g. P0 = "
@@ -538,7 +539,7 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
         nis_bounds = np.array(chi2_interval(3 * n_runs, confidence)) / n_runs
     # the NEES is undefined where the covariance is singular to the dtype's precision (the
     # filter study's judged on the runs' average): NaN there, never a number from rounding
-    undefined = ~val.definiteness(predicted, st.dtype)[0]
+    undefined = ~_tolerances.definiteness(predicted, st.dtype)[0]
     nees_mean = np.where(undefined, np.nan, acc.nees_sum / n_runs)
     hist = np.where(undefined[hist_index][:, None], np.nan, acc.hist)
     if nees_all is not None:

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry import _checks as val
-from jaximu.geometry import so3
+from jaximu.geometry import _tolerances, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.sensor import check_pose, lever_arm_acceleration
 from jaximu.geometry.state import NavState
@@ -229,7 +229,7 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
         if quaternions.shape != (len(times), 4):
             raise ValueError(f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}")
         val.check_finite("quaternions", quaternions)
-        val.check_unit_norm("quaternions", quaternions, np.float64,
+        _tolerances.check_unit_norm("quaternions", quaternions, np.float64,
                             where=lambda i: f" at row {i[0]}", fix="normalise them first")
         rotvecs = np.array(so3.log(jnp.asarray(quaternions)), float)  # a writable copy
         for k in range(1, len(rotvecs)):  # unwrap: pick r or r - 2π r̂ closest to the previous
@@ -277,7 +277,7 @@ def _check_poses(traj: Trajectory, t, q, *derived):
             raise ValueError(f"traj.pose ({traj.name}) gave non-finite values at t[{i}] = "
                              f"{tn[i]:g} (in its pose or their derivatives); it must be finite "
                              "and twice differentiable at every t")
-    val.check_unit_norm(f"traj.pose ({traj.name})", q, q.dtype, what="gave a non-unit quaternion",
+    _tolerances.check_unit_norm(f"traj.pose ({traj.name})", q, q.dtype, what="gave a non-unit quaternion",
                         where=lambda i: f" at t[{i[0]}] = {tn[i[0]]:g}",
                         fix="return a unit q, e.g. normalised with jaximu.so3.quat_normalize "
                             "inside pose")

@@ -24,7 +24,7 @@ import pytest
 import jaximu
 from jaximu import ImuNoise, NavState, montecarlo, simulate
 from jaximu.errorstate import position_jacobian
-from jaximu.geometry import _checks as val
+from jaximu.geometry import _tolerances
 
 SCALES = (1e-12, 1.0, 1e12)
 DTYPES = (np.float32, np.float64)
@@ -51,7 +51,7 @@ def test_a_covariance_computed_in_the_dtype_is_accepted_at_every_scale(scale, dt
     P = covariance(scale, dtype)
     lam = np.linalg.eigvalsh(0.5 * (P + P.T).astype(np.float64))
     assert lam[0] >= -EPS60[dtype] * np.abs(P).max()  # the reference: PSD to rounding
-    val.check_covariance("P0", P, dtype)
+    _tolerances.check_covariance("P0", P, dtype)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -64,11 +64,11 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the variance "
                                          r"P0\[4, 4\] = -.* is negative \(0\.0001 of its "
                                          r"largest entry"):
-        val.check_covariance("P0", neg.astype(dtype), dtype)
+        _tolerances.check_covariance("P0", neg.astype(dtype), dtype)
     asym = P.copy()
     asym[0, 1] += 1e-3 * big
     with pytest.raises(ValueError, match=r"P0 is not symmetric: P0\[0, 1\] = .* but P0\[1, 0\]"):
-        val.check_covariance("P0", asym.astype(dtype), dtype)
+        _tolerances.check_covariance("P0", asym.astype(dtype), dtype)
     # variances ≥ 0 but cross terms beyond them: eigenvalue -0.01 of the 2×2 block [[1, 1.01],
     # [1.01, 1]] (numpy's eigvalsh is the reference)
     bad = np.eye(15) * scale
@@ -77,7 +77,7 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     np.testing.assert_allclose(lam, -0.01 * scale, rtol=1e-9)
     with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: its smallest "
                                          r"eigenvalue is .*, 0\.0099 of its largest entry") as e:
-        val.check_covariance("P0", bad.astype(dtype), dtype)
+        _tolerances.check_covariance("P0", bad.astype(dtype), dtype)
     assert f"{lam:.3g}" in str(e.value)
 
 
@@ -86,11 +86,11 @@ def test_each_matrix_of_a_batch_is_judged_at_its_own_scale():
     its own scale) is refused and named by its batch index, though it is far below the
     rounding of the large one."""
     ok = np.stack([covariance(1e12, np.float64), covariance(1e-12, np.float64)])
-    val.check_covariance("P0", ok, np.float64)
+    _tolerances.check_covariance("P0", ok, np.float64)
     bad = ok.copy()
     bad[1, 7, 7] = -1e-4 * np.abs(ok[1]).max()
     with pytest.raises(ValueError, match=r"the variance P0\[1, 7, 7\] = .* is negative"):
-        val.check_covariance("P0", bad, np.float64)
+        _tolerances.check_covariance("P0", bad, np.float64)
 
 
 @pytest.mark.parametrize("scale", SCALES)
@@ -141,12 +141,12 @@ def test_dependent_axes_are_singular_at_every_scale(scale, dtype):
     P[3, 6] = P[6, 3] = scale * 0.5e-2
     P = P.astype(dtype)
     assert np.linalg.eigvalsh(correlation(P.astype(np.float64)))[0] < 1e-6  # the reference
-    ok, lam, zero = val.definiteness(P, dtype)
+    ok, lam, zero = _tolerances.definiteness(P, dtype)
     assert not ok and zero == -1
     with pytest.raises(ValueError, match=rf"S is singular to {np.dtype(dtype).name} precision: "
                                          r"the smallest eigenvalue of its correlation matrix "
                                          r"is .*, so dpx, dvx are linearly dependent.*fix it"):
-        val.check_definite("S", P, dtype, fix="fix it", axes=val.ERROR_AXES)
+        _tolerances.check_definite("S", P, dtype, fix="fix it", axes=_tolerances.ERROR_AXES)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -161,10 +161,10 @@ def test_axes_in_mixed_units_are_definite(dtype):
     P = (C * d[:, None] * d[None, :]).astype(dtype)
     lam = np.linalg.eigvalsh(correlation(P.astype(np.float64)))[0]
     assert lam > 0.1
-    ok, got, _ = val.definiteness(P, dtype)
+    ok, got, _ = _tolerances.definiteness(P, dtype)
     assert ok
     np.testing.assert_allclose(got, lam, rtol=1e-4)
-    val.check_definite("P", P, dtype, fix="")
+    _tolerances.check_definite("P", P, dtype, fix="")
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -175,7 +175,7 @@ def test_definiteness_is_decided_at_60_eps_of_the_correlation(dtype):
         P = np.eye(15)
         P[0, 1] = P[1, 0] = r
         for scale in SCALES:
-            assert bool(val.definiteness(P * scale, dtype)[0]) is ok
+            assert bool(_tolerances.definiteness(P * scale, dtype)[0]) is ok
 
 
 def test_a_zero_variance_is_named_with_its_axis_and_batch_index():
@@ -184,8 +184,8 @@ def test_a_zero_variance_is_named_with_its_axis_and_batch_index():
     with pytest.raises(ValueError, match=r"the residuals' covariance is singular \(batch index "
                                          r"\[1\], 1 of 2\): its variance \[1, 4, 4\] \(dpy\) is "
                                          r"0, not positive"):
-        val.check_definite("the residuals' covariance", P, np.float64, fix="",
-                           axes=val.ERROR_AXES)
+        _tolerances.check_definite("the residuals' covariance", P, np.float64, fix="",
+                           axes=_tolerances.ERROR_AXES)
 
 
 # --------------------------------------------------------------------------- where inverted
