@@ -73,10 +73,6 @@ __all__ = [
     "SCHEMES",
 ]
 
-__all__ = ["Preintegrated", "ImuBias", "SCHEMES", "METHODS", "REINTEGRATION_THRESHOLD",
-           "preintegrate", "correct", "needs_reintegration", "compose", "predict", "residual",
-           "whitened_residual", "bias_jacobians_autodiff"]
-
 SCHEMES = ("euler", "midpoint")
 METHODS = ("auto", "sequential", "parallel")
 REINTEGRATION_THRESHOLD = {"gyro": 0.01, "accel": 0.10}

@@ -61,10 +61,6 @@ from jaximu.geometry.noise import ImuNoise
 __all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
            "centripetal_jacobian", "angular_acceleration"]
 
-__all__ = ["SensorPose", "check_pose", "angular_acceleration", "lever_arm_acceleration",
-           "moved_specific_force", "to_body", "bias_to_body", "noise_to_body", "bias_transform",
-           "congruence"]
-
 NAME = "body_P_sensor"
 
 
