@@ -154,7 +154,7 @@ def test_long_sequences_equal_the_plain_scan(B, T, scheme, save_all, intervals, 
 
 
 def test_whole_chunks_are_cut_without_a_remainder():
-    """A chunk length from ``_soa.whole_chunks`` is the shortest at least as long that the
+    """A chunk length from ``soa.whole_chunks`` is the shortest at least as long that the
     kernel's time chunks divide (no second loop body to compile)."""
     for L in range(1, 3000):
         W = _soa.whole_chunks(L)
