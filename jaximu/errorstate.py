@@ -5,10 +5,28 @@ step's ``Φ``, ``G`` and ``Q_d``) and :mod:`jaximu.engine.update` (the filter up
 from jaximu.engine import errorstate as _covariance
 from jaximu.engine import jacobians as _jacobians
 from jaximu.engine import update as _update
-from jaximu.engine.errorstate import *  # noqa: F403
-from jaximu.engine.update import *  # noqa: F403
+from jaximu.engine.errorstate import (
+    accumulate_covariance,
+    compose_transitions,
+    propagate_covariance,
+    propagate_covariance_final,
+    transition_products,
+)
+from jaximu.engine.jacobians import JACOBIANS, discrete_process_noise, step_jacobians
+from jaximu.engine.update import ekf_update, position_jacobian
 
-__all__ = [*_covariance.__all__, *_update.__all__]
+__all__ = [
+    "step_jacobians",
+    "discrete_process_noise",
+    "propagate_covariance",
+    "propagate_covariance_final",
+    "accumulate_covariance",
+    "compose_transitions",
+    "transition_products",
+    "ekf_update",
+    "position_jacobian",
+    "JACOBIANS",
+]
 
 
 def __getattr__(name):

@@ -267,8 +267,9 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
     :func:`jaximu.integrators.step` in this layout.
 
     Args:
-        q: the form's state (4-tuple of ``(B,)`` for a quaternion); p, v, omega*, f*, g:
-        :class:`V3` of ``(B,)`` (or scalars); h: ``(B,)`` or scalar step [s].
+        q: the form's state (4-tuple of ``(B,)`` for a quaternion).
+        p, v, omega0, f0, omega1, f1, g: :class:`V3` of ``(B,)`` lanes, or scalars.
+        h: ``(B,)`` or scalar step [s].
         end_half: ``(cos(θ/2), sin(θ/2)/θ)`` of the end rotation when the caller has them.
 
     Returns:

@@ -5,7 +5,8 @@ noise enters, its structure-of-arrays kernel) and the step by automatic differen
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -140,10 +141,10 @@ class PreintegrationStep:
 
     name: str
     uses_next_sample: bool
-    step: object
+    step: Callable[..., Any]
     noise_dim: int
-    perturb: object
-    variances: object
+    perturb: Callable[..., Any]
+    variances: Callable[..., Any]
 
 
 PREINTEGRATION_STEPS = {
@@ -165,6 +166,15 @@ def preintegration_step(scheme) -> PreintegrationStep | None:
     return PREINTEGRATION_STEPS.get(get_scheme(scheme).name)
 
 
+def _required(scheme) -> PreintegrationStep:
+    """:func:`preintegration_step` of a scheme that has one (the entries checked it)."""
+    step = preintegration_step(scheme)
+    if step is None:
+        raise ValueError(f"scheme {scheme!r} has no preintegration step; use one of "
+                         f"{tuple(PREINTEGRATION_STEPS)}")
+    return step
+
+
 def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
     """One step of ``scheme`` at the preintegrated rotation ``dR`` (``(..., 4)``, unit)."""
     dtype = w0.dtype
@@ -172,7 +182,7 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
         var = [jnp.zeros(h.shape + (3,), dtype)] * 4
     else:
         var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
-    dq, acc, F, Q9, (sbg, sba) = preintegration_step(scheme).step(
+    dq, acc, F, Q9, (sbg, sba) = _required(scheme).step(
         dR, w0, a0, w1, a1, h, b_g, b_a, var, lever)
     eye = jnp.eye(3, dtype=dtype)
     h2 = (h * h)[..., None, None]
@@ -187,7 +197,7 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
     With a ``lever`` arm the specific force carries ``-ω×(ω×r)`` of the perturbed rate
     (:mod:`jaximu.sensor`), so gyro bias and noise reach it."""
     dtype = w0.dtype
-    pre = preintegration_step(scheme)
+    pre = _required(scheme)
     nominal = _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, None)
 
     def mean(delta, n):
