@@ -315,7 +315,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
         deltas = tuple(by_chunk(x, B, C) for x in deltas)  # (C, B, ·)
         start = (so3.quat_normalize(lane_forms.to_quat(form, q)), p, v)
         rotated = (0, 1, 2) if world_error else (1, 2)
-    Pb = dict(zip(UPPER, _fast.dense_to_blocks(P0)))
+    Pb = dict(zip(UPPER, _fast.dense_to_lanes(P0)))
     if world_error:  # the user's body-frame rotation error into the world frame
         Pb = blk.congruence(Pb, {0: {0: _frame(start[0])}}, SOA)
     P, end, starts = compose_covariance(Pb, F, Q, pattern, rotated, save_all, on, start,
@@ -327,7 +327,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
             xf, pf, vf = (x[:, -1] for x in mean[:3])
         if world_error:
             P = blk.congruence(P, {0: {0: lane_math._bt(_frame(end[0]))}}, SOA)
-        return xf, pf, vf, _fast.blocks_to_dense(tuple(P[k] for k in UPPER)), locked
+        return xf, pf, vf, _fast.lanes_to_dense(tuple(P[k] for k in UPPER)), locked
     # every covariance: the chunks again, from their starts, storing every step
     if local:
         x_s = lane_forms.from_quat(form, by_lane(starts[0][0]))
@@ -338,7 +338,7 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     if world_error:  # the starts' covariances in the body frame, as the kernel keeps them
         P_starts = blk.congruence(P_starts, {0: {0: lane_math._bt(_frame(by_lane(starts[0][0])))}},
                                   SOA)
-    P_s = _fast.blocks_to_dense(tuple(P_starts[k] for k in UPPER))
+    P_s = _fast.lanes_to_dense(tuple(P_starts[k] for k in UPPER))
     x_t, p_t, v_t, P_t, *_ = _fast.propagate_cov(
         x_s, p_s, v_s, rep(b_g), rep(b_a), P_s, gyro_c, accel_c, dt_c, rep(g_b),
         padded_variances, var_c, sch, jacobians, omega_c, coriolis, lever_c, True, form)

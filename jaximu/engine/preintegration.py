@@ -50,7 +50,7 @@ from jaximu.geometry import _checks as val
 from jaximu.geometry import _tolerances, sensor, so3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import ImuBias, NavState, check_state
-from jaximu.kernels.fast import dense_to_blocks
+from jaximu.kernels.fast import dense_to_lanes
 from jaximu.kernels.lane_math import SOA
 from jaximu.kernels.soa import block_lanes, run_blocked
 from jaximu.schemes import _blocks as blk
@@ -517,7 +517,7 @@ def _whiten(cov15, r):
         return e.reshape(batch + (15,))
 
     def block(P, e):  # (Bc, 15, 15), (Bc, 15): one kernel per block of lanes
-        Pb = dict(zip(blk.UPPER, dense_to_blocks(P)))
+        Pb = dict(zip(blk.UPPER, dense_to_lanes(P)))
         eT = e.T
         y = blk.whiten(Pb, [eT[3 * i:3 * i + 3, None] for i in range(5)], SOA)
         return jnp.concatenate([b[:, 0] for b in y], 0).T

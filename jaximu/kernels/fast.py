@@ -157,12 +157,16 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
                        whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + shared_pose)
 
 
-def dense_to_blocks(P):
-    """``(B, 15, 15)`` -> tuple of the 15 upper blocks as ``(3, 3, B)``."""
-    return tuple(jnp.moveaxis(P[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3], 0, -1) for i, j in UPPER)
+def dense_to_lanes(P):
+    """``(B, 15, 15)`` -> the 15 upper blocks as ``(3, 3, B)`` lanes, in :data:`UPPER` order:
+    :func:`jaximu.schemes._blocks.dense_to_blocks` in the lane layout (``SOA.from_arrays``)."""
+    return tuple(SOA.from_arrays(X) for X in _blocks.dense_to_blocks(P).values())
 
 
-def blocks_to_dense(Pb):
+def lanes_to_dense(Pb):
+    """The 15 upper ``(3, 3, B)`` blocks (:data:`UPPER` order) -> symmetric ``(B, 15, 15)``:
+    :func:`jaximu.schemes._blocks.blocks_to_dense` assembled in the lane layout (the lower
+    blocks by :func:`jaximu.schemes._blocks.block`), the batch axis moved first at the end."""
     d = dict(zip(UPPER, Pb))
     D = jnp.concatenate([jnp.concatenate([block(d, i, j, SOA) for j in range(5)], 1)
                          for i in range(5)], 0)
@@ -359,7 +363,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         consts = (_components(b_g), _components(b_a), _components(g), qc_params,
                   (_components(omega) if rotating else None),
                   (None if lever is None else _components(lever)))
-        carry = (_unit_start(form, q), _components(p), _components(v), dense_to_blocks(P0))
+        carry = (_unit_start(form, q), _components(p), _components(v), dense_to_lanes(P0))
         if world_error:
             carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
         if euler:  # and the locked flag of each lane
@@ -424,7 +428,7 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
                      tuple(jnp.moveaxis(X, -1, 0) for X in carry[-1])) + locked)
         if world_error:
             Pb = world_error_blocks(Pb, q, inverse=True)
-        return (_stack_last(q), _stack_last(p), _stack_last(v), blocks_to_dense(Pb)) + locked
+        return (_stack_last(q), _stack_last(p), _stack_last(v), lanes_to_dense(Pb)) + locked
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
     out = run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,

@@ -38,8 +38,9 @@ import jax.numpy as jnp
 from jaximu.geometry import so3
 from jaximu.kernels.preint_euler import P9_KEYS, P15_KEYS, _zero_carry, step
 from jaximu.kernels.preint_midpoint import _zero_carry_mid, mid_step
-from jaximu.kernels.preint_summaries import _dense, _finish, _reduce_chunks, _to_summary
+from jaximu.kernels.preint_summaries import _finish, _reduce_chunks, _to_summary
 from jaximu.kernels.soa import _components, _time_chunks, block_lanes, run_blocked, whole_chunks
+from jaximu.schemes import _blocks as blk
 
 MIN_CHUNK = 16  # shortest time chunk per lane
 
@@ -125,8 +126,8 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
         P15[3, 3] = bm(d3)[:, None, :] * eye
         P15[4, 4] = bm(d4)[:, None, :] * eye
         P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
-        return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=Phi, Q15=_dense(P15, 5),
-                    Q9=_dense(P9, 3))
+        return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=Phi, Q15=blk.blocks_to_dense(P15, n=5),
+                    Q9=blk.blocks_to_dense(P9, n=3))
 
     out = _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever)
     if C > 1:

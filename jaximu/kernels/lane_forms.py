@@ -26,6 +26,7 @@ from jaximu.kernels.lane_math import (
     half_angle,
     quat_matrix,
 )
+from jaximu.schemes import integrators
 from jaximu.schemes.integrators import get_attitude, stage_sum
 
 # ----------------------------------------------------------------------------- attitude forms
@@ -181,22 +182,13 @@ def _euler_rows(tchi1, chi1, world=False):
 
 
 def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
-    """Classical RK4 on ``(χ, p, v)`` with ω, f linear inside the step, on lanes
-    (:func:`jaximu.integrators._rk4_euler_angles`, the ``"euler_angles"`` form's RK4)."""
+    """The ``"euler_angles"`` form's RK4 on lanes: :func:`jaximu.schemes.integrators.rk4_euler_angles`
+    with the angles' rates and matrix from the half angle's polynomials (:func:`_euler_trig`)."""
     def deriv(c, w, f):
         trig = _euler_trig(c)
         return _euler_rate(c, w, trig), V3(*_matrix_rotate(_euler_matrix(c, trig), f)) + g
 
-    # a V3 on the left of each product: h may be an array of lanes
-    omega_m, f_m = (omega0 + omega1) * 0.5, (f0 + f1) * 0.5
-    chi = V3(*chi)
-    k1, a1 = deriv(chi, omega0, f0)
-    k2, a2 = deriv(chi + k1 * (0.5 * h), omega_m, f_m)
-    k3, a3 = deriv(chi + k2 * (0.5 * h), omega_m, f_m)
-    k4, a4 = deriv(chi + k3 * h, omega1, f1)
-    chi1 = chi + (k1 + k2 * 2 + k3 * 2 + k4) * (h / 6)
-    v1 = v + (a1 + a2 * 2 + a3 * 2 + a4) * (h / 6)
-    p1 = p + v * h + (a1 + a2 + a3) * (h * h / 6)
+    chi1, p1, v1 = integrators.rk4_euler_angles(deriv, V3(*chi), p, v, omega0, f0, omega1, f1, h)
     return tuple(chi1), tuple(p1), tuple(v1)
 
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaximu.geometry._vec import V3
 from jaximu.geometry.state import NavState, boxminus, boxplus
 from jaximu.kernels import rng as _rng
-from jaximu.kernels.fast import cov_step_blocks, dense_to_blocks
+from jaximu.kernels.fast import cov_step_blocks, dense_to_lanes
 from jaximu.kernels.lane_forms import mean_step
 from jaximu.kernels.lane_math import SOA, _materialise, _rows
 from jaximu.schemes._blocks import UPPER, blocks_to_dense, kalman_update, whiten
@@ -110,7 +110,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         n0 = _rng.normals(c["keys"][_WHITE:_WHITE + 3], run, _u32(0), 3, dtype)
         carry["s"] = _sample(n0, w0, a0, tuple(c["sd0"][i] for i in range(6)), dbg, dba)
     if filt:
-        carry["P"] = dense_to_blocks(jnp.broadcast_to(c["P0"], (B, 15, 15)))
+        carry["P"] = dense_to_lanes(jnp.broadcast_to(c["P0"], (B, 15, 15)))
     g = V3(*(c["g"][i] for i in range(3)))
 
     def step(carry, xs):

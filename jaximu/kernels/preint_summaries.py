@@ -9,8 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.geometry.so3 import quat_normalize, quat_to_matrix
+from jaximu.geometry.so3 import quat_normalize, quat_to_matrix, skew
 from jaximu.kernels.preint_euler import P9_KEYS, P15_KEYS
+from jaximu.schemes import _blocks as blk
 from jaximu.schemes.integrators import compose_deltas
 
 # ----------------------------------------------------------------------------- summaries
@@ -18,35 +19,6 @@ from jaximu.schemes.integrators import compose_deltas
 # A summary (batch-major, in its start frame, θ' coordinates) is a dict: q (n, 4), dv, dp
 # (n, 3), t (n,), Phi (n, 15, 15), Q15 (n, 15, 15), Q9 (n, 9, 9). Few of them are composed
 # (chunks of one sequence), so dense 15×15 algebra is cheap there and quick to compile.
-
-
-def _t(X):
-    return jnp.swapaxes(X, -1, -2)
-
-
-def _sym(X):
-    return 0.5 * (X + _t(X))
-
-
-def _skew(v):
-    z = jnp.zeros_like(v[..., 0])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return jnp.stack([jnp.stack([z, -w, y], -1), jnp.stack([w, z, -x], -1),
-                      jnp.stack([-y, x, z], -1)], -2)
-
-
-def _dense(blocks, n):
-    """Symmetric ``(…, 3n, 3n)`` from upper blocks ``{(i, j): (…, 3, 3)}`` (others zero)."""
-    some = next(iter(blocks.values()))
-    Z = jnp.zeros_like(some)
-
-    def get(i, j):
-        if i <= j:
-            return blocks.get((i, j), Z)
-        return _t(blocks[(j, i)]) if (j, i) in blocks else Z
-
-    return jnp.concatenate([jnp.concatenate([get(i, j) for j in range(n)], -1)
-                            for i in range(n)], -2)
 
 
 def _to_summary(c):
@@ -57,14 +29,14 @@ def _to_summary(c):
     eye = jnp.eye(3, dtype=t.dtype)
     I = jnp.broadcast_to(eye, t.shape + (3, 3))
     Z = jnp.zeros_like(I)
-    rows = [[I, Z, Z, bm(Bg), Z], [-_skew(dp), I, t[:, None, None] * eye, bm(Dp), bm(Ep)],
-            [-_skew(dv), Z, I, bm(Dv), bm(Ev)], [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
+    rows = [[I, Z, Z, bm(Bg), Z], [-skew(dp), I, t[:, None, None] * eye, bm(Dp), bm(Ep)],
+            [-skew(dv), Z, I, bm(Dv), bm(Ev)], [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
     Phi = jnp.concatenate([jnp.concatenate(r, -1) for r in rows], -2)
     P15 = {k: bm(X) for k, X in zip(P15_KEYS, P)}
     P15[3, 3] = bm(d3)[:, None, :] * eye
     P15[4, 4] = bm(d4)[:, None, :] * eye
     P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
-    return dict(q=last(q), dv=dv, dp=dp, t=t, Phi=Phi, Q15=_dense(P15, 5), Q9=_dense(P9, 3))
+    return dict(q=last(q), dv=dv, dp=dp, t=t, Phi=Phi, Q15=blk.blocks_to_dense(P15, n=5), Q9=blk.blocks_to_dense(P9, n=3))
 
 
 def _frame(R, n, k):
@@ -85,8 +57,8 @@ def _combine(a, b, rotate=True):
         R = quat_to_matrix(a["q"])
         T = _frame(R, 15, 3)
         T9 = T[..., :9, :9]
-        Fb = T @ b["Phi"] @ _t(T)
-        Qb15, Qb9 = T @ b["Q15"] @ _t(T), T9 @ b["Q9"] @ _t(T9)
+        Fb = T @ b["Phi"] @ blk.t(T)
+        Qb15, Qb9 = T @ b["Q15"] @ blk.t(T), T9 @ b["Q9"] @ blk.t(T9)
         q, dp, dv, t = compose_deltas(deltas(a), deltas(b),
                                       lambda x: jnp.einsum("...ij,...j->...i", R, x))
     else:  # the same frame: the sums of compose_deltas without a rotation
@@ -95,7 +67,7 @@ def _combine(a, b, rotate=True):
                      a["t"] + b["t"])
     F9 = Fb[..., :9, :9]
     return dict(q=q, dv=dv, dp=dp, t=t, Phi=Fb @ a["Phi"],
-                Q15=_sym(Fb @ a["Q15"] @ _t(Fb) + Qb15), Q9=_sym(F9 @ a["Q9"] @ _t(F9) + Qb9))
+                Q15=blk.sym(Fb @ a["Q15"] @ blk.t(Fb) + Qb15), Q9=blk.sym(F9 @ a["Q9"] @ blk.t(F9) + Qb9))
 
 
 def _identity_summary(like):
@@ -129,8 +101,8 @@ def _reduce_chunks(s, C, rotate=True):
 def _finish(s):
     """Summary in θ' coordinates -> ``(t, q, dv, dp, Φ, Q15, Q9)`` of the generic code: the
     θ rows (and columns) are rotated back with ``ΔR_ijᵀ``."""
-    Rt = _t(quat_to_matrix(s["q"]))
+    Rt = blk.t(quat_to_matrix(s["q"]))
     T = _frame(Rt, 15, 1)
     T9 = T[..., :9, :9]
     return (s["t"], quat_normalize(s["q"]), s["dv"], s["dp"], T @ s["Phi"],
-            _sym(T @ s["Q15"] @ _t(T)), _sym(T9 @ s["Q9"] @ _t(T9)))
+            blk.sym(T @ s["Q15"] @ blk.t(T)), blk.sym(T9 @ s["Q9"] @ blk.t(T9)))

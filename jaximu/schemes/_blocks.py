@@ -120,8 +120,9 @@ def dense_to_blocks(P):
     return {(i, j): P[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in UPPER}
 
 
-def blocks_to_dense(Pb, batch=None, dtype=None):
-    """Symmetric ``(..., 15, 15)`` from upper blocks (``None`` or missing blocks are zero)."""
+def blocks_to_dense(Pb, batch=None, dtype=None, n: int = 5):
+    """Symmetric ``(..., 3n, 3n)`` from upper blocks (``None`` or missing blocks are zero);
+    ``n = 5``: the 15×15 error-state matrix."""
     present = [x for x in Pb.values() if x is not None]
     batch = present[0].shape[:-2] if batch is None else batch
     dtype = present[0].dtype if dtype is None else dtype
@@ -132,7 +133,7 @@ def blocks_to_dense(Pb, batch=None, dtype=None):
         return zero if x is None else jnp.broadcast_to(x, tuple(batch) + (3, 3))
 
     return jnp.concatenate(
-        [jnp.concatenate([get(i, j) for j in range(5)], -1) for i in range(5)], -2)
+        [jnp.concatenate([get(i, j) for j in range(n)], -1) for i in range(n)], -2)
 
 
 def phi_to_dense(b: Blocks):

@@ -46,7 +46,7 @@ from typing import NamedTuple
 import jax
 
 from jaximu.geometry import sensor, so3
-from jaximu.geometry._vec import V3, matvec
+from jaximu.geometry._vec import V3, matvec, matvec_v3
 from jaximu.geometry.state import NavState
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes._blocks import Blocks, add
@@ -310,23 +310,38 @@ def get_scheme(name: str) -> Scheme:
         raise
 
 
-def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):
-    """Classical RK4 on (χ, p, v) with ω, f linear inside the step."""
-    h_ = h[..., None]
+def rk4_euler_angles(deriv, chi: V3, p: V3, v: V3, omega0: V3, f0: V3, omega1: V3, f1: V3, h):
+    """Classical RK4 on ``(χ, p, v)`` with ω, f linear inside the step (the ``"euler_angles"``
+    form's RK4), written once on :class:`V3` components for both layouts: the generic
+    kernels' (:func:`_rk4_euler_angles`) and the lanes' (``jaximu.kernels.lane_forms``).
 
-    def deriv(chi_s, omega, f):
-        R = so3.euler_zyx_to_matrix(chi_s)
-        return matvec(so3.euler_rate_matrix(chi_s), omega), matvec(R, f) + g
-
-    omega_m, f_m = 0.5 * (omega0 + omega1), 0.5 * (f0 + f1)
+    ``deriv(χ, ω, f) -> (χ̇, a)``: the layout's angle rates ``E(χ) ω`` and acceleration
+    ``R(χ) f + g``. ``h``: the step [s], per element (a scalar or the components' shape).
+    """
+    # a V3 on the left of each product: h may be an array of lanes
+    omega_m, f_m = (omega0 + omega1) * 0.5, (f0 + f1) * 0.5
     k1, a1 = deriv(chi, omega0, f0)
-    k2, a2 = deriv(chi + 0.5 * h_ * k1, omega_m, f_m)
-    k3, a3 = deriv(chi + 0.5 * h_ * k2, omega_m, f_m)
-    k4, a4 = deriv(chi + h_ * k3, omega1, f1)
-    chi1 = chi + h_ / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    v1 = v + h_ / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
-    p1 = p + h_ * v + h_ * h_ / 6 * (a1 + a2 + a3)
+    k2, a2 = deriv(chi + k1 * (0.5 * h), omega_m, f_m)
+    k3, a3 = deriv(chi + k2 * (0.5 * h), omega_m, f_m)
+    k4, a4 = deriv(chi + k3 * h, omega1, f1)
+    chi1 = chi + (k1 + k2 * 2 + k3 * 2 + k4) * (h / 6)
+    v1 = v + (a1 + a2 * 2 + a3 * 2 + a4) * (h / 6)
+    p1 = p + v * h + (a1 + a2 + a3) * (h * h / 6)
     return chi1, p1, v1
+
+
+def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):
+    """:func:`rk4_euler_angles` on ``(..., 3)`` arrays, the angles' rates and rotation from
+    :mod:`jaximu.so3`."""
+    g = V3.of(g)
+
+    def deriv(c, w, f):
+        cs = c.stack()
+        return (matvec_v3(so3.euler_rate_matrix(cs), w),
+                matvec_v3(so3.euler_zyx_to_matrix(cs), f) + g)
+
+    out = rk4_euler_angles(deriv, *(V3.of(x) for x in (chi, p, v, omega0, f0, omega1, f1)), h)
+    return tuple(x.stack() for x in out)
 
 
 def step(scheme, attitude: Attitude, x, p, v, omega0, f0, omega1, f1, h, g):
