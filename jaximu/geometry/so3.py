@@ -132,17 +132,21 @@ def quat_mul(p, q):
     p = _arg("quat_mul", "p", p, (4,))
     q = _arg("quat_mul", "q", q, (4,))
     _batches("quat_mul", "p", p, 1, "q", q, 1)
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return jnp.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
+    return jnp.stack(quat_mul_components(tuple(p[..., i] for i in range(4)),
+                                         tuple(q[..., i] for i in range(4))), axis=-1)
+
+
+def quat_mul_components(p, q):
+    """:func:`quat_mul` on components: ``p``, ``q`` are 4-tuples ``(w, x, y, z)`` of arrays
+    (or scalars) that broadcast; returns the 4-tuple of ``p ⊗ q``. The one home of the
+    product, for the ``(..., 4)`` arrays above and the structure-of-arrays lanes
+    (:mod:`jaximu.kernels.lane_math`)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return (pw * qw - px * qx - py * qy - pz * qz,
             pw * qx + px * qw + py * qz - pz * qy,
             pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+            pw * qz + px * qy - py * qx + pz * qw)
 
 
 def quat_conj(q):

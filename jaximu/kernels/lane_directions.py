@@ -8,7 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.kernels.lane_math import _E3, _quat_mul
+from jaximu.geometry.so3 import quat_mul_components
+from jaximu.kernels.lane_math import _E3
 
 # ----------------------------------------------------------------------------- autodiff blocks
 #
@@ -29,8 +30,8 @@ def rotation_tangents(q, world=False):
     dtype, lanes = q[0].dtype, q[0].shape
     E = np.eye(3)
     # Python floats (weakly typed): the tangents keep the lanes' dtype
-    half = [_quat_mul(tuple(0.5 * float(x) for x in (0.0, *E[j])), q) if world
-            else _quat_mul(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
+    half = [quat_mul_components(tuple(0.5 * float(x) for x in (0.0, *E[j])), q) if world
+            else quat_mul_components(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
     onehot = lane_directions(E, dtype, lanes)  # onehot[j][d] = δ_jd on every lane
     return tuple(sum(onehot[j] * half[j][c][None] for j in range(3)) for c in range(4))
 
@@ -53,5 +54,5 @@ def rotation_rows(tq1, q1, world=False):
     """The rotation error's rows from a tangent ``δq⁺`` of ``q⁺``: ``2 vec(q⁺* ⊗ δq⁺)``
     (``world``: ``2 vec(δq⁺ ⊗ q⁺*)``), the tangent of ``Log(q̂⁺* q⁺)``."""
     conj = tuple(x[None] for x in (q1[0], -q1[1], -q1[2], -q1[3]))
-    rel = _quat_mul(tq1, conj) if world else _quat_mul(conj, tq1)
+    rel = quat_mul_components(tq1, conj) if world else quat_mul_components(conj, tq1)
     return tuple(2.0 * rel[1 + i] for i in range(3))

@@ -13,13 +13,13 @@ import numpy as np
 
 from jaximu.geometry import so3
 from jaximu.geometry._vec import V3
+from jaximu.geometry.so3 import quat_mul_components
 from jaximu.kernels.lane_directions import lane_directions, rotation_rows, rotation_tangents
 from jaximu.kernels.lane_math import (
     _S3,
     _dtype_of,
     _half_any,
     _materialise,
-    _quat_mul,
     _quat_normalize,
     _quat_renormalize,
     _quat_rotate,
@@ -41,18 +41,18 @@ def _quat_advance(q, phi: V3, half=None):
     """``normalize(q ⊗ Exp(φ))``: the exact exponential, renormalised so that rounding
     cannot let ``|q|`` drift; ``half``: ``(cos(θ/2), sin(θ/2)/θ)`` when the caller has them."""
     c, k = half_angle(phi.dot(phi)) if half is None else half
-    return _quat_renormalize(_quat_mul(q, (c, k * phi.x, k * phi.y, k * phi.z)))
+    return _quat_renormalize(quat_mul_components(q, (c, k * phi.x, k * phi.y, k * phi.z)))
 
 
 def _quat_first_order(q, phi: V3, half=None):
     """``normalize(q ⊗ [1, φ/2])`` (:func:`jaximu.so3.quat_first_order_update`)."""
-    return _quat_normalize(_quat_mul(q, (1.0, 0.5 * phi.x, 0.5 * phi.y, 0.5 * phi.z)))
+    return _quat_normalize(quat_mul_components(q, (1.0, 0.5 * phi.x, 0.5 * phi.y, 0.5 * phi.z)))
 
 
 def _quat_rotate_left(q, dth):
     """``normalize(Exp(dθ) ⊗ q)`` for a rotation vector ``dθ`` ``(..., 3)``."""
     e = so3.exp(dth)
-    return _quat_normalize(_quat_mul(tuple(e[..., i] for i in range(4)), q))
+    return _quat_normalize(quat_mul_components(tuple(e[..., i] for i in range(4)), q))
 
 
 def _lanes_matrix(x, dtype):

@@ -89,15 +89,6 @@ def _any_big(t2):
 # ----------------------------------------------------------------------------- SoA algebra
 
 
-def _quat_mul(p, q):
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
-    return (pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw)
-
-
 def _quat_normalize(q):
     """``q / |q|`` as ``q · rsqrt(|q|²)``: one square root and one division per lane
     instead of four divisions (faster: docs/DESIGN.md section 3, "One square root a

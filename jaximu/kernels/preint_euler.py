@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from jaximu.geometry import sensor
 from jaximu.geometry._vec import V3
+from jaximu.geometry.so3 import quat_mul_components
 from jaximu.kernels.fast import blocks_autodiff
 from jaximu.kernels.lane_math import (
     _E3,
@@ -25,7 +26,6 @@ from jaximu.kernels.lane_math import (
     _jr_b_small,
     _lane,
     _outer,
-    _quat_mul,
     _quat_renormalize,
     _quat_rotate,
     _rows,
@@ -52,7 +52,7 @@ def _lane_scalars(big):
         else:
             c, k = _half_small(t2)
             b = _jr_b_small(t2)
-        q1 = _quat_renormalize(_quat_mul(q, (c, k * phi[0], k * phi[1], k * phi[2])))
+        q1 = _quat_renormalize(quat_mul_components(q, (c, k * phi[0], k * phi[1], k * phi[2])))
         dp1 = tuple((dp[i] + dv[i] * h) + 0.5 * u[i] * h * h for i in range(3))
         dv1 = tuple(dv[i] + u[i] * h for i in range(3))
         return (q1, dv1, dp1, t + h), (u, phi, t2, k, b)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.geometry.so3 import quat_mul_components
 from jaximu.kernels.lane_directions import (
     direction_block,
     jvp_directions,
@@ -22,7 +23,6 @@ from jaximu.kernels.lane_math import (
     _bt,
     _diag_row,
     _lane,
-    _quat_mul,
     _quat_normalize,
     _quat_rotate,
     _skew3,
@@ -43,7 +43,7 @@ def _mid_lane(q, dv, dp, t, omega, f0, f1, h):
     """Stage 1 (per lane): the mean update, VINS-Mono's unnormalised ``q ⊗ [1, ω̄h/2]``."""
     dq = (jnp.ones_like(h) if jnp.ndim(h) else jnp.ones_like(q[0]),) + tuple(0.5 * h * w
                                                                            for w in omega)
-    q1u = _quat_mul(q, dq)
+    q1u = quat_mul_components(q, dq)
     u0, u1 = _quat_rotate(q, f0), _quat_rotate(q1u, f1)
     acc = tuple(0.5 * (u0[i] + u1[i]) for i in range(3))
     dp1 = tuple((dp[i] + dv[i] * h) + 0.5 * acc[i] * h * h for i in range(3))
