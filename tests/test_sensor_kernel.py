@@ -14,8 +14,9 @@ import pytest
 
 import jaximu
 from jaximu.engine import _dispatch
+from jaximu.engine._inputs import sensor_engine_inputs
 from jaximu.engine.errorstate import _propagate_covariance
-from jaximu.engine.propagate import _propagate, _sensor_options, sensor_engine_inputs
+from jaximu.engine.propagate import _propagate, _sensor_options
 from jaximu.sensor import SensorPose
 
 G_W = jnp.array([0.0, 0.0, -9.81])

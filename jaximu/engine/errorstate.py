@@ -40,6 +40,18 @@ import numpy as np
 from jaximu.engine import _chunked
 from jaximu.engine import _dispatch as dispatch
 from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.engine._inputs import (
+    broadcast_state,
+    flatten_batch,
+    kernel_samples,
+    lane_values,
+    n_steps,
+    prepare,
+    sensor_engine_inputs,
+    soa_samples,
+    time_major,
+    unit_start,
+)
 from jaximu.engine.jacobians import (
     JACOBIANS,
     _resolve_jacobians,
@@ -53,19 +65,9 @@ from jaximu.engine.propagate import (
     VECTOR,
     _report_gimbal_lock,
     _sensor_options,
-    broadcast_state,
     coriolis_mode,
-    flatten_batch,
-    kernel_samples,
-    lane_values,
     mean_body,
-    n_steps,
-    prepare,
     sensor_biases,
-    sensor_engine_inputs,
-    soa_samples,
-    time_major,
-    unit_start,
 )
 from jaximu.geometry import _checks as val
 from jaximu.geometry import _tolerances, sensor
@@ -179,7 +181,7 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
                           pose=None, *, scheme, attitude, jacobians, save_all, fast=True,
                           coriolis="exact", tangential=True):
     """The covariance's engine. ``pose``: ``None``, or the samples are a sensor's there and
-    ``state``'s biases the sensor's (:func:`jaximu.propagate.sensor_engine_inputs`; ``P0``,
+    ``state``'s biases the sensor's (:func:`jaximu.engine._inputs.sensor_engine_inputs`; ``P0``,
     ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731

@@ -89,7 +89,7 @@ QUATERNION_FORMS = ("quaternion", "quaternion_first_order")
 
 def _unit_start(form, q):
     """The lanes' start attitude (``(B, form.size)``) as components; a quaternion form's
-    normalised, inside the kernel (:func:`jaximu.propagate.unit_start` does it for the other
+    normalised, inside the kernel (:func:`jaximu.engine._inputs.unit_start` does it for the other
     kernels; an operation outside the kernel is one more module for XLA:CPU to compile)."""
     x = _components(q)
     return _quat_normalize(x) if form.name in QUATERNION_FORMS else x

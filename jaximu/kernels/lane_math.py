@@ -103,7 +103,7 @@ def _quat_renormalize(q):
     ``r = (3 - |q|²)/2`` is the division's to ``3ε²/8``, below rounding while ``|ε|`` is
     (then ``|q r|`` is 1 within ``3ε²/8`` and each step squares the deviation; the
     direction is the division's exactly). The engines start from a normalised ``q``
-    (:func:`jaximu.propagate.unit_start`), so every step's input is such a product. The
+    (:func:`jaximu.engine._inputs.unit_start`), so every step's input is such a product. The
     square root and the division sat on a step's loop-carried path (each step's rotation
     waits for the last one's): one float64 trajectory 1.3x faster without them
     (docs/DESIGN.md, "Renormalisation"). Over many lanes ``r`` is stored once
