@@ -212,10 +212,6 @@ def _bt(X):
     return jnp.swapaxes(X, 0, 1)
 
 
-def _bsym(X):
-    return 0.5 * (X + _bt(X))
-
-
 def _skew3(t, dtype):
     """3-tuple of ``(B,)`` -> ``[v]x`` as ``(3, 3, B)``."""
     S = jnp.asarray(_S3, dtype)

@@ -17,7 +17,6 @@ from jaximu.kernels.lane_math import (
     SOA,
     _any_big,
     _bmm,
-    _bsym,
     _bt,
     _cond,
     _diag_row,
@@ -33,7 +32,13 @@ from jaximu.kernels.lane_math import (
     _stage,
     quat_matrix,
 )
+from jaximu.schemes._blocks import sym
 from jaximu.schemes.integrators import get_scheme
+
+
+def _sym(X):
+    """``(X + Xᵀ)/2`` of a ``(3, 3, B)`` block: :func:`jaximu.schemes._blocks.sym` on lanes."""
+    return sym(X, SOA)
 
 # ----------------------------------------------------------------------------- one step
 
@@ -221,15 +226,15 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
         Dkt = _bt(Dk)
         K0, K1, K2 = K0 + _bmm(M03, Dkt), K1 + _bmm(M13, Dkt), K2 + _bmm(M23, Dkt)
     new = {
-        (0, 0): _bsym((M00 + _bmm(M03, _bt(Bk))) + Qth),
+        (0, 0): _sym((M00 + _bmm(M03, _bt(Bk))) + Qth),
         (0, 1): (M01 + hb * M02) + half * K0,
         (0, 2): M02 + K0,
         (0, 3): M03,
-        (1, 1): _bsym(((M11 + hb * M12) + half * K1) + (half * half) * Qv),
+        (1, 1): _sym(((M11 + hb * M12) + half * K1) + (half * half) * Qv),
         (1, 2): (M12 + K1) + half * Qv,
         (1, 3): M13,
         (1, 4): M14,
-        (2, 2): _bsym((M22 + K2) + Qv),
+        (2, 2): _sym((M22 + K2) + Qv),
         (2, 3): M23,
         (2, 4): M24,
     }
@@ -251,12 +256,12 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
     L11, L12, L22 = _stage(ok, lambda *a: tuple(x * 1 for x in a), L11, L12, L22)
     K90, K91, K92 = _stage(ok, _cov9_b, L10, L20, Sd[0, 0], Cv)
     S1 = (
-        _bsym(Sd[0, 0] + Qth),
+        _sym(Sd[0, 0] + Qth),
         (Sd[0, 1] + hb * Sd[0, 2]) + half * K90,
         Sd[0, 2] + K90,
-        _bsym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
+        _sym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
         (L12 + K91) + half * Qv,
-        _bsym((L22 + K92) + Qv),
+        _sym((L22 + K92) + Qv),
     )
     if Qtv is not None:
         S1 = (S1[0], S1[1] + half * Qtv, S1[2] + Qtv) + S1[3:]

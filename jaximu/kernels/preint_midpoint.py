@@ -18,8 +18,8 @@ from jaximu.kernels.lane_directions import (
 )
 from jaximu.kernels.lane_math import (
     _E3,
+    SOA,
     _bmm,
-    _bsym,
     _bt,
     _diag_row,
     _lane,
@@ -30,6 +30,12 @@ from jaximu.kernels.lane_math import (
     quat_matrix,
 )
 from jaximu.kernels.preint_euler import P9_KEYS, P15_KEYS, _lever_rk, _zero_carry
+from jaximu.schemes._blocks import sym
+
+
+def _sym(X):
+    """``(X + Xᵀ)/2`` of a ``(3, 3, B)`` block: :func:`jaximu.schemes._blocks.sym` on lanes."""
+    return sym(X, SOA)
 
 # ----------------------------------------------------------------------------- VINS midpoint
 #
@@ -226,14 +232,14 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
                     M1, M2)
     (K0, K1, K2), C00 = _stage(ok, _mid_cov_b, M0, M1, M2, A, B, Cv, Dv, Ev, h)
     new = {
-        (0, 0): _bsym(C00 + Qtt),
+        (0, 0): _sym(C00 + Qtt),
         (0, 1): ((M0[1] + hb * M0[2]) + half * K0) + half * Qtv,
         (0, 2): (M0[2] + K0) + Qtv,
         (0, 3): M0[3],
-        (1, 1): _bsym(((M1[1] + hb * M1[2]) + half * K1) + (half * half) * Qv),
+        (1, 1): _sym(((M1[1] + hb * M1[2]) + half * K1) + (half * half) * Qv),
         (1, 2): (M1[2] + K1) + half * Qv,
         (1, 3): M1[3], (1, 4): M1[4],
-        (2, 2): _bsym((M2[2] + K2) + Qv),
+        (2, 2): _sym((M2[2] + K2) + Qv),
         (2, 3): M2[3], (2, 4): M2[4],
     }
     h2 = h * h
@@ -247,12 +253,12 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
     L12 = (Sd[1, 2] + hb * Sd[2, 2]) + half * L[2]
     L22 = Sd[2, 2] + L[2]
     S1 = (
-        _bsym(C900 + Qtt),
+        _sym(C900 + Qtt),
         ((L0[1] + hb * L0[2]) + half * K90) + half * Qtv,
         (L0[2] + K90) + Qtv,
-        _bsym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
+        _sym(((L11 + hb * L12) + half * K91) + (half * half) * Qv),
         (L12 + K91) + half * Qv,
-        _bsym((L22 + K92) + Qv),
+        _sym((L22 + K92) + Qv),
     )
     return (q1, dv1, dp1, t1, Phi1, tuple(new[k] for k in P15_KEYS), d3n, d4n, S1)
 
