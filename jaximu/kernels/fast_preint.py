@@ -36,11 +36,11 @@ import jax
 import jax.numpy as jnp
 
 from jaximu.geometry import so3
-from jaximu.kernels.preint_euler import P9_KEYS, P15_KEYS, _zero_carry, step
+from jaximu.kernels.preint_euler import _zero_carry, step
 from jaximu.kernels.preint_midpoint import _zero_carry_mid, mid_step
-from jaximu.kernels.preint_summaries import _finish, _reduce_chunks, _to_summary
+from jaximu.kernels.preint_summaries import _finish, _reduce_chunks, _to_summary, summary
 from jaximu.kernels.soa import _components, _time_chunks, block_lanes, run_blocked, whole_chunks
-from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks
 
 MIN_CHUNK = 16  # shortest time chunk per lane
 
@@ -113,21 +113,10 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
             st, _zero_carry_mid(Bc, dtype), gyro, accel, dt, None, None)[0]
-        last = lambda x: jnp.stack(x, -1)  # noqa: E731
         bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
         A, Bg, Cp, Cv, Dp, Dv, Ep, Ev = (bm(X) for X in Phi)
-        eye = jnp.eye(3, dtype=dtype)
-        I = jnp.broadcast_to(eye, t.shape + (3, 3))
-        Z = jnp.zeros_like(I)
-        rows = [[A, Z, Z, Bg, Z], [Cp, I, t[:, None, None] * eye, Dp, Ep], [Cv, Z, I, Dv, Ev],
-                [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
-        Phi = jnp.concatenate([jnp.concatenate(r, -1) for r in rows], -2)
-        P15 = {k: bm(X) for k, X in zip(P15_KEYS, P)}
-        P15[3, 3] = bm(d3)[:, None, :] * eye
-        P15[4, 4] = bm(d4)[:, None, :] * eye
-        P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
-        return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=Phi, Q15=blk.blocks_to_dense(P15, n=5),
-                    Q9=blk.blocks_to_dense(P9, n=3))
+        phi = Blocks(A=A, B=Bg, Cp=Cp, Cv=Cv, Dp=Dp, Dv=Dv, Ep=Ep, Ev=Ev, dt=t)
+        return summary(q, dv, dp, t, phi, P, d3, d4, S)
 
     out = _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever)
     if C > 1:

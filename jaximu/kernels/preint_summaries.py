@@ -12,6 +12,7 @@ import numpy as np
 from jaximu.geometry.so3 import quat_normalize, quat_to_matrix, skew
 from jaximu.kernels.preint_euler import P9_KEYS, P15_KEYS
 from jaximu.schemes import _blocks as blk
+from jaximu.schemes._blocks import Blocks
 from jaximu.schemes.integrators import compose_deltas
 
 # ----------------------------------------------------------------------------- summaries
@@ -21,22 +22,32 @@ from jaximu.schemes.integrators import compose_deltas
 # (chunks of one sequence), so dense 15×15 algebra is cheap there and quick to compile.
 
 
-def _to_summary(c):
-    q, dv, dp, t, (Bg, Dp, Dv, Ep, Ev), P, d3, d4, S = c
+def summary(q, dv, dp, t, phi: Blocks, P, d3, d4, S):
+    """A chunk's summary (batch-major) from a kernel's final lanes: ``q``, ``dv``, ``dp``
+    component tuples of ``(B,)``, ``t`` ``(B,)``, ``phi`` the transition's blocks (batch-major,
+    :func:`jaximu.schemes._blocks.phi_to_dense` forms it), ``P`` the 15×15 noise's upper
+    blocks (:data:`P15_KEYS`, ``(3, 3, B)``) with the bias blocks' diagonals ``d3``, ``d4``,
+    ``S`` the 9×9's (:data:`P9_KEYS`)."""
     last = lambda x: jnp.stack(x, -1)  # noqa: E731
     bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
-    dv, dp = last(dv), last(dp)
     eye = jnp.eye(3, dtype=t.dtype)
-    I = jnp.broadcast_to(eye, t.shape + (3, 3))
-    Z = jnp.zeros_like(I)
-    rows = [[I, Z, Z, bm(Bg), Z], [-skew(dp), I, t[:, None, None] * eye, bm(Dp), bm(Ep)],
-            [-skew(dv), Z, I, bm(Dv), bm(Ev)], [Z, Z, Z, I, Z], [Z, Z, Z, Z, I]]
-    Phi = jnp.concatenate([jnp.concatenate(r, -1) for r in rows], -2)
     P15 = {k: bm(X) for k, X in zip(P15_KEYS, P)}
     P15[3, 3] = bm(d3)[:, None, :] * eye
     P15[4, 4] = bm(d4)[:, None, :] * eye
     P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
-    return dict(q=last(q), dv=dv, dp=dp, t=t, Phi=Phi, Q15=blk.blocks_to_dense(P15, n=5), Q9=blk.blocks_to_dense(P9, n=3))
+    return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=blk.phi_to_dense(phi),
+                Q15=blk.blocks_to_dense(P15), Q9=blk.blocks_to_dense(P9, n=3))
+
+
+def _to_summary(c):
+    """:func:`summary` of the Euler kernel's carry, in the rotated error coordinates
+    (``Φ_θθ = I``, ``Φ_vθ = -[Δv]x``, ``Φ_pθ = -[Δp]x``: :mod:`jaximu.kernels.fast_preint`)."""
+    q, dv, dp, t, (Bg, Dp, Dv, Ep, Ev), P, d3, d4, S = c
+    bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
+    I = jnp.broadcast_to(jnp.eye(3, dtype=t.dtype), t.shape + (3, 3))
+    phi = Blocks(A=I, B=bm(Bg), Cp=-skew(jnp.stack(dp, -1)), Cv=-skew(jnp.stack(dv, -1)),
+                 Dp=bm(Dp), Dv=bm(Dv), Ep=bm(Ep), Ev=bm(Ev), dt=t)
+    return summary(q, dv, dp, t, phi, P, d3, d4, S)
 
 
 def _frame(R, n, k):
