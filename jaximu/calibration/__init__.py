@@ -5,5 +5,12 @@ files (:mod:`.kalibr`). ``jaximu.calibration`` is the public path of :mod:`.prob
 Imports the engine, :mod:`jaximu.io` and below.
 """
 
+from jaximu.calibration import problem as _problem
 from jaximu.calibration.problem import *  # noqa: F403
 from jaximu.calibration.problem import __all__ as __all__
+
+
+def __getattr__(name):
+    """The other names of the module ``jaximu.calibration`` was before it was a folder
+    (helpers, the modules it imported), for code that reaches them here."""
+    return getattr(_problem, name)
