@@ -68,16 +68,17 @@ def random_inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
 def dispatch_as(backend):
     """Run the engine's dispatch as on ``backend`` (``"cpu"`` or ``"accelerator"``) whatever
     device runs it: the table's rows, the batch blocks, the stage conditionals
-    (jaximu.engine._dispatch.backend). The jit caches are cleared around it: a traced entry does not
-    key on the backend."""
+    (jaximu.kernels.device.backend, which the table re-exports as jaximu.engine._dispatch.backend).
+    The jit caches are cleared around it: a traced entry does not key on the backend."""
     from jaximu.engine import _dispatch
+    from jaximu.kernels import device
 
-    saved = _dispatch.backend
-    _dispatch.backend = lambda: backend
+    saved = device.backend
+    _dispatch.backend = device.backend = lambda: backend
     jax.clear_caches()
     try:
         yield
     finally:
-        _dispatch.backend = saved
+        _dispatch.backend = device.backend = saved
         jax.clear_caches()
 
