@@ -45,7 +45,7 @@ MEAN_CHUNK_STEPS = 128
 step there is a launch), up to :data:`MEAN_CHUNK_LANES` batch elements (docs/DESIGN.md,
 "Dispatch"): 4 chunks of :data:`MIN_CHUNK_STEPS`, so that every state stored, whose chunks
 run twice, still takes half the sequential launches. Set from the launch cost measured on
-an NVIDIA H100 (12–17 µs a step from 1 to 16384 lanes; the chunks' gather and the deltas'
+an NVIDIA H100 (10–17 µs a step from 1 to 16384 lanes; the chunks' gather and the deltas'
 tree about 0.2 ms at 3125 chunks), not yet from a measured crossover
 (``benchmarks/chunk_crossover.py``)."""
 
