@@ -15,7 +15,8 @@ every longer length measured (a length sweep), or the largest batch up to which 
 every smaller one (a batch sweep). Sweeps run in order of what the table needs most, each
 case only while the budget lasts (``BUDGET`` s, default 140); a sequential run predicted
 over ``SEQ_MAX_S`` (default 3 s) is extrapolated from the sweep's longest measured one
-(its cost per step is constant: one launch a step).
+(its cost per step is constant: one launch a step). The results' relative difference
+is printed beside each (rounding: the two paths sum in different orders).
 
 Usage (on the accelerator; the CPU runs it too, with the CPU's table)::
 
@@ -51,22 +52,28 @@ TABLES = {
                      for r in TABLE0),
 }
 
-# (name, kind, save, dtype, [(B, T), ...], sweep over "T" or "B"); the order is the table's need
-LENGTHS = (64, 128, 256, 512, 1024, 4096, 100_000)
+# (name, kind, save, dtype, [(B, T), ...], sweep over "T" or "B"), in the order the table
+# needs them: a coarse pass over every sweep first, then finer points of the same sweeps (a
+# chunked covariance compiles for seconds, and the budget may end the run early)
 SWEEPS = [
-    ("cov final 1 trajectory", "cov", "final", "float64", [(1, T) for T in LENGTHS], "T"),
-    ("mean final 1 trajectory", "mean", "final", "float32", [(1, T) for T in LENGTHS[:6]],
+    ("cov final 1 trajectory", "cov", "final", "float64", [(1, T) for T in (128, 256, 512)],
      "T"),
-    ("cov all 1 trajectory", "cov", "all", "float64", [(1, T) for T in (128, 256, 512, 1024)],
+    ("mean final 1 trajectory", "mean", "final", "float32", [(1, T) for T in (64, 128, 256)],
      "T"),
-    ("mean all 1 trajectory", "mean", "all", "float32", [(1, T) for T in (64, 128, 256, 512)],
-     "T"),
-    ("cov final batch x 256", "cov", "final", "float64",
-     [(B, 256) for B in (64, 1024, 4096, 8192, 16384)], "B"),
     ("mean final batch x 200", "mean", "final", "float32",
-     [(B, 200) for B in (1024, 8192, 16384, 32768, 65536)], "B"),
-    ("cov final 1 trajectory float32", "cov", "final", "float32",
-     [(1, T) for T in (256, 1024, 100_000)], "T"),
+     [(B, 200) for B in (1024, 16384, 32768)], "B"),
+    ("cov final batch x 256", "cov", "final", "float64",
+     [(B, 256) for B in (1024, 4096, 16384)], "B"),
+    ("cov all 1 trajectory", "cov", "all", "float64", [(1, T) for T in (256, 512)], "T"),
+    ("mean all 1 trajectory", "mean", "all", "float32", [(1, T) for T in (128, 256)], "T"),
+    ("cov final 1 trajectory", "cov", "final", "float64",
+     [(1, T) for T in (64, 1024, 4096, 100_000)], "T"),
+    ("mean final 1 trajectory", "mean", "final", "float32",
+     [(1, T) for T in (512, 1024, 4096)], "T"),
+    ("cov all 1 trajectory", "cov", "all", "float64", [(1, T) for T in (128, 1024)], "T"),
+    ("cov final batch x 256", "cov", "final", "float64", [(B, 256) for B in (64, 8192)], "B"),
+    ("mean final batch x 200", "mean", "final", "float32", [(B, 200) for B in (8192, 65536)],
+     "B"),
 ]
 
 
@@ -120,15 +127,22 @@ def main():
     t_start = time.perf_counter()
     info = P.machine_info()
     print(jax.devices(), jax.__version__, f"budget {budget:.0f} s", flush=True)
-    sweeps = []
+    sweeps = {}
     for name, kind, save, dtype, sizes, axis in SWEEPS:
         if only and only not in name:
             continue
-        rows, per_step = [], None
+        sweep = sweeps.setdefault(name, dict(name=name, kind=kind, save=save, dtype=dtype,
+                                             axis=axis, rows=[]))
+        rows = sweep["rows"]
         for B, T in sizes:
             if time.perf_counter() - t_start > budget:
                 print(f"budget out before {name} {B}x{T}", flush=True)
                 break
+            # one launch a step: the sweep's longest sequential run so far gives its cost
+            seq = [r for r in rows if axis == "T" and "sequential_run_s" in r
+                   and not r.get("sequential_extrapolated")]
+            longest = max(seq, key=lambda r: r["T"]) if seq else None
+            per_step = longest["sequential_run_s"] / longest["T"] if longest else None
             c = case(kind, save, B, T, dtype)
             fn, args = P.build(c)
             row = dict(B=B, T=T)
@@ -146,8 +160,6 @@ def main():
                     row[f"{variant}_error"] = repr(e)[:200]
                     continue
                 row[f"{variant}_run_s"], row[f"{variant}_compile_s"] = run_s, comp_s
-                if variant == "sequential" and axis == "T":
-                    per_step = run_s / T
             dsp.TABLE = TABLE0
             if len(outs) == 2:
                 row["diff"] = reldiff(outs["chunked"], outs["sequential"])
@@ -158,13 +170,15 @@ def main():
                 row["winner"] = "chunked" if ratio > 1 else "sequential"
             rows.append(row)
             fmt = lambda k: (f"{row[k] * 1e3:9.3f} ms" if k in row else "      —   ")  # noqa: E731
-            print(f"{name:32s} {B:6d}x{T:<7d} chunked {fmt('chunked_run_s')} "
+            print(f"{name:26s} {dtype} {B:6d}x{T:<7d} chunked {fmt('chunked_run_s')} "
                   f"(c {row.get('chunked_compile_s', 0):.1f} s)  sequential "
                   f"{fmt('sequential_run_s')}{'*' if row.get('sequential_extrapolated') else ' '}"
                   f" -> {row.get('winner', '?'):10s} x{row.get('speedup', 0):.2f}"
                   f"  diff {row.get('diff', float('nan')):.1e}", flush=True)
-        sweeps.append(dict(name=name, kind=kind, save=save, dtype=dtype, axis=axis, rows=rows,
-                           suggested=suggest(rows, axis)))
+    sweeps = list(sweeps.values())
+    for s in sweeps:
+        s["rows"].sort(key=lambda r: r[s["axis"]])
+        s["suggested"] = suggest(s["rows"], s["axis"])
     on = dsp.backend()
     print("\n* sequential extrapolated from the sweep's longest measured run (one launch a "
           f"step)\nSuggested thresholds (the table now, {on}: mean from "
