@@ -3,7 +3,8 @@
 # H100 is lent for 15 minutes in all, its start-up included): propagation ~4 (5 at most),
 # preintegration and Monte Carlo (quick: 2000 runs) under 1.5 each, the time chunks'
 # crossover 2.5. Each step has its own time limit, so a slow one cannot take the others'
-# time (a step cut by its limit writes no JSON; its printed lines are in the log).
+# time (a step cut by its limit writes no JSON but the crossover's, written as it goes; the
+# printed lines are in the log).
 #
 #   bash benchmarks/accelerator.sh          # from the repository root
 #

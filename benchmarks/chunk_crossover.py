@@ -175,6 +175,7 @@ def main():
                   f"{fmt('sequential_run_s')}{'*' if row.get('sequential_extrapolated') else ' '}"
                   f" -> {row.get('winner', '?'):10s} x{row.get('speedup', 0):.2f}"
                   f"  diff {row.get('diff', float('nan')):.1e}", flush=True)
+            write(list(sweeps.values()), info, budget, t_start)
     sweeps = list(sweeps.values())
     for s in sweeps:
         s["rows"].sort(key=lambda r: r[s["axis"]])
@@ -188,6 +189,12 @@ def main():
     for s in sweeps:
         what = "chunks from length" if s["axis"] == "T" else "chunks up to batch"
         print(f"  {s['name']:32s} {s['dtype']}: {what} {s['suggested']}")
+    print(f"Wrote {write(sweeps, info, budget, t_start)}", flush=True)
+
+
+def write(sweeps, info, budget, t_start):
+    """The JSON of the sweeps so far (after every case: a run cut by its time limit keeps
+    what it measured)."""
     out_dir = os.environ.get("OUT")
     path = (os.path.join(out_dir, "chunk_crossover.json") if out_dir else
             os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
@@ -199,7 +206,7 @@ def main():
                                   cov_chunk_steps=dsp.COV_CHUNK_STEPS,
                                   cov_chunk_lanes=dsp.COV_CHUNK_LANES),
                        sweeps=sweeps), fh, indent=1)
-    print(f"Wrote {path}", flush=True)
+    return path
 
 
 if __name__ == "__main__":
