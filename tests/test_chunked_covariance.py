@@ -163,10 +163,10 @@ def test_gradient_through_the_chunks_equals_the_sequential_scan():
 def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
     """The table's chunked rows take one long sequence (and a few) on both backends, not a
     short one nor a batch that fills the lanes itself. ``jax.vmap`` of two sequences reaches
-    the chunks (as a batch of two: 3 chunks each). On an accelerator (run here on the CPU:
-    tests/_shared.dispatch_as) the table's own threshold, a short sequence, runs as the
-    chunks its lanes take (8 of 32 steps), composed by a parallel prefix scan, the final
-    covariance and every one stored. Both: the sequential scan's results to 1e-12."""
+    the chunks (as a batch of two: 3 chunks each), on both backends. On an accelerator (run
+    here on the CPU: tests/_shared.dispatch_as) the table's own threshold, a short sequence,
+    runs as the chunks its lanes take (8 of 32 steps), composed by a parallel prefix scan,
+    the final covariance and every one stored. Both: the sequential scan's results to 1e-12."""
     def kernel(on, lanes, steps, jac="analytic", attitude="quaternion"):
         return _dispatch.kernel("covariance", "euler", attitude=attitude, jacobians=jac,
                                 lanes=lanes, steps=steps, on=on)
@@ -189,6 +189,11 @@ def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
         chunked = jax.jit(run)(*args)
     with table():
         ref = jax.jit(run)(*args)
+    assert_close(chunked, ref, 1e-12)
+    # the same pair on an accelerator, whose chunks the batch leaves room for
+    with dispatch_as(_dispatch.ACCELERATOR), table(chunked_from=1):
+        assert _dispatch.covariance_chunks(2, 100, "float64") == 3
+        chunked = jax.jit(run)(*args)
     assert_close(chunked, ref, 1e-12)
 
     scheme, jacobians, attitude, rotating, _, outputs = CASES[0]
