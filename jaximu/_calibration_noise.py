@@ -50,6 +50,7 @@ from jaximu import _validation as val
 from jaximu import so3
 from jaximu._calibration_checks import _apply, _compiled, _preintegrate_sequential
 from jaximu._calibration_fit import _Layout, _n_free, _scale_vector, _unpack
+from jaximu._noise_filter import state_space
 from jaximu._calibration_model import (
     FIELDS,
     CalibrationError,
@@ -69,14 +70,9 @@ NOISE_FIELDS = DENSITIES + ("reference_sigma",)
 """The noise parameters ``estimate=`` may name beside :data:`FIELDS` (isotropic densities,
 and the reference's ``(σ_θ, σ_p, σ_v)``)."""
 _SIGMAS = DENSITIES + ("reference_sigma_theta", "reference_sigma_p", "reference_sigma_v")
-MIN_WINDOWS = 8
-"""Fewest windows of the longest length in the fit: fewer leave its variance undetermined."""
-MIN_LENGTH_RATIO = 4.0
-"""Smallest ratio of the longest window length to the shortest that separates the noises."""
-_KIND = {"gyroscope_noise_density": "white", "accelerometer_noise_density": "white",
-         "gyroscope_random_walk": "random walk", "accelerometer_random_walk": "random walk",
-         "reference_sigma": "reference"}
-
+MIN_WINDOWS = 16
+"""Fewest windows (of the shortest length) in a noise fit: the noises separate through the
+residuals' correlation over consecutive windows, which a handful cannot show."""
 
 @dataclasses.dataclass(frozen=True)
 class NoiseProblem:
@@ -99,6 +95,8 @@ class NoiseProblem:
         rate_hz: the IMU's median sample rate [Hz].
         reference_velocity: the reference had velocities (else they are its positions'
             central differences, whose error ``σ_v`` absorbs).
+        filter: ``(H, Qb, P0b, d)`` of :func:`jaximu._noise_filter.state_space` for the base
+            windows (the likelihood's state space, at the initial σ).
     """
 
     base: CalibrationProblem
@@ -114,6 +112,7 @@ class NoiseProblem:
     reference_sigma: np.ndarray
     rate_hz: float
     reference_velocity: bool
+    filter: tuple = ()
 
     @property
     def n_windows(self) -> tuple:
@@ -185,12 +184,14 @@ def _rows(tree, m):
 
 
 def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
-    """``(cov, jac)``: per window of every length (concatenated), ``(4, 9, 9)`` covariances
-    from each density alone and the ``(9, 6)`` bias Jacobian; ``gyro``, ``accel``, ``dt``:
-    the ``K`` base windows' corrected samples."""
+    """``(cov, jac, cov15)``: per window of every length (concatenated), ``(4, 9, 9)``
+    covariances from each density alone and the ``(9, 6)`` bias Jacobian; per base window
+    the whole ``(4, 15, 15)`` ``cov15`` (the bias random walk's block and its correlation
+    with the window's noise: the filter's); ``gyro``, ``accel``, ``dt``: the ``K`` base
+    windows' corrected samples."""
     dtype = gyro.dtype
     zero3 = jnp.zeros(3, dtype)
-    covs, jac = [], []
+    covs, jac, full = [], [], []
     for i, unit in enumerate(_unit_noises(noise0, dtype)):
         pim = _preintegrate_sequential(gyro, accel, dt, ImuBias(zero3, zero3), unit,
                                        scheme=scheme, fast=fast)
@@ -198,9 +199,10 @@ def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
         for m in multiples:
             per_m.append(pim if m == 1 else _fold(_rows(pim, m), m))
         covs.append(jnp.concatenate([p.cov15[:, :9, :9] for p in per_m]))
+        full.append(pim.cov15)
         if i == 0:
             jac = jnp.concatenate([p.transition[:, :9, 9:15] for p in per_m])
-    return jnp.stack(covs, 1), jac
+    return jnp.stack(covs, 1), jac, jnp.stack(full, 1)
 
 
 def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, scheme, model,
@@ -224,11 +226,6 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
         raise ValueError(f"t must have shape (N,) with N ≥ 3, got {t_np.shape}")
     period = float(np.median(np.diff(t_np)))
     W, multiples = _check_lengths(window_lengths, period)
-    if len(multiples) < 2:
-        raise InputError(
-            f"window_lengths = {tuple(window_lengths)!r} holds one length: windows of one length "
-            "cannot separate white noise, random walk and the reference's noise",
-            [Fix("window_lengths", (0.25, 1, 4, 16))])
     velocity = reference.v is not None
     if not velocity:  # central differences at the reference's own rate
         rp = val.as_numbers("reference.p", reference.p)
@@ -246,7 +243,7 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
     noise0 = ImuNoise(*(jnp.asarray(x, dtype) for x in _isotropic(noise)))
-    cov, jac = _compiled(_long_window_bases, True, ("multiples", "scheme", "fast"))(
+    cov, jac, cov15 = _compiled(_long_window_bases, True, ("multiples", "scheme", "fast"))(
         g_c, a_c, flat(base.dt), noise0, multiples, scheme=scheme, fast=False)
     cov, jac = np.asarray(cov, np.float64), np.asarray(jac, np.float64)
     s0 = _isotropic(noise)
@@ -278,7 +275,9 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
                         window_lengths=tuple(m * W * period for m in multiples), kept=kept,
                         start=start, span=float(t_end[-1] - t_start[0]), cov_basis=cov,
                         bias_basis=bias_basis, reference_basis=ref_basis, noise=noise,
-                        reference_sigma=sig, rate_hz=1.0 / period, reference_velocity=velocity)
+                        reference_sigma=sig, rate_hz=1.0 / period, reference_velocity=velocity,
+                        filter=state_space(np.asarray(cov15, np.float64), jac[:K0], Jr[:K0],
+                                           np.where(sig > 0, sig, 1.0)))
 
 
 def _length_slice(multiples, K0, k):
@@ -442,72 +441,78 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
                 f"noise.{n} is {s0[DENSITIES.index(n)]:g}: the fit estimates its logarithm and "
                 "starts from it", [Fix("noise", phrase=f"a positive {n} in {{}} (the datasheet's or an "
                                                        "Allan fit's) to start from")])
-    kinds = sorted({_KIND[n] for n in names})
-    if not kinds:  # the fields alone (densities fixed): any windows will do
+    if not names:  # the fields alone (densities fixed): any windows will do
         return
-    lengths = problem.window_lengths
-    if len(lengths) < max(len(kinds), 2):
+    K0 = problem.base.n_windows
+    n_fit = int(problem.kept[:K0].sum())
+    W = problem.window_lengths[0]
+    if n_fit < MIN_WINDOWS:
         raise InputError(
-            f"estimating {' and '.join(kinds)} noise needs windows of at least {len(kinds)} "
-            f"lengths (each noise grows differently with the length); the problem has "
-            f"{len(lengths)}: {', '.join(f'{x:g} s' for x in lengths)}",
-            [Fix("window_lengths", (0.25, 1, 4, 16))])
-    if lengths[-1] < MIN_LENGTH_RATIO * lengths[0]:
-        raise InputError(
-            f"the window lengths span {lengths[0]:g} s to {lengths[-1]:g} s: white noise, random "
-            f"walk and the reference's noise separate only over a ratio ≥ {MIN_LENGTH_RATIO:g}",
-            [Fix("window_lengths", phrase=f"a longest length ≥ {MIN_LENGTH_RATIO * lengths[0]:g} "
-                                          "s in {}, e.g. (0.25, 1, 4, 16)")])
-    n_long = problem.n_windows[-1]
-    if n_long < MIN_WINDOWS:
-        raise InputError(
-            f"the recording holds {n_long} windows of the longest length {lengths[-1]:g} s in "
-            f"the fit; at least {MIN_WINDOWS} are needed to determine how its variance grows",
-            [Fix("window_lengths", phrase=f"a longest length ≤ {problem.span / MIN_WINDOWS:.3g} "
-                                          "s in {} (or a longer recording)")])
+            f"the recording holds {n_fit} windows of {W:g} s in the fit; estimating noise "
+            f"needs at least {MIN_WINDOWS}: white noise, random walk and the reference's "
+            "noise separate through how consecutive windows' residuals correlate",
+            [Fix("window_lengths", phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS:.3g}"
+                                          " s in {} (or a longer recording)")])
+
+
+def _filter_arrays(problem: NoiseProblem, dtype):
+    """The base windows' state space (:func:`jaximu._noise_filter.state_space`) as arrays of
+    ``dtype``, their ``kept`` mask, the residual scale ``d`` and the log σ offsets ``u0``
+    ``(7,)`` of the given σ from those the bases were built at (``-inf`` for a reference σ
+    given as 0)."""
+    H, Qb, P0b, d = problem.filter
+    K0 = problem.base.n_windows
+    kept = problem.kept[:K0]
+    ref0 = problem.reference_sigma
+    with np.errstate(divide="ignore"):
+        u_ref = np.log(ref0 / np.where(ref0 > 0, ref0, 1.0))
+    u0 = np.concatenate([np.zeros(4), u_ref])
+    arrays = tuple(jnp.asarray(x, dtype) for x in (H, Qb, P0b))
+    return arrays, jnp.asarray(kept), d, u0
 
 
 def fit(problem: NoiseProblem, initial, estimate, steps, tol):
-    """Minimise the negative log-likelihood over the ``estimate``d fields and σ.
+    """Maximise the exact joint likelihood of the base windows' residuals
+    (:mod:`jaximu._noise_filter`) over the ``estimate``d fields and σ.
 
     Returns a dict: ``calibration`` (:class:`ImuCalibration`), ``sigmas`` ``(7,)`` (the four
     densities and ``σ_θ, σ_p, σ_v``), ``cov_z`` (inverse Hessian in ``[z, u]``), ``free``,
-    ``free_sigmas``, ``history`` (NLL per accepted step), ``converged``, ``chi2``, ``dof``,
-    ``n_windows``."""
-    base = problem.base
-    dtype = base.gyro.dtype
+    ``free_sigmas``, ``history`` (NLL per accepted step), ``converged``, ``chi2`` (of the
+    whitened innovations), ``dof``, ``n_windows``."""
+    from jaximu import _noise_filter as nf
     from jaximu._calibration_fit import _flatten
 
+    base = problem.base
+    dtype = base.gyro.dtype
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
     _check_identifiable(problem, estimate, s0)
     free_c = tuple(n for n in FIELDS if n in estimate)
     free_s = _free_sigmas(estimate)
     layout = _Layout(free_c, 0)
     n_c = _n_free(free_c)
-    basis, logd = _bases(problem, ("b_g" in free_c, "b_a" in free_c))
-    keep = np.flatnonzero(problem.kept)
-    basis = jnp.asarray(basis[keep], dtype)
-    const = float(logd[keep].sum())
-    scale = jnp.asarray(np.exp(logd), dtype)
+    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype)
+    K0 = base.n_windows
+    const = float(np.log(d[problem.kept[:K0]]).sum())
+    scale = jnp.asarray(d, dtype)
     init_vec = jnp.asarray(_flatten(initial), dtype)
     graph = _compiled(_residuals_and_jacobian, True, ("multiples", "layout"))
+    idx = jnp.asarray(free_s, jnp.int32)
 
     def evaluate(z):
-        r, J = graph(jnp.asarray(z, dtype), init_vec, base, scale=scale,
-                     multiples=problem.multiples, layout=layout)
-        return r[keep], J[keep]
-
-    n = n_c + len(free_s)
-
-    basis_np = np.asarray(basis, np.float64)
+        r, J = graph(jnp.asarray(z, dtype), init_vec, base, scale=scale, multiples=(1,),
+                     layout=layout)
+        # windows in a reference gap: no update, and their residuals kept out of the sums
+        r = jnp.where(kept[:, None], r, 0)
+        return r, jnp.where(kept[:, None, None], J, 0)
 
     def derivatives(z, u, r, J):
-        return _nll_newton(np.asarray(r, np.float64), np.asarray(J, np.float64), basis_np, u,
-                           free_s)
+        p = jnp.asarray(np.concatenate([np.zeros(n_c), u[free_s]]), dtype)
+        f, g, Hs = nf.nll_derivatives(p, r, J, H, Qb, P0b, kept, jnp.asarray(u, dtype), idx)
+        return float(f), np.asarray(g, np.float64), np.asarray(Hs, np.float64)
 
-    z, u = np.zeros(n_c), np.zeros(7)
+    z, u = np.zeros(n_c), u0.copy()
     r, J = evaluate(z)
-    f, g, H = derivatives(z, u, r, J)
+    f, g, Hn = derivatives(z, u, r, J)
     if not np.isfinite(f):
         raise FloatingPointError(f"the negative log-likelihood is {f} at the initial values")
     history, converged, lam = [f + const], False, 0.0
@@ -518,33 +523,35 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
         if not np.any(g):
             converged = True
             break
-        delta = _damped_step(H, g, lam)
-        predicted = -float(g @ delta + 0.5 * delta @ H @ delta)
+        delta = _damped_step(Hn, g, lam)
+        predicted = -float(g @ delta + 0.5 * delta @ Hn @ delta)
         if predicted <= threshold:
             converged = True
             break
         z_new, u_new = z + delta[:n_c], u.copy()
         u_new[free_s] += delta[n_c:]
         r_new, J_new = evaluate(z_new)
-        try:
-            f_new, g_new, H_new = derivatives(z_new, u_new, r_new, J_new)
-        except np.linalg.LinAlgError:  # a covariance singular at the trial point: reject it
-            f_new = np.inf
-        if np.isfinite(f_new) and f_new < f:
-            z, u, r, J, f, g, H = z_new, u_new, r_new, J_new, f_new, g_new, H_new
+        f_new, g_new, H_new = derivatives(z_new, u_new, r_new, J_new)
+        if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and f_new < f:
+            z, u, r, J, f, g, Hn = z_new, u_new, r_new, J_new, f_new, g_new, H_new
             history.append(f + const)
             lam = lam / 3
-        else:
-            lam = max(10 * lam, 1e-3 * float(np.max(np.abs(np.diag(H)))) or 1e-3)
-    w = np.asarray(_whitened(jnp.asarray(u, dtype), r, basis), np.float64)
+        else:  # worse, or a covariance not positive definite at the trial point: damp
+            lam = max(10 * lam, 1e-3 * float(np.max(np.abs(np.diag(Hn)))) or 1e-3)
+    w = np.asarray(nf.whitened_innovations(jnp.asarray(u, dtype), r, H, Qb, P0b, kept),
+                   np.float64)
     chi2 = float(np.sum(w * w))
-    cov_z = laplace_covariance(H)
+    cov_z = laplace_covariance(Hn)
     calib, _ = _unpack(jnp.asarray(z, dtype), init_vec, base.velocities, layout)
     scales = np.asarray(_scale_vector(free_c, dtype), np.float64) if n_c else np.zeros(0)
-    return dict(calibration=calib, sigmas=s0 * np.exp(u), cov_z=cov_z, free=free_c,
-                free_sigmas=free_s, scales=scales, history=np.asarray(history),
-                converged=converged, chi2=chi2, dof=max(9 * len(keep) - n, 1),
-                n_windows=len(keep))
+    n_kept = int(problem.kept[:K0].sum())
+    n = n_c + len(free_s)
+    with np.errstate(invalid="ignore"):
+        sigmas = s0 * np.exp(u - u0)
+    return dict(calibration=calib, sigmas=np.where(np.isfinite(sigmas), sigmas, 0.0),
+                cov_z=cov_z, free=free_c, free_sigmas=free_s, scales=scales,
+                history=np.asarray(history), converged=converged, chi2=chi2,
+                dof=max(9 * n_kept - n, 1), n_windows=n_kept)
 
 
 def laplace_covariance(H):
