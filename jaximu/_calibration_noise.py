@@ -95,8 +95,13 @@ class NoiseProblem:
         rate_hz: the IMU's median sample rate [Hz].
         reference_velocity: the reference had velocities (else they are its positions'
             central differences, whose error ``σ_v`` absorbs).
-        filter: ``(H, Qb, P0b, d)`` of :func:`jaximu._noise_filter.state_space` for the base
-            windows (the likelihood's state space, at the initial σ).
+        window_cov15: ``(K, 4, 15, 15)`` each base window's ``cov15`` with one density alone
+            at its initial value.
+        window_bias_jacobian: ``(K, 9, 6)`` each base window's bias Jacobian.
+        window_reference_jacobian: ``(K, 9, 2, 9)`` each base window's residual in the
+            reference's errors at its start and end.
+        filter: ``(H, Qb, P0b, d)`` of :func:`jaximu._noise_filter.state_space` from those
+            (the likelihood's state space, at the initial σ).
     """
 
     base: CalibrationProblem
@@ -112,7 +117,10 @@ class NoiseProblem:
     reference_sigma: np.ndarray
     rate_hz: float
     reference_velocity: bool
-    filter: tuple = ()
+    window_cov15: np.ndarray
+    window_bias_jacobian: np.ndarray
+    window_reference_jacobian: np.ndarray
+    filter: tuple
 
     @property
     def n_windows(self) -> tuple:
@@ -246,6 +254,7 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
     cov, jac, cov15 = _compiled(_long_window_bases, True, ("multiples", "scheme", "fast"))(
         g_c, a_c, flat(base.dt), noise0, multiples, scheme=scheme, fast=False)
     cov, jac = np.asarray(cov, np.float64), np.asarray(jac, np.float64)
+    cov15 = np.asarray(cov15, np.float64)
     s0 = _isotropic(noise)
     bias_basis = np.stack([s0[2] ** 2 * jac[:, :, :3] @ np.swapaxes(jac[:, :, :3], 1, 2),
                            s0[3] ** 2 * jac[:, :, 3:] @ np.swapaxes(jac[:, :, 3:], 1, 2)], 1)
@@ -267,6 +276,7 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
     ref_basis = np.stack([sig[j] ** 2 * np.einsum("kaei,kbei->kab", Jr[..., 3 * j:3 * j + 3],
                                                   Jr[..., 3 * j:3 * j + 3])
                           for j in range(3)], 1)
+    F = np.asarray(_compiled(_bias_jacobian, True)(init, base), np.float64)
     for k, m in enumerate(multiples):
         if not kept[_length_slice(multiples, K0, k)].any():
             raise CalibrationError(f"no window of {m * W * period:g} s lies between the "
@@ -276,8 +286,9 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
                         start=start, span=float(t_end[-1] - t_start[0]), cov_basis=cov,
                         bias_basis=bias_basis, reference_basis=ref_basis, noise=noise,
                         reference_sigma=sig, rate_hz=1.0 / period, reference_velocity=velocity,
-                        filter=state_space(np.asarray(cov15, np.float64), jac[:K0], Jr[:K0],
-                                           np.where(sig > 0, sig, 1.0)))
+                        window_cov15=cov15, window_bias_jacobian=F,
+                        window_reference_jacobian=Jr[:K0],
+                        filter=state_space(cov15, F, Jr[:K0], np.where(sig > 0, sig, 1.0)))
 
 
 def _length_slice(multiples, K0, k):
@@ -341,6 +352,17 @@ def _reference_jacobian(calib, problem, multiples):
     return jax.jacfwd(f)(jnp.zeros((2, 9), problem.gyro.dtype))
 
 
+def _bias_jacobian(calib, problem):
+    """``(K, 9, 6)`` the model's ``F_k = ∂r_k/∂δb`` of the base windows (``δb = b_true - b̂``:
+    ``-∂r/∂b̂``, forward mode through the residual as computed; the midpoint scheme's
+    analytic transition is its first-order approximation)."""
+    def f(db):
+        c = dataclasses.replace(calib, b_g=calib.b_g - db[:3], b_a=calib.b_a - db[3:])
+        return _all_residuals(c, problem, (1,))
+
+    return jax.jacfwd(f)(jnp.zeros(6, problem.gyro.dtype))
+
+
 def _residuals_and_jacobian(z, init_vec, problem, multiples, layout, scale):
     """Scaled residuals ``(K_all, 9)`` and their Jacobian ``(K_all, 9, n)`` in the calibration's
     normalised coordinates ``z`` (forward mode: ``n`` ≤ 20 tangents)."""
@@ -359,18 +381,27 @@ def _residuals_and_jacobian(z, init_vec, problem, multiples, layout, scale):
 # --------------------------------------------------------------------------- the likelihood
 
 
+def nll_and_gradient(problem: NoiseProblem, u, initial=None):
+    """The negative log-likelihood of the base windows' residuals (the filter's exact joint
+    one, :mod:`jaximu._noise_filter`) at log σ offsets ``u`` ``(7,)`` (``σ = σ_0 e^u`` for
+    the four densities and ``σ_θ, σ_p, σ_v``) at the calibration ``initial``, and its
+    gradient in ``u`` (autodiff through the filter). For checks; :func:`fit` minimises it."""
+    from jaximu import _noise_filter as nf
+    from jaximu.calibration import ImuCalibration
+
+    dtype = problem.base.gyro.dtype
+    init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
+    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype)
+    r = _compiled(_all_residuals, True, ("multiples",))(init, problem.base, multiples=(1,))
+    r = jnp.where(kept[:, None], r / jnp.asarray(d, dtype), 0)
+    f = lambda x: nf.filter_pass(x + jnp.asarray(u0, dtype), r, H, Qb, P0b, kept)[0]  # noqa: E731
+    value, grad = jax.value_and_grad(f)(jnp.asarray(u, dtype))
+    return float(value) + float(np.log(d[np.asarray(kept)]).sum()), np.asarray(grad)
+
+
 def _covariances(u, basis):
     """``(K, 9, 9)`` ``Σ_b exp(2u_b) B_kb`` of ``(K, 7, 9, 9)`` bases."""
     return jnp.einsum("b,kbij->kij", jnp.exp(2 * u), basis)
-
-
-def _nll(p, r, J, basis, u0, free_idx, n_c):
-    """``½ Σ_k (e_kᵀ Σ_k⁻¹ e_k + log det Σ_k)``, ``e = r + J δ``, ``p = [δ, u_free]``."""
-    u = u0.at[free_idx].set(p[n_c:])
-    e = r + jnp.einsum("kin,n->ki", J, p[:n_c])
-    L = jnp.linalg.cholesky(_covariances(u, basis))
-    w = jax.scipy.linalg.solve_triangular(L, e[..., None], lower=True)[..., 0]
-    return 0.5 * jnp.sum(w * w) + jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)))
 
 
 @jax.jit
@@ -379,40 +410,41 @@ def _whitened(u, r, basis):
     return jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
 
 
-def nll_and_gradient(problem: NoiseProblem, u, initial=None):
-    """The negative log-likelihood at log-density offsets ``u`` ``(7,)`` (``σ = σ_0 e^u`` for
-    the four densities and ``σ_θ, σ_p, σ_v``) at the calibration ``initial``, and its gradient
-    in ``u`` (autodiff through the covariance). For checks; :func:`fit` minimises it."""
-    from jaximu.calibration import ImuCalibration
-
-    dtype = problem.base.gyro.dtype
-    init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
-    basis, logd = _bases(problem, drift_detrended=(True, True))
-    scale = jnp.asarray(np.exp(logd), dtype)
-    r = _compiled(_all_residuals, True, ("multiples",))(init, problem.base,
-                                                         multiples=problem.multiples) / scale
-    keep = np.flatnonzero(problem.kept)
-    r, basis = r[keep], jnp.asarray(basis[keep], dtype)
-    J = jnp.zeros(r.shape + (0,), dtype)
-    f = functools.partial(_nll, r=r, J=J, basis=basis, u0=jnp.zeros(7, dtype),
-                          free_idx=jnp.arange(7), n_c=0)
-    value, grad = jax.value_and_grad(f)(jnp.asarray(u, dtype))
-    return float(value) + float(logd[keep].sum()), np.asarray(grad)
-
-
-def _bases(problem: NoiseProblem, drift_detrended):
-    """``(K_all, 7, 9, 9)`` bases (each σ at its initial value) divided by ``s sᵀ``, ``s`` the
-    square root of the initial covariance's diagonal (conditioning for float32), and
-    ``log s`` ``(K_all, 9)``."""
-    T, t = problem.span, problem.start
-    drift = [T / 3 - t + t * t / T if d else t for d in drift_detrended]
+def _bases(problem: NoiseProblem):
+    """``(K_all, 7, 9, 9)`` bases of each window's *marginal* covariance under the model (each
+    σ at its initial value; the bias drifting from its value at the first keyframe, variance
+    ``σ_rw² t`` at the window's start ``t``), divided by ``s sᵀ``, ``s`` the square root of
+    the initial covariance's diagonal (conditioning for float32), and ``log s`` ``(K_all, 9)``."""
+    t = problem.start
     cov = problem.cov_basis.copy()
-    cov[:, 2] += drift[0][:, None, None] * problem.bias_basis[:, 0]
-    cov[:, 3] += drift[1][:, None, None] * problem.bias_basis[:, 1]
+    cov[:, 2] += t[:, None, None] * problem.bias_basis[:, 0]
+    cov[:, 3] += t[:, None, None] * problem.bias_basis[:, 1]
     basis = np.concatenate([cov, problem.reference_basis], 1)
     d = np.sqrt(np.diagonal(basis.sum(1), axis1=-2, axis2=-1))
     d = np.where(d > 0, d, 1.0)
     return basis / (d[:, None, :, None] * d[:, None, None, :]), np.log(d)
+
+
+def length_check(problem: NoiseProblem, calibration, sigmas):
+    """``χ²/dof`` of each window length's residuals, each window whitened by its own marginal
+    covariance at the calibration and the seven σ (``(7,)``): ≈ 1 at every length when the
+    model explains the residuals at every time scale (the windows overlap and correlate, so
+    this is a check of the variances, not a χ² test)."""
+    dtype = problem.base.gyro.dtype
+    basis, logd = _bases(problem)
+    s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(s0 > 0, np.log(np.asarray(sigmas) / np.where(s0 > 0, s0, 1.0)), 0.0)
+    r = _compiled(_all_residuals, True, ("multiples",))(calibration, problem.base,
+                                                         multiples=problem.multiples)
+    w = np.asarray(_whitened(jnp.asarray(u, dtype), r / jnp.asarray(np.exp(logd), dtype),
+                             jnp.asarray(basis, dtype)), np.float64)
+    out = []
+    for k in range(len(problem.multiples)):
+        sl = _length_slice(problem.multiples, problem.base.n_windows, k)
+        keep = problem.kept[sl]
+        out.append(float(np.mean(w[sl][keep] ** 2)) if keep.any() else float("nan"))
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------- the fit
@@ -574,38 +606,6 @@ def laplace_covariance(H):
     return cov
 
 
-def _nll_newton(r, J, basis, u, free_s):
-    """The NLL (:func:`_nll` at ``δ = 0``), its gradient and Hessian in ``[δ, u_free]``, in
-    float64 numpy: ``∂Σ/∂u_b = D_b = 2 e^{2u_b} B_b``, ``a = Σ⁻¹ r``;
-    ``f_δ = Σ Jᵀa``, ``f_δδ = Σ JᵀΣ⁻¹J`` (Gauss–Newton), ``f_b = ½ tr(Σ⁻¹D_b) - ½ aᵀD_b a``,
-    ``f_δc = -Σ JᵀΣ⁻¹D_c a``, ``f_bc = aᵀD_bΣ⁻¹D_c a - ½ tr(Σ⁻¹D_cΣ⁻¹D_b) + 2 δ_bc f_b``
-    (``∂D_b/∂u_b = 2 D_b``). The same derivatives as autodiff of :func:`_nll`
-    (``tests/test_calibration_noise.py`` compares them); the fit's loop calls this one:
-    its many small XLA calls of batched 9×9 Cholesky factors were seen to hang on the
-    2-core CPU host (the runtime waiting on a result no thread computes; not root-caused)."""
-    c = np.exp(2 * u)
-    S = np.einsum("b,kbij->kij", c, basis)
-    L = np.linalg.cholesky(S)
-    P = np.linalg.inv(S)
-    a = np.einsum("kij,kj->ki", P, r)
-    f = 0.5 * float(np.sum(a * r)) + float(np.sum(np.log(np.diagonal(L, axis1=1, axis2=2))))
-    D = 2 * c[free_s, None, None, None] * np.swapaxes(basis[:, free_s], 0, 1)  # (nf, K, 9, 9)
-    Da = np.einsum("bkij,kj->bki", D, a)
-    PD = np.einsum("kij,bkjl->bkil", P, D)
-    tr = np.einsum("bkii->b", PD)
-    aDa = np.einsum("ki,bki->b", a, Da)
-    g_u = 0.5 * tr - 0.5 * aDa
-    PDa = np.einsum("kij,bkj->bki", P, Da)
-    H_uu = (np.einsum("bki,cki->bc", Da, PDa) - 0.5 * np.einsum("bkij,ckji->bc", PD, PD)
-            + np.diag(2 * g_u))
-    g_d = np.einsum("kin,ki->n", J, a)
-    H_dd = np.einsum("kin,kij,kjm->nm", J, P, J)
-    H_du = -np.einsum("kin,cki->nc", J, PDa)
-    g = np.concatenate([g_d, g_u])
-    H = np.block([[H_dd, H_du], [H_du.T, H_uu]])
-    return f, g, H
-
-
 def _damped_step(H, g, lam):
     """``(H + λ I)⁻¹ (-g)``, λ raised until ``H + λ I`` is positive definite."""
     n = len(g)
@@ -667,13 +667,16 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
                       "the model does not explain the reference (frames, units, time offset)",
                       RuntimeWarning, stacklevel=3)
     base = problem.base
+    by_length = length_check(problem, out["calibration"],
+                             np.concatenate([_isotropic(fitted), ref]))
     return CalibrationResult(
         calibration=out["calibration"], std=ImuCalibration(**std), covariance=cov,
         free=out["free"] + tuple(n for n in NOISE_FIELDS if n in estimate),
         velocities=np.asarray(base.velocities, np.float64), loss_history=out["history"],
         chi2=out["chi2"], dof=out["dof"], reduced_chi2=red, converged=out["converged"],
-        n_windows=out["n_windows"], skipped_windows=int((~problem.kept).sum()),
+        n_windows=out["n_windows"],
+        skipped_windows=int((~problem.kept[:base.n_windows]).sum()),
         note=base.skip_note, noise=fitted, noise_std=ImuNoise(*sig_std[:4]),
         reference_sigma=ref, reference_sigma_std=sig_std[4:], noise_given=given,
         reference_sigma_given=problem.reference_sigma, rate_hz=problem.rate_hz,
-        window_lengths=problem.window_lengths)
+        window_lengths=problem.window_lengths, chi2_by_length=by_length)

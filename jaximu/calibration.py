@@ -498,8 +498,12 @@ class CalibrationResult:
             ``None`` otherwise. reference_sigma, reference_sigma_std: ``(3,)``
             ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` and its 1σ. noise_given,
             reference_sigma_given: the values the problem was built with. rate_hz: the IMU's
-            rate (for the discrete-time standard deviations); window_lengths [s].
-            :meth:`noise_table` prints them side by side.
+            rate (for the discrete-time standard deviations); window_lengths [s] (the
+            likelihood is that of the shortest windows; see :mod:`jaximu._noise_filter`).
+            chi2_by_length: per window length, the mean squared residual of each window
+            whitened by its own marginal covariance at the estimate (≈ 1 at every length
+            when the model explains every time scale). :meth:`noise_table` prints them
+            side by side.
     """
 
     calibration: ImuCalibration
@@ -523,6 +527,7 @@ class CalibrationResult:
     reference_sigma_given: np.ndarray | None = None
     rate_hz: float | None = None
     window_lengths: tuple = ()
+    chi2_by_length: tuple = ()
 
     def noise_table(self, allan=None) -> str:
         """The fitted densities in words: :func:`noise_table`."""
