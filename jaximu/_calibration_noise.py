@@ -1,46 +1,39 @@
 """The IMU's noise densities by maximum likelihood (:func:`jaximu.calibration.calibrate` on a
-problem built with ``window_lengths``): the windows of several lengths, the covariance of
-each window's residual as a function of the densities, the negative log-likelihood and its
-fit.
+problem built with ``window_lengths``): the windows, their covariance bases, the fit and its
+model checks.
 
 Windows. The recording is cut into windows of the shortest length (the *base* windows, a
-:class:`CalibrationProblem` of :func:`calibration_problem`); a window of ``m`` times that
-length is ``m`` consecutive base windows, its preintegrated deltas their composition
-(:func:`jaximu.integrators.compose_deltas`, Forster et al.) and its covariance and bias
-Jacobian those of :func:`jaximu.compose`. Every length tiles the whole recording, so the
-lengths overlap in time: the likelihood is a composite one (each window's residual is
-Gaussian with its own covariance; their correlations, across lengths and through the bias
-drift, are left out), whose maximum is consistent; its Laplace standard errors treat the
-windows as independent (``benchmarks/noise_recovery.py`` measures their coverage).
+:class:`CalibrationProblem` of :func:`calibration_problem`). Their residuals' exact joint
+likelihood (:mod:`jaximu._noise_filter`: a state space carrying the bias deviation and the
+reference's keyframe errors, evaluated by a Kalman filter) is what the fit maximises; it
+needs per base window the preintegration covariance ``cov15`` with each density alone (the
+covariance is linear in the squared densities: ``Q_c = diag(σ²)/dt``), the residual's bias
+Jacobian and its Jacobian in the reference's errors at both ends.
 
-Covariance. For window ``k`` the 9-dim residual ``[r_θ, r_p, r_v]`` (:func:`jaximu.residual`)
-has covariance
+A window of ``m`` times the base length is ``m`` consecutive base windows, its preintegrated
+deltas their composition (:func:`jaximu.integrators.compose_deltas`, Forster et al.) and its
+covariance and bias Jacobian those of :func:`jaximu.compose`. The longer lengths do not add
+information to the exact likelihood (their residuals are functions of the base windows'):
+they check the fitted model at longer time scales, each window whitened by its own marginal
+covariance under the model (:func:`length_check`),
 
-    Σ_k = Σ_i σ_i² C_ki  +  v(t_k) (σ_bg² J_g J_gᵀ + σ_ba² J_a J_aᵀ)  +  R_k(σ_θ, σ_p, σ_v),
+    Σ_k = Σ_i σ_i² C_ki  +  t_k (σ_bg² J_g J_gᵀ + σ_ba² J_a J_aᵀ)  +  R_k(σ_θ, σ_p, σ_v),
 
-``C_ki`` the 9×9 block of :attr:`Preintegrated.cov15` with density ``i`` alone at 1 (the
-covariance is linear in the squared densities: ``Q_c = diag(σ²)/dt``), ``J`` the window's
-bias Jacobians (columns 9: of the transition), ``v(t)`` the variance per unit ``σ_rw²`` of
-the bias at the window's start about the constant bias of the fit (a random walk about its
-least-squares mean over the span ``T``: ``T/3 - t + t²/T``; about its start value,
-``t``, when the bias is not estimated), and ``R_k`` the reference's own noise
-(:func:`jaximu._calibration_model._reference_variance`). The white-noise terms grow like
-the window's length, the random walk's like its cube (and the drift's like its square),
-the reference's not at all: windows of several lengths separate them.
+``C_ki`` the window's 9×9 covariance with density ``i`` alone at 1, ``J`` its bias
+Jacobians, ``t_k`` its start (the bias drifts from its value at the first keyframe, the fit's
+constant bias) and ``R_k`` the reference's noise at both ends.
 
-Likelihood. ``NLL = ½ Σ_k (r_kᵀ Σ_k⁻¹ r_k + log det Σ_k)`` over the windows of every length,
-densities in log coordinates ``σ_i = σ_i0 exp(u_i)`` (positive), the calibration's fields
-(biases, …) in the normalised coordinates of the rest of the calibration. The fit is
-damped Newton: the residuals linearised in the calibration's fields (Gauss–Newton there,
-exact in ``u``: the gradient and Hessian by autodiff through ``Σ_k(u)``), each step
-accepted when the true NLL falls. Standard errors: the inverse Hessian of the NLL at the
-optimum (observed information), mapped to the densities by ``dσ = σ du``.
+Fit. Densities in log coordinates ``σ_i = σ_i0 exp(u_i)`` (positive), the calibration's
+fields (biases, …) in the normalised coordinates of the rest of the calibration; damped
+Newton with the residuals linearised in the fields (Gauss–Newton there, exact in ``u``), the
+gradient and Hessian by autodiff through the filter, each step accepted when the true NLL
+falls. Standard errors: the inverse Hessian at the optimum (observed information), mapped to
+the densities by ``dσ = σ du``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -50,7 +43,6 @@ from jaximu import _validation as val
 from jaximu import so3
 from jaximu._calibration_checks import _apply, _compiled, _preintegrate_sequential
 from jaximu._calibration_fit import _Layout, _n_free, _scale_vector, _unpack
-from jaximu._noise_filter import state_space
 from jaximu._calibration_model import (
     FIELDS,
     CalibrationError,
@@ -58,6 +50,7 @@ from jaximu._calibration_model import (
     _interp,
     _preintegrate_mean,
 )
+from jaximu._noise_filter import state_space
 from jaximu.errors import Fix, InputError
 from jaximu.integrators import compose_deltas
 from jaximu.noise import ImuNoise
@@ -149,7 +142,7 @@ def _check_lengths(window_lengths, period):
     if lengths is None or lengths.ndim != 1 or not np.all(np.isfinite(lengths) & (lengths > 0)):
         raise InputError(f"window_lengths must be window lengths in seconds, positive, got "
                          f"{window_lengths!r}",
-                         [Fix("window_lengths", (0.25, 1, 4, 16))])
+                         [Fix("window_lengths", (0.25, 1, 4))])
     lengths = np.sort(lengths)
     W = int(round(lengths[0] / period))
     if W < 1:
@@ -163,7 +156,7 @@ def _check_lengths(window_lengths, period):
         raise InputError(
             f"window_lengths: {lengths[bad][0]:g} s is not a whole multiple of the shortest "
             f"length {W * period:g} s: a longer window is composed of whole base windows",
-            [Fix("window_lengths", (0.25, 1, 4, 16))])
+            [Fix("window_lengths", (0.25, 1, 4))])
     return W, tuple(sorted({int(x) for x in m}))
 
 

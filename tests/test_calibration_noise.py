@@ -215,46 +215,40 @@ def test_fit_hessian_equals_central_differences_of_the_gradient(problem):
                                atol=1e-7 * np.abs(Hs).max())
 
 
-WHITE_AND_REFERENCE = ("b_g", "b_a", "gyroscope_noise_density", "accelerometer_noise_density",
-                       "reference_sigma")
-
-
-def fit_white_and_reference(seed):
-    """The white densities and the reference's σ (with the biases), the random walks fixed at
-    their true values, from 2.5× the truth."""
-    start = jaximu.ImuNoise(5e-3, 5e-2, TRUE.gyroscope_random_walk,
-                            TRUE.accelerometer_random_walk)
-    prob = cal.calibration_problem(*recording(seed), start, window_lengths=LENGTHS,
+def fit_all(seed):
+    """The biases, the four densities and the reference's σ from 2.5× the truth (the
+    densities) and 2× (the reference's σ)."""
+    prob = cal.calibration_problem(*recording(seed), START, window_lengths=LENGTHS,
                                    scheme="midpoint", reference_sigma=2 * REF_SIGMA)
-    return cal.calibrate(prob, estimate=WHITE_AND_REFERENCE)
+    return cal.calibrate(prob, estimate=("b_g", "b_a") + cal.NOISE_FIELDS)
 
 
 @pytest.fixture(scope="module")
 def result():
-    return fit_white_and_reference(3)
+    return fit_all(3)
 
 
-def test_recovers_white_densities_and_reference_sigma_within_reported_uncertainty(result):
-    """Two seeds: the two white-noise densities and the reference's three σ each within 3σ of
-    the truth (each check fails by chance with probability 0.27% if the reported σ is right:
-    the ten together 2.7%); the gyro's white density determined (relative σ < 25%; 20 s hold
-    too little of the accelerometer's, below the reference's velocity noise). χ²/dof at the
-    estimate in its 99.9% interval. The random walks are fixed here: fitted together with the
-    rest, their estimates are biased (benchmarks/noise_recovery.py measures it)."""
-    for res in (result, fit_white_and_reference(4)):
+def test_recovers_densities_and_reference_sigma_within_reported_uncertainty(result):
+    """Two seeds of 20 s: the two white densities, the accelerometer's random walk and the
+    reference's three σ each within 3σ of the truth (each check fails by chance with
+    probability 0.27% if the reported σ is right: the twelve together 3.2%); the white
+    densities determined (relative σ < 20%). The gyroscope's random walk (its drift over
+    20 s is a fifth of a window's white noise) is not determined in 20 s:
+    benchmarks/noise_recovery.py measures it over 2-minute flights. χ²/dof of the whitened
+    innovations is n/(n - p) at the estimate (the scales are fitted); each length's windows
+    alone have mean squared whitened residual within their 99.9% interval for independent
+    windows widened by the overlap (a loose check of every time scale: below 1.5)."""
+    truth = np.concatenate([cn._isotropic(TRUE), REF_SIGMA])
+    for res in (result, fit_all(4)):
         assert res.converged
-        fitted = cn._isotropic(res.noise)
-        std = cn._isotropic(res.noise_std)
-        truth = cn._isotropic(TRUE)
-        for i in (0, 1):
-            assert abs(fitted[i] - truth[i]) < 3 * std[i], (cn.DENSITIES[i], fitted[i], std[i])
-        assert std[0] < 0.25 * truth[0]
-        assert np.all(std[2:] == 0) and np.all(fitted[2:] == truth[2:])  # fixed, as given
-        for j in range(3):
-            s, e = res.reference_sigma[j], res.reference_sigma_std[j]
-            assert abs(s - REF_SIGMA[j]) < 3 * e, (j, s, e)
-        lo, hi = jaximu.montecarlo.chi2_interval(res.dof, 0.999)
-        assert lo < res.chi2 < hi
+        fitted = np.concatenate([cn._isotropic(res.noise), res.reference_sigma])
+        std = np.concatenate([cn._isotropic(res.noise_std), res.reference_sigma_std])
+        for i in (0, 1, 3, 4, 5, 6):
+            assert abs(fitted[i] - truth[i]) < 3 * std[i], (i, fitted[i], std[i])
+        assert np.all(std[:2] < 0.2 * truth[:2])
+        assert abs(res.reduced_chi2 - res.n_windows * 9 / res.dof) < 1e-3
+        assert len(res.chi2_by_length) == len(LENGTHS)
+        assert all(0.5 < c < 1.5 for c in res.chi2_by_length)
     table = result.noise_table(allan=TRUE)
     assert "gyroscope_noise_density" in table and "rad/s/√Hz" in table and "200 Hz" in table
 
@@ -284,7 +278,7 @@ def test_one_length_problem_is_refused_naming_window_lengths(data):
                                    reference_sigma=REF_SIGMA)
     with pytest.raises(InputError, match="window_lengths=") as e:
         cal.calibrate(prob, estimate=("b_g", "gyroscope_noise_density"))
-    assert "one length" in str(e.value)
+    assert "without window_lengths" in str(e.value)
 
 
 @pytest.mark.parametrize("lengths, match", [

@@ -2,7 +2,7 @@
 noise densities against a recording's ground truth.
 
   jaximu calibrate FILE [--estimate b_g,b_a] [--keyframe-interval S] [--out JSON]
-  jaximu calibrate FILE --estimate b_g,b_a,noise [--window-lengths 0.25,1,4,16]
+  jaximu calibrate FILE --estimate b_g,b_a,noise [--window-lengths 0.25,1,4]
                         [--reference-sigma 1e-3,1e-3,1e-2] [--imu-yaml imu.yaml]
 
 ``noise`` in ``--estimate`` stands for the four densities and the reference's σ
@@ -54,7 +54,7 @@ class _warnings_as_lines:
         return False
 
 
-WINDOW_LENGTHS = "0.25,1,4,16"
+WINDOW_LENGTHS = "0.25,1,4"
 
 
 def _numbers(flag, text, count=None):
@@ -234,8 +234,8 @@ def add_parser(sub):
                    "default 0.5); not with noise densities")
     p.add_argument("--window-lengths", default=WINDOW_LENGTHS,
                    help="noise densities: comma-separated window lengths [s], each a whole "
-                   "multiple of the shortest, the longest fitting ≥ 8 times in the recording "
-                   "(default: %(default)s)")
+                   "multiple of the shortest; the shortest are fitted (≥ 16 in the recording), "
+                   "the longer ones check the fit (default: %(default)s)")
     p.add_argument("--reference-sigma", default="1e-3,1e-3,1e-2",
                    help="the reference's own noise σ_θ [rad], σ_p [m], σ_v [m/s] (positive; "
                    "the starting values when reference_sigma is estimated; default: %(default)s)")
