@@ -41,7 +41,12 @@ import numpy as np
 
 from jaximu import _validation as val
 from jaximu import so3
-from jaximu._calibration_checks import _apply, _compiled, _preintegrate_sequential
+from jaximu._calibration_checks import (
+    QUICK_COMPILE_SAMPLES,
+    _apply,
+    _compiled,
+    _preintegrate_sequential,
+)
 from jaximu._calibration_fit import _Layout, _n_free, _scale_vector, _unpack
 from jaximu._calibration_model import (
     FIELDS,
@@ -522,6 +527,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     init_vec = jnp.asarray(_flatten(initial), dtype)
     graph = _compiled(_residuals_and_jacobian, True, ("multiples", "layout"))
     idx = jnp.asarray(free_s, jnp.int32)
+    derivs = nf.compiled_derivatives(base.gyro.size // 3 <= QUICK_COMPILE_SAMPLES)
 
     def evaluate(z):
         r, J = graph(jnp.asarray(z, dtype), init_vec, base, scale=scale, multiples=(1,),
@@ -532,7 +538,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
 
     def derivatives(z, u, r, J):
         p = jnp.asarray(np.concatenate([np.zeros(n_c), u[free_s]]), dtype)
-        f, g, Hs = nf.nll_derivatives(p, r, J, H, Qb, P0b, kept, jnp.asarray(u, dtype), idx)
+        f, g, Hs = derivs(p, r, J, H, Qb, P0b, kept, jnp.asarray(u, dtype), idx)
         return float(f), np.asarray(g, np.float64), np.asarray(Hs, np.float64)
 
     z, u = np.zeros(n_c), u0.copy()

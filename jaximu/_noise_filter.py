@@ -42,6 +42,8 @@ deviations ``d_k``; the state by ``σ_rw0 √T`` (bias, ``T`` the span) and ``σ
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -147,7 +149,6 @@ def nll(p, r, J, H, Qb, P0b, kept, u0, free_idx, n_c):
     return filter_pass(u, e, H, Qb, P0b, kept)[0]
 
 
-@jax.jit
 def nll_derivatives(p, r, J, H, Qb, P0b, kept, u0, free_idx):
     """``(NLL, gradient, Hessian)`` in ``p`` (autodiff through the filter; ``n_c`` from
     ``J``'s last axis). The Hessian's columns one at a time (``lax.map`` of forward over
@@ -159,6 +160,15 @@ def nll_derivatives(p, r, J, H, Qb, P0b, kept, u0, free_idx):
     column = lambda v: jax.jvp(jax.grad(f), (p,), (v,))[1]  # noqa: E731
     hess = jax.lax.map(column, jnp.eye(p.shape[0], dtype=p.dtype))
     return value, grad, 0.5 * (hess + hess.T)
+
+
+@functools.cache
+def compiled_derivatives(quick: bool):
+    """:func:`nll_derivatives` jitted, with XLA's quick-compile options when ``quick`` (a
+    small problem: compile time dominates its ten-odd Newton steps)."""
+    from jaximu._calibration_checks import QUICK_COMPILE
+
+    return jax.jit(nll_derivatives, compiler_options=QUICK_COMPILE if quick else None)
 
 
 @jax.jit
