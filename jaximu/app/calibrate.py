@@ -201,7 +201,8 @@ def _json_numbers(x):
 
 def _noise_json(res, cal):
     """The densities (Kalibr units) and the reference's σ, each ``{value, std}`` (``std``
-    ``null`` where the likelihood does not determine the value)."""
+    ``null`` where the likelihood does not determine the value); per window length the
+    check of :attr:`CalibrationResult.chi2_by_length`."""
     out = {}
     for name in cal.NOISE_FIELDS[:4]:
         out[name] = {"value": _json_numbers(getattr(res.noise, name)),
@@ -210,6 +211,7 @@ def _noise_json(res, cal):
                               "std": _json_numbers(res.reference_sigma_std)}
     out["rate_hz"] = res.rate_hz
     out["window_lengths"] = list(res.window_lengths)
+    out["chi2_by_length"] = _json_numbers(np.asarray(res.chi2_by_length, np.float64))
     return out
 
 
