@@ -421,8 +421,10 @@ def _bases(problem: NoiseProblem):
 def length_check(problem: NoiseProblem, calibration, sigmas):
     """``χ²/dof`` of each window length's residuals, each window whitened by its own marginal
     covariance at the calibration and the seven σ (``(7,)``): ≈ 1 at every length when the
-    model explains the residuals at every time scale (the windows overlap and correlate, so
-    this is a check of the variances, not a χ² test)."""
+    model explains the residuals at every time scale. A rough check, not a χ² test: the
+    windows overlap and share one realisation of the bias drift, which dominates the marginal
+    variance of late windows, so tens of percent from 1 are expected; a factor of several,
+    or a trend with the length, says the model misses something."""
     dtype = problem.base.gyro.dtype
     basis, logd = _bases(problem)
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])

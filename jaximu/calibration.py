@@ -503,8 +503,9 @@ class CalibrationResult:
             rate (for the discrete-time standard deviations); window_lengths [s] (the
             likelihood is that of the shortest windows; see :mod:`jaximu._noise_filter`).
             chi2_by_length: per window length, the mean squared residual of each window
-            whitened by its own marginal covariance at the estimate (≈ 1 at every length
-            when the model explains every time scale). :meth:`noise_table` prints them
+            whitened by its own marginal covariance at the estimate (≈ 1 at every length,
+            to tens of percent, when the model explains every time scale: a rough check,
+            the windows share one realisation of the bias drift). :meth:`noise_table` prints them
             side by side.
     """
 
