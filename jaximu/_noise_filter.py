@@ -67,9 +67,12 @@ def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
         ``(H, Qb, P0b, d)``: ``H`` ``(K, 24, 15)`` the scaled ``G_k``; ``Qb`` ``(K, 7, 24,
         24)`` the scaled ``Q_kb`` at the initial σ; ``P0b`` ``(7, 15, 15)`` the initial
         state's covariance (``ε_0``); ``d`` ``(K, 9)`` the residual scale (divide ``r``)."""
-    cov = np.asarray(cov15_basis, np.float64)
-    F = np.asarray(bias_jacobian, np.float64)
-    Jr = np.asarray(reference_jacobian, np.float64)
+    # a window in a reference gap may hold non-finite Jacobians; the filter only predicts
+    # through it, and a NaN there would still reach the gradient through jnp.where
+    cov = np.nan_to_num(np.asarray(cov15_basis, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    F = np.nan_to_num(np.asarray(bias_jacobian, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    Jr = np.nan_to_num(np.asarray(reference_jacobian, np.float64), nan=0.0, posinf=0.0,
+                       neginf=0.0)
     K = cov.shape[0]
     A, B = Jr[:, :, 0, :], Jr[:, :, 1, :]
     s_ref = np.repeat(np.asarray(ref_sigma0, np.float64), 3)  # (9,)

@@ -93,7 +93,7 @@ def test_composed_windows_equal_windows_preintegrated_whole(data, problem):
                                    atol=1e-9 * (1 + np.abs(raw).max()))
 
 
-def _dense_nll(problem, r, u):
+def _dense_nll(problem, r, u, windows=None):
     """½ (rᵀ Σ⁻¹ r + log det Σ) of all base windows' residuals at once, Σ built from the
     model's definition (r_k = F_k Σ_{j<k} w_j + n_k + A_k ε_k + B_k ε_{k+1}, (n_k, w_k) ~
     cov15_k, ε white) as one dense 9K×9K matrix: no filter."""
@@ -121,6 +121,9 @@ def _dense_nll(problem, r, u):
         C[e0:e0 + 9, e0:e0 + 9] = np.diag(eps)
     S = L @ C @ L.T
     x = np.asarray(r).reshape(-1)
+    if windows is not None:  # the marginal density of those windows
+        idx = (9 * np.asarray(windows)[:, None] + np.arange(9)).reshape(-1)
+        S, x = S[np.ix_(idx, idx)], x[idx]
     sign, logdet = np.linalg.slogdet(S)
     assert sign > 0
     return 0.5 * (x @ np.linalg.solve(S, x) + logdet)
@@ -138,6 +141,21 @@ def test_filter_likelihood_equals_the_dense_joint_gaussian(problem):
     r = np.asarray(cn._all_residuals(init, problem.base, (1,)))
     f, _ = cn.nll_and_gradient(problem, U, init)
     np.testing.assert_allclose(f, _dense_nll(problem, r, U), rtol=1e-9)
+
+
+def test_filter_predicts_through_windows_in_a_reference_gap(problem):
+    """Windows left out (a reference gap: windows 30–44) are predicted through: the filter's
+    NLL equals the dense joint Gaussian's marginal density of the windows kept."""
+    K0 = problem.base.n_windows
+    kept = problem.kept.copy()
+    kept[30:45] = False
+    gap = dataclasses.replace(problem, kept=kept)
+    init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=B_G, b_a=B_A)
+    r = np.asarray(cn._all_residuals(init, problem.base, (1,)))
+    f, g = cn.nll_and_gradient(gap, U, init)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(f, _dense_nll(problem, r, U, np.flatnonzero(kept[:K0])),
+                               rtol=1e-9)
 
 
 def test_residual_bias_jacobian_equals_central_differences(problem):
