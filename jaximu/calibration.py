@@ -48,8 +48,10 @@ one compiled function returns the residuals and their Jacobian (``jacfwd`` over 
 coordinates; 6 tangents per window for nuisance velocities) and serves every iteration and
 the covariance. optax L-BFGS and Adam on the loss are there too.
 
-The noise densities (and the reference's σ) are fitted by maximum likelihood over windows of
-several lengths: :func:`calibration_problem` with ``window_lengths`` returns a
+The noise densities (and the reference's σ) are fitted by maximum likelihood, the exact joint
+likelihood of consecutive windows' residuals (a Kalman filter's prediction-error
+decomposition, :mod:`jaximu._noise_filter`): :func:`calibration_problem` with
+``window_lengths`` returns a
 :class:`jaximu._calibration_noise.NoiseProblem`, and ``estimate=`` may then name
 :data:`NOISE_FIELDS` beside the fields; the model, its covariance and the fit are in
 :mod:`jaximu._calibration_noise` (docs/guide/noise-densities.md).
@@ -250,15 +252,15 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
             (:func:`jaximu.earth_rate`): the residuals then use the exact rotating-world
             prediction (:func:`jaximu.residual`).
 
-        window_lengths: windows of several lengths [s] for fitting the noise densities
+        window_lengths: window lengths [s] for fitting the noise densities
             (``estimate=(..., "gyroscope_noise_density", …, "reference_sigma")`` in
-            :func:`calibrate`), e.g. ``(0.25, 1, 4, 16)``: the shortest are the keyframe
-            windows, each longer one a whole multiple of the shortest, composed of
-            consecutive shortest windows; every length tiles the whole recording (they
-            overlap in time; :mod:`jaximu._calibration_noise`). White noise grows with the
-            length, random walk with its cube, the reference's noise not at all, so the
-            lengths should run from a fraction of a second to many seconds, the longest
-            fitting ≥ 8 times in the recording. The model is ``"preintegration"``, without
+            :func:`calibrate`), e.g. ``(0.25, 1, 4)``: the shortest are the keyframe
+            windows, whose residuals' exact joint likelihood is fitted (white noise, random
+            walk and the reference's noise separate through their correlation in time:
+            :mod:`jaximu._noise_filter`); each longer one, a whole multiple of the shortest
+            composed of consecutive shortest windows, serves as a check of the fitted model
+            at that time scale (:attr:`CalibrationResult.chi2_by_length`). At least 16
+            shortest windows must lie in the fit. The model is ``"preintegration"``, without
             ``extrinsics``; a reference without velocities gets its positions' central
             differences (their error is part of ``σ_v``).
 
@@ -498,8 +500,13 @@ class CalibrationResult:
             ``None`` otherwise. reference_sigma, reference_sigma_std: ``(3,)``
             ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` and its 1σ. noise_given,
             reference_sigma_given: the values the problem was built with. rate_hz: the IMU's
-            rate (for the discrete-time standard deviations); window_lengths [s].
-            :meth:`noise_table` prints them side by side.
+            rate (for the discrete-time standard deviations); window_lengths [s] (the
+            likelihood is that of the shortest windows; see :mod:`jaximu._noise_filter`).
+            chi2_by_length: per window length, the mean squared residual of each window
+            whitened by its own marginal covariance at the estimate (≈ 1 at every length,
+            to tens of percent, when the model explains every time scale: a rough check,
+            the windows share one realisation of the bias drift). :meth:`noise_table` prints them
+            side by side.
     """
 
     calibration: ImuCalibration
@@ -523,6 +530,7 @@ class CalibrationResult:
     reference_sigma_given: np.ndarray | None = None
     rate_hz: float | None = None
     window_lengths: tuple = ()
+    chi2_by_length: tuple = ()
 
     def noise_table(self, allan=None) -> str:
         """The fitted densities in words: :func:`noise_table`."""
@@ -586,9 +594,9 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     noise_names = [n for n in estimate if n in NOISE_FIELDS]
     if noise_names:
         raise InputError(
-            f"estimate names {noise_names}, but the problem's windows have one length: they "
-            "cannot separate white noise, random walk and the reference's noise",
-            [Fix("window_lengths", (0.25, 1, 4, 16))],
+            f"estimate names {noise_names}, but the problem was built without window_lengths: "
+            "the noise fit needs the windows' covariance bases and reference Jacobians",
+            [Fix("window_lengths", (0.25, 1, 4))],
             lead="build the problem with")
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
