@@ -163,20 +163,20 @@ def test_gradient_through_the_chunks_equals_the_sequential_scan():
 def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
     """The table's chunked rows take one long sequence (and a few) on both backends, not a
     short one nor a batch that fills the lanes itself. ``jax.vmap`` of two sequences reaches
-    the chunks (as a batch of two: 3 chunks each); on an accelerator (run here on the CPU:
-    tests/_shared.dispatch_as) the chunks compose by a parallel prefix scan. Both: the
-    sequential scan's results to 1e-12."""
+    the chunks (as a batch of two: 3 chunks each), on both backends. On an accelerator (run
+    here on the CPU: tests/_shared.dispatch_as) the table's own threshold, a short sequence,
+    runs as the chunks its lanes take (8 of 32 steps), composed by a parallel prefix scan,
+    the final covariance and every one stored. Both: the sequential scan's results to 1e-12."""
     def kernel(on, lanes, steps, jac="analytic", attitude="quaternion"):
         return _dispatch.kernel("covariance", "euler", attitude=attitude, jacobians=jac,
                                 lanes=lanes, steps=steps, on=on)
 
     for on in (_dispatch.CPU, _dispatch.ACCELERATOR):
-        long = _dispatch.COV_CHUNK_STEPS[on]
+        long, most = _dispatch.COV_CHUNK_STEPS[on], _dispatch.COV_CHUNK_LANES[on]
         assert kernel(on, 1, long) == "soa_cov_chunked"
-        assert kernel(on, _dispatch.COV_CHUNK_LANES, long, "autodiff",
-                      "euler_angles") == "soa_cov_chunked"
+        assert kernel(on, most, long, "autodiff", "euler_angles") == "soa_cov_chunked"
         assert kernel(on, 1, long - 1) == "soa_cov_analytic"
-        assert kernel(on, _dispatch.COV_CHUNK_LANES + 1, long) == "soa_cov_analytic"
+        assert kernel(on, most + 1, long) == "soa_cov_analytic"
 
     def run(state, gyro, accel, dt):
         return jax.vmap(lambda s, g, a, d: jaximu.propagate_covariance_final(
@@ -190,10 +190,20 @@ def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
     with table():
         ref = jax.jit(run)(*args)
     assert_close(chunked, ref, 1e-12)
+    # the same pair on an accelerator, whose chunks the batch leaves room for
+    with dispatch_as(_dispatch.ACCELERATOR), table(chunked_from=1):
+        assert _dispatch.covariance_chunks(2, 100, "float64") == 3
+        chunked = jax.jit(run)(*args)
+    assert_close(chunked, ref, 1e-12)
 
-    case = CASES[0]
-    scheme, jacobians, attitude, rotating, chunks, outputs = case
-    with dispatch_as(_dispatch.ACCELERATOR), table(chunked_from=1, chunks=lambda n: chunks):
-        chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(
-            *case_inputs(case))
-    assert_close(chunked, sequential(case), 1e-12)
+    scheme, jacobians, attitude, rotating, _, outputs = CASES[0]
+    n = _dispatch.COV_CHUNK_STEPS[_dispatch.ACCELERATOR]
+    args = sequence(n, seed=23)
+    with dispatch_as(_dispatch.ACCELERATOR):
+        assert _dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
+                                lanes=1, steps=n, lever=True) == "soa_cov_chunked"
+        assert _dispatch.covariance_chunks(1, n, "float64") == n // _dispatch.MIN_CHUNK_STEPS
+        chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(*args)
+    with table():
+        ref = covariances(scheme, jacobians, attitude, rotating, outputs)(*args)
+    assert_close(chunked, ref, 1e-12)

@@ -73,8 +73,8 @@ def test_preintegrate_when_the_ground_truth_starts_later(tmp_path):
 
 
 def test_calibrate_command_fits_noise_densities_and_writes_an_imu_yaml(tmp_path):
-    """``--estimate b_g,b_a,noise`` over windows of four lengths (5 s of data: the longest
-    fits ten times): the JSON holds each density and the reference's σ with its standard
+    """``--estimate b_g,b_a,noise`` on 5 s of data (the likelihood over 100 windows of the
+    shortest length, the longer ones in the model check): the JSON holds each density and the reference's σ with its standard
     error (strict JSON: ``null`` where undetermined), and the Kalibr imu.yaml it writes
     reads back through ``jaximu.kalibr`` to the JSON's values."""
     from jaximu import kalibr

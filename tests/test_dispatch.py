@@ -5,9 +5,10 @@ import pathlib
 import re
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
-from _shared import dispatch_as
+from _shared import dispatch_as, random_inputs
 
 import jaximu
 from jaximu.engine import _dispatch
@@ -79,3 +80,91 @@ def test_auto_method_equals_both_methods(B, T, backend, expect):
         for a, b in zip(jax.tree_util.tree_leaves(out["auto"]), jax.tree_util.tree_leaves(out[m])):
             scale = max(1.0, float(np.abs(b).max()))
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * scale)
+
+
+class Picked(Exception):
+    """The kernel the dispatch named: stops the trace there."""
+
+
+def kernel_picked(entry, lanes, steps, monkeypatch, **kw):
+    """The kernel the dispatch names when ``entry`` (``"mean"``: ``propagate_final``,
+    ``"covariance"``: ``propagate_covariance_final``) of ``lanes`` sequences of ``steps``
+    float32 samples is traced (``jax.eval_shape``, stopped at the dispatch: nothing is
+    compiled or allocated)."""
+    kernel = _dispatch.kernel
+
+    def spy(*args, **kwargs):
+        raise Picked(kernel(*args, **kwargs))
+
+    monkeypatch.setattr(_dispatch, "kernel", spy)
+    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, np.float32)  # noqa: E731
+    state = jaximu.NavState(f32(lanes, 4), f32(lanes, 3), f32(lanes, 3), f32(lanes, 3),
+                            f32(lanes, 3))
+    samples = (f32(lanes, steps, 3), f32(lanes, steps, 3), f32(steps))
+    noise = jaximu.ImuNoise.euroc()
+    try:
+        if entry == "mean":
+            jax.eval_shape(lambda s, g, a, d: jaximu.propagate_final(s, g, a, d, **kw), state,
+                           *samples)
+        else:
+            jax.eval_shape(lambda s, P, g, a, d: jaximu.propagate_covariance_final(
+                s, P, g, a, d, noise, **kw), state, f32(15, 15), *samples)
+    except Picked as picked:
+        return picked.args[0]
+    finally:
+        monkeypatch.undo()
+    raise AssertionError("the entry did not ask the dispatch")
+
+
+def test_accelerator_takes_time_chunks_from_the_tables_thresholds(monkeypatch):
+    """On an accelerator (its dispatch run here: tests/_shared.dispatch_as) the public
+    entries ask the dispatch for the time chunks from the table's length (``MEAN_CHUNK_STEPS``,
+    ``COV_CHUNK_STEPS``) on, up to its batch (``MEAN_CHUNK_LANES``, ``COV_CHUNK_LANES``),
+    and the sequential kernels one step shorter or one sequence more; the CPU keeps the
+    sequential kernels at those lengths. The results are tested against the sequential
+    kernels in tests/test_chunked_covariance.py and tests/test_fast_path.py."""
+    acc = _dispatch.ACCELERATOR
+    mean_n, mean_b = _dispatch.MEAN_CHUNK_STEPS, _dispatch.MEAN_CHUNK_LANES
+    cov_n, cov_b = _dispatch.COV_CHUNK_STEPS[acc], _dispatch.COV_CHUNK_LANES[acc]
+    assert _dispatch.MEAN_CHUNK_STEPS < 2048 and cov_n < _dispatch.COV_CHUNK_STEPS["cpu"]
+    with dispatch_as(acc):
+        for lanes, steps, expect in [(1, mean_n, "soa_mean_chunked"), (1, mean_n - 1, "generic"),
+                                     (mean_b, mean_n, "soa_mean_chunked"),
+                                     (mean_b + 1, mean_n, "generic")]:
+            assert kernel_picked("mean", lanes, steps, monkeypatch) == expect, (lanes, steps)
+        for lanes, steps, expect in [(1, cov_n, "soa_cov_chunked"),
+                                     (1, cov_n - 1, "soa_cov_analytic"),
+                                     (cov_b, cov_n, "soa_cov_chunked"),
+                                     (cov_b + 1, cov_n, "soa_cov_analytic")]:
+            assert kernel_picked("covariance", lanes, steps, monkeypatch) == expect, (
+                lanes, steps)
+        # also where the mean's own pass gives the chunks' starts (Euler angles)
+        assert kernel_picked("covariance", 2, cov_n, monkeypatch, jacobians="autodiff",
+                              attitude="euler_angles") == "soa_cov_chunked"
+    assert kernel_picked("mean", 1, mean_n, monkeypatch) == "soa_mean"
+    assert kernel_picked("covariance", 1, cov_n, monkeypatch) == "soa_cov_analytic"
+
+
+def test_accelerator_mean_of_short_sequences_in_time_chunks_equals_the_scan():
+    """Two float64 sequences of the accelerator's threshold length (``MEAN_CHUNK_STEPS``:
+    4 chunks of 32 steps each, the deltas composed as a tree; every state stored, the chunks
+    run again from their starts' parallel prefix), per-sample dt, on the accelerator's
+    dispatch run here: the CPU's sequential kernel's states (itself tested against the
+    generic scan, tests/test_fast_path.py) to 1e-12 of the largest value."""
+    n = _dispatch.MEAN_CHUNK_STEPS
+    state, gyro, accel = random_inputs(2, n, seed=31)
+    dt = jnp.asarray(np.random.default_rng(32).uniform(0.003, 0.007, (2, n)))
+
+    def run(s, g, a, d):
+        return (jaximu.propagate_final(s, g, a, d, "midpoint"),
+                jaximu.propagate(s, g, a, d, "midpoint"))
+
+    with dispatch_as(_dispatch.ACCELERATOR):
+        assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", lanes=2,
+                                steps=n) == "soa_mean_chunked"
+        assert _dispatch.mean_chunks(2, n) == 4
+        chunked = jax.jit(run)(state, gyro, accel, dt)
+    ref = jax.jit(run)(state, gyro, accel, dt)
+    for a, b in zip(jax.tree_util.tree_leaves(chunked), jax.tree_util.tree_leaves(ref)):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))

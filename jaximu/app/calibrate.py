@@ -2,7 +2,7 @@
 noise densities against a recording's ground truth.
 
   jaximu calibrate FILE [--estimate b_g,b_a] [--keyframe-interval S] [--out JSON]
-  jaximu calibrate FILE --estimate b_g,b_a,noise [--window-lengths 0.25,1,4,16]
+  jaximu calibrate FILE --estimate b_g,b_a,noise [--window-lengths 0.25,1,4]
                         [--reference-sigma 1e-3,1e-3,1e-2] [--imu-yaml imu.yaml]
 
 ``noise`` in ``--estimate`` stands for the four densities and the reference's σ
@@ -54,7 +54,7 @@ class _warnings_as_lines:
         return False
 
 
-WINDOW_LENGTHS = "0.25,1,4,16"
+WINDOW_LENGTHS = "0.25,1,4"
 
 
 def _numbers(flag, text, count=None):
@@ -201,7 +201,8 @@ def _json_numbers(x):
 
 def _noise_json(res, cal):
     """The densities (Kalibr units) and the reference's σ, each ``{value, std}`` (``std``
-    ``null`` where the likelihood does not determine the value)."""
+    ``null`` where the likelihood does not determine the value); per window length the
+    check of :attr:`CalibrationResult.chi2_by_length`."""
     out = {}
     for name in cal.NOISE_FIELDS[:4]:
         out[name] = {"value": _json_numbers(getattr(res.noise, name)),
@@ -210,6 +211,7 @@ def _noise_json(res, cal):
                               "std": _json_numbers(res.reference_sigma_std)}
     out["rate_hz"] = res.rate_hz
     out["window_lengths"] = list(res.window_lengths)
+    out["chi2_by_length"] = _json_numbers(np.asarray(res.chi2_by_length, np.float64))
     return out
 
 
@@ -234,8 +236,8 @@ def add_parser(sub):
                    "default 0.5); not with noise densities")
     p.add_argument("--window-lengths", default=WINDOW_LENGTHS,
                    help="noise densities: comma-separated window lengths [s], each a whole "
-                   "multiple of the shortest, the longest fitting ≥ 8 times in the recording "
-                   "(default: %(default)s)")
+                   "multiple of the shortest; the shortest are fitted (≥ 16 in the recording), "
+                   "the longer ones check the fit (default: %(default)s)")
     p.add_argument("--reference-sigma", default="1e-3,1e-3,1e-2",
                    help="the reference's own noise σ_θ [rad], σ_p [m], σ_v [m/s] (positive; "
                    "the starting values when reference_sigma is estimated; default: %(default)s)")

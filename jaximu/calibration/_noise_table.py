@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaximu.calibration._noise_fit import DENSITIES, _isotropic
+from jaximu.calibration._noise_problem import DENSITIES, _isotropic
 from jaximu.geometry.noise import ImuNoise
 
 _UNITS = {"gyroscope_noise_density": ("rad/s/√Hz", "rad/s"),
@@ -51,9 +51,12 @@ def noise_table(result, allan=None) -> str:
     discrete = [float(np.sqrt(np.mean(np.asarray(x, np.float64) ** 2)))
                 for x in ImuNoise(*fitted).sample_std(dt, np.float32)]
     fmt = lambda x: "—" if not np.isfinite(x) else f"{x:.4g}"  # noqa: E731
-    lengths = ", ".join(f"{x:g}" for x in result.window_lengths)
-    lines = [f"noise densities by likelihood: {result.n_windows} windows of {lengths} s; "
-             f"χ²/dof = {result.reduced_chi2:.3f} at the estimate",
+    by_length = ", ".join(f"{x:g} s: {c:.3f}" for x, c in
+                          zip(result.window_lengths, result.chi2_by_length))
+    lines = [f"noise densities by likelihood: {result.n_windows} consecutive windows of "
+             f"{result.window_lengths[0]:g} s; χ²/dof = {result.reduced_chi2:.3f} at the "
+             "estimate (whitened innovations)",
+             f"each window alone, mean squared whitened residual per length: {by_length}",
              f"{'':28s} {'unit (Kalibr)':13s} {'fitted ± 1σ':>22s} {'given':>10s} "
              f"{'Allan':>10s}   discrete std at {result.rate_hz:.4g} Hz"]
     for i, name in enumerate(DENSITIES):

@@ -26,23 +26,43 @@ from jaximu.kernels.device import CPU as CPU
 from jaximu.kernels.device import backend as backend
 from jaximu.kernels.fast_preint import MIN_CHUNK
 
-LONG_STEPS = 2048
-"""From this many steps an accelerator computes the mean of a sequence of a small batch in
-time chunks (each sequential step there is a launch)."""
-
 MIN_CHUNK_STEPS = 32
 """Shortest time chunk of a long sequence."""
 
-COV_CHUNK_STEPS = {"cpu": 2048, "accelerator": 512}
+MEAN_CHUNK_STEPS = 128
+"""From this many steps an accelerator computes the mean in time chunks (each sequential
+step there is a launch), up to :data:`MEAN_CHUNK_LANES` batch elements (docs/DESIGN.md,
+"Dispatch"): 4 chunks of :data:`MIN_CHUNK_STEPS`, so that every state stored, whose chunks
+run twice, still takes half the sequential launches. Set from the launch cost measured on
+an NVIDIA H100 (10–17 µs a step from 1 to 16384 lanes; the chunks' gather and the deltas'
+tree about 0.2 ms at 3125 chunks), not yet from a measured crossover
+(``benchmarks/chunk_crossover.py``)."""
+
+MEAN_CHUNK_LANES = ACCELERATOR_LANES // 2
+"""Up to this many batch elements the mean's time chunks run on an accelerator: at least 2
+chunks a sequence (:func:`mean_chunks`). A mean step's work per lane is small against its
+launch (an H100's float64 step grew by 0.2 ns a lane), so the launches saved pay for the
+chunks' extra lanes; more elements fill the lanes themselves."""
+
+COV_CHUNK_STEPS = {"cpu": 2048, "accelerator": 256}
 """From this many steps the covariance of a few sequences runs in time chunks
 (``soa_cov_chunked``), by backend (docs/DESIGN.md, "Dispatch"). The CPU's: one trajectory's
 final covariance ran as fast both ways at 1024 float64 steps (0.32 against 0.40 ms) and
 twice as fast chunked from 2048 (float32 0.38 against 0.74 ms), run time alone (the chunks
-compile in about 3.5 s against 1 s). The accelerator's is not measured yet."""
+compile in about 3.5 s against 1 s). The accelerator's: 8 chunks of
+:data:`MIN_CHUNK_STEPS`, from the launch cost measured on an H100 (23–35 µs a covariance
+step at 1 to 1024 lanes) against the composition's ``2 log2 C`` levels, with every
+covariance stored (the chunks run twice) still under half the sequential launches; not
+yet a measured crossover (``benchmarks/chunk_crossover.py``)."""
 
-COV_CHUNK_LANES = 8
-"""Up to this many sequences the covariance runs in time chunks: each sequence's chunks
-fill a block of lanes on the CPU (more sequences fill it themselves)."""
+COV_CHUNK_LANES = {"cpu": 8, "accelerator": 4096}
+"""Up to this many sequences the covariance runs in time chunks, by backend. The CPU: each
+sequence's chunks fill a block of lanes (more sequences fill it themselves). An accelerator:
+at least 16 chunks a sequence. The chunks' lanes do the sequential scan's work and carry
+their transitions too (12% more a step on the CPU), and a float64 covariance step on the
+H100 grew by 2.7 ns a lane (1024 × 1000: 35 µs a step, 16384 × 200: 76 µs), so the extra
+work would match the ~30 µs launch saved a step from about 16384 (half as much again a
+lane) to 65536 sequences (12%); 4096 keeps a margin until measured."""
 
 
 class Row(NamedTuple):
@@ -70,11 +90,12 @@ TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
-    # on an accelerator a sequential step costs a launch whatever the lanes: long sequences
-    # run as time chunks in both dtypes, every state stored too (the chunks run twice, from
-    # the composed starts)
+    # on an accelerator a sequential step costs a launch whatever the lanes: sequences of a
+    # batch that leaves lanes free run as time chunks in both dtypes, every state stored too
+    # (the chunks run twice, from the composed starts)
     Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
-        LONG_STEPS, "soa_mean_chunked", lever=None, backends=(ACCELERATOR,)),
+        MEAN_CHUNK_STEPS, "soa_mean_chunked", lever=None, backends=(ACCELERATOR,),
+        max_lanes=MEAN_CHUNK_LANES),
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples). On an accelerator the generic kernel's step over all
@@ -84,12 +105,13 @@ TABLE = (
     # samples both ran 34 M/s (the chunks' gather is memory-bound)
     Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
         "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
-    # a few long sequences: time chunks side by side as lanes, their transitions and noise
-    # composed (jaximu/engine/_chunked.py): on the CPU one sequence fills a block of lanes; on an
-    # accelerator a sequential step is a launch
+    # time chunks side by side as lanes, their transitions and noise composed
+    # (jaximu/engine/_chunked.py): on the CPU a few long sequences, whose chunks fill a block of
+    # lanes; on an accelerator, where a sequential step is a launch, shorter sequences and
+    # batches that leave lanes free too
     *(Row("covariance", ("euler", "midpoint", "rk4"), attitudes, (jac,), (False, True), 1,
           COV_CHUNK_STEPS[on], "soa_cov_chunked", rotating=(False, True), lever=(False, True),
-          backends=(on,), max_lanes=COV_CHUNK_LANES)
+          backends=(on,), max_lanes=COV_CHUNK_LANES[on])
       for on in (CPU, ACCELERATOR)
       for attitudes, jac in ((("quaternion", "matrix"), "analytic"),
                              (LANE_ATTITUDES, "autodiff"))),
