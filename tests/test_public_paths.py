@@ -4,6 +4,7 @@ module, and each name reached through it (the paths were listed from those files
 module's old path is a module of re-exports, e.g. ``jaximu/so3.py``)."""
 
 import importlib
+import types
 
 import pytest
 
@@ -256,19 +257,19 @@ PATHS = {
 
 
 def resolve(path):
-    """Import the longest module prefix of a dotted ``path`` and get the rest as attributes."""
+    """Reach a dotted ``path`` as user code does: attributes of what is imported; the module
+    of that name where the attribute is not one that leads on (``jaximu.propagate`` is the
+    function, ``from jaximu.propagate import x`` the module). Importing first would rebind a
+    name such as ``jaximu.learning.pretrained``, a function, to a folder of that name."""
     parts = path.split(".")
-    for n in range(len(parts), 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:n]))
-        except ModuleNotFoundError as e:
-            if e.name != ".".join(parts[:n]):
-                raise  # a module that exists but fails inside is an error, not a missing path
-            continue
-        for attr in parts[n:]:
-            obj = getattr(obj, attr)
-        return obj
-    raise ModuleNotFoundError(path)
+    obj = importlib.import_module(parts[0])
+    for i in range(1, len(parts)):
+        attr = getattr(obj, parts[i], None)
+        leads_on = i + 1 == len(parts) or hasattr(attr, parts[i + 1])
+        if attr is None or not (isinstance(attr, types.ModuleType) or leads_on):
+            attr = importlib.import_module(".".join(parts[:i + 1]))
+        obj = attr
+    return obj
 
 
 @pytest.mark.parametrize("group", sorted(PATHS))
