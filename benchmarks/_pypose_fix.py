@@ -2,6 +2,7 @@
 powers of two; the benchmarks that run PyPose (``peers.py``, ``learning.py``) patch it with
 the same scan, and say so."""
 
+
 def fix_pypose_cumops():
     """Make PyPose's cumulative product run under this torch, if it does not; returns the
     reason when it was patched, else ``None``.
@@ -21,16 +22,19 @@ def fix_pypose_cumops():
         ops.cumops(torch.ones(17, 1), 0, lambda a, b: a * b)
         return None
     except RuntimeError as e:
-        reason = (f"pypose.basics.ops.cumops_ fails under torch {torch.__version__} ({e}); "
-                  "replaced by the same scan over the powers of two below the length")
+        reason = (
+            f"pypose.basics.ops.cumops_ fails under torch {torch.__version__} ({e}); "
+            "replaced by the same scan over the powers of two below the length"
+        )
 
     def cumops_(input, dim, op):
         L, v = input.shape[dim], input
         i = 1
         while i < L:
             index = torch.arange(i, L, device=v.device, dtype=torch.int64)
-            v.index_copy_(dim, index,
-                          op(v.index_select(dim, index - i), v.index_select(dim, index)))
+            v.index_copy_(
+                dim, index, op(v.index_select(dim, index - i), v.index_select(dim, index))
+            )
             i *= 2
         return v
 

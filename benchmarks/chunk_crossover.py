@@ -28,6 +28,7 @@ Usage (on the accelerator; the CPU runs it too, with the CPU's table)::
 Writes ``benchmarks/results/chunk-crossover-<machine>.json`` (``$OUT/chunk_crossover.json``
 when ``OUT`` is set).
 """
+
 import json
 import os
 import sys
@@ -48,40 +49,73 @@ TABLE0 = dsp.TABLE
 CHUNKED = ("soa_mean_chunked", "soa_cov_chunked")
 TABLES = {
     "sequential": tuple(r for r in TABLE0 if r.kernel not in CHUNKED),
-    "chunked": tuple(r._replace(min_steps=1, max_lanes=None) if r.kernel in CHUNKED else r
-                     for r in TABLE0),
+    "chunked": tuple(
+        r._replace(min_steps=1, max_lanes=None) if r.kernel in CHUNKED else r for r in TABLE0
+    ),
 }
 
 # (name, kind, save, dtype, [(B, T), ...], sweep over "T" or "B"), in the order the table
 # needs them: a coarse pass over every sweep first, then finer points of the same sweeps (a
 # chunked covariance compiles for seconds, and the budget may end the run early)
 SWEEPS = [
-    ("cov final 1 trajectory", "cov", "final", "float64", [(1, T) for T in (128, 256, 512)],
-     "T"),
-    ("mean final 1 trajectory", "mean", "final", "float32", [(1, T) for T in (64, 128, 256)],
-     "T"),
-    ("mean final batch x 200", "mean", "final", "float32",
-     [(B, 200) for B in (1024, 16384, 32768)], "B"),
-    ("cov final batch x 256", "cov", "final", "float64",
-     [(B, 256) for B in (1024, 4096, 16384)], "B"),
+    ("cov final 1 trajectory", "cov", "final", "float64", [(1, T) for T in (128, 256, 512)], "T"),
+    ("mean final 1 trajectory", "mean", "final", "float32", [(1, T) for T in (64, 128, 256)], "T"),
+    (
+        "mean final batch x 200",
+        "mean",
+        "final",
+        "float32",
+        [(B, 200) for B in (1024, 16384, 32768)],
+        "B",
+    ),
+    (
+        "cov final batch x 256",
+        "cov",
+        "final",
+        "float64",
+        [(B, 256) for B in (1024, 4096, 16384)],
+        "B",
+    ),
     ("cov all 1 trajectory", "cov", "all", "float64", [(1, T) for T in (256, 512)], "T"),
     ("mean all 1 trajectory", "mean", "all", "float32", [(1, T) for T in (128, 256)], "T"),
-    ("cov final 1 trajectory", "cov", "final", "float64",
-     [(1, T) for T in (64, 1024, 4096, 100_000)], "T"),
-    ("mean final 1 trajectory", "mean", "final", "float32",
-     [(1, T) for T in (512, 1024, 4096)], "T"),
+    (
+        "cov final 1 trajectory",
+        "cov",
+        "final",
+        "float64",
+        [(1, T) for T in (64, 1024, 4096, 100_000)],
+        "T",
+    ),
+    (
+        "mean final 1 trajectory",
+        "mean",
+        "final",
+        "float32",
+        [(1, T) for T in (512, 1024, 4096)],
+        "T",
+    ),
     ("cov all 1 trajectory", "cov", "all", "float64", [(1, T) for T in (128, 1024)], "T"),
     ("cov final batch x 256", "cov", "final", "float64", [(B, 256) for B in (64, 8192)], "B"),
-    ("mean final batch x 200", "mean", "final", "float32", [(B, 200) for B in (8192, 65536)],
-     "B"),
+    ("mean final batch x 200", "mean", "final", "float32", [(B, 200) for B in (8192, 65536)], "B"),
 ]
 
 
 def case(kind, save, B, T, dtype):
-    return dict(section=kind, name=f"{kind} {'analytic ' if kind == 'cov' else ''}euler {save}",
-                kind=kind, scheme="euler", jac="analytic" if kind == "cov" else None, save=save,
-                B=B, T=T, dtype=dtype, vmap=False, rotating=False, lever=False,
-                attitude="quaternion")
+    return dict(
+        section=kind,
+        name=f"{kind} {'analytic ' if kind == 'cov' else ''}euler {save}",
+        kind=kind,
+        scheme="euler",
+        jac="analytic" if kind == "cov" else None,
+        save=save,
+        B=B,
+        T=T,
+        dtype=dtype,
+        vmap=False,
+        rotating=False,
+        lever=False,
+        attitude="quaternion",
+    )
 
 
 def timed(fn, args, reps=3, min_time=0.2):
@@ -112,11 +146,13 @@ def suggest(rows, axis):
     if not done:
         return None
     if axis == "T":
-        wins = [r["T"] for i, r in enumerate(done)
-                if all(s["winner"] == "chunked" for s in done[i:])]
+        wins = [
+            r["T"] for i, r in enumerate(done) if all(s["winner"] == "chunked" for s in done[i:])
+        ]
         return min(wins) if wins else "sequential at every length measured"
-    wins = [r["B"] for i, r in enumerate(done)
-            if all(s["winner"] == "chunked" for s in done[:i + 1])]
+    wins = [
+        r["B"] for i, r in enumerate(done) if all(s["winner"] == "chunked" for s in done[: i + 1])
+    ]
     return max(wins) if wins else "sequential at every batch measured"
 
 
@@ -131,16 +167,20 @@ def main():
     for name, kind, save, dtype, sizes, axis in SWEEPS:
         if only and only not in name:
             continue
-        sweep = sweeps.setdefault(name, dict(name=name, kind=kind, save=save, dtype=dtype,
-                                             axis=axis, rows=[]))
+        sweep = sweeps.setdefault(
+            name, dict(name=name, kind=kind, save=save, dtype=dtype, axis=axis, rows=[])
+        )
         rows = sweep["rows"]
         for B, T in sizes:
             if time.perf_counter() - t_start > budget:
                 print(f"budget out before {name} {B}x{T}", flush=True)
                 break
             # one launch a step: the sweep's longest sequential run so far gives its cost
-            seq = [r for r in rows if axis == "T" and "sequential_run_s" in r
-                   and not r.get("sequential_extrapolated")]
+            seq = [
+                r
+                for r in rows
+                if axis == "T" and "sequential_run_s" in r and not r.get("sequential_extrapolated")
+            ]
             longest = max(seq, key=lambda r: r["T"]) if seq else None
             per_step = longest["sequential_run_s"] / longest["T"] if longest else None
             c = case(kind, save, B, T, dtype)
@@ -169,23 +209,28 @@ def main():
                 row["speedup"] = ratio
                 row["winner"] = "chunked" if ratio > 1 else "sequential"
             rows.append(row)
-            fmt = lambda k: (f"{row[k] * 1e3:9.3f} ms" if k in row else "      —   ")  # noqa: E731
-            print(f"{name:26s} {dtype} {B:6d}x{T:<7d} chunked {fmt('chunked_run_s')} "
-                  f"(c {row.get('chunked_compile_s', 0):.1f} s)  sequential "
-                  f"{fmt('sequential_run_s')}{'*' if row.get('sequential_extrapolated') else ' '}"
-                  f" -> {row.get('winner', '?'):10s} x{row.get('speedup', 0):.2f}"
-                  f"  diff {row.get('diff', float('nan')):.1e}", flush=True)
+            fmt = lambda k: f"{row[k] * 1e3:9.3f} ms" if k in row else "      —   "  # noqa: E731
+            print(
+                f"{name:26s} {dtype} {B:6d}x{T:<7d} chunked {fmt('chunked_run_s')} "
+                f"(c {row.get('chunked_compile_s', 0):.1f} s)  sequential "
+                f"{fmt('sequential_run_s')}{'*' if row.get('sequential_extrapolated') else ' '}"
+                f" -> {row.get('winner', '?'):10s} x{row.get('speedup', 0):.2f}"
+                f"  diff {row.get('diff', float('nan')):.1e}",
+                flush=True,
+            )
             write(list(sweeps.values()), info, budget, t_start)
     sweeps = list(sweeps.values())
     for s in sweeps:
         s["rows"].sort(key=lambda r: r[s["axis"]])
         s["suggested"] = suggest(s["rows"], s["axis"])
     on = dsp.backend()
-    print("\n* sequential extrapolated from the sweep's longest measured run (one launch a "
-          f"step)\nSuggested thresholds (the table now, {on}: mean from "
-          f"{dsp.MEAN_CHUNK_STEPS} steps up to {dsp.MEAN_CHUNK_LANES} sequences, the "
-          f"accelerator's only; covariance from {dsp.COV_CHUNK_STEPS[on]} steps up to "
-          f"{dsp.COV_CHUNK_LANES[on]} sequences):")
+    print(
+        "\n* sequential extrapolated from the sweep's longest measured run (one launch a "
+        f"step)\nSuggested thresholds (the table now, {on}: mean from "
+        f"{dsp.MEAN_CHUNK_STEPS} steps up to {dsp.MEAN_CHUNK_LANES} sequences, the "
+        f"accelerator's only; covariance from {dsp.COV_CHUNK_STEPS[on]} steps up to "
+        f"{dsp.COV_CHUNK_LANES[on]} sequences):"
+    )
     for s in sweeps:
         what = "chunks from length" if s["axis"] == "T" else "chunks up to batch"
         print(f"  {s['name']:32s} {s['dtype']}: {what} {s['suggested']}")
@@ -196,16 +241,32 @@ def write(sweeps, info, budget, t_start):
     """The JSON of the sweeps so far (after every case: a run cut by its time limit keeps
     what it measured)."""
     out_dir = os.environ.get("OUT")
-    path = (os.path.join(out_dir, "chunk_crossover.json") if out_dir else
-            os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                         f"chunk-crossover-{P.machine_slug(info)}.json"))
+    path = (
+        os.path.join(out_dir, "chunk_crossover.json")
+        if out_dir
+        else os.path.join(
+            os.path.dirname(os.path.abspath(__file__)),
+            "results",
+            f"chunk-crossover-{P.machine_slug(info)}.json",
+        )
+    )
     with open(path, "w") as fh:
-        json.dump(dict(machine=info, budget_s=budget, total_s=time.perf_counter() - t_start,
-                       table=dict(mean_chunk_steps=dsp.MEAN_CHUNK_STEPS,
-                                  mean_chunk_lanes=dsp.MEAN_CHUNK_LANES,
-                                  cov_chunk_steps=dsp.COV_CHUNK_STEPS,
-                                  cov_chunk_lanes=dsp.COV_CHUNK_LANES),
-                       sweeps=sweeps), fh, indent=1)
+        json.dump(
+            dict(
+                machine=info,
+                budget_s=budget,
+                total_s=time.perf_counter() - t_start,
+                table=dict(
+                    mean_chunk_steps=dsp.MEAN_CHUNK_STEPS,
+                    mean_chunk_lanes=dsp.MEAN_CHUNK_LANES,
+                    cov_chunk_steps=dsp.COV_CHUNK_STEPS,
+                    cov_chunk_lanes=dsp.COV_CHUNK_LANES,
+                ),
+                sweeps=sweeps,
+            ),
+            fh,
+            indent=1,
+        )
     return path
 
 

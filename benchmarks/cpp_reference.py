@@ -43,9 +43,17 @@ FLAGS = ("-O3", "-march=native", "-std=c++17", "-DNDEBUG")
 KERNELS = ("blocked", "dense")
 OUT_SIZE = 137  # doubles per window in the program's dump
 FIELDS = (  # name, shape, offset in a dumped window
-    ("delta_t", (), 0), ("delta_q", (4,), 1), ("delta_v", (3,), 5), ("delta_p", (3,), 8),
-    ("cov", (9, 9), 11), ("dR_dbg", (3, 3), 92), ("dp_dbg", (3, 3), 101),
-    ("dp_dba", (3, 3), 110), ("dv_dbg", (3, 3), 119), ("dv_dba", (3, 3), 128))
+    ("delta_t", (), 0),
+    ("delta_q", (4,), 1),
+    ("delta_v", (3,), 5),
+    ("delta_p", (3,), 8),
+    ("cov", (9, 9), 11),
+    ("dR_dbg", (3, 3), 92),
+    ("dp_dbg", (3, 3), 101),
+    ("dp_dba", (3, 3), 110),
+    ("dv_dbg", (3, 3), 119),
+    ("dv_dba", (3, 3), 128),
+)
 JACOBIANS = ("dR_dbg", "dp_dbg", "dp_dba", "dv_dbg", "dv_dba")
 
 
@@ -66,13 +74,16 @@ def find_toolchain():
     candidates = [os.environ.get("EIGEN3_INCLUDE_DIR")]
     if shutil.which("pkg-config"):
         try:
-            flags = subprocess.run(["pkg-config", "--cflags-only-I", "eigen3"],
-                                   capture_output=True, text=True, timeout=10).stdout.split()
+            flags = subprocess.run(
+                ["pkg-config", "--cflags-only-I", "eigen3"],
+                capture_output=True,
+                text=True,
+                timeout=10,
+            ).stdout.split()
             candidates += [f[2:] for f in flags if f.startswith("-I")]
         except (OSError, subprocess.SubprocessError):
             pass
-    prefixes = [os.environ.get("CONDA_PREFIX"), sys.prefix, "/usr/local", "/usr",
-                "/opt/homebrew"]
+    prefixes = [os.environ.get("CONDA_PREFIX"), sys.prefix, "/usr/local", "/usr", "/opt/homebrew"]
     candidates += [os.path.join(p, "include", "eigen3") for p in prefixes if p]
     for inc in candidates:
         if inc and os.path.isfile(os.path.join(inc, "Eigen", "Core")):
@@ -93,8 +104,10 @@ def find_basalt():
         return None, f"no include/basalt/imu/preintegration.h under BASALT_HEADERS_DIR={root}"
     sophus = os.environ.get("SOPHUS_INCLUDE_DIR") or os.path.join(root, "thirdparty", "Sophus")
     if not os.path.isfile(os.path.join(sophus, "sophus", "so3.hpp")):
-        return None, (f"Sophus not found in {sophus} (clone basalt-headers with --recursive, "
-                      "or set SOPHUS_INCLUDE_DIR)")
+        return None, (
+            f"Sophus not found in {sophus} (clone basalt-headers with --recursive, "
+            "or set SOPHUS_INCLUDE_DIR)"
+        )
     return ("-DJAXIMU_WITH_BASALT", f"-I{inc}", f"-I{sophus}"), None
 
 
@@ -110,12 +123,14 @@ def build(verbose=True):
     basalt, _ = find_basalt()
     extra = basalt or ()
     try:
-        version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
-                                 timeout=30).stdout
+        version = subprocess.run(
+            [cxx, "--version"], capture_output=True, text=True, timeout=30
+        ).stdout
         with open(SOURCE, "rb") as f:
             src = f.read()
         key = hashlib.sha256(
-            src + "\0".join((cxx, version, inc) + FLAGS + extra).encode()).hexdigest()
+            src + "\0".join((cxx, version, inc) + FLAGS + extra).encode()
+        ).hexdigest()
         exe = os.path.join(BUILD_DIR, f"preintegrate_reference-{key[:16]}")
         if os.path.isfile(exe) and os.access(exe, os.X_OK):
             return exe, command, basalt is not None
@@ -141,8 +156,10 @@ def _noise_densities(noise):
         sg, sa = noise.gyroscope_noise_density, noise.accelerometer_noise_density
     else:
         sg, sa = noise
-    return (np.broadcast_to(np.asarray(sg, np.float64), (3,)),
-            np.broadcast_to(np.asarray(sa, np.float64), (3,)))
+    return (
+        np.broadcast_to(np.asarray(sg, np.float64), (3,)),
+        np.broadcast_to(np.asarray(sa, np.float64), (3,)),
+    )
 
 
 def write_input(path, gyro, accel, dt, b_g, b_a, noise):
@@ -150,8 +167,9 @@ def write_input(path, gyro, accel, dt, b_g, b_a, noise):
     gyro = np.asarray(gyro, np.float64)
     accel = np.asarray(accel, np.float64)
     if gyro.ndim not in (2, 3) or gyro.shape[-1] != 3 or accel.shape != gyro.shape:
-        raise ValueError(f"gyro and accel must both be (L, 3) or (N, L, 3), got {gyro.shape} "
-                         f"and {accel.shape}")
+        raise ValueError(
+            f"gyro and accel must both be (L, 3) or (N, L, 3), got {gyro.shape} and {accel.shape}"
+        )
     g3 = gyro.reshape((-1,) + gyro.shape[-2:])
     N, L = g3.shape[:2]
     rows = np.empty((N, L, 7), np.float64)
@@ -159,8 +177,9 @@ def write_input(path, gyro, accel, dt, b_g, b_a, noise):
     rows[..., 3:6] = accel.reshape(g3.shape)
     rows[..., 6] = np.broadcast_to(np.asarray(dt, np.float64), gyro.shape[:-1]).reshape(N, L)
     sg, sa = _noise_densities(noise)
-    header = np.concatenate([np.asarray(b_g, np.float64).reshape(3),
-                             np.asarray(b_a, np.float64).reshape(3), sg, sa])
+    header = np.concatenate(
+        [np.asarray(b_g, np.float64).reshape(3), np.asarray(b_a, np.float64).reshape(3), sg, sa]
+    )
     with open(path, "wb") as f:
         f.write(b"JXPI0001")
         f.write(np.array([N, L], "<i8").tobytes())
@@ -173,13 +192,14 @@ def _unpack(flat, batched):
     out = {}
     for name, shape, off in FIELDS:
         n = int(np.prod(shape, dtype=int))
-        x = flat[:, off:off + n].reshape((flat.shape[0],) + shape)
+        x = flat[:, off : off + n].reshape((flat.shape[0],) + shape)
         out[name] = x if batched else x[0]
     return out
 
 
-def run_cpp_reference(gyro, accel, dt, b_g, b_a, noise, workload=None, *, kernels=KERNELS,
-                      min_time=0.3, verbose=True):
+def run_cpp_reference(
+    gyro, accel, dt, b_g, b_a, noise, workload=None, *, kernels=KERNELS, min_time=0.3, verbose=True
+):
     """Run the C++/Eigen reference on the samples; ``None`` (reason printed) if unavailable.
 
     Args:
@@ -217,13 +237,24 @@ def run_cpp_reference(gyro, accel, dt, b_g, b_a, noise, workload=None, *, kernel
             inp = os.path.join(tmp, "input.bin")
             N, L = write_input(inp, gyro, accel, dt, b_g, b_a, noise)
             dump = os.path.join(tmp, "out")
-            cmd = [exe, inp, "--min-time", repr(float(min_time)), "--kernels",
-                   ",".join(kernels), "--dump", dump]
+            cmd = [
+                exe,
+                inp,
+                "--min-time",
+                repr(float(min_time)),
+                "--kernels",
+                ",".join(kernels),
+                "--dump",
+                dump,
+            ]
             _say(f"running{label}: {N} × {L} samples, kernels {','.join(kernels)}", verbose)
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
             if proc.returncode != 0:
-                _say(f"skipped{label}: the program failed ({proc.returncode}): "
-                     f"{proc.stderr.strip()}", verbose)
+                _say(
+                    f"skipped{label}: the program failed ({proc.returncode}): "
+                    f"{proc.stderr.strip()}",
+                    verbose,
+                )
                 return None
             meta = json.loads(proc.stdout)
             batched = np.ndim(gyro) == 3
@@ -286,8 +317,7 @@ def main(argv=None):
             return 1
         gyro, accel, dt = (jnp.asarray(x, jnp.float64) for x in data)
         b = jaximu.ImuBias(jnp.asarray(bias[0], jnp.float64), jnp.asarray(bias[1], jnp.float64))
-        fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, "euler",
-                                                         "sequential"))
+        fn = jax.jit(lambda g, a, d: jaximu.preintegrate(g, a, d, b, noise, "euler", "sequential"))
         t0 = time.perf_counter()
         pim = jax.block_until_ready(fn(gyro, accel, dt))
         first = time.perf_counter() - t0
@@ -296,20 +326,30 @@ def main(argv=None):
         for kname, k in ref["kernels"].items():
             agree = agreement(k["result"], pim)
             lines.append((name, n, kname, k, agree, n / jax_s))
-        print(f"{name}: jaximu f64 sequential {n / jax_s / 1e6:.3f} M samples/s "
-              f"(first call {first:.1f} s)", file=sys.stderr, flush=True)
+        print(
+            f"{name}: jaximu f64 sequential {n / jax_s / 1e6:.3f} M samples/s "
+            f"(first call {first:.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
 
-    print(f"\n# C++ Eigen reference ({ref['command']}; {ref['compiler']}, Eigen {ref['eigen']}),"
-          " one core, float64, best of ≥ 3 runs")
-    print("\n| workload | kernel | µs/sample | samples/s | jaximu f64 seq / C++ | "
-          "max abs diff vs jaximu f64: q / v / p / cov / bias Jacobians | worst relative |")
+    print(
+        f"\n# C++ Eigen reference ({ref['command']}; {ref['compiler']}, Eigen {ref['eigen']}),"
+        " one core, float64, best of ≥ 3 runs"
+    )
+    print(
+        "\n| workload | kernel | µs/sample | samples/s | jaximu f64 seq / C++ | "
+        "max abs diff vs jaximu f64: q / v / p / cov / bias Jacobians | worst relative |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, n, kname, k, agree, jrate in lines:
         jac = max(agree[j][0] for j in JACOBIANS)
         diffs = " / ".join(f"{agree[f][0]:.1e}" for f in ("delta_q", "delta_v", "delta_p", "cov"))
-        print(f"| {name} ({n}) | {kname} | {k['us_per_sample']:.3f} | "
-              f"{k['samples_per_s'] / 1e6:.3f} M | {jrate / k['samples_per_s']:.2f} | "
-              f"{diffs} / {jac:.1e} | {worst_relative(agree):.1e} |")
+        print(
+            f"| {name} ({n}) | {kname} | {k['us_per_sample']:.3f} | "
+            f"{k['samples_per_s'] / 1e6:.3f} M | {jrate / k['samples_per_s']:.2f} | "
+            f"{diffs} / {jac:.1e} | {worst_relative(agree):.1e} |"
+        )
     return 0
 
 

@@ -25,6 +25,7 @@ Usage::
 Writes ``$OUT/dispatch_ab.json`` (``OUT`` defaults to ``benchmarks/results``, the file then
 named ``dispatch-ab-<machine>.json``).
 """
+
 import json
 import os
 import sys
@@ -43,11 +44,14 @@ import jaximu.engine._dispatch as dsp  # noqa: E402
 
 TABLE0 = dsp.TABLE
 SOA_TABLE = tuple(
-    r._replace(backends=("cpu", "accelerator"),
-               min_lanes=min(r.min_lanes, 32) if r.entry == "mean" else 1)
-    for r in TABLE0 if not (r.kernel == "soa_mean_chunked" and "cpu" in r.backends)
+    r._replace(
+        backends=("cpu", "accelerator"), min_lanes=min(r.min_lanes, 32) if r.entry == "mean" else 1
+    )
+    for r in TABLE0
+    if not (r.kernel == "soa_mean_chunked" and "cpu" in r.backends)
     and not (r.entry == "covariance" and r.backends == ("accelerator",))
-    and r.kernel != "soa_cov_chunked")
+    and r.kernel != "soa_cov_chunked"
+)
 # the accelerator's chunked row first among the mean rows after the 32-lane one
 VARIANTS = {
     "new": dict(table=TABLE0),
@@ -63,10 +67,26 @@ def apply(v):
 
 
 def case(kind, scheme, save, B, T, dtype, jac=None, vmap=False, attitude="quaternion"):
-    name = (f"{kind} {jac + ' ' if jac else ''}{scheme} {save}"
-            + ("" if attitude == "quaternion" else " " + attitude) + (" vmap" if vmap else ""))
-    return dict(section=kind, name=name, kind=kind, scheme=scheme, jac=jac, save=save, B=B, T=T,
-                dtype=dtype, vmap=vmap, rotating=False, lever=False, attitude=attitude)
+    name = (
+        f"{kind} {jac + ' ' if jac else ''}{scheme} {save}"
+        + ("" if attitude == "quaternion" else " " + attitude)
+        + (" vmap" if vmap else "")
+    )
+    return dict(
+        section=kind,
+        name=name,
+        kind=kind,
+        scheme=scheme,
+        jac=jac,
+        save=save,
+        B=B,
+        T=T,
+        dtype=dtype,
+        vmap=vmap,
+        rotating=False,
+        lever=False,
+        attitude=attitude,
+    )
 
 
 def preint_fn(B, T, dtype, method="auto"):
@@ -107,23 +127,30 @@ def reldiff(a, b):
 
 CASES = []
 for dt in ("float32", "float64"):
-    CASES += [case("mean", "euler", "final", 1024, 1000, dt),
-              case("mean", "euler", "final", 16384, 200, dt),
-              case("mean", "midpoint", "final", 1024, 1000, dt),
-              case("cov", "euler", "final", 1024, 1000, dt, jac="analytic"),
-              case("cov", "euler", "final", 4096, 250, dt, jac="analytic"),
-              case("cov", "euler", "final", 16384, 200, dt, jac="analytic"),
-              case("cov", "euler", "final", 4096, 250, dt, jac="autodiff"),
-              case("cov", "euler", "final", 16384, 200, dt, jac="autodiff"),
-              case("cov", "midpoint", "final", 4096, 250, dt, jac="analytic"),
-              case("mean", "euler", "final", 1, 100_000, dt),
-              case("mean", "euler", "all", 1, 100_000, dt),
-              case("mean", "midpoint", "all", 1, 100_000, dt)]
+    CASES += [
+        case("mean", "euler", "final", 1024, 1000, dt),
+        case("mean", "euler", "final", 16384, 200, dt),
+        case("mean", "midpoint", "final", 1024, 1000, dt),
+        case("cov", "euler", "final", 1024, 1000, dt, jac="analytic"),
+        case("cov", "euler", "final", 4096, 250, dt, jac="analytic"),
+        case("cov", "euler", "final", 16384, 200, dt, jac="analytic"),
+        case("cov", "euler", "final", 4096, 250, dt, jac="autodiff"),
+        case("cov", "euler", "final", 16384, 200, dt, jac="autodiff"),
+        case("cov", "midpoint", "final", 4096, 250, dt, jac="analytic"),
+        case("mean", "euler", "final", 1, 100_000, dt),
+        case("mean", "euler", "all", 1, 100_000, dt),
+        case("mean", "midpoint", "all", 1, 100_000, dt),
+    ]
     # one trajectory's covariance: sequential or in time chunks, by length (the crossover)
-    CASES += [case("cov", "euler", "final", 1, T, dt, jac="analytic")
-              for T in (256, 512, 1024, 2048, 4096, 100_000)]
-PRE = [("preint 4096x200", 4096, 200, "float64"), ("preint 1x100000", 1, 100_000, "float64"),
-       ("preint 1024x200", 1024, 200, "float64")]
+    CASES += [
+        case("cov", "euler", "final", 1, T, dt, jac="analytic")
+        for T in (256, 512, 1024, 2048, 4096, 100_000)
+    ]
+PRE = [
+    ("preint 4096x200", 4096, 200, "float64"),
+    ("preint 1x100000", 1, 100_000, "float64"),
+    ("preint 1024x200", 1024, 200, "float64"),
+]
 
 only = os.environ.get("ONLY")
 names = os.environ.get("VARIANTS", ",".join(VARIANTS)).split(",")
@@ -160,9 +187,15 @@ for kind, c in jobs:
         out = None
 out_dir = os.environ.get("OUT")
 info = P.machine_info()
-path = (os.path.join(out_dir, "dispatch_ab.json") if out_dir else
-        os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                     f"dispatch-ab-{P.machine_slug(info)}.json"))
+path = (
+    os.path.join(out_dir, "dispatch_ab.json")
+    if out_dir
+    else os.path.join(
+        os.path.dirname(os.path.abspath(__file__)),
+        "results",
+        f"dispatch-ab-{P.machine_slug(info)}.json",
+    )
+)
 with open(path, "w") as fh:
     json.dump(dict(machine=info, results=results), fh, indent=1)
 print("\n| case | " + " | ".join(names) + " |")
@@ -173,6 +206,13 @@ for cname, d in by.items():
     cells = []
     for vn in names:
         r = d.get(vn)
-        cells.append("" if r is None else ("ERR" if "error" in r else
-                     f"{r['rate'] / 1e6:.1f}M c{r['compile_s']:.1f} d{r['diff']:.0e}"))
+        cells.append(
+            ""
+            if r is None
+            else (
+                "ERR"
+                if "error" in r
+                else f"{r['rate'] / 1e6:.1f}M c{r['compile_s']:.1f} d{r['diff']:.0e}"
+            )
+        )
     print(f"| {cname} | " + " | ".join(cells) + " |")

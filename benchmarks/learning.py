@@ -94,11 +94,13 @@ class _EqxProxy:
 
     def filter_jit(self, fn=None, **kw):
         if fn is None or fn.__name__ != "step":
-            return (self._real.filter_jit(fn, **kw) if fn is not None
-                    else self._real.filter_jit(**kw))
+            return (
+                self._real.filter_jit(fn, **kw) if fn is not None else self._real.filter_jit(**kw)
+            )
 
         def grab(*args):
             raise _Captured(fn, args)
+
         return grab
 
 
@@ -119,13 +121,18 @@ def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
     except _Captured as c:
         fn, args = c.fn, c.args
     else:
-        raise RuntimeError("jaximu.learning.train no longer builds a function named `step`: "
-                           "update capture_train_step in benchmarks/learning.py")
+        raise RuntimeError(
+            "jaximu.learning.train no longer builds a function named `step`: "
+            "update capture_train_step in benchmarks/learning.py"
+        )
     finally:
         training_module.eqx = real
+
     def cells(f):
-        return {name: cell.cell_contents
-                for name, cell in zip(f.__code__.co_freevars, f.__closure__ or ())}
+        return {
+            name: cell.cell_contents
+            for name, cell in zip(f.__code__.co_freevars, f.__closure__ or ())
+        }
 
     closure = cells(fn)
     if callable(closure.get("loss_fn")):  # dt is the loss's
@@ -136,8 +143,10 @@ def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
     closure.setdefault("dt", 1.0 / args[0].config.rate_hz)
     missing = {"S", "L", "G", "A", "Q", "cfg"} - set(closure)
     if missing:
-        raise RuntimeError(f"train's step no longer closes over {sorted(missing)}: update "
-                           "capture_train_step in benchmarks/learning.py")
+        raise RuntimeError(
+            f"train's step no longer closes over {sorted(missing)}: update "
+            "capture_train_step in benchmarks/learning.py"
+        )
     return fn, args, closure
 
 
@@ -182,7 +191,8 @@ class JaxRunner:
     def __call__(self):
         self.key, k = jax.random.split(self.key)
         self.model, self.ema, self.opt_state, loss, parts = self.compiled(
-            self.model, self.ema, self.opt_state, k, *self.data)
+            self.model, self.ema, self.opt_state, k, *self.data
+        )
         jax.block_until_ready((self.model, self.opt_state, loss))
         self.loss, self.nll = float(loss), float(parts[1])
         return self.loss
@@ -220,7 +230,8 @@ def make_torch_model(mcfg):
             widths = (6,) + tuple(cfg.channels)
             self.convs = nn.ModuleList(
                 nn.Conv1d(widths[i], widths[i + 1], cfg.kernel, dilation=d)
-                for i, d in enumerate(cfg.dilations))
+                for i, d in enumerate(cfg.dilations)
+            )
             self.head = nn.Conv1d(widths[-1], cfg.corrections, 1)
             self.noise_head = nn.Conv1d(widths[-1], 3, 1)
             for conv in (self.head, self.noise_head):  # the untrained model: constant bias
@@ -232,8 +243,14 @@ def make_torch_model(mcfg):
             self.act = nn.GELU(approximate="tanh")  # jax.nn.gelu's default
             self.drop = nn.Dropout(cfg.dropout)
             f = lambda x: torch.tensor(x, dtype=torch.float32)
-            for name in ("input_mean", "input_std", "gyro_bias", "accel_bias", "gyro_scale",
-                         "accel_scale"):
+            for name in (
+                "input_mean",
+                "input_std",
+                "gyro_bias",
+                "accel_bias",
+                "gyro_scale",
+                "accel_scale",
+            ):
                 self.register_buffer(name, f(getattr(cfg, name)), persistent=False)
             self.cfg = cfg
 
@@ -262,8 +279,10 @@ def jax_to_torch(jmodel, tmodel):
     cross-correlations, no flip)."""
     import torch
 
-    pairs = list(zip(jmodel.layers, tmodel.convs)) + [(jmodel.head, tmodel.head),
-                                                       (jmodel.noise_head, tmodel.noise_head)]
+    pairs = list(zip(jmodel.layers, tmodel.convs)) + [
+        (jmodel.head, tmodel.head),
+        (jmodel.noise_head, tmodel.noise_head),
+    ]
     with torch.no_grad():
         for jc, tc in pairs:
             tc.weight.copy_(torch.from_numpy(np.asarray(jc.weight).transpose(2, 1, 0).copy()))
@@ -281,10 +300,15 @@ def _qmul(p, q):
 
     pw, px, py, pz = p.unbind(-1)
     qw, qx, qy, qz = q.unbind(-1)
-    return torch.stack([pw * qw - px * qx - py * qy - pz * qz,
-                        pw * qx + px * qw + py * qz - pz * qy,
-                        pw * qy - px * qz + py * qw + pz * qx,
-                        pw * qz + px * qy - py * qx + pz * qw], -1)
+    return torch.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        -1,
+    )
 
 
 def _qconj(q):
@@ -319,7 +343,7 @@ def _qlog(q):
     n = torch.sqrt(n2.clamp_min(1e-30))
     w = q[..., :1]
     small = n < 1e-4
-    k = torch.where(small, 2.0 / w - 2.0 * n2 / (3.0 * w ** 3), 2.0 * torch.atan2(n, w) / n)
+    k = torch.where(small, 2.0 / w - 2.0 * n2 / (3.0 * w**3), 2.0 * torch.atan2(n, w) / n)
     return k * v
 
 
@@ -330,7 +354,7 @@ def plain_windows(gyro, dt, H):
         raise ValueError(f"plain_windows: H must be a power of two, got {H}")
     B, T = gyro.shape[:2]
     W = T // H
-    q = _qexp(gyro[:, :W * H].reshape(B, W, H, 3) * dt)
+    q = _qexp(gyro[:, : W * H].reshape(B, W, H, 3) * dt)
     while q.shape[-2] > 1:
         q = _qmul(q[..., 0::2, :], q[..., 1::2, :])
     return _qnormalize(q[..., 0, :])
@@ -343,8 +367,8 @@ def pypose_windows(integrator, gyro, accel, dt, H):
 
     B, T = gyro.shape[:2]
     W = T // H
-    g = gyro[:, :W * H].reshape(B * W, H, 3)
-    a = accel[:, :W * H].reshape(B * W, H, 3)
+    g = gyro[:, : W * H].reshape(B * W, H, 3)
+    a = accel[:, : W * H].reshape(B * W, H, 3)
     d = torch.full((B * W, H, 1), dt, dtype=gyro.dtype)
     return integrator(d, g, a)["rot"][:, -1].view(B, W, 4)
 
@@ -379,8 +403,18 @@ class _PyPose:
     log = staticmethod(lambda q: q.Log().tensor())
 
 
-def torch_increment_loss(gyro, accel, q_true, dt, horizons=(16, 32), *, huber_delta=0.005,
-                         weight=1e6, skip=0, integrator=None):
+def torch_increment_loss(
+    gyro,
+    accel,
+    q_true,
+    dt,
+    horizons=(16, 32),
+    *,
+    huber_delta=0.005,
+    weight=1e6,
+    skip=0,
+    integrator=None,
+):
     """The Huber part of :func:`jaximu.learning.losses.increment_loss` in PyTorch: windows of
     ``horizons[0]`` samples integrated by PyPose (``integrator``) or by :func:`plain_windows`,
     longer horizons composed from pairs, ``Log(ΔR_gtᵀ ΔR̂)``, SmoothL1 of ``r/δ`` times δ²,
@@ -397,15 +431,15 @@ def torch_increment_loss(gyro, accel, q_true, dt, horizons=(16, 32), *, huber_de
     for i, H in enumerate(horizons):
         if i:
             W2 = dq.shape[-2] // 2
-            dq = ops.mul(dq[:, 0:2 * W2:2], dq[:, 1:2 * W2:2])
+            dq = ops.mul(dq[:, 0 : 2 * W2 : 2], dq[:, 1 : 2 * W2 : 2])
         n = (q_true.shape[-2] - 1) // H
-        ends = ops.from_wxyz(q_true[:, 0:n * H + 1:H])
+        ends = ops.from_wxyz(q_true[:, 0 : n * H + 1 : H])
         dq_true = ops.mul(ops.inv(ends[:, :-1]), ends[:, 1:])
         W = min(dq_true.shape[-2], dq.shape[-2])
-        s = -(-skip // (2 ** i))
+        s = -(-skip // (2**i))
         r = ops.log(ops.mul(ops.inv(dq_true[:, s:W]), dq[:, s:W]))
         h = F.smooth_l1_loss(r / huber_delta, torch.zeros_like(r), beta=1.0)
-        loss = loss + weight * huber_delta ** 2 * h / 2 ** i
+        loss = loss + weight * huber_delta**2 * h / 2**i
     return loss
 
 
@@ -426,15 +460,18 @@ class TorchRunner:
         self.bias_noise = torch.tensor([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3)
         decay = [p for n, p in tmodel.named_parameters() if p.ndim == 3]
         rest = [p for n, p in tmodel.named_parameters() if p.ndim != 3]
-        self.opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                                      {"params": rest, "weight_decay": 0.0}],
-                                     lr=cfg.learning_rate)
+        self.opt = torch.optim.AdamW(
+            [
+                {"params": decay, "weight_decay": cfg.weight_decay},
+                {"params": rest, "weight_decay": 0.0},
+            ],
+            lr=cfg.learning_rate,
+        )
         self.integrator = None
         if integration == "pypose":
             import pypose as pp
 
-            self.integrator = pp.module.IMUPreintegrator(gravity=9.81, prop_cov=False,
-                                                         reset=True)
+            self.integrator = pp.module.IMUPreintegrator(gravity=9.81, prop_cov=False, reset=True)
         self.gen = torch.Generator().manual_seed(seed)
         self.loss = None
 
@@ -443,18 +480,23 @@ class TorchRunner:
         S, L = self.S, self.L
         offs = torch.randint(0, self.cfg.offset, (S,), generator=self.gen)
         idx = offs[:, None] + torch.arange(L)[None, :]
+
         def take(X, i):
             return torch.gather(X, 1, i[..., None].expand(-1, -1, X.shape[-1]))
 
         x = torch.cat([take(self.G, idx), take(self.A, idx)], -1)
-        x = x + self.noise * torch.randn(x.shape, generator=self.gen) \
+        x = (
+            x
+            + self.noise * torch.randn(x.shape, generator=self.gen)
             + self.bias_noise * torch.randn((S, 1, 6), generator=self.gen)
+        )
         q = take(self.Q, torch.cat([idx, idx[:, -1:] + 1], 1))
         self.model.train()
         self.opt.zero_grad(set_to_none=True)
         w, a, _ = self.model(x[..., :3].contiguous(), x[..., 3:].contiguous())
-        loss = torch_increment_loss(w, a, q, self.dt, self.cfg.horizons, skip=self.cfg.skip,
-                                    integrator=self.integrator)
+        loss = torch_increment_loss(
+            w, a, q, self.dt, self.cfg.horizons, skip=self.cfg.skip, integrator=self.integrator
+        )
         loss.backward()
         self.opt.step()
         self.loss = loss.item()
@@ -472,12 +514,17 @@ def check_torch_equivalence(jmodel, closure, integration, T=None, S=2, seed=3):
     cfg = closure["cfg"]
     T = 2 * cfg.horizons[-1] if T is None else T
     rng = jax.random.split(jax.random.key(seed), 4)
-    jm = eqx.tree_at(lambda m: (m.head.weight, m.head.bias, m.noise_head.weight, m.gyro_matrix),
-                     jmodel, (0.05 * jax.random.normal(rng[0], jmodel.head.weight.shape),
-                              0.05 * jax.random.normal(rng[1], jmodel.head.bias.shape),
-                              0.3 * jax.random.normal(rng[2], jmodel.noise_head.weight.shape),
-                              1e-2 * jax.random.normal(rng[3], (3, 3))))
-    g, a, q = closure["G"][:S, :T], closure["A"][:S, :T], closure["Q"][:S, :T + 1]
+    jm = eqx.tree_at(
+        lambda m: (m.head.weight, m.head.bias, m.noise_head.weight, m.gyro_matrix),
+        jmodel,
+        (
+            0.05 * jax.random.normal(rng[0], jmodel.head.weight.shape),
+            0.05 * jax.random.normal(rng[1], jmodel.head.bias.shape),
+            0.3 * jax.random.normal(rng[2], jmodel.noise_head.weight.shape),
+            1e-2 * jax.random.normal(rng[3], (3, 3)),
+        ),
+    )
+    g, a, q = closure["G"][:S, :T], closure["A"][:S, :T], closure["Q"][:S, : T + 1]
     dt = closure["dt"]
 
     def jloss(m):
@@ -503,7 +550,8 @@ def check_torch_equivalence(jmodel, closure, integration, T=None, S=2, seed=3):
         batch=[S, T],
         gyro_rel=rel(w.detach().numpy(), np.asarray(cj.gyro)),
         density_rel=rel(dens.detach().numpy(), np.asarray(cj.gyro_density)),
-        loss_jax=float(lj), loss_torch=float(lt.detach()),
+        loss_jax=float(lj),
+        loss_torch=float(lt.detach()),
         loss_rel=abs(float(lt.detach()) - float(lj)) / abs(float(lj)),
         grad_first_layer_rel=rel(tm.convs[0].weight.grad.numpy(), grad_j),
         integration=integration,
@@ -518,8 +566,8 @@ def integration_runners(closure, integration_available):
     S, L, dt = closure["S"], closure["L"], closure["dt"]
     H = closure["cfg"].horizons[0]
     W = L // H
-    g = jnp.asarray(closure["G"][:, :W * H]).reshape(S, W, H, 3)
-    a = jnp.asarray(closure["A"][:, :W * H]).reshape(S, W, H, 3)
+    g = jnp.asarray(closure["G"][:, : W * H]).reshape(S, W, H, 3)
+    a = jnp.asarray(closure["A"][:, : W * H]).reshape(S, W, H, 3)
     d = jnp.asarray(dt, jnp.float32)
     weights = jnp.asarray(np.random.default_rng(0).normal(size=(S, W, 4)), jnp.float32)
 
@@ -535,7 +583,7 @@ def integration_runners(closure, integration_available):
         t0 = time.perf_counter()
         c = jax.jit(f).lower(g, a).compile()
         compile_s[name] = time.perf_counter() - t0
-        runners[name] = (lambda c=c: jax.block_until_ready(c(g, a)))
+        runners[name] = lambda c=c: jax.block_until_ready(c(g, a))
     if integration_available:
         import pypose as pp
         import torch
@@ -566,8 +614,7 @@ def integration_runners(closure, integration_available):
 # --------------------------------------------------------------------------- timing
 
 
-def alternate(runners: dict, repeats: int, warmup: int = 1, min_round_s: float = 0.0,
-              log=None):
+def alternate(runners: dict, repeats: int, warmup: int = 1, min_round_s: float = 0.0, log=None):
     """Run each of ``runners`` (name → callable) ``warmup`` times, then ``repeats`` rounds
     of each in turn; returns name → list of seconds per call (one per round) and the time of
     each one's first call. A runner whose warm-up call took less than ``min_round_s`` is
@@ -590,8 +637,10 @@ def alternate(runners: dict, repeats: int, warmup: int = 1, min_round_s: float =
                 fn()
             times[name].append((time.perf_counter() - t0) / calls[name])
         if log:
-            log(f"  round {r + 1}/{repeats}: " + ", ".join(
-                f"{n} {ts[-1]:.4f} s" for n, ts in times.items()))
+            log(
+                f"  round {r + 1}/{repeats}: "
+                + ", ".join(f"{n} {ts[-1]:.4f} s" for n, ts in times.items())
+            )
     return times, first, calls
 
 
@@ -599,8 +648,9 @@ def summarise(times, samples):
     out = {}
     for name, ts in times.items():
         med = statistics.median(ts)
-        out[name] = dict(median_s=med, min_s=min(ts), max_s=max(ts), runs_s=ts,
-                         samples_per_s=samples / med)
+        out[name] = dict(
+            median_s=med, min_s=min(ts), max_s=max(ts), runs_s=ts, samples_per_s=samples / med
+        )
     return out
 
 
@@ -608,9 +658,12 @@ def ratio(times, a, b):
     """``b``'s time over ``a``'s (how many times faster ``a`` is): from the medians, and the
     median and range of the per-round ratios."""
     per_round = [tb / ta for ta, tb in zip(times[a], times[b])]
-    return dict(of_medians=statistics.median(times[b]) / statistics.median(times[a]),
-                median_per_round=statistics.median(per_round),
-                min_per_round=min(per_round), max_per_round=max(per_round))
+    return dict(
+        of_medians=statistics.median(times[b]) / statistics.median(times[a]),
+        median_per_round=statistics.median(per_round),
+        min_per_round=min(per_round),
+        max_per_round=max(per_round),
+    )
 
 
 def fmt_rate(x):
@@ -625,8 +678,13 @@ def say(*a):
 
 
 def versions():
-    v = {"python": sys.version.split()[0], "jax": jax.__version__, "equinox": eqx.__version__,
-         "numpy": np.__version__, "jaximu": jaximu.__version__}
+    v = {
+        "python": sys.version.split()[0],
+        "jax": jax.__version__,
+        "equinox": eqx.__version__,
+        "numpy": np.__version__,
+        "jaximu": jaximu.__version__,
+    }
     for mod in ("jaxlib", "optax", "torch", "pypose"):
         try:
             v[mod] = __import__(mod).__version__
@@ -637,30 +695,58 @@ def versions():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    ap.add_argument("--data", nargs="+", required=True, metavar="DIR",
-                    help="sequence folders with ground truth (the EuRoC training sequences)")
-    ap.add_argument("--repeats", type=int, default=7,
-                    help="timed rounds of each variant, after warm-up (default 7, at least 5 "
-                         "for a reported figure)")
+    ap.add_argument(
+        "--data",
+        nargs="+",
+        required=True,
+        metavar="DIR",
+        help="sequence folders with ground truth (the EuRoC training sequences)",
+    )
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=7,
+        help="timed rounds of each variant, after warm-up (default 7, at least 5 "
+        "for a reported figure)",
+    )
     ap.add_argument("--warmup", type=int, default=2, help="untimed calls of each variant")
-    ap.add_argument("--quick", action="store_true",
-                    help="smoke test: 2 repeats, 1 warm-up (figures not for reporting)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke test: 2 repeats, 1 warm-up (figures not for reporting)",
+    )
     ap.add_argument("--no-torch", action="store_true", help="leave the PyTorch rows out")
-    ap.add_argument("--torch-integration", choices=("auto", "pypose", "plain"), default="auto",
-                    help="how the PyTorch loss integrates its windows: PyPose's "
-                         "IMUPreintegrator (auto: when importable) or a plain quaternion product")
-    ap.add_argument("--no-plain", action="store_true",
-                    help="leave out the PyTorch step with plain quaternion integration (timed "
-                         "beside the PyPose one: what PyPose's integration costs in the step)")
-    ap.add_argument("--full-training", action="store_true",
-                    help="also run jaximu.learning.train with the default TrainConfig to the "
-                         "end (~10 min on 2 cores): wall time to the final model")
-    ap.add_argument("--train-minutes", type=float, default=None,
-                    help="with --full-training: stop train after this wall time (its "
-                         "`minutes`)")
+    ap.add_argument(
+        "--torch-integration",
+        choices=("auto", "pypose", "plain"),
+        default="auto",
+        help="how the PyTorch loss integrates its windows: PyPose's "
+        "IMUPreintegrator (auto: when importable) or a plain quaternion product",
+    )
+    ap.add_argument(
+        "--no-plain",
+        action="store_true",
+        help="leave out the PyTorch step with plain quaternion integration (timed "
+        "beside the PyPose one: what PyPose's integration costs in the step)",
+    )
+    ap.add_argument(
+        "--full-training",
+        action="store_true",
+        help="also run jaximu.learning.train with the default TrainConfig to the "
+        "end (~10 min on 2 cores): wall time to the final model",
+    )
+    ap.add_argument(
+        "--train-minutes",
+        type=float,
+        default=None,
+        help="with --full-training: stop train after this wall time (its `minutes`)",
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=None, help="JSON output path (default "
-                    "benchmarks/results/learning-<machine>.json)")
+    ap.add_argument(
+        "--out",
+        default=None,
+        help="JSON output path (default benchmarks/results/learning-<machine>.json)",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.repeats, args.warmup = 2, 1
@@ -669,30 +755,45 @@ def main(argv=None):
 
     info = machine_info()
     vers = versions()
-    say(f"# learning benchmark on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), "
+    say(
+        f"# learning benchmark on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), "
         f"jax {vers['jax']} ({jax.default_backend()}), equinox {vers['equinox']}, "
-        f"torch {vers['torch']}, pypose {vers['pypose']}")
+        f"torch {vers['torch']}, pypose {vers['pypose']}"
+    )
 
     folders = [pathlib.Path(p) for p in args.data]
     t0 = time.perf_counter()
     seqs = [load_sequence(p) for p in folders]
     load_s = time.perf_counter() - t0
-    say(f"read {len(seqs)} sequences in {load_s:.1f} s: " +
-        ", ".join(f"{s.name} ({len(s)})" for s in seqs))
+    say(
+        f"read {len(seqs)} sequences in {load_s:.1f} s: "
+        + ", ".join(f"{s.name} ({len(s)})" for s in seqs)
+    )
 
     config = TrainConfig()
     step_fn, step_args, closure = capture_train_step(seqs, config, args.seed)
     S, L = closure["S"], closure["L"]
     samples = S * L
-    say(f"train's step: {S} parts × {L} samples = {samples} samples per step "
-        f"(windows of {config.horizons}, skip {config.skip}, offsets < {config.offset})")
+    say(
+        f"train's step: {S} parts × {L} samples = {samples} samples per step "
+        f"(windows of {config.horizons}, skip {config.skip}, offsets < {config.offset})"
+    )
 
-    doc = dict(benchmark="learning", host=machine_slug(info), machine=info, versions=vers,
-               data=[str(p) for p in folders], sequences=[s.name for s in seqs],
-               load_seconds=load_s, train_config=config.to_json(),
-               model_config=step_args[0].config.to_json(),
-               batch=dict(parts=S, samples_per_part=L, samples_per_step=samples),
-               repeats=args.repeats, warmup=args.warmup, quick=args.quick)
+    doc = dict(
+        benchmark="learning",
+        host=machine_slug(info),
+        machine=info,
+        versions=vers,
+        data=[str(p) for p in folders],
+        sequences=[s.name for s in seqs],
+        load_seconds=load_s,
+        train_config=config.to_json(),
+        model_config=step_args[0].config.to_json(),
+        batch=dict(parts=S, samples_per_part=L, samples_per_step=samples),
+        repeats=args.repeats,
+        warmup=args.warmup,
+        quick=args.quick,
+    )
 
     # ---- 1. compile jaximu's step (and the no-NLL variant)
     compiled, comp = compile_step(step_fn, step_args, nll=True)
@@ -704,8 +805,10 @@ def main(argv=None):
     use_torch = torch_available() and not args.no_torch
     integration = None
     if not use_torch:
-        say("PyTorch rows skipped: " + ("--no-torch" if args.no_torch else
-                                        "torch is not installed (pip install torch)"))
+        say(
+            "PyTorch rows skipped: "
+            + ("--no-torch" if args.no_torch else "torch is not installed (pip install torch)")
+        )
     else:
         import torch
 
@@ -721,19 +824,23 @@ def main(argv=None):
             if patched:
                 say("note: " + patched)
         if integration == "plain":
-            say("PyTorch loss integrates its windows with plain quaternion products"
-                + ("" if pypose_available() else " (pypose is not installed)"))
+            say(
+                "PyTorch loss integrates its windows with plain quaternion products"
+                + ("" if pypose_available() else " (pypose is not installed)")
+            )
         check = check_torch_equivalence(step_args[0], closure, integration)
         worst = max(check["gyro_rel"], check["density_rel"], check["loss_rel"])
         ok = bool(np.isfinite(worst) and worst < CHECK_RTOL)  # a NaN loss is no agreement
         check["ok"] = ok
         doc["torch_check"] = check
-        say(f"check, PyTorch against jaximu (same weights, batch {check['batch']}, float32, "
+        say(
+            f"check, PyTorch against jaximu (same weights, batch {check['batch']}, float32, "
             f"{integration} integration): corrected gyro {check['gyro_rel']:.1e}, density "
             f"{check['density_rel']:.1e}, loss {check['loss_torch']:.6g} vs "
             f"{check['loss_jax']:.6g} ({check['loss_rel']:.1e}); first-layer gradient "
             f"{check['grad_first_layer_rel']:.1e} (max relative differences) -> "
-            + ("agree" if ok else f"DIFFER (tolerance {CHECK_RTOL:g})"))
+            + ("agree" if ok else f"DIFFER (tolerance {CHECK_RTOL:g})")
+        )
         tmodel = make_torch_model(step_args[0].config)
         jax_to_torch(step_args[0], tmodel)  # the same initial weights as jaximu's step
         runners["torch step"] = TorchRunner(tmodel, closure, integration, args.seed)
@@ -743,8 +850,7 @@ def main(argv=None):
         # windows integrated by plain quaternion products
         tplain = make_torch_model(step_args[0].config)
         jax_to_torch(step_args[0], tplain)
-        runners["torch step, plain integration"] = TorchRunner(tplain, closure, "plain",
-                                                               args.seed)
+        runners["torch step, plain integration"] = TorchRunner(tplain, closure, "plain", args.seed)
 
     say(f"timing the training steps: {args.warmup} warm-up + {args.repeats} alternating rounds")
     meter = CpuMeter()
@@ -756,38 +862,55 @@ def main(argv=None):
         steps[name]["final_loss"] = runners[name].loss
         if isinstance(runners[name], JaxRunner):
             steps[name]["final_nll"] = runners[name].nll
-    if steps["jaximu step without NLL"]["final_nll"] != 0.0 or \
-            steps["jaximu step"]["final_nll"] == 0.0:
-        raise AssertionError("the step without NLL still computes it (or the step with it "
-                             "does not): capture_train_step/compile_step no longer apply")
+    if (
+        steps["jaximu step without NLL"]["final_nll"] != 0.0
+        or steps["jaximu step"]["final_nll"] == 0.0
+    ):
+        raise AssertionError(
+            "the step without NLL still computes it (or the step with it "
+            "does not): capture_train_step/compile_step no longer apply"
+        )
     steps["jaximu step"]["compile_s"] = comp
     steps["jaximu step without NLL"]["compile_s"] = comp_h
     ratios = {}
     if "torch step" in steps:
         ratios["jaximu step vs torch"] = ratio(times, "jaximu step", "torch step")
-        ratios["jaximu step without NLL vs torch"] = ratio(times, "jaximu step without NLL",
-                                                           "torch step")
+        ratios["jaximu step without NLL vs torch"] = ratio(
+            times, "jaximu step without NLL", "torch step"
+        )
     if "torch step, plain integration" in steps:
         ratios["jaximu step without NLL vs torch, plain integration"] = ratio(
-            times, "jaximu step without NLL", "torch step, plain integration")
+            times, "jaximu step without NLL", "torch step, plain integration"
+        )
         ratios["torch plain integration vs pypose"] = ratio(
-            times, "torch step, plain integration", "torch step")
+            times, "torch step, plain integration", "torch step"
+        )
     ratios["jaximu NLL cost"] = ratio(times, "jaximu step without NLL", "jaximu step")
-    doc["training_step"] = dict(samples_per_step=samples, cases=steps, ratios=ratios,
-                                other_cpu_share=other, torch_integration=integration,
-                                torch_threads=TORCH_THREADS if use_torch else None)
+    doc["training_step"] = dict(
+        samples_per_step=samples,
+        cases=steps,
+        ratios=ratios,
+        other_cpu_share=other,
+        torch_integration=integration,
+        torch_threads=TORCH_THREADS if use_torch else None,
+    )
 
     # ---- 3. the integration alone
     pp_ok = use_torch and pypose_available()
     if not pp_ok:
-        say("PyPose rows skipped: " + ("no torch" if not use_torch else
-                                       "pypose is not installed (pip install pypose)"))
+        say(
+            "PyPose rows skipped: "
+            + ("no torch" if not use_torch else "pypose is not installed (pip install pypose)")
+        )
     irunners, icomp, ishape = integration_runners(closure, pp_ok)
-    say(f"timing the integration of {ishape['windows']} windows × {ishape['window_samples']} "
-        f"samples: {args.warmup} warm-up + {args.repeats} alternating rounds")
+    say(
+        f"timing the integration of {ishape['windows']} windows × {ishape['window_samples']} "
+        f"samples: {args.warmup} warm-up + {args.repeats} alternating rounds"
+    )
     meter = CpuMeter()
-    itimes, ifirst, icalls = alternate(irunners, args.repeats, args.warmup, min_round_s=0.3,
-                                      log=say)
+    itimes, ifirst, icalls = alternate(
+        irunners, args.repeats, args.warmup, min_round_s=0.3, log=say
+    )
     iother = meter.other_share()
     integ = summarise(itimes, ishape["samples"])
     for name in integ:
@@ -799,8 +922,13 @@ def main(argv=None):
     if pp_ok:
         iratios["forward"] = ratio(itimes, "jaximu forward", "pypose forward")
         iratios["forward+grad"] = ratio(itimes, "jaximu forward+grad", "pypose forward+grad")
-    doc["integration"] = dict(**ishape, cases=integ, ratios=iratios, other_cpu_share=iother,
-                              target_vs_pypose=INTEGRATION_TARGET)
+    doc["integration"] = dict(
+        **ishape,
+        cases=integ,
+        ratios=iratios,
+        other_cpu_share=iother,
+        target_vs_pypose=INTEGRATION_TARGET,
+    )
 
     # ---- report (written before the whole training, which takes long)
     say("\n| workload | variant | samples/s | median s | range s | first call s | compile s |")
@@ -808,26 +936,43 @@ def main(argv=None):
     for wl, cases in (("training step", steps), ("integration", integ)):
         for name, c in cases.items():
             comp_txt = f"{c['compile_s']:.1f}" if "compile_s" in c else "-"
-            say(f"| {wl} | {name} | {fmt_rate(c['samples_per_s'])} | {c['median_s']:.3f} | "
-                f"{c['min_s']:.3f}–{c['max_s']:.3f} | {c['first_call_s']:.2f} | {comp_txt} |")
-    say(f"\ntraining step: {S} × {L} = {samples} samples; other processes used "
-        f"{100 * (other or 0):.0f} % of the CPUs while it was timed")
+            say(
+                f"| {wl} | {name} | {fmt_rate(c['samples_per_s'])} | {c['median_s']:.3f} | "
+                f"{c['min_s']:.3f}–{c['max_s']:.3f} | {c['first_call_s']:.2f} | {comp_txt} |"
+            )
+    say(
+        f"\ntraining step: {S} × {L} = {samples} samples; other processes used "
+        f"{100 * (other or 0):.0f} % of the CPUs while it was timed"
+    )
     for name, r in ratios.items():
-        say(f"- {name}: {r['of_medians']:.2f}× (per round {r['median_per_round']:.2f}×, "
-            f"{r['min_per_round']:.2f}–{r['max_per_round']:.2f})")
-    say(f"integration: {ishape['windows']} windows × {ishape['window_samples']} samples; other "
-        f"processes used {100 * (iother or 0):.0f} % of the CPUs")
+        say(
+            f"- {name}: {r['of_medians']:.2f}× (per round {r['median_per_round']:.2f}×, "
+            f"{r['min_per_round']:.2f}–{r['max_per_round']:.2f})"
+        )
+    say(
+        f"integration: {ishape['windows']} windows × {ishape['window_samples']} samples; other "
+        f"processes used {100 * (iother or 0):.0f} % of the CPUs"
+    )
     for name, r in iratios.items():
         verdict = "met" if r["of_medians"] >= INTEGRATION_TARGET else "missed"
-        say(f"- jaximu vs PyPose, {name}: {r['of_medians']:.2f}× (per round "
+        say(
+            f"- jaximu vs PyPose, {name}: {r['of_medians']:.2f}× (per round "
             f"{r['median_per_round']:.2f}×, {r['min_per_round']:.2f}–{r['max_per_round']:.2f}); "
-            f"target ≥ {INTEGRATION_TARGET:g}×: {verdict}")
+            f"target ≥ {INTEGRATION_TARGET:g}×: {verdict}"
+        )
     if any(x is not None and x > 0.10 for x in (other, iother)):
-        say("note: other processes used more than 10 % of the CPUs: the figures are lower "
-            "bounds, and the ratios less certain than on a quiet machine")
+        say(
+            "note: other processes used more than 10 % of the CPUs: the figures are lower "
+            "bounds, and the ratios less certain than on a quiet machine"
+        )
 
-    out = pathlib.Path(args.out) if args.out else (
-        HERE / "results" / f"learning-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
+    out = (
+        pathlib.Path(args.out)
+        if args.out
+        else (
+            HERE / "results" / f"learning-{machine_slug(info)}{'-quick' if args.quick else ''}.json"
+        )
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
 
     def save():
@@ -840,34 +985,54 @@ def main(argv=None):
 
     # ---- 4. the whole training run (opt-in)
     if args.full_training:
-        say("running jaximu.learning.train (default TrainConfig"
-            + (f", minutes={args.train_minutes:g}" if args.train_minutes else "") + ")")
+        say(
+            "running jaximu.learning.train (default TrainConfig"
+            + (f", minutes={args.train_minutes:g}" if args.train_minutes else "")
+            + ")"
+        )
         meter = CpuMeter()
         t0 = time.perf_counter()
-        result = train(seqs, config, seed=args.seed, minutes=args.train_minutes,
-                       log=lambda s: say("  " + s))
+        result = train(
+            seqs, config, seed=args.seed, minutes=args.train_minutes, log=lambda s: say("  " + s)
+        )
         wall = time.perf_counter() - t0
         rec = result.record
         best = next((h for h in rec["history"] if h["step"] == rec["best_step"]), None)
         doc["full_training"] = dict(
-            wall_s=wall, train_wall_s=rec["wall_seconds"], compile_s=rec["compile_seconds"],
-            steps_run=rec["steps_run"], cut_short=rec["cut_short"], best_step=rec["best_step"],
-            minutes=args.train_minutes, other_cpu_share=meter.other_share(),
-            validation=[dict(sequence=n, constant_bias_deg=c,
-                             learned_deg=(best["validation_aoe_mean_deg"][i] if best else None))
-                        for i, (n, c) in enumerate(zip(rec["sequences"],
-                                                       rec["validation_constant_bias_deg"]))],
-            validation_mean_learned_deg=(rec["validation_aoe_mean_deg"]
-                                         if math.isfinite(rec["validation_aoe_mean_deg"])
-                                         else None),  # inf: cut before any validation
-            history=rec["history"])
+            wall_s=wall,
+            train_wall_s=rec["wall_seconds"],
+            compile_s=rec["compile_seconds"],
+            steps_run=rec["steps_run"],
+            cut_short=rec["cut_short"],
+            best_step=rec["best_step"],
+            minutes=args.train_minutes,
+            other_cpu_share=meter.other_share(),
+            validation=[
+                dict(
+                    sequence=n,
+                    constant_bias_deg=c,
+                    learned_deg=(best["validation_aoe_mean_deg"][i] if best else None),
+                )
+                for i, (n, c) in enumerate(
+                    zip(rec["sequences"], rec["validation_constant_bias_deg"])
+                )
+            ],
+            validation_mean_learned_deg=(
+                rec["validation_aoe_mean_deg"]
+                if math.isfinite(rec["validation_aoe_mean_deg"])
+                else None
+            ),  # inf: cut before any validation
+            history=rec["history"],
+        )
 
     if "full_training" in doc:
         ft = doc["full_training"]
-        say(f"\nfull training: {ft['steps_run']} steps, wall {ft['train_wall_s']:.0f} s to the "
+        say(
+            f"\nfull training: {ft['steps_run']} steps, wall {ft['train_wall_s']:.0f} s to the "
             f"final model (of which compile ≈ {ft['compile_s']:.1f} s; with the benchmark's "
             f"overhead {ft['wall_s']:.0f} s); best step {ft['best_step']}"
-            + (" (cut short by --train-minutes)" if ft["cut_short"] else ""))
+            + (" (cut short by --train-minutes)" if ft["cut_short"] else "")
+        )
         say("| sequence | constant bias AOE ° | learned AOE ° |\n|---|--:|--:|")
         for v in ft["validation"]:
             ld = "-" if v["learned_deg"] is None else f"{v['learned_deg']:.2f}"

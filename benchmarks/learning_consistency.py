@@ -58,7 +58,7 @@ def simulated_nees(F, Q, terms, bias_sigma, draws, rng):
     """``(draws,)`` average NEES of runs drawn from the model's own error model."""
     W, B = np.asarray(terms.W, np.float64), np.asarray(terms.B, np.float64)
     s_ref = float(terms.reference_sigma)
-    S = W + bias_sigma ** 2 * B @ np.swapaxes(B, -1, -2) + 2.0 * s_ref ** 2 * np.eye(3)
+    S = W + bias_sigma**2 * B @ np.swapaxes(B, -1, -2) + 2.0 * s_ref**2 * np.eye(3)
     S_inv = np.linalg.inv(S)
     L = np.linalg.cholesky(Q + 1e-30 * np.eye(6))  # Q's bias rows are exact zeros at times
     x = np.zeros((draws, 6))
@@ -89,8 +89,10 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(a.seed)
     rows, inside = [], []
     print(f"σ_b set on all sequences: {sigma:.3g} rad/s; simulated runs per sequence: {a.draws}")
-    print(f"{'sequence':24s} {'samples':>7s} {'NEES(all)':>9s} {'NEES(LOO)':>9s}   consistent "
-          f"model's NEES: 5%    50%    95%  P(in [{BAND[0]:g}, {BAND[1]:g}])")
+    print(
+        f"{'sequence':24s} {'samples':>7s} {'NEES(all)':>9s} {'NEES(LOO)':>9s}   consistent "
+        f"model's NEES: 5%    50%    95%  P(in [{BAND[0]:g}, {BAND[1]:g}])"
+    )
     for s, k, t, (_, nees_loo) in zip(seqs, starts, terms, loo):
         F, Q = step_blocks(model, s, k)
         sim = simulated_nees(F, Q, t, sigma, a.draws, rng)
@@ -98,18 +100,40 @@ def main(argv=None) -> int:
         q5, q50, q95 = np.quantile(sim, [0.05, 0.5, 0.95])
         measured = uncertainty.average_nees(t, sigma)
         inside.append(p)
-        rows.append({"name": s.name, "samples": len(s) - k, "nees_all": measured,
-                     "nees_leave_one_out": nees_loo, "consistent_quantiles": [q5, q50, q95],
-                     "consistent_p_in_band": p})
-        print(f"{s.name:24s} {len(s) - k:7d} {measured:9.2f} {nees_loo:9.2f}   "
-              f"{'':15s}{q5:5.2f}  {q50:5.2f}  {q95:5.2f}  {p:5.2f}")
+        rows.append(
+            {
+                "name": s.name,
+                "samples": len(s) - k,
+                "nees_all": measured,
+                "nees_leave_one_out": nees_loo,
+                "consistent_quantiles": [q5, q50, q95],
+                "consistent_p_in_band": p,
+            }
+        )
+        print(
+            f"{s.name:24s} {len(s) - k:7d} {measured:9.2f} {nees_loo:9.2f}   "
+            f"{'':15s}{q5:5.2f}  {q50:5.2f}  {q95:5.2f}  {p:5.2f}"
+        )
     joint = float(np.prod(inside))
-    print(f"a consistent model puts every sequence in [{BAND[0]:g}, {BAND[1]:g}] with probability "
-          f"{joint:.2f} (independent sequences)")
+    print(
+        f"a consistent model puts every sequence in [{BAND[0]:g}, {BAND[1]:g}] with probability "
+        f"{joint:.2f} (independent sequences)"
+    )
     if a.out:
-        a.out.write_text(json.dumps({"model": a.model, "bias_sigma": sigma, "band": BAND,
-                                     "draws": a.draws, "seed": a.seed, "sequences": rows,
-                                     "p_all_in_band": joint}, indent=1))
+        a.out.write_text(
+            json.dumps(
+                {
+                    "model": a.model,
+                    "bias_sigma": sigma,
+                    "band": BAND,
+                    "draws": a.draws,
+                    "seed": a.seed,
+                    "sequences": rows,
+                    "p_all_in_band": joint,
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

@@ -44,7 +44,9 @@ def _with_oracle(gyro, q_true, dt):
     mean = lambda db: float(np.degrees(np.mean(_errors(gyro, q_true, dt, jnp.asarray(db))[1])))  # noqa: E731
     fit = scipy.optimize.least_squares(
         lambda db: np.asarray(_errors(gyro, q_true, dt, jnp.asarray(db))[0]).ravel(),
-        np.zeros(3), x_scale=1e-3)
+        np.zeros(3),
+        x_scale=1e-3,
+    )
     return mean(np.zeros(3)), mean(fit.x), fit.x
 
 
@@ -54,12 +56,11 @@ def main(argv=None):
     ap.add_argument("--model", default="euroc", help="a model folder, or 'euroc' (shipped)")
     ap.add_argument("--json", help="write the table here")
     a = ap.parse_args(argv)
-    model = (learning.pretrained(a.model) if a.model == "euroc" else learning.load(a.model))
+    model = learning.pretrained(a.model) if a.model == "euroc" else learning.load(a.model)
     model = model.astype(jnp.float64)
     b_bar = np.asarray(model.config.gyro_bias)
     rows = []
-    print(f"{'sequence':26s} {'samples':>7s}  {'':13s} {'AOE':>6s} {'oracle':>6s}  "
-          "δb [mrad/s]")
+    print(f"{'sequence':26s} {'samples':>7s}  {'':13s} {'AOE':>6s} {'oracle':>6s}  δb [mrad/s]")
     for folder in a.data:
         seq = learning.load_sequence(folder)
         _, val = learning.split(seq)
@@ -69,10 +70,15 @@ def main(argv=None):
         row = {"name": seq.name, "samples": len(val)}
         for label, gyro in (("constant_bias", val.gyro - b_bar), ("learned", corrected)):
             aoe, oracle, db = _with_oracle(gyro, q_true, dt)
-            row[label] = {"aoe_mean_deg": aoe, "oracle_aoe_mean_deg": oracle,
-                          "residual_bias_mrad_s": (db * 1e3).tolist()}
-            print(f"{seq.name:26s} {len(val):7d}  {label:13s} {aoe:6.2f} {oracle:6.2f}  "
-                  f"{np.round(db * 1e3, 2)}")
+            row[label] = {
+                "aoe_mean_deg": aoe,
+                "oracle_aoe_mean_deg": oracle,
+                "residual_bias_mrad_s": (db * 1e3).tolist(),
+            }
+            print(
+                f"{seq.name:26s} {len(val):7d}  {label:13s} {aoe:6.2f} {oracle:6.2f}  "
+                f"{np.round(db * 1e3, 2)}"
+            )
         if val.b_g is not None:
             row["gt_minus_constant_mrad_s"] = ((val.b_g.mean(0) - b_bar) * 1e3).tolist()
             print(f"{'':26s} {'':7s}  gt − b̄ {np.round(row['gt_minus_constant_mrad_s'], 2)}")

@@ -71,8 +71,18 @@ def bench_jaximu(n_runs, dtype, **kw):
     kw.setdefault("record_every", T)
 
     def run():
-        return monte_carlo(traj, times, P0, noise, n_runs, jax.random.key(0), dtype=dtype,
-                           chunk_size=min(n_runs, 2048), n_keep=0, **kw)
+        return monte_carlo(
+            traj,
+            times,
+            P0,
+            noise,
+            n_runs,
+            jax.random.key(0),
+            dtype=dtype,
+            chunk_size=min(n_runs, 2048),
+            n_keep=0,
+            **kw,
+        )
 
     secs, comp = timed(run)
     res = run()
@@ -127,8 +137,10 @@ def bench_subprocess(n_runs, devices=None, dist=None):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    procs = [subprocess.Popen(cmd + [f"{i}:{port}"], stdout=subprocess.PIPE, text=True, env=env)
-             for i in range(2)]
+    procs = [
+        subprocess.Popen(cmd + [f"{i}:{port}"], stdout=subprocess.PIPE, text=True, env=env)
+        for i in range(2)
+    ]
     return [json.loads(p.communicate()[0].strip().splitlines()[-1]) for p in procs]
 
 
@@ -144,8 +156,9 @@ def bench_per_run_covariance(n_runs, dtype):
 
     @jax.jit
     def one_chunk(key):
-        w, a, _ = sim.add_noise(key, gyro, accel, jnp.full(T + 1, DT, dtype), noise,
-                                batch_shape=(chunk,))
+        w, a, _ = sim.add_noise(
+            key, gyro, accel, jnp.full(T + 1, DT, dtype), noise, batch_shape=(chunk,)
+        )
         x = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, (chunk,) + v.shape), x0)
         return jaximu.propagate_covariance_final(x, P0, w[:, :T], a[:, :T], dt, noise)
 
@@ -161,7 +174,9 @@ def bench_per_run_covariance(n_runs, dtype):
 def bench_gtsam(n_runs):
     import gtsam
 
-    scenario = gtsam.ConstantTwistScenario(np.array([0, 0, SPEED / RADIUS]), np.array([SPEED, 0, 0]))
+    scenario = gtsam.ConstantTwistScenario(
+        np.array([0, 0, SPEED / RADIUS]), np.array([SPEED, 0, 0])
+    )
     params = gtsam.PreintegrationParams.MakeSharedU(9.81)
     n = jaximu.ImuNoise.euroc()
     params.setGyroscopeCovariance(np.eye(3) * n.gyroscope_noise_density**2)
@@ -182,74 +197,146 @@ def main(argv=None):
     n_runs = 2000 if args.quick else 10_000
     samples = n_runs * T
     info = machine_info()
-    print(f"# Monte Carlo benchmark on {info['cpu_model']} ({info['cpu_count']} CPUs), "
-          f"N = {n_runs} × {T} samples", flush=True)
+    print(
+        f"# Monte Carlo benchmark on {info['cpu_model']} ({info['cpu_count']} CPUs), "
+        f"N = {n_runs} × {T} samples",
+        flush=True,
+    )
     rows = []
     g_rate = None
     try:
         secs, _ = bench_gtsam(n_runs)
         g_rate = samples / secs
-        rows.append(dict(case="gtsam ScenarioRunner.estimateCovariance", dtype="float64",
-                         run_s=secs, compile_s=0.0, rate=g_rate))
+        rows.append(
+            dict(
+                case="gtsam ScenarioRunner.estimateCovariance",
+                dtype="float64",
+                run_s=secs,
+                compile_s=0.0,
+                rate=g_rate,
+            )
+        )
         print(f"gtsam: {secs:.2f} s", flush=True)
     except ImportError:
         print("gtsam is not installed: baseline skipped", flush=True)
     for dtype in (jnp.float32, jnp.float64):
         name = jnp.dtype(dtype).name
         secs, comp, res = bench_jaximu(n_runs, dtype)
-        rows.append(dict(case="jaximu monte_carlo (noise in the scan, covariance once)",
-                         dtype=name, run_s=secs, compile_s=comp, rate=samples / secs,
-                         nees=float(res.nees_mean[-1]), nees_bounds=res.nees_bounds.tolist()))
-        print(f"jaximu {name}: {secs:.2f} s, NEES {res.nees_mean[-1]:.2f} in "
-              f"[{res.nees_bounds[0]:.2f}, {res.nees_bounds[1]:.2f}]", flush=True)
-        secs, comp, res = bench_jaximu(n_runs, dtype, update_every=20,
-                                       measurement=PositionFix(0.05))
-        rows.append(dict(case="jaximu filter study (own covariance, position fix / 20 samples)",
-                         dtype=name, run_s=secs, compile_s=comp, rate=samples / secs,
-                         nees=float(res.nees_mean[-1]), nis=float(res.nis_mean[-1])))
-        print(f"jaximu filter {name}: {secs:.2f} s, NEES {res.nees_mean[-1]:.2f} "
-              f"NIS {res.nis_mean[-1]:.2f}", flush=True)
+        rows.append(
+            dict(
+                case="jaximu monte_carlo (noise in the scan, covariance once)",
+                dtype=name,
+                run_s=secs,
+                compile_s=comp,
+                rate=samples / secs,
+                nees=float(res.nees_mean[-1]),
+                nees_bounds=res.nees_bounds.tolist(),
+            )
+        )
+        print(
+            f"jaximu {name}: {secs:.2f} s, NEES {res.nees_mean[-1]:.2f} in "
+            f"[{res.nees_bounds[0]:.2f}, {res.nees_bounds[1]:.2f}]",
+            flush=True,
+        )
+        secs, comp, res = bench_jaximu(
+            n_runs, dtype, update_every=20, measurement=PositionFix(0.05)
+        )
+        rows.append(
+            dict(
+                case="jaximu filter study (own covariance, position fix / 20 samples)",
+                dtype=name,
+                run_s=secs,
+                compile_s=comp,
+                rate=samples / secs,
+                nees=float(res.nees_mean[-1]),
+                nis=float(res.nis_mean[-1]),
+            )
+        )
+        print(
+            f"jaximu filter {name}: {secs:.2f} s, NEES {res.nees_mean[-1]:.2f} "
+            f"NIS {res.nis_mean[-1]:.2f}",
+            flush=True,
+        )
         if dtype == jnp.float64 or args.quick:
             continue
         secs, comp = bench_per_run_covariance(n_runs, dtype)
-        rows.append(dict(case="jaximu per-run covariance (filter per run)", dtype=name,
-                         run_s=secs, compile_s=comp, rate=samples / secs))
+        rows.append(
+            dict(
+                case="jaximu per-run covariance (filter per run)",
+                dtype=name,
+                run_s=secs,
+                compile_s=comp,
+                rate=samples / secs,
+            )
+        )
         print(f"jaximu per-run covariance {name}: {secs:.2f} s", flush=True)
     # processes: one process on every core vs two processes of one core each (jax.distributed)
     one = bench_subprocess(n_runs)
     two = bench_subprocess(n_runs, devices=1, dist=True)
     rel = np.abs(np.asarray(two[0]["cov"]) - one["cov"]).max() / np.abs(one["cov"]).max()
     secs2 = max(t["secs"] for t in two)
-    rows.append(dict(case=f"2 jax.distributed processes (1 core each; cov rel. diff {rel:.1e})",
-                     dtype="float32", run_s=secs2, compile_s=float("nan"),
-                     rate=samples / secs2, maxrss_mb=max(t["maxrss_mb"] for t in two)))
-    rows.append(dict(case=f"1 process, {os.cpu_count()} devices "
-                          f"(peak RSS {one['maxrss_mb']:.0f} MB)",
-                     dtype="float32", run_s=one["secs"], compile_s=float("nan"),
-                     rate=samples / one["secs"], maxrss_mb=one["maxrss_mb"]))
-    print(f"2 processes: {secs2:.2f} s (stats rel. diff {rel:.1e}); 1 process: {one['secs']:.2f} s",
-          flush=True)
+    rows.append(
+        dict(
+            case=f"2 jax.distributed processes (1 core each; cov rel. diff {rel:.1e})",
+            dtype="float32",
+            run_s=secs2,
+            compile_s=float("nan"),
+            rate=samples / secs2,
+            maxrss_mb=max(t["maxrss_mb"] for t in two),
+        )
+    )
+    rows.append(
+        dict(
+            case=f"1 process, {os.cpu_count()} devices (peak RSS {one['maxrss_mb']:.0f} MB)",
+            dtype="float32",
+            run_s=one["secs"],
+            compile_s=float("nan"),
+            rate=samples / one["secs"],
+            maxrss_mb=one["maxrss_mb"],
+        )
+    )
+    print(
+        f"2 processes: {secs2:.2f} s (stats rel. diff {rel:.1e}); 1 process: {one['secs']:.2f} s",
+        flush=True,
+    )
     if args.big:
         big = bench_subprocess(args.big)
-        rows.append(dict(case=f"{args.big} runs (peak RSS {big['maxrss_mb']:.0f} MB)",
-                         dtype="float32", run_s=big["secs"], compile_s=float("nan"),
-                         rate=args.big * T / big["secs"], maxrss_mb=big["maxrss_mb"]))
-        print(f"{args.big} runs: {big['secs']:.1f} s, peak RSS {big['maxrss_mb']:.0f} MB",
-              flush=True)
+        rows.append(
+            dict(
+                case=f"{args.big} runs (peak RSS {big['maxrss_mb']:.0f} MB)",
+                dtype="float32",
+                run_s=big["secs"],
+                compile_s=float("nan"),
+                rate=args.big * T / big["secs"],
+                maxrss_mb=big["maxrss_mb"],
+            )
+        )
+        print(
+            f"{args.big} runs: {big['secs']:.1f} s, peak RSS {big['maxrss_mb']:.0f} MB", flush=True
+        )
     print("\n| case | dtype | run s | samples/s | compile s | × GTSAM |")
     print("|---|---|---|---|---|---|")
     for r in rows:
         ratio = f"{r['rate'] / g_rate:.1f}" if g_rate else "-"
-        print(f"| {r['case']} | {r['dtype']} | {r['run_s']:.2f} | {r['rate'] / 1e6:.2f} M | "
-              f"{r['compile_s']:.1f} | {ratio} |")
-    best = max((r for r in rows if r["dtype"] == "float32" and r["case"].startswith("jaximu")),
-               key=lambda r: r["rate"])
+        print(
+            f"| {r['case']} | {r['dtype']} | {r['run_s']:.2f} | {r['rate'] / 1e6:.2f} M | "
+            f"{r['compile_s']:.1f} | {ratio} |"
+        )
+    best = max(
+        (r for r in rows if r["dtype"] == "float32" and r["case"].startswith("jaximu")),
+        key=lambda r: r["rate"],
+    )
     verdict = "met" if best["run_s"] < 1.0 else f"missed ({best['run_s']:.2f} s)"
-    print(f"\nTarget (float32): {n_runs} × {T} in under 1 s: {verdict}"
-          + (f"; {best['rate'] / g_rate:.1f}× GTSAM (target 12×)" if g_rate else ""))
+    print(
+        f"\nTarget (float32): {n_runs} × {T} in under 1 s: {verdict}"
+        + (f"; {best['rate'] / g_rate:.1f}× GTSAM (target 12×)" if g_rate else "")
+    )
     print(f"load average during the run: {os.getloadavg()} on {os.cpu_count()} cores")
-    out = args.out or os.path.join(os.path.dirname(__file__), "results",
-                                   f"montecarlo-{machine_slug(info)}{'-quick' if args.quick else ''}.json")
+    out = args.out or os.path.join(
+        os.path.dirname(__file__),
+        "results",
+        f"montecarlo-{machine_slug(info)}{'-quick' if args.quick else ''}.json",
+    )
     os.makedirs(os.path.dirname(out), exist_ok=True)
     with open(out, "w") as f:
         json.dump(dict(machine=info, n_runs=n_runs, samples=T, rows=rows), f, indent=1)

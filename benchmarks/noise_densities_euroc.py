@@ -40,9 +40,16 @@ DATASHEET = jaximu.ImuNoise.euroc()
 def problem(d, gt, noise, lengths, ref_sigma, lo, hi):
     sel = np.flatnonzero((d.t >= lo) & (d.t <= hi) & (d.t >= gt.t[0]) & (d.t <= gt.t[-1]))
     ref = cal.Reference(gt.t, gt.q, gt.p, gt.v)
-    return cal.calibration_problem(d.t[sel], d.gyro[sel], d.accel[sel], ref, noise,
-                                   window_lengths=lengths, scheme="midpoint",
-                                   reference_sigma=ref_sigma)
+    return cal.calibration_problem(
+        d.t[sel],
+        d.gyro[sel],
+        d.accel[sel],
+        ref,
+        noise,
+        window_lengths=lengths,
+        scheme="midpoint",
+        reference_sigma=ref_sigma,
+    )
 
 
 def main():
@@ -61,8 +68,9 @@ def main():
         t0, t1 = max(d.t[0], gt.t[0]), min(d.t[-1], gt.t[-1])
         split = t0 + args.fit_fraction * (t1 - t0)
         fit_p = problem(d, gt, DATASHEET, lengths, (1e-3, 1e-3, 1e-2), t0, split)
-        res = cal.calibrate(fit_p, estimate=("b_g", "b_a") + cal.NOISE_FIELDS,
-                            max_reduced_chi2=None)
+        res = cal.calibrate(
+            fit_p, estimate=("b_g", "b_a") + cal.NOISE_FIELDS, max_reduced_chi2=None
+        )
         fitted = jaximu.ImuNoise(*cn._isotropic(res.noise))
         held, by_length = {}, {}
         for label, noise in (("fitted", fitted), ("datasheet", DATASHEET)):
@@ -70,24 +78,31 @@ def main():
             hr = cal.calibrate(hp, estimate=("b_g", "b_a"), max_reduced_chi2=None)
             held[label] = hr.reduced_chi2
             by_length[label] = list(hr.chi2_by_length)
-        row = {"sequence": pathlib.Path(path).name, "fit_chi2_dof": res.reduced_chi2,
-               "densities": cn._isotropic(res.noise).tolist(),
-               "densities_std": cn._isotropic(res.noise_std).tolist(),
-               "reference_sigma": res.reference_sigma.tolist(),
-               "reference_sigma_std": res.reference_sigma_std.tolist(),
-               "heldout_chi2_dof_fitted": held["fitted"],
-               "heldout_chi2_dof_datasheet": held["datasheet"],
-               "heldout_by_length_fitted": by_length["fitted"],
-               "heldout_by_length_datasheet": by_length["datasheet"],
-               "seconds": time.perf_counter() - tic}
+        row = {
+            "sequence": pathlib.Path(path).name,
+            "fit_chi2_dof": res.reduced_chi2,
+            "densities": cn._isotropic(res.noise).tolist(),
+            "densities_std": cn._isotropic(res.noise_std).tolist(),
+            "reference_sigma": res.reference_sigma.tolist(),
+            "reference_sigma_std": res.reference_sigma_std.tolist(),
+            "heldout_chi2_dof_fitted": held["fitted"],
+            "heldout_chi2_dof_datasheet": held["datasheet"],
+            "heldout_by_length_fitted": by_length["fitted"],
+            "heldout_by_length_datasheet": by_length["datasheet"],
+            "seconds": time.perf_counter() - tic,
+        }
         out.append(row)
         print(f"\n== {row['sequence']} ({row['seconds']:.0f} s)")
         print(res.noise_table(allan=DATASHEET).replace("Allan", "sheet"))
-        print(f"held-out χ²/dof: fitted {held['fitted']:.3f}, datasheet {held['datasheet']:.3f}",
-              flush=True)
+        print(
+            f"held-out χ²/dof: fitted {held['fitted']:.3f}, datasheet {held['datasheet']:.3f}",
+            flush=True,
+        )
         for label in ("fitted", "datasheet"):
-            print(f"held-out, each window alone, per length ({label}): " + ", ".join(
-                f"{x:g} s: {c:.3f}" for x, c in zip(lengths, by_length[label])))
+            print(
+                f"held-out, each window alone, per length ({label}): "
+                + ", ".join(f"{x:g} s: {c:.3f}" for x, c in zip(lengths, by_length[label]))
+            )
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(out, indent=1))
 

@@ -36,20 +36,27 @@ from jaximu import so3  # noqa: E402
 from jaximu.calibration import _noise_fit as cn  # noqa: E402
 
 REF_SIGMA = np.array([1e-3, 1e-3, 1e-2])
-GRADES = {"euroc": jaximu.ImuNoise.euroc(),
-          "consumer": jaximu.ImuNoise(1.6968e-3, 2e-2, 1.9393e-4, 3e-2)}
+GRADES = {
+    "euroc": jaximu.ImuNoise.euroc(),
+    "consumer": jaximu.ImuNoise(1.6968e-3, 2e-2, 1.9393e-4, 3e-2),
+}
 NAMES = cn.DENSITIES + ("σ_θ", "σ_p", "σ_v")
 TARGET = (0.10, 0.10, 0.30, 0.30, None, None, None)
 
 
 def one_seed(seed, seconds, noise, lengths, rate=200.0, check_model=False):
     t = np.arange(int(seconds * rate) + 1) / rate
-    traj = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5),
-                         attitude_frequency=(0.31, 0.23, 0.13))
+    traj = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5), attitude_frequency=(0.31, 0.23, 0.13))
     gyro, accel = sim.ideal_imu(traj, jnp.asarray(t))
-    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / rate, noise,
-                              b_g0=np.array([0.003, -0.002, 0.004]),
-                              b_a0=np.array([0.05, -0.08, 0.1]))
+    gm, am, _ = sim.add_noise(
+        jax.random.key(seed),
+        gyro,
+        accel,
+        1 / rate,
+        noise,
+        b_g0=np.array([0.003, -0.002, 0.004]),
+        b_a0=np.array([0.05, -0.08, 0.1]),
+    )
     t_ref = np.arange(0.0, seconds + 1e-9, 0.01)
     truth = sim.true_states(traj, jnp.asarray(t_ref))
     rng = np.random.default_rng(seed)
@@ -59,10 +66,16 @@ def one_seed(seed, seconds, noise, lengths, rate=200.0, check_model=False):
     v = np.asarray(truth.v) + rng.normal(0, REF_SIGMA[2], (n, 3))
     start = jaximu.ImuNoise(*(2.5 * cn._isotropic(noise)))
     tic = time.perf_counter()
-    prob = cal.calibration_problem(t, np.asarray(gm), np.asarray(am),
-                                   cal.Reference(t_ref, np.asarray(q), p, v), start,
-                                   window_lengths=lengths, scheme="midpoint",
-                                   reference_sigma=2.5 * REF_SIGMA)
+    prob = cal.calibration_problem(
+        t,
+        np.asarray(gm),
+        np.asarray(am),
+        cal.Reference(t_ref, np.asarray(q), p, v),
+        start,
+        window_lengths=lengths,
+        scheme="midpoint",
+        reference_sigma=2.5 * REF_SIGMA,
+    )
     if check_model:
         return innovations_at_truth(prob, noise, start)
     res = cal.calibrate(prob, estimate=("b_g", "b_a") + cal.NOISE_FIELDS)
@@ -76,8 +89,9 @@ def innovations_at_truth(prob, noise, start):
     turn-on biases (white with unit variance if the model is right)."""
     from jaximu.calibration import _noise_filter as nf
 
-    init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=np.array([0.003, -0.002, 0.004]),
-                                      b_a=np.array([0.05, -0.08, 0.1]))
+    init = cal.ImuCalibration.default(
+        dtype=jnp.float64, b_g=np.array([0.003, -0.002, 0.004]), b_a=np.array([0.05, -0.08, 0.1])
+    )
     u = np.log(np.concatenate([cn._isotropic(noise) / cn._isotropic(start), [1 / 2.5] * 3]))
     (H, Qb, P0b), kept, d, _ = cn._filter_arrays(prob, jnp.float64)
     r = np.asarray(cn._all_residuals(init, prob.base, (1,))) / d
@@ -93,8 +107,11 @@ def check_model(args, noise, lengths):
         w = one_seed(seed, args.seconds, noise, lengths, check_model=True)
         lag = float(np.mean(np.sum(w[1:] * w[:-1], 1)) / 9)
         total, n = total + float(np.sum(w * w)), n + w.size
-        print(f"seed {seed}: Σw²/n = {np.mean(w * w):.4f} over {w.size}, per component "
-              f"{np.round(np.mean(w * w, 0), 2)}, lag-one {lag:+.3f}", flush=True)
+        print(
+            f"seed {seed}: Σw²/n = {np.mean(w * w):.4f} over {w.size}, per component "
+            f"{np.round(np.mean(w * w, 0), 2)}, lag-one {lag:+.3f}",
+            flush=True,
+        )
     lo, hi = stats.chi2.ppf([0.005, 0.995], n) / n
     print(f"pooled Σw²/n = {total / n:.4f} over {n}; 99% interval [{lo:.4f}, {hi:.4f}]")
 
@@ -106,8 +123,11 @@ def main():
     ap.add_argument("--grade", choices=sorted(GRADES), default="euroc")
     ap.add_argument("--lengths", default="0.25")
     ap.add_argument("--json")
-    ap.add_argument("--check-model", action="store_true",
-                    help="no fit: the innovations' whiteness at the true values")
+    ap.add_argument(
+        "--check-model",
+        action="store_true",
+        help="no fit: the innovations' whiteness at the true values",
+    )
     args = ap.parse_args()
     noise = GRADES[args.grade]
     truth = np.concatenate([cn._isotropic(noise), REF_SIGMA])
@@ -121,10 +141,21 @@ def main():
         fitted, std, red, secs = one_seed(seed, args.seconds, noise, lengths)
         rel = fitted / truth - 1
         z = (fitted - truth) / np.where(std > 0, std, np.nan)
-        rows.append({"seed": seed, "fitted": fitted.tolist(), "std": std.tolist(),
-                     "reduced_chi2": red, "seconds": secs})
-        print(f"{seed:4d}  " + "  ".join(f"{100 * r:+8.1f}% {zz:+6.2f}σ      " for r, zz in
-                                         zip(rel, z)) + f"  {red:6.3f}  {secs:5.1f}", flush=True)
+        rows.append(
+            {
+                "seed": seed,
+                "fitted": fitted.tolist(),
+                "std": std.tolist(),
+                "reduced_chi2": red,
+                "seconds": secs,
+            }
+        )
+        print(
+            f"{seed:4d}  "
+            + "  ".join(f"{100 * r:+8.1f}% {zz:+6.2f}σ      " for r, zz in zip(rel, z))
+            + f"  {red:6.3f}  {secs:5.1f}",
+            flush=True,
+        )
     F = np.array([r["fitted"] for r in rows])
     S = np.array([r["std"] for r in rows])
     n = len(rows)
@@ -136,14 +167,30 @@ def main():
         lo = stats.beta.ppf(0.025, cover, n - cover + 1) if cover else 0.0
         hi = stats.beta.ppf(0.975, cover + 1, n - cover) if cover < n else 1.0
         tgt = int(np.sum(rel < TARGET[i])) if TARGET[i] else None
-        summary[name] = {"within_target": tgt, "within_2sigma": cover, "ci95": [lo, hi],
-                         "median_rel_err": float(np.median(rel))}
-        print(f"{name:28s} {'—' if tgt is None else f'{tgt}/{n}':>13s}   {cover}/{n} "
-              f"[{lo:.2f}, {hi:.2f}]        {100 * np.median(rel):.1f}%")
+        summary[name] = {
+            "within_target": tgt,
+            "within_2sigma": cover,
+            "ci95": [lo, hi],
+            "median_rel_err": float(np.median(rel)),
+        }
+        print(
+            f"{name:28s} {'—' if tgt is None else f'{tgt}/{n}':>13s}   {cover}/{n} "
+            f"[{lo:.2f}, {hi:.2f}]        {100 * np.median(rel):.1f}%"
+        )
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"grade": args.grade, "seconds": args.seconds, "lengths": lengths,
-                       "truth": truth.tolist(), "rows": rows, "summary": summary}, f, indent=1)
+            json.dump(
+                {
+                    "grade": args.grade,
+                    "seconds": args.seconds,
+                    "lengths": lengths,
+                    "truth": truth.tolist(),
+                    "rows": rows,
+                    "summary": summary,
+                },
+                f,
+                indent=1,
+            )
 
 
 if __name__ == "__main__":

@@ -168,10 +168,14 @@ def numpy_propagate(gyro, accel, dt, g, cov=False):
     v = np.zeros(B + (3,), gyro.dtype)
     p = np.zeros(B + (3,), gyro.dtype)
     P = np.broadcast_to(np.eye(15, dtype=gyro.dtype) * 1e-6, B + (15, 15)).copy() if cov else None
-    var = np.concatenate([np.full(3, NOISE.gyroscope_noise_density**2),
-                          np.full(3, NOISE.accelerometer_noise_density**2),
-                          np.full(3, NOISE.gyroscope_random_walk**2),
-                          np.full(3, NOISE.accelerometer_random_walk**2)]).astype(gyro.dtype)
+    var = np.concatenate(
+        [
+            np.full(3, NOISE.gyroscope_noise_density**2),
+            np.full(3, NOISE.accelerometer_noise_density**2),
+            np.full(3, NOISE.gyroscope_random_walk**2),
+            np.full(3, NOISE.accelerometer_random_walk**2),
+        ]
+    ).astype(gyro.dtype)
     for k in range(gyro.shape[-2]):
         h = dt[k]
         a = np.einsum("...ij,...j->...i", R, accel[..., k, :]) + g
@@ -209,17 +213,22 @@ def pypose_run(gyro, accel, dt, torch_dtype, cov=True, gravity=0.0):
 
     B = gyro.shape[0]
     integ = pp.module.IMUPreintegrator(
-        gravity=gravity, prop_cov=cov, reset=True,
+        gravity=gravity,
+        prop_cov=cov,
+        reset=True,
         gyro_cov=torch.tensor([[NOISE.gyroscope_noise_density**2] * 3], dtype=torch_dtype),
         acc_cov=torch.tensor([[NOISE.accelerometer_noise_density**2] * 3], dtype=torch_dtype),
     ).to(torch_dtype)
     g = torch.as_tensor(gyro, dtype=torch_dtype)
     a = torch.as_tensor(accel, dtype=torch_dtype)
-    d = torch.as_tensor(np.ascontiguousarray(np.broadcast_to(dt, gyro.shape[:-1])[..., None]),
-                        dtype=torch_dtype)
-    init = {"pos": torch.zeros(B, 1, 3, dtype=torch_dtype),
-            "rot": pp.identity_SO3(B, 1, dtype=torch_dtype),
-            "vel": torch.zeros(B, 1, 3, dtype=torch_dtype)}
+    d = torch.as_tensor(
+        np.ascontiguousarray(np.broadcast_to(dt, gyro.shape[:-1])[..., None]), dtype=torch_dtype
+    )
+    init = {
+        "pos": torch.zeros(B, 1, 3, dtype=torch_dtype),
+        "rot": pp.identity_SO3(B, 1, dtype=torch_dtype),
+        "vel": torch.zeros(B, 1, 3, dtype=torch_dtype),
+    }
     with torch.no_grad():
         out = integ(d, g, a, init_state=init)
     return out["pos"][:, -1].numpy(), (out["cov"].numpy() if cov else None)
@@ -247,8 +256,17 @@ def rows_preintegration(quick, rows):
             run, comp, mem, out = measure(lambda: block(fn(g, a, d)))
             if dtype == jnp.float64:
                 ref = np.asarray(out.delta_p).reshape(-1, 3)
-            rows.append(dict(workload=name, tool="jaximu", dtype=jnp.dtype(dtype).name,
-                             samples=n, run_s=run, compile_s=comp, peak_mb=mem))
+            rows.append(
+                dict(
+                    workload=name,
+                    tool="jaximu",
+                    dtype=jnp.dtype(dtype).name,
+                    samples=n,
+                    run_s=run,
+                    compile_s=comp,
+                    peak_mb=mem,
+                )
+            )
         # Peers get the bias-corrected samples where they have no bias input.
         gc = data[0] - bias[0]
         ac = data[1] - bias[1]
@@ -257,9 +275,18 @@ def rows_preintegration(quick, rows):
                 pims, secs = gtsam_preintegrate(data, bias)
             pims = pims if isinstance(pims, list) else [pims]
             dp = np.array([p.deltaPij() for p in pims])
-            rows.append(dict(workload=name, tool="gtsam", dtype="float64", samples=n, run_s=secs,
-                             compile_s=0.0, peak_mb=mem.mb,
-                             agreement=float(np.abs(dp - ref[-len(dp):]).max())))
+            rows.append(
+                dict(
+                    workload=name,
+                    tool="gtsam",
+                    dtype="float64",
+                    samples=n,
+                    run_s=secs,
+                    compile_s=0.0,
+                    peak_mb=mem.mb,
+                    agreement=float(np.abs(dp - ref[-len(dp) :]).max()),
+                )
+            )
         else:
             rows.append(dict(workload=name, tool="gtsam", skipped="gtsam not installed"))
         if have("pypose"):
@@ -268,20 +295,39 @@ def rows_preintegration(quick, rows):
             for tdt, nm in ((torch.float32, "float32"), (torch.float64, "float64")):
                 gw, aw = (x.reshape((-1,) + x.shape[-2:]) for x in (gc, ac))
                 run, comp, mem, out = measure(lambda: pypose_run(gw, aw, DT, tdt), reps=1)
-                rows.append(dict(workload=name, tool="pypose", dtype=nm, samples=n, run_s=run,
-                                 compile_s=comp, peak_mb=mem,
-                                 agreement=float(np.abs(out[0] - ref).max())))
+                rows.append(
+                    dict(
+                        workload=name,
+                        tool="pypose",
+                        dtype=nm,
+                        samples=n,
+                        run_s=run,
+                        compile_s=comp,
+                        peak_mb=mem,
+                        agreement=float(np.abs(out[0] - ref).max()),
+                    )
+                )
         else:
             rows.append(dict(workload=name, tool="pypose", skipped="pypose (torch) not installed"))
         # NumPy: the long sequence is a per-sample Python loop; cap it (rate is per sample).
         cap = 20_000 if name == "preint-long" else None
         gn, an = (x[..., :cap, :] if cap else x for x in (gc, ac))
-        dn = np.broadcast_to(data[2], data[0].shape[:-1])[..., :cap] if cap else \
-            np.broadcast_to(data[2], data[0].shape[:-1])
+        dn = (
+            np.broadcast_to(data[2], data[0].shape[:-1])[..., :cap]
+            if cap
+            else np.broadcast_to(data[2], data[0].shape[:-1])
+        )
         run, comp, mem, out = measure(lambda: numpy_preintegrate(gn, an, dn), reps=1)
         m = int(np.prod(gn.shape[:-1]))
-        row = dict(workload=name, tool="numpy", dtype="float64", samples=m, run_s=run,
-                   compile_s=0.0, peak_mb=mem)
+        row = dict(
+            workload=name,
+            tool="numpy",
+            dtype="float64",
+            samples=m,
+            run_s=run,
+            compile_s=0.0,
+            peak_mb=mem,
+        )
         if not cap:
             row["agreement"] = float(np.abs(out[1].reshape(-1, 3) - ref).max())
         rows.append(row)
@@ -289,8 +335,10 @@ def rows_preintegration(quick, rows):
 
 def rows_propagation(quick, rows):
     g_w = np.array([0.0, 0.0, -9.81])
-    for name, (B, T), cov in (("mean", (2048, 200) if quick else (16384, 200), False),
-                              ("cov", (256, 500) if quick else (1024, 1000), True)):
+    for name, (B, T), cov in (
+        ("mean", (2048, 200) if quick else (16384, 200), False),
+        ("cov", (256, 500) if quick else (1024, 1000), True),
+    ):
         rng = np.random.default_rng(0)
         gyro = rng.normal(0, 0.5, (B, T, 3))
         accel = np.array([0, 0, 9.81]) + rng.normal(0, 0.5, (B, T, 3))
@@ -301,29 +349,61 @@ def rows_propagation(quick, rows):
             x0 = jaximu.NavState.identity((B,), dtype)
             if cov:
                 P0 = jnp.eye(15, dtype=dtype) * 1e-6
-                fn = jax.jit(lambda g, a, d: jaximu.propagate_covariance_final(
-                    x0, P0, g, a, d, NOISE, "euler"))
+                fn = jax.jit(
+                    lambda g, a, d: jaximu.propagate_covariance_final(
+                        x0, P0, g, a, d, NOISE, "euler"
+                    )
+                )
             else:
                 fn = jax.jit(lambda g, a, d: jaximu.propagate_final(x0, g, a, d, "euler"))
             run, comp, mem, out = measure(lambda: block(fn(g, a, d)))
             if dtype == jnp.float64:
                 ref = np.asarray(out[0].p if cov else out.p)
-            rows.append(dict(workload=name, tool="jaximu", dtype=jnp.dtype(dtype).name,
-                             samples=B * T, run_s=run, compile_s=comp, peak_mb=mem))
+            rows.append(
+                dict(
+                    workload=name,
+                    tool="jaximu",
+                    dtype=jnp.dtype(dtype).name,
+                    samples=B * T,
+                    run_s=run,
+                    compile_s=comp,
+                    peak_mb=mem,
+                )
+            )
         if have("pypose"):
             import torch
 
             for tdt, nm in ((torch.float32, "float32"), (torch.float64, "float64")):
                 run, comp, mem, out = measure(
-                    lambda: pypose_run(gyro, accel, dt, tdt, cov=cov, gravity=9.81), reps=1)
-                rows.append(dict(workload=name, tool="pypose", dtype=nm, samples=B * T,
-                                 run_s=run, compile_s=comp, peak_mb=mem,
-                                 agreement=float(np.abs(out[0] - ref).max())))
+                    lambda: pypose_run(gyro, accel, dt, tdt, cov=cov, gravity=9.81), reps=1
+                )
+                rows.append(
+                    dict(
+                        workload=name,
+                        tool="pypose",
+                        dtype=nm,
+                        samples=B * T,
+                        run_s=run,
+                        compile_s=comp,
+                        peak_mb=mem,
+                        agreement=float(np.abs(out[0] - ref).max()),
+                    )
+                )
         else:
             rows.append(dict(workload=name, tool="pypose", skipped="pypose (torch) not installed"))
         run, comp, mem, out = measure(lambda: numpy_propagate(gyro, accel, dt, g_w, cov), reps=1)
-        rows.append(dict(workload=name, tool="numpy", dtype="float64", samples=B * T, run_s=run,
-                         compile_s=0.0, peak_mb=mem, agreement=float(np.abs(out[1] - ref).max())))
+        rows.append(
+            dict(
+                workload=name,
+                tool="numpy",
+                dtype="float64",
+                samples=B * T,
+                run_s=run,
+                compile_s=0.0,
+                peak_mb=mem,
+                agreement=float(np.abs(out[1] - ref).max()),
+            )
+        )
 
 
 def rows_montecarlo(quick, rows):
@@ -335,13 +415,31 @@ def rows_montecarlo(quick, rows):
     for dtype in (jnp.float32, jnp.float64):
         with PeakRss() as mem:
             secs, comp, _ = mc_jaximu(n_runs, dtype)
-        rows.append(dict(workload="montecarlo", tool="jaximu", dtype=jnp.dtype(dtype).name,
-                         samples=n_runs * MC_T, run_s=secs, compile_s=comp, peak_mb=mem.mb))
+        rows.append(
+            dict(
+                workload="montecarlo",
+                tool="jaximu",
+                dtype=jnp.dtype(dtype).name,
+                samples=n_runs * MC_T,
+                run_s=secs,
+                compile_s=comp,
+                peak_mb=mem.mb,
+            )
+        )
     if have("gtsam"):
         with PeakRss() as mem:
             secs, _ = mc_gtsam(n_runs)
-        rows.append(dict(workload="montecarlo", tool="gtsam", dtype="float64",
-                         samples=n_runs * MC_T, run_s=secs, compile_s=0.0, peak_mb=mem.mb))
+        rows.append(
+            dict(
+                workload="montecarlo",
+                tool="gtsam",
+                dtype="float64",
+                samples=n_runs * MC_T,
+                run_s=secs,
+                compile_s=0.0,
+                peak_mb=mem.mb,
+            )
+        )
     else:
         rows.append(dict(workload="montecarlo", tool="gtsam", skipped="gtsam not installed"))
 
@@ -357,41 +455,52 @@ def ratios(rows):
     for r in done:
         if r["tool"] == "jaximu":
             continue
-        peer_dtypes = {p["dtype"] for p in done
-                       if p["tool"] == r["tool"] and p["workload"] == r["workload"]}
+        peer_dtypes = {
+            p["dtype"] for p in done if p["tool"] == r["tool"] and p["workload"] == r["workload"]
+        }
         for d in ("float32", "float64"):
             if r["dtype"] != (d if d in peer_dtypes else "float64"):
                 continue
-            j = [x for x in done if x["tool"] == "jaximu" and x["workload"] == r["workload"]
-                 and x["dtype"] == d]
+            j = [
+                x
+                for x in done
+                if x["tool"] == "jaximu" and x["workload"] == r["workload"] and x["dtype"] == d
+            ]
             if j:
                 out[f"{r['workload']} {d} jaximu/{r['tool']}"] = (
-                    (j[0]["samples"] / j[0]["run_s"]) / (r["samples"] / r["run_s"]))
+                    j[0]["samples"] / j[0]["run_s"]
+                ) / (r["samples"] / r["run_s"])
     return out
 
 
 def table(rows, rats):
-    lines = ["| workload | tool | dtype | samples/s | run s | compile s | peak MB | "
-             "agreement [m] | jaximu f32 × | jaximu f64 × |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| workload | tool | dtype | samples/s | run s | compile s | peak MB | "
+        "agreement [m] | jaximu f32 × | jaximu f64 × |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         if r.get("skipped"):
-            lines.append(f"| {r['workload']} | {r['tool']} | - | skipped: {r['skipped']} "
-                         "| | | | | | |")
+            lines.append(
+                f"| {r['workload']} | {r['tool']} | - | skipped: {r['skipped']} | | | | | | |"
+            )
             continue
         rate = r["samples"] / r["run_s"]
         cells = []
         for d in ("float32", "float64"):
             rat = rats.get(f"{r['workload']} {d} jaximu/{r['tool']}")
-            peer_has_d = any(p["tool"] == r["tool"] and p["workload"] == r["workload"]
-                             and p.get("dtype") == d for p in rows)
+            peer_has_d = any(
+                p["tool"] == r["tool"] and p["workload"] == r["workload"] and p.get("dtype") == d
+                for p in rows
+            )
             show = rat is not None and (r["dtype"] == d or not peer_has_d)
             cells.append(f"{rat:.1f}" if show else "-")
         agree = f"{r['agreement']:.1e}" if "agreement" in r else "-"
         lines.append(
             f"| {r['workload']} | {r['tool']} | {r['dtype']} | {rate / 1e6:.3g} M | "
             f"{r['run_s']:.3f} | {r['compile_s']:.1f} | {r['peak_mb']:.0f} | {agree} | "
-            f"{cells[0]} | {cells[1]} |")
+            f"{cells[0]} | {cells[1]} |"
+        )
     return "\n".join(lines)
 
 
@@ -410,7 +519,9 @@ def check(rats, base):
             print(f"  {key}: not measured in this run (baseline {old:.2f})")
         elif new < (1 - TOLERANCE) * old:
             worse.append(key)
-            print(f"  REGRESSION {key}: {new:.2f} against {old:.2f} (-{100 * (1 - new / old):.0f}%)")
+            print(
+                f"  REGRESSION {key}: {new:.2f} against {old:.2f} (-{100 * (1 - new / old):.0f}%)"
+            )
         else:
             print(f"  ok {key}: {new:.2f} (baseline {old:.2f})")
     return worse
@@ -421,13 +532,20 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="small sizes")
     ap.add_argument("--only", choices=("preint", "propagation", "montecarlo"), default=None)
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/)")
-    ap.add_argument("--check", default=None, metavar="BASELINE",
-                    help="exit 1 if a ratio is more than 30%% worse than in BASELINE")
+    ap.add_argument(
+        "--check",
+        default=None,
+        metavar="BASELINE",
+        help="exit 1 if a ratio is more than 30%% worse than in BASELINE",
+    )
     args = ap.parse_args(argv)
     baseline = read_baseline(args.check) if args.check else None
     info = machine_info()
-    print(f"# peers on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax "
-          f"{jax.__version__}, backend {jax.default_backend()}", flush=True)
+    print(
+        f"# peers on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), jax "
+        f"{jax.__version__}, backend {jax.default_backend()}",
+        flush=True,
+    )
     rows = []
     if args.only in (None, "preint"):
         rows_preintegration(args.quick, rows)
@@ -444,8 +562,10 @@ def main(argv=None):
     with open(out, "w") as f:
         json.dump(dict(machine=info, quick=args.quick, rows=rows, ratios=rats), f, indent=1)
     with open(os.path.splitext(out)[0] + ".md", "w") as f:
-        f.write(f"Measured on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), "
-                f"jax {info['jax']}.\n\n{md}\n")
+        f.write(
+            f"Measured on {info['cpu_model']} ({info['cpus_usable']} usable CPUs), "
+            f"jax {info['jax']}.\n\n{md}\n"
+        )
     print(f"wrote {out} and its .md")
     if args.check:
         print(f"regression check against {args.check} (ratios, tolerance {TOLERANCE:.0%}):")

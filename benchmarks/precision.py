@@ -68,7 +68,7 @@ def propagate_recorded(scheme: str, x0, gyro, accel, dt):
     @jax.jit
     def run(x0, gyro, accel, dt):
         states = jaximu.propagate(x0, gyro, accel, dt, scheme)
-        return jax.tree_util.tree_map(lambda a: a[RATE - 1::RATE], states)
+        return jax.tree_util.tree_map(lambda a: a[RATE - 1 :: RATE], states)
 
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(x0, gyro, accel, dt))
@@ -100,8 +100,11 @@ def main(argv=None) -> int:
     info = machine_info()
     traj = TRAJECTORIES[args.trajectory]()
     t_start = time.perf_counter()
-    print(f"jaximu precision benchmark: {args.trajectory}, {T:,} samples ({duration} s at "
-          f"{RATE} Hz), schemes {', '.join(SCHEMES)}", file=sys.stderr)
+    print(
+        f"jaximu precision benchmark: {args.trajectory}, {T:,} samples ({duration} s at "
+        f"{RATE} Hz), schemes {', '.join(SCHEMES)}",
+        file=sys.stderr,
+    )
 
     # Simulation times in float64: the propagation only ever sees dt, never absolute time.
     t = jnp.arange(T + 1, dtype=jnp.float64) * DT
@@ -142,74 +145,111 @@ def main(argv=None) -> int:
         max_so_far = {h: {k: float(v[h - 1]) for k, v in env.items()} for h in horizons}
         enough = [h for h in horizons if not over[h - 1]]
         last = max_so_far[horizons[-1]]
-        ratios = (f"at {horizon_label(horizons[-1])} the largest float32 difference so far is "
-                  f"{last['dp32'] / last['err64_p']:.2g}× the largest discretisation error in "
-                  f"position ({fmt(last['dp32'])} vs {fmt(last['err64_p'])} m) and "
-                  f"{last['dth32'] / last['err64_th']:.2g}× in rotation "
-                  f"({fmt(last['dth32'])} vs {fmt(last['err64_th'])} rad)")
+        ratios = (
+            f"at {horizon_label(horizons[-1])} the largest float32 difference so far is "
+            f"{last['dp32'] / last['err64_p']:.2g}× the largest discretisation error in "
+            f"position ({fmt(last['dp32'])} vs {fmt(last['err64_p'])} m) and "
+            f"{last['dth32'] / last['err64_th']:.2g}× in rotation "
+            f"({fmt(last['dth32'])} vs {fmt(last['err64_th'])} rad)"
+        )
         if first is None:
             verdict = f"float32 is enough over the whole {horizon_label(duration)}: {ratios}"
         else:
-            start = ("float32 is not enough even at 1 s" if first == 1 else
-                     f"float32 is enough for the first {first - 1} s")
+            start = (
+                "float32 is not enough even at 1 s"
+                if first == 1
+                else f"float32 is enough for the first {first - 1} s"
+            )
             checkpoints = ", ".join(horizon_label(h) for h in enough) or "no checkpoint"
-            verdict = (f"{start}; it exceeds the discretisation error in {over.mean():.0%} of the "
-                       f"seconds (enough at: {checkpoints}); {ratios}")
-        results[scheme] = dict(at=at, max_so_far=max_so_far, first_exceeds_s=first,
-                               share_exceeds=float(over.mean()), verdict=verdict,
-                               run64_s=run64, run32_s=run32,
-                               every_10s={k: [float(f"{x:.4g}") for x in v[9::10]]
-                                          for k, v in rec.items()})
+            verdict = (
+                f"{start}; it exceeds the discretisation error in {over.mean():.0%} of the "
+                f"seconds (enough at: {checkpoints}); {ratios}"
+            )
+        results[scheme] = dict(
+            at=at,
+            max_so_far=max_so_far,
+            first_exceeds_s=first,
+            share_exceeds=float(over.mean()),
+            verdict=verdict,
+            run64_s=run64,
+            run32_s=run32,
+            every_10s={k: [float(f"{x:.4g}") for x in v[9::10]] for k, v in rec.items()},
+        )
         for h in horizons:
             a, m = at[h], max_so_far[h]
             cells = [f"{fmt(a[k])} ({fmt(m[k])})" for k in ("dp32", "dth32", "err64_p", "err64_th")]
-            rows.append(f"| {scheme} | {horizon_label(h)} | {' | '.join(cells)} | "
-                        f"{'yes' if h in enough else 'no'} |")
-        print(f"  {scheme}: float64 {run64:.1f} s, float32 {run32:.1f} s (compile included)",
-              file=sys.stderr)
+            rows.append(
+                f"| {scheme} | {horizon_label(h)} | {' | '.join(cells)} | "
+                f"{'yes' if h in enough else 'no'} |"
+            )
+        print(
+            f"  {scheme}: float64 {run64:.1f} s, float32 {run32:.1f} s (compile included)",
+            file=sys.stderr,
+        )
 
     print()
-    print(f"{args.trajectory}, {T:,} samples at {RATE} Hz, exact IMU samples, from the true "
-          "initial state:")
+    print(
+        f"{args.trajectory}, {T:,} samples at {RATE} Hz, exact IMU samples, from the true "
+        "initial state:"
+    )
     print()
-    print("| scheme | time | float32−float64 position [m] | float32−float64 rotation [rad] | "
-          "float64 error position [m] | float64 error rotation [rad] | float32 enough |")
+    print(
+        "| scheme | time | float32−float64 position [m] | float32−float64 rotation [rad] | "
+        "float64 error position [m] | float64 error rotation [rad] | float32 enough |"
+    )
     print("|---|---|--:|--:|--:|--:|---|")
     print("\n".join(rows))
     print()
-    print("Each cell: the value at that time (the largest value up to that time). float32 enough: "
-          "the largest float32−float64 difference up to that time is below the largest float64 "
-          "error against the truth (the scheme's discretisation error) up to that time, in "
-          "position and rotation.")
-    print(f"Note: float32 rounds dt = {DT} by {dt_rel:+.1e} (relative), so float32 integrates "
-          f"{-dt_rel * duration:.1e} s less time over {horizon_label(duration)}; it also rounds "
-          "every sample and the initial state. All three are part of the difference above.")
+    print(
+        "Each cell: the value at that time (the largest value up to that time). float32 enough: "
+        "the largest float32−float64 difference up to that time is below the largest float64 "
+        "error against the truth (the scheme's discretisation error) up to that time, in "
+        "position and rotation."
+    )
+    print(
+        f"Note: float32 rounds dt = {DT} by {dt_rel:+.1e} (relative), so float32 integrates "
+        f"{-dt_rel * duration:.1e} s less time over {horizon_label(duration)}; it also rounds "
+        "every sample and the initial state. All three are part of the difference above."
+    )
     print()
     for scheme in SCHEMES:
         print(f"- {scheme}: {results[scheme]['verdict']}.")
     elapsed = time.perf_counter() - t_start
     print(f"\nTotal {elapsed:.0f} s.")
 
-    out = args.out or RESULTS_DIR / (f"precision-{machine_slug(info)}"
-                                      f"{'-quick' if args.quick else ''}.json")
+    out = args.out or RESULTS_DIR / (
+        f"precision-{machine_slug(info)}{'-quick' if args.quick else ''}.json"
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
         benchmark="jaximu float32 vs float64 precision",
         date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         machine=info,
-        settings=dict(quick=args.quick, trajectory=args.trajectory, samples=T, dt=DT,
-                      duration_s=duration, horizons_s=horizons, attitude="quaternion",
-                      float32_dt=float(np.float32(DT)), argv=sys.argv[1:]),
+        settings=dict(
+            quick=args.quick,
+            trajectory=args.trajectory,
+            samples=T,
+            dt=DT,
+            duration_s=duration,
+            horizons_s=horizons,
+            attitude="quaternion",
+            float32_dt=float(np.float32(DT)),
+            argv=sys.argv[1:],
+        ),
         definitions=dict(
-            dp32="|p32 - p64| [m]", dth32="rotation angle of q32^-1 q64 [rad]",
+            dp32="|p32 - p64| [m]",
+            dth32="rotation angle of q32^-1 q64 [rad]",
             dv32="|v32 - v64| [m/s]",
             err64_p="|p64 - p_true| [m]: discretisation error",
-            err64_th="rotation angle of q64^-1 q_true [rad]", err64_v="|v64 - v_true| [m/s]",
-            err32_p="|p32 - p_true| [m]", err32_th="rotation angle of q32^-1 q_true [rad]",
-            at="each quantity at the horizon", max_so_far="its largest value up to the horizon",
+            err64_th="rotation angle of q64^-1 q_true [rad]",
+            err64_v="|v64 - v_true| [m/s]",
+            err32_p="|p32 - p_true| [m]",
+            err32_th="rotation angle of q32^-1 q_true [rad]",
+            at="each quantity at the horizon",
+            max_so_far="its largest value up to the horizon",
             every_10s="each quantity at 10 s, 20 s, ... (index k: time 10(k+1) s)",
             first_exceeds_s="first second at which the largest dp32 so far exceeds the largest "
-                            "err64_p so far, or the same for rotation",
+            "err64_p so far, or the same for rotation",
             share_exceeds="share of the seconds at which that holds",
             run_s="jit compile + run of jaximu.propagate over all samples",
         ),
@@ -217,8 +257,11 @@ def main(argv=None) -> int:
         schemes=results,
     )
     # One line per list of numbers keeps the series readable and the file small.
-    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
-                  lambda m: "[" + " ".join(m.group(1).split()) + "]", json.dumps(doc, indent=1))
+    text = re.sub(
+        r"\[\s+([^\[\]{}]*?)\s+\]",
+        lambda m: "[" + " ".join(m.group(1).split()) + "]",
+        json.dumps(doc, indent=1),
+    )
     out.write_text(text + "\n")
     print(f"Wrote {out}", file=sys.stderr)
     return 0

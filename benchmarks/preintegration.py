@@ -66,8 +66,7 @@ def make_inputs(n_long, n_windows, window_len, seed=0):
     flight = slice(800, 3999)  # after take-off
     g, a = seg.gyro[flight], seg.accel[flight]
     reps = -(-n_long // len(g))
-    long = (np.tile(g, (reps, 1))[:n_long], np.tile(a, (reps, 1))[:n_long],
-            np.full(n_long, 0.005))
+    long = (np.tile(g, (reps, 1))[:n_long], np.tile(a, (reps, 1))[:n_long], np.full(n_long, 0.005))
     rng = np.random.default_rng(seed)
     starts = rng.integers(0, len(g) - window_len, size=n_windows)
     idx = starts[:, None] + np.arange(window_len)
@@ -108,7 +107,7 @@ def bench_jaximu(data, bias, dtype, method, scheme="euler", jacobians="analytic"
     mesh = lane_mesh()  # --devices N: windows split over the devices, a long one's chunks too
     if mesh is not None:
         gyro, accel, dt = place((gyro, accel, dt), gyro.shape[0], mesh)
-    with (jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext()):
+    with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
         t0 = time.perf_counter()
         out = jax.block_until_ready(fn(gyro, accel, dt))
         first = time.perf_counter() - t0
@@ -129,8 +128,11 @@ def bench_gtsam(data, bias, combined=False):
     if combined:
         params.setBiasAccCovariance(np.eye(3) * n.accelerometer_random_walk**2)
         params.setBiasOmegaCovariance(np.eye(3) * n.gyroscope_random_walk**2)
-    cls = (gtsam.PreintegratedCombinedMeasurementsManifold if combined
-           else gtsam.PreintegratedImuMeasurementsManifold)
+    cls = (
+        gtsam.PreintegratedCombinedMeasurementsManifold
+        if combined
+        else gtsam.PreintegratedImuMeasurementsManifold
+    )
     b = gtsam.imuBias.ConstantBias(np.asarray(bias[1]), np.asarray(bias[0]))
     batch = gyro.shape[:-2]
     gyro = gyro.reshape(-1, *gyro.shape[-2:])
@@ -155,22 +157,36 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--out", default=None, help="JSON output path")
-    ap.add_argument("--devices", type=int, default=1,
-                    help="split the CPU into this many JAX devices and run jaximu under a mesh "
-                         "of them (benchmarks/propagation.py --devices)")
-    ap.add_argument("--vector-width", type=int, default=0, choices=(0, 128, 256, 512),
-                    help="XLA:CPU's preferred vector width in bits "
-                         "(benchmarks/propagation.py --vector-width)")
-    ap.add_argument("--no-loop-unrolling", action="store_true",
-                    help="XLA:CPU compiles without LLVM loop unrolling "
-                         "(benchmarks/propagation.py --no-loop-unrolling)")
+    ap.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="split the CPU into this many JAX devices and run jaximu under a mesh "
+        "of them (benchmarks/propagation.py --devices)",
+    )
+    ap.add_argument(
+        "--vector-width",
+        type=int,
+        default=0,
+        choices=(0, 128, 256, 512),
+        help="XLA:CPU's preferred vector width in bits (benchmarks/propagation.py --vector-width)",
+    )
+    ap.add_argument(
+        "--no-loop-unrolling",
+        action="store_true",
+        help="XLA:CPU compiles without LLVM loop unrolling "
+        "(benchmarks/propagation.py --no-loop-unrolling)",
+    )
     args = ap.parse_args(argv)
     n_long, n_win, w_len = (20_000, 512, 200) if args.quick else (100_000, 4096, 200)
     long, windows, bias = make_inputs(n_long, n_win, w_len)
     rows = []
     info = machine_info()
-    print(f"# preintegration benchmark on {info['cpu_model']} ({info['cpu_count']} CPUs), "
-          f"jax {jax.__version__}, {jax.default_backend()}", flush=True)
+    print(
+        f"# preintegration benchmark on {info['cpu_model']} ({info['cpu_count']} CPUs), "
+        f"jax {jax.__version__}, {jax.default_backend()}",
+        flush=True,
+    )
 
     gtsam_rate = {}
     gtsam_out = {}
@@ -182,14 +198,32 @@ def main(argv=None):
             n = int(np.prod(data[0].shape[:-1]))
             gtsam_rate[name] = n / secs
             gtsam_out[name] = out
-            rows.append(dict(tool="gtsam Manifold (Python loop)", workload=name, dtype="float64",
-                             method="-", samples=n, run_s=secs, compile_s=0.0,
-                             rate=n / secs))
+            rows.append(
+                dict(
+                    tool="gtsam Manifold (Python loop)",
+                    workload=name,
+                    dtype="float64",
+                    method="-",
+                    samples=n,
+                    run_s=secs,
+                    compile_s=0.0,
+                    rate=n / secs,
+                )
+            )
             print(f"gtsam {name}: {n / secs / 1e6:.3f} M samples/s", flush=True)
         out, secs = bench_gtsam(long, bias, combined=True)
-        rows.append(dict(tool="gtsam CombinedManifold (Python loop)", workload="long",
-                         dtype="float64", method="-", samples=n_long, run_s=secs, compile_s=0.0,
-                         rate=n_long / secs))
+        rows.append(
+            dict(
+                tool="gtsam CombinedManifold (Python loop)",
+                workload="long",
+                dtype="float64",
+                method="-",
+                samples=n_long,
+                run_s=secs,
+                compile_s=0.0,
+                rate=n_long / secs,
+            )
+        )
     except ImportError:
         print("gtsam is not installed: baseline skipped (pip install gtsam)", flush=True)
 
@@ -198,42 +232,72 @@ def main(argv=None):
 
     cpp_rate, basalt_rate, basalt_out = {}, {}, {}
     for name, data in (("long", long), ("windows", windows)):
-        ref = run_cpp_reference(*data, *bias, jaximu.ImuNoise.euroc(), name,
-                                kernels=("blocked", "basalt"))
+        ref = run_cpp_reference(
+            *data, *bias, jaximu.ImuNoise.euroc(), name, kernels=("blocked", "basalt")
+        )
         if ref is None:
             break
         if "basalt" in ref["kernels"]:  # the peer itself (BASALT_HEADERS_DIR given)
             kb = ref["kernels"]["basalt"]
             basalt_rate[name], basalt_out[name] = kb["samples_per_s"], kb["result"]
-            rows.append(dict(tool="Basalt IntegratedImuMeasurement (1 core)", workload=name,
-                             dtype="float64", method="basalt", samples=ref["samples"],
-                             run_s=kb["best_s"], compile_s=0.0, rate=kb["samples_per_s"],
-                             us_per_sample=kb["us_per_sample"], command=ref["command"],
-                             compiler=ref["compiler"]))
-            print(f"Basalt {name}: {kb['samples_per_s'] / 1e6:.3f} M samples/s "
-                  f"({kb['us_per_sample']:.3f} µs/sample)", flush=True)
+            rows.append(
+                dict(
+                    tool="Basalt IntegratedImuMeasurement (1 core)",
+                    workload=name,
+                    dtype="float64",
+                    method="basalt",
+                    samples=ref["samples"],
+                    run_s=kb["best_s"],
+                    compile_s=0.0,
+                    rate=kb["samples_per_s"],
+                    us_per_sample=kb["us_per_sample"],
+                    command=ref["command"],
+                    compiler=ref["compiler"],
+                )
+            )
+            print(
+                f"Basalt {name}: {kb['samples_per_s'] / 1e6:.3f} M samples/s "
+                f"({kb['us_per_sample']:.3f} µs/sample)",
+                flush=True,
+            )
         k = ref["kernels"]["blocked"]
         cpp_rate[name] = k["samples_per_s"]
-        row = dict(tool="C++ Eigen reference (1 core)", workload=name, dtype="float64",
-                   method="blocked", samples=ref["samples"], run_s=k["best_s"], compile_s=0.0,
-                   rate=k["samples_per_s"], us_per_sample=k["us_per_sample"],
-                   command=ref["command"], compiler=ref["compiler"])
+        row = dict(
+            tool="C++ Eigen reference (1 core)",
+            workload=name,
+            dtype="float64",
+            method="blocked",
+            samples=ref["samples"],
+            run_s=k["best_s"],
+            compile_s=0.0,
+            rate=k["samples_per_s"],
+            us_per_sample=k["us_per_sample"],
+            command=ref["command"],
+            compiler=ref["compiler"],
+        )
         if name in gtsam_rate:
             row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
         if name in gtsam_out:  # the same comparison as the jaximu rows'
             res, ref_g = k["result"], gtsam_out[name]
             if name == "long":
                 R = np.asarray(jaximu.so3.quat_to_matrix(res["delta_q"]))
-                d = max(np.abs(res["delta_p"] - ref_g.deltaPij()).max(),
-                        np.abs(res["delta_v"] - ref_g.deltaVij()).max(),
-                        np.abs(R - ref_g.deltaRij().matrix()).max())
+                d = max(
+                    np.abs(res["delta_p"] - ref_g.deltaPij()).max(),
+                    np.abs(res["delta_v"] - ref_g.deltaVij()).max(),
+                    np.abs(R - ref_g.deltaRij().matrix()).max(),
+                )
             else:
-                d = max(np.abs(res["delta_p"][i] - ref_g[i].deltaPij()).max()
-                        for i in range(0, len(ref_g), max(1, len(ref_g) // 16)))
+                d = max(
+                    np.abs(res["delta_p"][i] - ref_g[i].deltaPij()).max()
+                    for i in range(0, len(ref_g), max(1, len(ref_g) // 16))
+                )
             row["max_abs_diff_vs_gtsam"] = float(d)
         rows.append(row)
-        print(f"C++ Eigen reference {name}: {k['samples_per_s'] / 1e6:.3f} M samples/s "
-              f"({k['us_per_sample']:.3f} µs/sample)", flush=True)
+        print(
+            f"C++ Eigen reference {name}: {k['samples_per_s'] / 1e6:.3f} M samples/s "
+            f"({k['us_per_sample']:.3f} µs/sample)",
+            flush=True,
+        )
     # ------------------------------------------------------------------------------------------
 
     agreement, pim_f64 = {}, {}
@@ -245,24 +309,39 @@ def main(argv=None):
                     pim = out  # the measurements of the factor rows below
                 n = int(np.prod(data[0].shape[:-1]))
                 tool = "jaximu" if DEVICES < 2 else f"jaximu ({DEVICES} CPU devices)"
-                row = dict(tool=tool, workload=name, dtype=jnp.dtype(dtype).name,
-                           method=method, samples=n, run_s=run, compile_s=comp, rate=n / run)
+                row = dict(
+                    tool=tool,
+                    workload=name,
+                    dtype=jnp.dtype(dtype).name,
+                    method=method,
+                    samples=n,
+                    run_s=run,
+                    compile_s=comp,
+                    rate=n / run,
+                )
                 if name in gtsam_rate:
                     row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
                 if dtype == jnp.float64 and name in gtsam_out:
                     ref = gtsam_out[name]
                     if name == "long":
-                        d = max(np.abs(np.asarray(out.delta_p) - ref.deltaPij()).max(),
-                                np.abs(np.asarray(out.delta_v) - ref.deltaVij()).max(),
-                                np.abs(np.asarray(out.delta_R) - ref.deltaRij().matrix()).max())
+                        d = max(
+                            np.abs(np.asarray(out.delta_p) - ref.deltaPij()).max(),
+                            np.abs(np.asarray(out.delta_v) - ref.deltaVij()).max(),
+                            np.abs(np.asarray(out.delta_R) - ref.deltaRij().matrix()).max(),
+                        )
                     else:
-                        d = max(np.abs(np.asarray(out.delta_p[i]) - ref[i].deltaPij()).max()
-                                for i in range(0, len(ref), max(1, len(ref) // 16)))
+                        d = max(
+                            np.abs(np.asarray(out.delta_p[i]) - ref[i].deltaPij()).max()
+                            for i in range(0, len(ref), max(1, len(ref) // 16))
+                        )
                     row["max_abs_diff_vs_gtsam"] = float(d)
                     agreement[(name, method)] = float(d)
                 rows.append(row)
-                print(f"jaximu {row['dtype']} {name} {method}: {row['rate'] / 1e6:.3f} M "
-                      f"samples/s (compile {comp:.1f} s)", flush=True)
+                print(
+                    f"jaximu {row['dtype']} {name} {method}: {row['rate'] / 1e6:.3f} M "
+                    f"samples/s (compile {comp:.1f} s)",
+                    flush=True,
+                )
                 if method != "auto":
                     continue
                 # the C++ reference's outputs only (no cov15): the same numbers, checked
@@ -272,34 +351,57 @@ def main(argv=None):
                 for k in NINE:  # each field against its own scale
                     diff = float(jnp.max(jnp.abs(nine[k] - getattr(out, k))))
                     if diff > 1e-12 * float(jnp.max(jnp.abs(getattr(out, k)))):
-                        raise AssertionError(f"the 9×9 program's {k} differs from the whole "
-                                             f"result's by {diff:.2e}")
-                row = dict(row, method="auto, 9×9 + bias Jacobians", run_s=run9,
-                           compile_s=comp9, rate=n / run9)
+                        raise AssertionError(
+                            f"the 9×9 program's {k} differs from the whole result's by {diff:.2e}"
+                        )
+                row = dict(
+                    row,
+                    method="auto, 9×9 + bias Jacobians",
+                    run_s=run9,
+                    compile_s=comp9,
+                    rate=n / run9,
+                )
                 if name in gtsam_rate:
                     row["ratio_to_gtsam"] = row["rate"] / gtsam_rate[name]
                 rows.append(row)
-                print(f"jaximu {row['dtype']} {name} {row['method']}: "
-                      f"{row['rate'] / 1e6:.3f} M samples/s (compile {comp9:.1f} s)",
-                      flush=True)
+                print(
+                    f"jaximu {row['dtype']} {name} {row['method']}: "
+                    f"{row['rate'] / 1e6:.3f} M samples/s (compile {comp9:.1f} s)",
+                    flush=True,
+                )
 
     # the other schemes and Jacobian options a user can pick, on the windows (defaults
     # otherwise): VINS-Mono's midpoint, and autodiff Jacobians (Euler's run its kernel;
     # the midpoint's exact derivatives run the generic recursion)
     for dtype in (jnp.float64, jnp.float32):
-        for scheme, jac in (("euler", "autodiff"), ("midpoint", "analytic"),
-                            ("midpoint", "autodiff")):
+        for scheme, jac in (
+            ("euler", "autodiff"),
+            ("midpoint", "analytic"),
+            ("midpoint", "autodiff"),
+        ):
             out, run, comp = bench_jaximu(windows, bias, dtype, "auto", scheme, jac)
             n = int(np.prod(windows[0].shape[:-1]))
             tool = "jaximu" if DEVICES < 2 else f"jaximu ({DEVICES} CPU devices)"
-            row = dict(tool=tool, workload="windows", dtype=jnp.dtype(dtype).name,
-                       method=f"auto, {scheme}, {jac}", scheme=scheme, jacobians=jac,
-                       samples=n, run_s=run, compile_s=comp, rate=n / run)
+            row = dict(
+                tool=tool,
+                workload="windows",
+                dtype=jnp.dtype(dtype).name,
+                method=f"auto, {scheme}, {jac}",
+                scheme=scheme,
+                jacobians=jac,
+                samples=n,
+                run_s=run,
+                compile_s=comp,
+                rate=n / run,
+            )
             if "windows" in gtsam_rate:
                 row["ratio_to_gtsam"] = row["rate"] / gtsam_rate["windows"]
             rows.append(row)
-            print(f"jaximu {row['dtype']} windows {row['method']}: {row['rate'] / 1e6:.3f} M "
-                  f"samples/s (compile {comp:.1f} s)", flush=True)
+            print(
+                f"jaximu {row['dtype']} windows {row['method']}: {row['rate'] / 1e6:.3f} M "
+                f"samples/s (compile {comp:.1f} s)",
+                flush=True,
+            )
 
     # factors on the windows' measurements (float64): predict, residual, whitened residual
     # and the gradient of the whitened squared norm with respect to the states i, the
@@ -308,54 +410,78 @@ def main(argv=None):
     rng = np.random.default_rng(1)
     q = rng.normal(size=(nw, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    s_i = jaximu.NavState(jnp.asarray(q), *(jnp.asarray(rng.normal(size=(nw, 3)))
-                                            for _ in range(4)))
-    s_j = jaximu.boxplus(jaximu.predict(s_i, pim),
-                         jnp.asarray(rng.normal(size=(nw, 15)) * 1e-3))
+    s_i = jaximu.NavState(
+        jnp.asarray(q), *(jnp.asarray(rng.normal(size=(nw, 3))) for _ in range(4))
+    )
+    s_j = jaximu.boxplus(jaximu.predict(s_i, pim), jnp.asarray(rng.normal(size=(nw, 15)) * 1e-3))
     factors = {
         "predict": lambda s: jaximu.predict(s, pim),
         "residual": lambda s: jaximu.residual(s, s_j, pim),
         "whitened_residual": lambda s: jaximu.whitened_residual(s, s_j, pim),
         "grad ‖whitened_residual‖²": jax.grad(
-            lambda s: jnp.sum(jaximu.whitened_residual(s, s_j, pim) ** 2)),
+            lambda s: jnp.sum(jaximu.whitened_residual(s, s_j, pim) ** 2)
+        ),
     }
     mesh = lane_mesh()  # the measurements closed over are sharded on it: run under it
     for name, f in factors.items():
         f = jax.jit(f)
-        with (jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext()):
+        with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
             t0 = time.perf_counter()
             jax.block_until_ready(f(s_i))
             first = time.perf_counter() - t0
             run = best_time(lambda: f(s_i))
         tool = "jaximu" if DEVICES < 2 else f"jaximu ({DEVICES} CPU devices)"
-        rows.append(dict(tool=tool, workload="factors", dtype="float64", method=name,
-                         samples=nw, run_s=run, compile_s=max(first - run, 0.0),
-                         rate=nw / run))
+        rows.append(
+            dict(
+                tool=tool,
+                workload="factors",
+                dtype="float64",
+                method=name,
+                samples=nw,
+                run_s=run,
+                compile_s=max(first - run, 0.0),
+                rate=nw / run,
+            )
+        )
         print(f"jaximu factors {name}: {nw / run / 1e6:.3f} M windows/s", flush=True)
 
-    print("\n| tool | workload | dtype | method | samples/s | run ms | compile s | × GTSAM | "
-          "max abs diff vs GTSAM |")
+    print(
+        "\n| tool | workload | dtype | method | samples/s | run ms | compile s | × GTSAM | "
+        "max abs diff vs GTSAM |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         ratio = f"{r['ratio_to_gtsam']:.1f}" if "ratio_to_gtsam" in r else "-"
         diff = f"{r['max_abs_diff_vs_gtsam']:.1e}" if "max_abs_diff_vs_gtsam" in r else "-"
-        print(f"| {r['tool']} | {r['workload']} ({r['samples']}) | {r['dtype']} | {r['method']} "
-              f"| {r['rate'] / 1e6:.3f} M | {r['run_s'] * 1e3:.1f} | {r['compile_s']:.1f} | "
-              f"{ratio} | {diff} |")
+        print(
+            f"| {r['tool']} | {r['workload']} ({r['samples']}) | {r['dtype']} | {r['method']} "
+            f"| {r['rate'] / 1e6:.3f} M | {r['run_s'] * 1e3:.1f} | {r['compile_s']:.1f} | "
+            f"{ratio} | {diff} |"
+        )
     if gtsam_rate:
         print("\nTargets (float64, with covariance and bias Jacobians):")
         for name, target in TARGETS.items():
-            best = max((r for r in rows if r["tool"].startswith("jaximu")
-                        and r["workload"] == name and r["dtype"] == "float64"),
-                       key=lambda r: r["rate"])
+            best = max(
+                (
+                    r
+                    for r in rows
+                    if r["tool"].startswith("jaximu")
+                    and r["workload"] == name
+                    and r["dtype"] == "float64"
+                ),
+                key=lambda r: r["rate"],
+            )
             ratio = best["ratio_to_gtsam"]
             verdict = "met" if ratio >= target else f"missed by {target / ratio:.1f}×"
-            print(f"- {name}: {ratio:.1f}× GTSAM ({best['method']}), target {target:.0f}×: "
-                  f"{verdict}")
+            print(
+                f"- {name}: {ratio:.1f}× GTSAM ({best['method']}), target {target:.0f}×: {verdict}"
+            )
     # --- jaximu / C++ Eigen reference --------------------------------------------------------
     if cpp_rate:
-        print("\njaximu / C++ Eigen reference (one core, float64, blocked 9×9 covariance and "
-              "bias Jacobians; > 1: jaximu faster):")
+        print(
+            "\njaximu / C++ Eigen reference (one core, float64, blocked 9×9 covariance and "
+            "bias Jacobians; > 1: jaximu faster):"
+        )
         for r in rows:
             if r["tool"].startswith("jaximu") and r["workload"] in cpp_rate:
                 r["ratio_to_cpp"] = r["rate"] / cpp_rate[r["workload"]]
@@ -366,29 +492,41 @@ def main(argv=None):
         # and their Jacobians differ from Euler's by O(|ω| h) relative; its ΔR and dR/dbg are
         # the same mathematics (checked to rounding here, a check of the frame conversion)
         from cpp_reference import agreement as cpp_agreement  # same folder
+
         print("\nBasalt vs jaximu float64 Euler (max abs diff / max |value|):")
         for name, res in basalt_out.items():
             agree = cpp_agreement(res, pim_f64[name])
-            print("- " + name + ": " + ", ".join(f"{f} {d / max(m, 1e-300):.1e}"
-                                                 for f, (d, m) in agree.items()))
+            print(
+                "- "
+                + name
+                + ": "
+                + ", ".join(f"{f} {d / max(m, 1e-300):.1e}" for f, (d, m) in agree.items())
+            )
             rot = max(agree[f][0] / agree[f][1] for f in ("delta_q", "dR_dbg"))
             if rot > 1e-9:
-                raise AssertionError(f"Basalt's rotation differs from jaximu's by {rot:.1e} "
-                                     f"({name}): the frame conversion is wrong")
-        print("\njaximu / Basalt (Basalt on one core, float64; target ≥ 6× with covariance "
-              "and bias Jacobians):")
+                raise AssertionError(
+                    f"Basalt's rotation differs from jaximu's by {rot:.1e} "
+                    f"({name}): the frame conversion is wrong"
+                )
+        print(
+            "\njaximu / Basalt (Basalt on one core, float64; target ≥ 6× with covariance "
+            "and bias Jacobians):"
+        )
         for r in rows:
             if r["tool"].startswith("jaximu") and r["workload"] in basalt_rate:
                 r["ratio_to_basalt"] = r["rate"] / basalt_rate[r["workload"]]
                 if r["dtype"] == "float64" and r["method"].startswith("auto"):
-                    print(f"- {r['workload']} {r['dtype']} {r['method']}: "
-                          f"{r['ratio_to_basalt']:.2f}")
+                    print(
+                        f"- {r['workload']} {r['dtype']} {r['method']}: {r['ratio_to_basalt']:.2f}"
+                    )
     # ------------------------------------------------------------------------------------------
     out_path = args.out or os.path.join(
-        os.path.dirname(__file__), "results",
+        os.path.dirname(__file__),
+        "results",
         f"preintegration-{machine_slug(info)}{'-quick' if args.quick else ''}"
         f"{f'-{DEVICES}dev' if DEVICES > 1 else ''}"
-        f"{f'-vw{VECTOR_WIDTH}' if VECTOR_WIDTH else ''}{'-nounroll' if NO_UNROLL else ''}.json")
+        f"{f'-vw{VECTOR_WIDTH}' if VECTOR_WIDTH else ''}{'-nounroll' if NO_UNROLL else ''}.json",
+    )
     os.makedirs(os.path.dirname(out_path), exist_ok=True)
     with open(out_path, "w") as f:
         json.dump(dict(machine=info, rows=rows), f, indent=1)

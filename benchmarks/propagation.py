@@ -118,14 +118,14 @@ GYRO_STD = 0.5  # rad/s
 ACCEL_STD = 0.5  # m/s² around [0, 0, 9.81] (level, roughly still)
 NOISE = jaximu.ImuNoise.euroc()
 # Initial covariance of [dθ, dp, dv, db_g, db_a]: 0.1°, 1 cm, 1 cm/s, the biases' spread.
-P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4 ** 2] * 3,
-                [1e-3 ** 2] * 3]
+P0_DIAG = np.r_[[np.deg2rad(0.1) ** 2] * 3, [1e-4] * 3, [1e-4] * 3, [1e-4**2] * 3, [1e-3**2] * 3]
 
 EARTH_48 = np.asarray(jaximu.earth_rate(48.0))  # rad/s, east-north-up
 # an IMU rotated 40° and 0.39 m from the body's origin (its covariance couples the gyro into
 # the specific force through ω×(ω×r): jaximu/geometry/sensor.py)
 LEVER_POSE = jaximu.SensorPose.from_rotation(
-    np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15]))
+    np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15])
+)
 
 # Display order of the cases in the table.
 CASE_ORDER = [
@@ -187,10 +187,25 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
             f"{cov_all_size[0]}×{cov_all_size[1]} instead."
         )
 
-    def case(section, kind, scheme, save, B, T, dtype, jac=None, vmap=False, rotating=False,
-             lever=False, attitude="quaternion"):
-        world = ((" rotating" if rotating else "") + (" lever" if lever else "")
-                 + ("" if attitude == "quaternion" else f" {attitude}"))
+    def case(
+        section,
+        kind,
+        scheme,
+        save,
+        B,
+        T,
+        dtype,
+        jac=None,
+        vmap=False,
+        rotating=False,
+        lever=False,
+        attitude="quaternion",
+    ):
+        world = (
+            (" rotating" if rotating else "")
+            + (" lever" if lever else "")
+            + ("" if attitude == "quaternion" else f" {attitude}")
+        )
         if kind == "mean":
             name = f"mean {scheme} {save}" + world
         elif kind == "cov":
@@ -198,66 +213,115 @@ def plan(quick: bool, only: str | None) -> tuple[list[dict], list[str]]:
         else:
             name = f"baseline vmap(scan) {scheme} {save}"
         name += " vmap" if vmap else ""
-        return dict(section=section, name=name, kind=kind, scheme=scheme, jac=jac, save=save,
-                    B=B, T=T, dtype=dtype, vmap=vmap, rotating=rotating, lever=lever,
-                    attitude=attitude)
+        return dict(
+            section=section,
+            name=name,
+            kind=kind,
+            scheme=scheme,
+            jac=jac,
+            save=save,
+            B=B,
+            T=T,
+            dtype=dtype,
+            vmap=vmap,
+            rotating=rotating,
+            lever=lever,
+            attitude=attitude,
+        )
 
-    all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size,
-                                                             one_size]))
+    all_sizes = list(dict.fromkeys(mean_sizes + cov_sizes + [extra_size, cov_all_size, one_size]))
     cases = []
     for B, T in all_sizes:
         for dtype in dtypes:
             extra = (B, T) == extra_size and dtype in extra_dtypes
             if only in (None, "mean"):
                 if (B, T) in mean_sizes:
-                    cases += [case("mean", "mean", "euler", s, B, T, dtype)
-                              for s in ("final", "all")]
+                    cases += [
+                        case("mean", "mean", "euler", s, B, T, dtype) for s in ("final", "all")
+                    ]
                 if extra:
-                    cases += [case("mean", "mean", s, "final", B, T, dtype)
-                              for s in ("midpoint", "rk4")]
+                    cases += [
+                        case("mean", "mean", s, "final", B, T, dtype) for s in ("midpoint", "rk4")
+                    ]
                     # jax.vmap over trajectories: the same work as the leading-axes rows
-                    cases += [case("mean", "mean", "euler", s, B, T, dtype, vmap=True)
-                              for s in ("final", "all")]
-                    cases.append(case("mean", "mean", "midpoint", "final", B, T, dtype,
-                                      vmap=True))
+                    cases += [
+                        case("mean", "mean", "euler", s, B, T, dtype, vmap=True)
+                        for s in ("final", "all")
+                    ]
+                    cases.append(case("mean", "mean", "midpoint", "final", B, T, dtype, vmap=True))
                     # a rotating world (Earth's rate at 48°, the exact transition)
-                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
-                                      rotating=True))
+                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype, rotating=True))
                     # a sensor at a lever arm (body_P_sensor: its samples moved to the body)
-                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype,
-                                      lever=True))
+                    cases.append(case("mean", "mean", "euler", "final", B, T, dtype, lever=True))
                     # the other attitude forms on the same kernels
                     # (docs/guide/propagation.md, "Schemes and attitude forms")
-                    cases += [case("mean", "mean", "euler", "final", B, T, dtype, attitude=a)
-                              for a in ("matrix", "quaternion_first_order", "euler_angles")]
+                    cases += [
+                        case("mean", "mean", "euler", "final", B, T, dtype, attitude=a)
+                        for a in ("matrix", "quaternion_first_order", "euler_angles")
+                    ]
                     if dtype == "float32":
                         cases.append(case("mean", "baseline", "euler", "final", B, T, dtype))
             if only in (None, "cov"):
                 if (B, T) in cov_sizes:
-                    cases += [case("cov", "cov", "euler", "final", B, T, dtype, jac=j)
-                              for j in ("analytic", "autodiff")]
+                    cases += [
+                        case("cov", "cov", "euler", "final", B, T, dtype, jac=j)
+                        for j in ("analytic", "autodiff")
+                    ]
                 if extra:
-                    cases += [case("cov", "cov", s, "final", B, T, dtype, jac=j)
-                              for s in ("midpoint", "rk4") for j in ("analytic", "autodiff")]
-                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
-                                      jac="analytic", vmap=True))
-                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
-                                      jac="analytic", rotating=True))
+                    cases += [
+                        case("cov", "cov", s, "final", B, T, dtype, jac=j)
+                        for s in ("midpoint", "rk4")
+                        for j in ("analytic", "autodiff")
+                    ]
+                    cases.append(
+                        case("cov", "cov", "euler", "final", B, T, dtype, jac="analytic", vmap=True)
+                    )
+                    cases.append(
+                        case(
+                            "cov",
+                            "cov",
+                            "euler",
+                            "final",
+                            B,
+                            T,
+                            dtype,
+                            jac="analytic",
+                            rotating=True,
+                        )
+                    )
                     # a sensor at a lever arm (body_P_sensor)
-                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
-                                      jac="analytic", lever=True))
-                    cases.append(case("cov", "cov", "euler", "final", B, T, dtype,
-                                      jac="analytic", attitude="matrix"))
-                    cases += [case("cov", "cov", "euler", "final", B, T, dtype,
-                                   jac="autodiff", attitude=a)
-                              for a in ("quaternion_first_order", "euler_angles")]
+                    cases.append(
+                        case(
+                            "cov", "cov", "euler", "final", B, T, dtype, jac="analytic", lever=True
+                        )
+                    )
+                    cases.append(
+                        case(
+                            "cov",
+                            "cov",
+                            "euler",
+                            "final",
+                            B,
+                            T,
+                            dtype,
+                            jac="analytic",
+                            attitude="matrix",
+                        )
+                    )
+                    cases += [
+                        case(
+                            "cov", "cov", "euler", "final", B, T, dtype, jac="autodiff", attitude=a
+                        )
+                        for a in ("quaternion_first_order", "euler_angles")
+                    ]
                 if (B, T) == cov_all_size and dtype in cov_all_dtypes:
-                    cases += [case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
-                              for j in ("analytic", "autodiff")]
+                    cases += [
+                        case("cov", "cov", "euler", "all", B, T, dtype, jac=j)
+                        for j in ("analytic", "autodiff")
+                    ]
                 if (B, T) == one_size and dtype in cov_all_dtypes:
                     # one long recording, every covariance stored (in time chunks)
-                    cases.append(case("cov", "cov", "euler", "all", B, T, dtype,
-                                      jac="analytic"))
+                    cases.append(case("cov", "cov", "euler", "all", B, T, dtype, jac="analytic"))
     return cases, (notes if only in (None, "cov") else [])
 
 
@@ -297,12 +361,14 @@ def make_inputs(B: int, T: int, dtype: str, seed: int = 0):
 def _quat_mul(a, b):
     aw, ax, ay, az = a[0], a[1], a[2], a[3]
     bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    return jnp.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def _quat_exp(phi):
@@ -464,7 +530,8 @@ def _measure(case: dict, reps: int, min_time: float, max_reps: int, mesh) -> dic
         q_b, p_b, _ = out
         x = make_inputs(case["B"], case["T"], case["dtype"])
         eng = jax.jit(lambda s, g, a, h: jaximu.propagate_final(s, g, a, h, "euler"))(
-            x["state"], x["gyro"], x["accel"], x["dt"])
+            x["state"], x["gyro"], x["accel"], x["dt"]
+        )
         dp = float(jnp.max(jnp.abs(eng.p - p_b)))
         scale = float(jnp.max(jnp.abs(eng.p)))
         dq = float(jnp.max(jnp.minimum(jnp.abs(eng.q - q_b).max(-1), jnp.abs(eng.q + q_b).max(-1))))
@@ -543,16 +610,25 @@ def worker(spec: dict) -> None:
 
 
 def run_in_subprocess(payload: dict, timeout: float) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--devices", str(DEVICES),
-           "--vector-width", str(VECTOR_WIDTH)] + (["--no-loop-unrolling"] if NO_UNROLL else []) \
+    cmd = (
+        [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--devices",
+            str(DEVICES),
+            "--vector-width",
+            str(VECTOR_WIDTH),
+        ]
+        + (["--no-loop-unrolling"] if NO_UNROLL else [])
         + ["--worker", json.dumps(payload)]
+    )
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return dict(status="failed", reason=f"subprocess exceeded {timeout:.0f} s")
     for line in p.stdout.splitlines():
         if line.startswith("@@RESULT "):
-            return json.loads(line[len("@@RESULT "):])
+            return json.loads(line[len("@@RESULT ") :])
     tail = (p.stderr.strip().splitlines() or ["no output"])[-1]
     return dict(status="failed", reason=f"subprocess rc {p.returncode}: {tail}")
 
@@ -584,10 +660,16 @@ def git_revision() -> str | None:
     """Git revision of the imported jaximu, ``+dirty`` if its package folder has changes."""
     pkg = Path(jaximu.__file__).resolve().parent
     try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=pkg, capture_output=True,
-                             text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "."], cwd=pkg,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=pkg, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "."],
+            cwd=pkg,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
         return (rev + ("+dirty" if dirty else "")) or None
     except (OSError, subprocess.SubprocessError):
         return None
@@ -651,8 +733,7 @@ def fmt_bytes(b) -> str:
 
 def sort_key(r: dict):
     c = r["case"]
-    return (0 if c["section"] == "mean" else 1, CASE_ORDER.index(c["name"]), c["dtype"],
-            r["order"])
+    return (0 if c["section"] == "mean" else 1, CASE_ORDER.index(c["name"]), c["dtype"], r["order"])
 
 
 def table(results: list[dict], rss: bool) -> str:
@@ -666,14 +747,17 @@ def table(results: list[dict], rss: bool) -> str:
         c = r["case"]
         size = f"{c['B']}×{c['T']}"
         if r["status"] != "ok":
-            lines.append(f"| {c['name']} | {c['dtype']} | {size} | {r['status']} | | | | | "
-                         f"{r['reason']} |")
+            lines.append(
+                f"| {c['name']} | {c['dtype']} | {size} | {r['status']} | | | | | {r['reason']} |"
+            )
             continue
         note = []
         if "check" in r:
             ck = r["check"]
-            note.append(f"vs engine: max abs Δp {ck['max_abs_dp_m']:.1e} m "
-                        f"(|p| up to {ck['max_abs_p_m']:.3g} m), Δq {ck['max_abs_dq']:.1e}")
+            note.append(
+                f"vs engine: max abs Δp {ck['max_abs_dp_m']:.1e} m "
+                f"(|p| up to {ck['max_abs_p_m']:.3g} m), Δq {ck['max_abs_dq']:.1e}"
+            )
         busy = r.get("other_cpu_share")
         if busy is not None and busy > BUSY_WARN:
             note.append(f"other processes used {busy:.0%} of the CPUs")
@@ -683,39 +767,61 @@ def table(results: list[dict], rss: bool) -> str:
         lines.append(
             f"| {c['name']} | {c['dtype']} | {size} | {fmt_rate(r['samples_per_s'])} | "
             f"{r['run_s'] * 1e3:.1f} | {r['compile_s']:.2f} | {r['first_call_s']:.2f} | "
-            f"{fmt_bytes(mem)} | {'; '.join(note)} |")
+            f"{fmt_bytes(mem)} | {'; '.join(note)} |"
+        )
     return "\n".join(lines)
 
 
 def target_summary(results: list[dict]) -> tuple[str, dict]:
     out, summary = [], {}
     ok = [r for r in results if r["status"] == "ok"]
-    for key, label, target in (("mean", "mean-only", TARGET_MEAN),
-                               ("cov", "with covariance", TARGET_COV)):
-        cands = [r for r in ok if r["case"]["kind"] == key and r["case"]["dtype"] == "float32"
-                 and r["case"]["B"] > 1]
+    for key, label, target in (
+        ("mean", "mean-only", TARGET_MEAN),
+        ("cov", "with covariance", TARGET_COV),
+    ):
+        cands = [
+            r
+            for r in ok
+            if r["case"]["kind"] == key and r["case"]["dtype"] == "float32" and r["case"]["B"] > 1
+        ]
         if not cands:
             continue
         best = max(cands, key=lambda r: r["samples_per_s"])
         c, rate = best["case"], best["samples_per_s"]
         ratio = rate / target
         verdict = "meets target" if ratio >= 1 else "below target"
-        out.append(f"- {label}: best {fmt_rate(rate)}samples/s ({c['name']}, {c['B']}×{c['T']}) "
-                   f"vs target ≥ {fmt_rate(target)}samples/s: ratio {ratio:.2f} ({verdict})")
-        summary[key] = dict(target=target, best=rate, ratio=ratio, meets=ratio >= 1,
-                            case=c["name"], B=c["B"], T=c["T"])
+        out.append(
+            f"- {label}: best {fmt_rate(rate)}samples/s ({c['name']}, {c['B']}×{c['T']}) "
+            f"vs target ≥ {fmt_rate(target)}samples/s: ratio {ratio:.2f} ({verdict})"
+        )
+        summary[key] = dict(
+            target=target,
+            best=rate,
+            ratio=ratio,
+            meets=ratio >= 1,
+            case=c["name"],
+            B=c["B"],
+            T=c["T"],
+        )
     base = [r for r in ok if r["case"]["kind"] == "baseline"]
     for b in base:
         c = b["case"]
         same = (c["B"], c["T"], c["dtype"])
-        eng = [r for r in ok if r["case"]["name"] == "mean euler final"
-               and (r["case"]["B"], r["case"]["T"], r["case"]["dtype"]) == same]
+        eng = [
+            r
+            for r in ok
+            if r["case"]["name"] == "mean euler final"
+            and (r["case"]["B"], r["case"]["T"], r["case"]["dtype"]) == same
+        ]
         if eng:
             sp = eng[0]["samples_per_s"] / b["samples_per_s"]
-            out.append(f"- engine vs naive vmap(scan) baseline ({c['B']}×{c['T']} {c['dtype']}, "
-                       f"final only): {fmt_rate(eng[0]['samples_per_s'])} vs "
-                       f"{fmt_rate(b['samples_per_s'])}samples/s: {sp:.2f}×")
+            out.append(
+                f"- engine vs naive vmap(scan) baseline ({c['B']}×{c['T']} {c['dtype']}, "
+                f"final only): {fmt_rate(eng[0]['samples_per_s'])} vs "
+                f"{fmt_rate(b['samples_per_s'])}samples/s: {sp:.2f}×"
+            )
             summary["baseline_speedup"] = sp
+
     def ratios(key, partner_name, against, target):
         """Each case with ``partner_name(case)`` measured at the same size: rate ratio."""
         for r in ok:
@@ -723,46 +829,77 @@ def target_summary(results: list[dict]) -> tuple[str, dict]:
             name = partner_name(c)
             if name is None:
                 continue
-            same = [x for x in ok if x["case"]["name"] == name
-                    and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"])
-                    == (c["B"], c["T"], c["dtype"])]
+            same = [
+                x
+                for x in ok
+                if x["case"]["name"] == name
+                and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"])
+                == (c["B"], c["T"], c["dtype"])
+            ]
             if same:
                 ratio = r["samples_per_s"] / same[0]["samples_per_s"]
-                out.append(f"- {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
-                           f"{fmt_rate(r['samples_per_s'])}samples/s, {ratio:.2f}× {against} "
-                           f"(target ≥ {target}×)")
+                out.append(
+                    f"- {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
+                    f"{fmt_rate(r['samples_per_s'])}samples/s, {ratio:.2f}× {against} "
+                    f"(target ≥ {target}×)"
+                )
                 summary.setdefault(key, {})[f"{c['name']} {c['B']}x{c['T']} {c['dtype']}"] = ratio
 
     # jax.vmap against the same work passed as leading axes
-    ratios("vmap_ratio", lambda c: c["name"][: -len(" vmap")] if c.get("vmap") else None,
-           "leading axes", 0.8)
+    ratios(
+        "vmap_ratio",
+        lambda c: c["name"][: -len(" vmap")] if c.get("vmap") else None,
+        "leading axes",
+        0.8,
+    )
     # one long recording (time chunks side by side) against a batch of the same work: the
     # final covariance against 1024 × 1000, every covariance stored against 1024 × 200
     for r in ok:
         c = r["case"]
-        if c["kind"] != "cov" or c["B"] != 1 or c.get("vmap") or c.get("rotating") \
-                or c.get("lever") or c.get("attitude", "quaternion") != "quaternion":
+        if (
+            c["kind"] != "cov"
+            or c["B"] != 1
+            or c.get("vmap")
+            or c.get("rotating")
+            or c.get("lever")
+            or c.get("attitude", "quaternion") != "quaternion"
+        ):
             continue
         size, target = ((1024, 200), 0.5) if c["save"] == "all" else ((1024, 1000), 0.8)
-        same = [x for x in ok if x["case"]["name"] == c["name"]
-                and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"]) == size + (c["dtype"],)]
+        same = [
+            x
+            for x in ok
+            if x["case"]["name"] == c["name"]
+            and (x["case"]["B"], x["case"]["T"], x["case"]["dtype"]) == size + (c["dtype"],)
+        ]
         if same:
             ratio = r["samples_per_s"] / same[0]["samples_per_s"]
-            out.append(f"- one recording: {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
-                       f"{fmt_rate(r['samples_per_s'])}samples/s, compile "
-                       f"{r['compile_s']:.2f} s; {ratio:.2f}× the batch {size[0]}×{size[1]} "
-                       f"(target ≥ {target}×)")
+            out.append(
+                f"- one recording: {c['name']} ({c['B']}×{c['T']} {c['dtype']}): "
+                f"{fmt_rate(r['samples_per_s'])}samples/s, compile "
+                f"{r['compile_s']:.2f} s; {ratio:.2f}× the batch {size[0]}×{size[1]} "
+                f"(target ≥ {target}×)"
+            )
             summary.setdefault("one_recording_ratio", {})[
-                f"{c['name']} {c['B']}x{c['T']} {c['dtype']}"] = ratio
+                f"{c['name']} {c['B']}x{c['T']} {c['dtype']}"
+            ] = ratio
     # autodiff Jacobians against the closed forms, same scheme and size
-    ratios("autodiff_ratio", lambda c: c["name"].replace("autodiff", "analytic")
-           if c["kind"] == "cov" and c["jac"] == "autodiff" and not c.get("vmap") else None,
-           "analytic", 0.5)
+    ratios(
+        "autodiff_ratio",
+        lambda c: (
+            c["name"].replace("autodiff", "analytic")
+            if c["kind"] == "cov" and c["jac"] == "autodiff" and not c.get("vmap")
+            else None
+        ),
+        "analytic",
+        0.5,
+    )
     return "\n".join(out), summary
 
 
-def check(results: list[dict], baseline_path: Path,
-          compile_fails: bool = False) -> tuple[str, list[str]]:
+def check(
+    results: list[dict], baseline_path: Path, compile_fails: bool = False
+) -> tuple[str, list[str]]:
     """This run against an earlier run's JSON: per case measured by both, the rate and
     compile-time ratios. Returns the report and the regressions (``--check``): run rates
     more than :data:`RATE_TOLERANCE` below the baseline's, and with ``compile_fails``
@@ -789,18 +926,24 @@ def check(results: list[dict], baseline_path: Path,
             bad.append(f"run rate {rate:.2f}× the baseline's")
         if comp > COMPILE_LIMIT:
             slow_compiles.append(label)
-            bad.append(f"compile {comp:.2f}× the baseline's ({r['compile_s']:.2f} s against "
-                       f"{o['compile_s']:.2f} s)")
+            bad.append(
+                f"compile {comp:.2f}× the baseline's ({r['compile_s']:.2f} s against "
+                f"{o['compile_s']:.2f} s)"
+            )
         if rate < 1 - RATE_TOLERANCE or (compile_fails and comp > COMPILE_LIMIT):
             worse.append(label)
         tag = "WORSE" if label in worse else "slow compile" if bad else "ok   "
-        lines.append(f"  {tag} {label}: rate {rate:.2f}×, compile {comp:.2f}×"
-                     + (f" -- {'; '.join(bad)}" if bad else ""))
+        lines.append(
+            f"  {tag} {label}: rate {rate:.2f}×, compile {comp:.2f}×"
+            + (f" -- {'; '.join(bad)}" if bad else "")
+        )
     if rates:
-        lines.append(f"  {len(rates)} cases compared: rate ratio median {np.median(rates):.2f} "
-                     f"(min {min(rates):.2f}), compile ratio median {np.median(compiles):.2f} "
-                     f"(max {max(compiles):.2f}); {len(slow_compiles)} over the compile limit; "
-                     f"{len(worse)} regression(s)")
+        lines.append(
+            f"  {len(rates)} cases compared: rate ratio median {np.median(rates):.2f} "
+            f"(min {min(rates):.2f}), compile ratio median {np.median(compiles):.2f} "
+            f"(max {max(compiles):.2f}); {len(slow_compiles)} over the compile limit; "
+            f"{len(worse)} regression(s)"
+        )
     return "\n".join(lines), worse
 
 
@@ -810,38 +953,69 @@ def check(results: list[dict], baseline_path: Path,
 def main(argv=None) -> int:
     # allow_abbrev=False: --devices, --vector-width and --no-loop-unrolling are read from
     # sys.argv by their exact names before JAX starts
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        allow_abbrev=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--quick", action="store_true", help="small sizes: a smoke test (< 1 min)")
     ap.add_argument("--only", choices=("mean", "cov"), help="run only one group of cases")
     ap.add_argument("--reps", type=int, default=3, help="timed runs per case, at least (default 3)")
-    ap.add_argument("--min-time", type=float, default=0.3,
-                    help="keep timing a fast case until its runs add up to this many s "
-                         "(default 0.3)")
-    ap.add_argument("--max-case-s", type=float, default=60.0,
-                    help="skip a case predicted to take longer than this many s "
-                         "(compile + runs; default 60)")
-    ap.add_argument("--rss", action="store_true",
-                    help="run every case in its own process and report its max RSS (slower)")
+    ap.add_argument(
+        "--min-time",
+        type=float,
+        default=0.3,
+        help="keep timing a fast case until its runs add up to this many s (default 0.3)",
+    )
+    ap.add_argument(
+        "--max-case-s",
+        type=float,
+        default=60.0,
+        help="skip a case predicted to take longer than this many s (compile + runs; default 60)",
+    )
+    ap.add_argument(
+        "--rss",
+        action="store_true",
+        help="run every case in its own process and report its max RSS (slower)",
+    )
     ap.add_argument("--out", type=Path, help="JSON output path (default benchmarks/results/...)")
-    ap.add_argument("--devices", type=int, default=1,
-                    help="split the CPU into this many JAX devices (one per core) and run "
-                         "every case under a mesh of them, inputs split over the batch "
-                         "(default 1: JAX's default single CPU device)")
-    ap.add_argument("--vector-width", type=int, default=0, choices=(0, 128, 256, 512),
-                    help="XLA:CPU's preferred vector width in bits "
-                         "(--xla_cpu_prefer_vector_width in XLA_FLAGS; default 0: XLA's own, "
-                         "256)")
-    ap.add_argument("--no-loop-unrolling", action="store_true",
-                    help="XLA:CPU compiles without LLVM loop unrolling "
-                         "(xla_cpu_disable_loop_unrolling in XLA_FLAGS' "
-                         "--xla_backend_extra_options; docs/guide/performance.md, "
-                         "\"Compile time\")")
-    ap.add_argument("--check", type=Path, metavar="BASELINE",
-                    help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
-                         "more than 30%% slower")
-    ap.add_argument("--check-compile", action="store_true",
-                    help="with --check: a compile time over 1.5× the baseline's fails too")
+    ap.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="split the CPU into this many JAX devices (one per core) and run "
+        "every case under a mesh of them, inputs split over the batch "
+        "(default 1: JAX's default single CPU device)",
+    )
+    ap.add_argument(
+        "--vector-width",
+        type=int,
+        default=0,
+        choices=(0, 128, 256, 512),
+        help="XLA:CPU's preferred vector width in bits "
+        "(--xla_cpu_prefer_vector_width in XLA_FLAGS; default 0: XLA's own, "
+        "256)",
+    )
+    ap.add_argument(
+        "--no-loop-unrolling",
+        action="store_true",
+        help="XLA:CPU compiles without LLVM loop unrolling "
+        "(xla_cpu_disable_loop_unrolling in XLA_FLAGS' "
+        "--xla_backend_extra_options; docs/guide/performance.md, "
+        '"Compile time")',
+    )
+    ap.add_argument(
+        "--check",
+        type=Path,
+        metavar="BASELINE",
+        help="exit 1 if a case BASELINE (an earlier run's JSON) also measured runs "
+        "more than 30%% slower",
+    )
+    ap.add_argument(
+        "--check-compile",
+        action="store_true",
+        help="with --check: a compile time over 1.5× the baseline's fails too",
+    )
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -852,18 +1026,23 @@ def main(argv=None) -> int:
     info = machine_info()
     cases, notes = plan(args.quick, args.only)
     run_meter = CpuMeter()
-    print(f"jaximu {jaximu.__version__} propagation benchmark: {info['cpu_model']}, "
-          f"{info['cpus_usable'] or info['cpu_count']} CPUs, jax {info['jax']} "
-          f"({info['backend']}, {info['device_kind']}, {info['device_count']} device(s)"
-          f"{', lanes split over a mesh of them' if DEVICES > 1 else ''}); {len(cases)} cases"
-          f"{' (quick)' if args.quick else ''}", file=sys.stderr)
+    print(
+        f"jaximu {jaximu.__version__} propagation benchmark: {info['cpu_model']}, "
+        f"{info['cpus_usable'] or info['cpu_count']} CPUs, jax {info['jax']} "
+        f"({info['backend']}, {info['device_kind']}, {info['device_count']} device(s)"
+        f"{', lanes split over a mesh of them' if DEVICES > 1 else ''}); {len(cases)} cases"
+        f"{' (quick)' if args.quick else ''}",
+        file=sys.stderr,
+    )
 
     idle_rss = None
     if args.rss:
         idle = run_in_subprocess(dict(kind="idle"), timeout=120)
         idle_rss = idle.get("max_rss_bytes")
-        notes.append(f"max RSS is the whole process (Python + JAX + inputs + outputs); an idle "
-                     f"process after `import jax, jaximu` peaks at {fmt_bytes(idle_rss)} MB.")
+        notes.append(
+            f"max RSS is the whole process (Python + JAX + inputs + outputs); an idle "
+            f"process after `import jax, jaximu` peaks at {fmt_bytes(idle_rss)} MB."
+        )
 
     results = []
     for i, case in enumerate(cases):
@@ -872,8 +1051,12 @@ def main(argv=None) -> int:
         family = {k: v for k, v in case.items() if k not in ("B", "T")}
         # Predict the run time from a smaller size of the same case; if it may be long,
         # measure a short probe (same B, few steps) and skip the case when over budget.
-        prior = [r for r in results if r["status"] == "ok"
-                 and {k: v for k, v in r["case"].items() if k not in ("B", "T")} == family]
+        prior = [
+            r
+            for r in results
+            if r["status"] == "ok"
+            and {k: v for k, v in r["case"].items() if k not in ("B", "T")} == family
+        ]
         skip_reason = None
         meter = CpuMeter()
         if prior:
@@ -884,21 +1067,29 @@ def main(argv=None) -> int:
                 run_s, probe_compile = probe_run_time(case, t_probe)
                 predicted = args.reps * run_s + probe_compile
                 if predicted > args.max_case_s:
-                    skip_reason = (f"skipped: predicted {predicted:.0f} s ({args.reps} runs × "
-                                   f"{run_s:.1f} s, from a {t_probe}-step probe) > "
-                                   f"{args.max_case_s:.0f} s budget; raise --max-case-s to run it")
+                    skip_reason = (
+                        f"skipped: predicted {predicted:.0f} s ({args.reps} runs × "
+                        f"{run_s:.1f} s, from a {t_probe}-step probe) > "
+                        f"{args.max_case_s:.0f} s budget; raise --max-case-s to run it"
+                    )
         if skip_reason:
             res = dict(status="skipped", reason=skip_reason)
         elif args.rss:
-            res = run_in_subprocess(dict(case=case, reps=args.reps, min_time=args.min_time),
-                                    timeout=max(600.0, 10 * args.max_case_s))
+            res = run_in_subprocess(
+                dict(case=case, reps=args.reps, min_time=args.min_time),
+                timeout=max(600.0, 10 * args.max_case_s),
+            )
         else:
             res = measure(case, args.reps, args.min_time)
         res.update(case=case, order=i, other_cpu_share=meter.other_share())
         results.append(res)
         if res["status"] == "ok":
-            print(f" {fmt_rate(res['samples_per_s'])}samples/s, run {res['run_s'] * 1e3:.1f} ms, "
-                  f"compile {res['compile_s']:.2f} s", file=sys.stderr, flush=True)
+            print(
+                f" {fmt_rate(res['samples_per_s'])}samples/s, run {res['run_s'] * 1e3:.1f} ms, "
+                f"compile {res['compile_s']:.2f} s",
+                file=sys.stderr,
+                flush=True,
+            )
         else:
             print(f" {res['reason']}", file=sys.stderr, flush=True)
 
@@ -908,43 +1099,71 @@ def main(argv=None) -> int:
     print()
     print(table(results, args.rss))
     print()
-    print(f"Run time: best of ≥ {args.reps} runs of the compiled function, compilation "
-          "excluded; compile s: trace + lower + XLA compile; first call s: compile + first run.")
-    print("Memory: " + ("max RSS of the case's own process." if args.rss else
-                        "XLA's buffer estimate (arguments + outputs + temporaries) of the compiled "
-                        "function; process RSS is not measured (use --rss)."))
+    print(
+        f"Run time: best of ≥ {args.reps} runs of the compiled function, compilation "
+        "excluded; compile s: trace + lower + XLA compile; first call s: compile + first run."
+    )
+    print(
+        "Memory: "
+        + (
+            "max RSS of the case's own process."
+            if args.rss
+            else "XLA's buffer estimate (arguments + outputs + temporaries) of the compiled "
+            "function; process RSS is not measured (use --rss)."
+        )
+    )
     for n in notes:
         print(f"Note: {n}")
     if summary_text:
         print()
-        print("Targets (2-core CPU, float32, batched B > 1)"
-              + (" -- quick sizes, not representative:" if args.quick else ":"))
+        print(
+            "Targets (2-core CPU, float32, batched B > 1)"
+            + (" -- quick sizes, not representative:" if args.quick else ":")
+        )
         print(summary_text)
     print()
-    print(f"Total benchmark time {elapsed:.0f} s"
-          + ("." if other is None else f"; other processes used {other:.0%} of the CPUs."))
+    print(
+        f"Total benchmark time {elapsed:.0f} s"
+        + ("." if other is None else f"; other processes used {other:.0%} of the CPUs.")
+    )
     if other is not None and other > BUSY_WARN:
-        print("Warning: the machine was not idle; run and compile times are inflated "
-              "(see the note column).")
+        print(
+            "Warning: the machine was not idle; run and compile times are inflated "
+            "(see the note column)."
+        )
 
     out = args.out
     if out is None:
-        suffix = (("-quick" if args.quick else "") + (f"-{args.only}" if args.only else "")
-                  + (f"-{args.devices}dev" if args.devices > 1 else "")
-                  + (f"-vw{args.vector_width}" if args.vector_width else "")
-                  + ("-nounroll" if NO_UNROLL else ""))
+        suffix = (
+            ("-quick" if args.quick else "")
+            + (f"-{args.only}" if args.only else "")
+            + (f"-{args.devices}dev" if args.devices > 1 else "")
+            + (f"-vw{args.vector_width}" if args.vector_width else "")
+            + ("-nounroll" if NO_UNROLL else "")
+        )
         out = RESULTS_DIR / f"propagation-{machine_slug(info)}{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = dict(
         benchmark="jaximu propagation throughput",
         date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         machine=info,
-        settings=dict(quick=args.quick, only=args.only, reps=args.reps, min_time_s=args.min_time,
-                      max_case_s=args.max_case_s, rss=args.rss, dt=DT, gyro_std=GYRO_STD,
-                      accel_std=ACCEL_STD, noise="ImuNoise.euroc()", attitude="quaternion",
-                      devices=args.devices, vector_width=args.vector_width or None,
-                      loop_unrolling=NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""),
-                      argv=sys.argv[1:]),
+        settings=dict(
+            quick=args.quick,
+            only=args.only,
+            reps=args.reps,
+            min_time_s=args.min_time,
+            max_case_s=args.max_case_s,
+            rss=args.rss,
+            dt=DT,
+            gyro_std=GYRO_STD,
+            accel_std=ACCEL_STD,
+            noise="ImuNoise.euroc()",
+            attitude="quaternion",
+            devices=args.devices,
+            vector_width=args.vector_width or None,
+            loop_unrolling=NO_UNROLL_OPTION not in os.environ.get("XLA_FLAGS", ""),
+            argv=sys.argv[1:],
+        ),
         definitions=dict(
             samples_per_s="B*T / run_s",
             run_s="best of >= reps runs of the AOT-compiled jax.jit function (block_until_ready)",
@@ -953,23 +1172,27 @@ def main(argv=None) -> int:
             xla_peak_bytes="compiled.memory_analysis().peak_memory_in_bytes",
             max_rss_bytes="ru_maxrss of the case's own process (--rss only)",
             other_cpu_share="share of all CPUs used by other processes during the case "
-                            "(from /proc/stat minus this process and its children)",
+            "(from /proc/stat minus this process and its children)",
         ),
         idle_process_max_rss_bytes=idle_rss,
         notes=notes,
         targets=summary,
         total_s=elapsed,
         other_cpu_share=other,
-        cases=[{**r["case"], **{k: v for k, v in r.items() if k not in ("case", "order")}}
-               for r in sorted(results, key=sort_key)],
+        cases=[
+            {**r["case"], **{k: v for k, v in r.items() if k not in ("case", "order")}}
+            for r in sorted(results, key=sort_key)
+        ],
     )
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"Wrote {out}", file=sys.stderr)
     if args.check:
         report, worse = check(results, args.check, args.check_compile)
-        print(f"\nRegression check against {args.check} (run rate tolerance "
-              f"{RATE_TOLERANCE:.0%}; compile time limit {COMPILE_LIMIT}×"
-              f"{'' if args.check_compile else ', reported'}):")
+        print(
+            f"\nRegression check against {args.check} (run rate tolerance "
+            f"{RATE_TOLERANCE:.0%}; compile time limit {COMPILE_LIMIT}×"
+            f"{'' if args.check_compile else ', reported'}):"
+        )
         print(report)
         return 1 if worse else 0
     return 0

@@ -93,12 +93,18 @@ def measure(fn, args, n, rounds, reps):
         t0 = time.perf_counter()
         f.lower(*args).compile()
         compile_s[k] = time.perf_counter() - t0
-        outs[k] = [np.asarray(x, np.float64) for x in jax.tree_util.tree_leaves(
-            jax.block_until_ready(f(*args)))]
+        outs[k] = [
+            np.asarray(x, np.float64)
+            for x in jax.tree_util.tree_leaves(jax.block_until_ready(f(*args)))
+        ]
     # the largest difference relative to the largest value of each output
-    rel = max(float(np.max(np.abs(x - y), initial=0.0) / max(np.max(np.abs(x), initial=0.0),
-                                                            np.finfo(np.float64).tiny))
-              for x, y in zip(outs["256"], outs["512"]))
+    rel = max(
+        float(
+            np.max(np.abs(x - y), initial=0.0)
+            / max(np.max(np.abs(x), initial=0.0), np.finfo(np.float64).tiny)
+        )
+        for x, y in zip(outs["256"], outs["512"])
+    )
     rates = {k: [] for k in fns}
     for _ in range(rounds):
         for k, f in fns.items():
@@ -109,10 +115,16 @@ def measure(fn, args, n, rounds, reps):
                 best = min(best, time.perf_counter() - t0)
             rates[k].append(n / best)
     ratio = np.asarray(rates["512"]) / np.asarray(rates["256"])
-    return dict(rate_256=float(np.median(rates["256"])), rate_512=float(np.median(rates["512"])),
-                ratio_median=float(np.median(ratio)), ratio_min=float(ratio.min()),
-                ratio_max=float(ratio.max()), compile_256_s=compile_s["256"],
-                compile_512_s=compile_s["512"], max_rel_difference=rel)
+    return dict(
+        rate_256=float(np.median(rates["256"])),
+        rate_512=float(np.median(rates["512"])),
+        ratio_median=float(np.median(ratio)),
+        ratio_min=float(ratio.min()),
+        ratio_max=float(ratio.max()),
+        compile_256_s=compile_s["256"],
+        compile_512_s=compile_s["512"],
+        max_rel_difference=rel,
+    )
 
 
 def main(argv=None):
@@ -123,33 +135,48 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, help="JSON output path (default benchmarks/results/...)")
     args = ap.parse_args(argv)
     info = P.machine_info()
-    print(f"# XLA:CPU vector width 512 against 256 on {info['cpu_model']} "
-          f"({info['cpu_count']} CPUs), jax {jax.__version__}", flush=True)
+    print(
+        f"# XLA:CPU vector width 512 against 256 on {info['cpu_model']} "
+        f"({info['cpu_count']} CPUs), jax {jax.__version__}",
+        flush=True,
+    )
     rows = []
     t_start = time.perf_counter()
     for name, dtype, size, fn, fargs, n in cases(args.quick):
         r = measure(fn, fargs, n, args.rounds, args.reps)
         rows.append(dict(case=name, dtype=dtype, size=size, **r))
-        print(f"- {name}, {dtype}, {size}: {r['rate_256'] / 1e6:.2f} → {r['rate_512'] / 1e6:.2f} "
-              f"M samples/s, {r['ratio_median']:.2f}× [{r['ratio_min']:.2f}, "
-              f"{r['ratio_max']:.2f}], compile {r['compile_256_s']:.2f} / "
-              f"{r['compile_512_s']:.2f} s, largest relative difference "
-              f"{r['max_rel_difference']:.1e}", flush=True)
-    print("\n| case | dtype | B × T | 256-bit, samples/s | 512-bit | ratio (median of rounds, "
-          "range) | compile s, 256 / 512 | results differ by |")
+        print(
+            f"- {name}, {dtype}, {size}: {r['rate_256'] / 1e6:.2f} → {r['rate_512'] / 1e6:.2f} "
+            f"M samples/s, {r['ratio_median']:.2f}× [{r['ratio_min']:.2f}, "
+            f"{r['ratio_max']:.2f}], compile {r['compile_256_s']:.2f} / "
+            f"{r['compile_512_s']:.2f} s, largest relative difference "
+            f"{r['max_rel_difference']:.1e}",
+            flush=True,
+        )
+    print(
+        "\n| case | dtype | B × T | 256-bit, samples/s | 512-bit | ratio (median of rounds, "
+        "range) | compile s, 256 / 512 | results differ by |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['case']} | {r['dtype']} | {r['size']} | {r['rate_256'] / 1e6:.2f} M | "
-              f"{r['rate_512'] / 1e6:.2f} M | {r['ratio_median']:.2f}× ({r['ratio_min']:.2f}–"
-              f"{r['ratio_max']:.2f}) | {r['compile_256_s']:.2f} / {r['compile_512_s']:.2f} | "
-              f"{r['max_rel_difference']:.0e} |")
-    out = args.out or (P.RESULTS_DIR / f"vector-width-{P.machine_slug(info)}"
-                       f"{'-quick' if args.quick else ''}.json")
+        print(
+            f"| {r['case']} | {r['dtype']} | {r['size']} | {r['rate_256'] / 1e6:.2f} M | "
+            f"{r['rate_512'] / 1e6:.2f} M | {r['ratio_median']:.2f}× ({r['ratio_min']:.2f}–"
+            f"{r['ratio_max']:.2f}) | {r['compile_256_s']:.2f} / {r['compile_512_s']:.2f} | "
+            f"{r['max_rel_difference']:.0e} |"
+        )
+    out = args.out or (
+        P.RESULTS_DIR / f"vector-width-{P.machine_slug(info)}{'-quick' if args.quick else ''}.json"
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
-    doc = dict(benchmark="XLA:CPU prefer_vector_width 512 vs 256",
-               date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-               machine=info, settings=dict(rounds=args.rounds, reps=args.reps, quick=args.quick),
-               total_s=time.perf_counter() - t_start, rows=rows)
+    doc = dict(
+        benchmark="XLA:CPU prefer_vector_width 512 vs 256",
+        date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        machine=info,
+        settings=dict(rounds=args.rounds, reps=args.reps, quick=args.quick),
+        total_s=time.perf_counter() - t_start,
+        rows=rows,
+    )
     out.write_text(json.dumps(doc, indent=1))
     print(f"\nwrote {out}")
 

@@ -24,13 +24,20 @@ BUNDLED = pathlib.Path(learning.__file__).parent.parent / "data" / "euroc_v2_01_
 def report(model, seq):
     rep = learning.evaluate_sequence(model, seq)
     print(f"{rep.name}: {rep.seconds:.1f} s open loop from the true attitude")
-    for key, label in (("raw", "raw gyro"), ("constant_bias", "minus the constant bias"),
-                       ("learned", "learned correction")):
+    for key, label in (
+        ("raw", "raw gyro"),
+        ("constant_bias", "minus the constant bias"),
+        ("learned", "learned correction"),
+    ):
         m = rep.metrics[key]
-        print(f"  {label:26} mean AOE {m.aoe_mean:6.2f}°  RMSE {m.aoe_rmse:6.2f}°  "
-              f"mean AYE {m.aye_mean:6.2f}°")
-    print(f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 if consistent), "
-          f"{100 * rep.inside_3sigma:.0f}% of samples inside 3σ")
+        print(
+            f"  {label:26} mean AOE {m.aoe_mean:6.2f}°  RMSE {m.aoe_rmse:6.2f}°  "
+            f"mean AYE {m.aye_mean:6.2f}°"
+        )
+    print(
+        f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 if consistent), "
+        f"{100 * rep.inside_3sigma:.0f}% of samples inside 3σ"
+    )
 
 
 def main(argv=None):
@@ -40,8 +47,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.train:
         seqs = [learning.load_sequence(d) for d in args.train]
-        cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(
-            steps=args.steps)
+        cfg = (
+            learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
+        )
         model = learning.train(seqs, cfg).model
         for s in seqs:
             report(model, learning.split(s, cfg.train_seconds)[1])

@@ -33,12 +33,17 @@ def main():
     args = ap.parse_args()
     rate = 200.0
     t = np.arange(int(args.seconds * rate) + 1) / rate
-    traj = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5),
-                         attitude_frequency=(0.31, 0.23, 0.13))
+    traj = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5), attitude_frequency=(0.31, 0.23, 0.13))
     gyro, accel = sim.ideal_imu(traj, jnp.asarray(t))
-    gm, am, _ = sim.add_noise(jax.random.key(args.seed), gyro, accel, 1 / rate, TRUE,
-                              b_g0=np.array([0.003, -0.002, 0.004]),
-                              b_a0=np.array([0.05, -0.08, 0.1]))
+    gm, am, _ = sim.add_noise(
+        jax.random.key(args.seed),
+        gyro,
+        accel,
+        1 / rate,
+        TRUE,
+        b_g0=np.array([0.003, -0.002, 0.004]),
+        b_a0=np.array([0.05, -0.08, 0.1]),
+    )
     t_ref = np.arange(0.0, args.seconds + 1e-9, 0.01)
     truth = sim.true_states(traj, jnp.asarray(t_ref))
     rng = np.random.default_rng(args.seed)
@@ -47,13 +52,21 @@ def main():
     v = np.asarray(truth.v) + rng.normal(0, REF_SIGMA[2], p_shape)
     reference = cal.Reference(t_ref, np.asarray(q), p, v)
     start = jaximu.ImuNoise(5e-3, 5e-2, 5e-4, 5e-2)
-    problem = cal.calibration_problem(t, np.asarray(gm), np.asarray(am), reference, start,
-                                      window_lengths=(0.25, 1, 2.5, 7.5), scheme="midpoint",
-                                      reference_sigma=2 * REF_SIGMA)
+    problem = cal.calibration_problem(
+        t,
+        np.asarray(gm),
+        np.asarray(am),
+        reference,
+        start,
+        window_lengths=(0.25, 1, 2.5, 7.5),
+        scheme="midpoint",
+        reference_sigma=2 * REF_SIGMA,
+    )
     result = cal.calibrate(problem, estimate=("b_g", "b_a") + cal.NOISE_FIELDS)
     print(result.noise_table(allan=TRUE))
-    print("(the 'Allan' column holds the simulated truth; reference truth:",
-          REF_SIGMA.tolist(), ")")
+    print(
+        "(the 'Allan' column holds the simulated truth; reference truth:", REF_SIGMA.tolist(), ")"
+    )
 
 
 if __name__ == "__main__":

@@ -30,11 +30,32 @@ from jaximu.studies.recording import (
     run_demo,
 )
 
-__all__ = ["API_ONLY_OPTIONS", "DEMO_SCHEMES", "DEMO_SECONDS", "FIX_SIGMA", "FLAGS",
-           "INVERTED_FLAGS", "NOISE_PRESETS", "REPORT_AT", "UsageError", "_warnings_as_lines",
-           "build_parser", "cache_folder", "cmd_allan", "cmd_calibrate", "cmd_demo",
-           "cmd_montecarlo", "cmd_preintegrate", "cmd_propagate", "enable_compilation_cache",
-           "flag_of", "main", "options_table", "propagate_recording", "run_demo"]
+__all__ = [
+    "API_ONLY_OPTIONS",
+    "DEMO_SCHEMES",
+    "DEMO_SECONDS",
+    "FIX_SIGMA",
+    "FLAGS",
+    "INVERTED_FLAGS",
+    "NOISE_PRESETS",
+    "REPORT_AT",
+    "UsageError",
+    "_warnings_as_lines",
+    "build_parser",
+    "cache_folder",
+    "cmd_allan",
+    "cmd_calibrate",
+    "cmd_demo",
+    "cmd_montecarlo",
+    "cmd_preintegrate",
+    "cmd_propagate",
+    "enable_compilation_cache",
+    "flag_of",
+    "main",
+    "options_table",
+    "propagate_recording",
+    "run_demo",
+]
 
 if __name__ == "__main__":
     sys.exit(main())

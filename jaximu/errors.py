@@ -70,8 +70,9 @@ class InputError(ValueError):
         api_note: advice that holds only for the Python API (not rendered by the command).
     """
 
-    def __init__(self, problem: str, fixes=(), *, lead: str = "pass", sep: str = "; ",
-                 api_note: str = ""):
+    def __init__(
+        self, problem: str, fixes=(), *, lead: str = "pass", sep: str = "; ", api_note: str = ""
+    ):
         self.problem = problem
         self.fixes = tuple(fixes)
         self.lead = lead
@@ -90,8 +91,10 @@ class InputError(ValueError):
         return f"{self.problem}{self.sep}{lead}{' or '.join(words)}{note}"
 
     def __reduce__(self):  # pickling (multiprocessing, pytest-xdist) keeps the data
-        return (_rebuild, (type(self), self.problem, self.fixes, self.lead, self.sep,
-                           self.api_note))
+        return (
+            _rebuild,
+            (type(self), self.problem, self.fixes, self.lead, self.sep, self.api_note),
+        )
 
 
 def _rebuild(cls, problem, fixes, lead, sep, api_note):

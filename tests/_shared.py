@@ -20,8 +20,13 @@ DATA = REPO / "tests" / "data"  # the test recordings (EuRoC and TUM-VI excerpts
 def fast_settings(n, *checks):
     """Hypothesis settings of the suite: ``n`` examples, derandomised, no deadline and no
     example database (``checks``: further health checks to suppress)."""
-    return settings(max_examples=n, deadline=None, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, *checks])
+    return settings(
+        max_examples=n,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=[HealthCheck.too_slow, *checks],
+    )
 
 
 def euroc_window(start_s, length_s):
@@ -29,9 +34,9 @@ def euroc_window(start_s, length_s):
     ground-truth biases at its start: ``(k0, gyro, accel, dt, bias)``."""
     k0 = int(round(start_s / 0.005))
     n = int(round(length_s / 0.005))
-    dt = np.diff(SEG.t[k0:k0 + n + 1])
+    dt = np.diff(SEG.t[k0 : k0 + n + 1])
     bias = jaximu.ImuBias(jnp.asarray(SEG.b_g_gt[k0]), jnp.asarray(SEG.b_a_gt[k0]))
-    return k0, SEG.gyro[k0:k0 + n], SEG.accel[k0:k0 + n], dt, bias
+    return k0, SEG.gyro[k0 : k0 + n], SEG.accel[k0 : k0 + n], dt, bias
 
 
 def central_difference_phi(run, x0, eps=1e-6):
@@ -54,9 +59,18 @@ def random_inputs(B, T, seed=0, big_angles=False, dtype=np.float64):
     gravity."""
     rng = np.random.default_rng(seed)
     q = Rotation.random(B, random_state=seed).as_quat(scalar_first=True)
-    state = jaximu.NavState(*(jnp.asarray(x, dtype) for x in (
-        q, rng.normal(size=(B, 3)), rng.normal(size=(B, 3)), 0.01 * rng.normal(size=(B, 3)),
-        0.1 * rng.normal(size=(B, 3)))))
+    state = jaximu.NavState(
+        *(
+            jnp.asarray(x, dtype)
+            for x in (
+                q,
+                rng.normal(size=(B, 3)),
+                rng.normal(size=(B, 3)),
+                0.01 * rng.normal(size=(B, 3)),
+                0.1 * rng.normal(size=(B, 3)),
+            )
+        )
+    )
     gyro = rng.normal(size=(B, T, 3)) * 0.8
     if big_angles:
         gyro[: B // 3] *= 400.0
@@ -81,4 +95,3 @@ def dispatch_as(backend):
     finally:
         _dispatch.backend = device.backend = saved
         jax.clear_caches()
-

@@ -20,8 +20,10 @@ import tempfile
 # with the caller's flags only (pytest_pyfunc_call below); tests/test_cli.py runs the demo
 # (real EuRoC data, every scheme) that way too, so the default code generation is exercised
 # end to end.
-_FAST_COMPILE = ("--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-                 " --xla_cpu_use_fusion_emitters=false")
+_FAST_COMPILE = (
+    "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+    " --xla_cpu_use_fusion_emitters=false"
+)
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 
@@ -37,8 +39,15 @@ def _known_flags(flags: str) -> str:
 
     def starts(f):
         env = {**os.environ, "XLA_FLAGS": f, "JAX_PLATFORMS": "cpu"}
-        return subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env,
-                              capture_output=True, timeout=300).returncode == 0
+        return (
+            subprocess.run(
+                [sys.executable, "-c", "import jax; jax.devices()"],
+                env=env,
+                capture_output=True,
+                timeout=300,
+            ).returncode
+            == 0
+        )
 
     known = flags if starts(flags) else " ".join(f for f in flags.split() if starts(f))
     os.environ["JAXIMU_TEST_FAST_COMPILE"] = known
@@ -50,8 +59,9 @@ _DEFAULT_CODEGEN = os.environ.get("JAXIMU_TEST_DEFAULT_CODEGEN") == "1"
 if _DEFAULT_CODEGEN:
     os.environ["XLA_FLAGS"] = os.environ["JAXIMU_TEST_CALLER_XLA_FLAGS"]
 else:
-    os.environ["XLA_FLAGS"] = (f"{_known_flags(_FAST_COMPILE)} "
-                               f"{os.environ['JAXIMU_TEST_CALLER_XLA_FLAGS']}").strip()
+    os.environ["XLA_FLAGS"] = (
+        f"{_known_flags(_FAST_COMPILE)} {os.environ['JAXIMU_TEST_CALLER_XLA_FLAGS']}"
+    ).strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -99,8 +109,10 @@ def _release_compiled_code():
 
 def pytest_configure(config):
     config.addinivalue_line(
-        "markers", "default_codegen: run in a child pytest with XLA's default code generation "
-        "(not the suite's fast-compile flags), for checks of bitwise reproducibility")
+        "markers",
+        "default_codegen: run in a child pytest with XLA's default code generation "
+        "(not the suite's fast-compile flags), for checks of bitwise reproducibility",
+    )
 
 
 _CHILD_RESULTS = {}  # nodeid -> (passed, report) of the default_codegen child runs
@@ -109,15 +121,24 @@ _CHILD_RESULTS = {}  # nodeid -> (passed, report) of the default_codegen child r
 def _run_children(item):
     """Run every ``default_codegen`` test of ``item``'s module in one child pytest (they share
     its module fixtures there, computed once) and record each one's outcome."""
-    ids = [it.nodeid for it in item.session.items
-           if it.module is item.module and it.get_closest_marker("default_codegen")]
+    ids = [
+        it.nodeid
+        for it in item.session.items
+        if it.module is item.module and it.get_closest_marker("default_codegen")
+    ]
     env = dict(os.environ, JAXIMU_TEST_DEFAULT_CODEGEN="1")
     res = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-rA", "-n", "0", "-p", "no:cacheprovider", *ids],
-        cwd=item.config.rootpath, env=env, capture_output=True, text=True, timeout=1200)
+        cwd=item.config.rootpath,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
     report = f"{res.stdout[-8000:]}\n{res.stderr[-2000:]}"
-    passed = {ln.split(" ", 1)[1].strip() for ln in res.stdout.splitlines()
-              if ln.startswith("PASSED ")}
+    passed = {
+        ln.split(" ", 1)[1].strip() for ln in res.stdout.splitlines() if ln.startswith("PASSED ")
+    }
     for i in ids:
         _CHILD_RESULTS[i] = (i in passed, report)
 
@@ -134,6 +155,7 @@ def pytest_pyfunc_call(pyfuncitem):
         _run_children(pyfuncitem)
     passed, report = _CHILD_RESULTS[pyfuncitem.nodeid]
     if not passed:
-        pytest.fail(f"in a child pytest with XLA's default code generation:\n{report}",
-                    pytrace=False)
+        pytest.fail(
+            f"in a child pytest with XLA's default code generation:\n{report}", pytrace=False
+        )
     return True

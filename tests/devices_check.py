@@ -32,8 +32,10 @@ LEVER = jaximu.SensorPose(jnp.array([0.96, 0.0, 0.28, 0.0]), jnp.array([0.1, -0.
 def inputs(B, seed=0):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(B, 4))
-    state = jaximu.NavState(jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)),
-                            *(jnp.asarray(0.1 * rng.normal(size=(B, 3))) for _ in range(4)))
+    state = jaximu.NavState(
+        jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)),
+        *(jnp.asarray(0.1 * rng.normal(size=(B, 3))) for _ in range(4)),
+    )
     gyro = jnp.asarray(rng.normal(size=(B, T + 1, 3)))
     accel = jnp.asarray(rng.normal(size=(B, T + 1, 3)) + [0.0, 0.0, 9.81])
     return state, gyro, accel
@@ -47,20 +49,34 @@ def noise(s):
 # lane reads: its gradient sums over the devices)
 CASES = {
     "propagate_final/euler": lambda st, w, a, s: jaximu.propagate_final(
-        st, w[:, :T], a[:, :T], DT * s),
+        st, w[:, :T], a[:, :T], DT * s
+    ),
     "propagate/midpoint": lambda st, w, a, s: jaximu.propagate(st, w, a, DT * s, "midpoint"),
     "vmap propagate_final/rk4": lambda st, w, a, s: jax.vmap(
-        lambda x, w1, a1: jaximu.propagate_final(x, w1, a1, DT * s, "rk4"))(st, w, a),
+        lambda x, w1, a1: jaximu.propagate_final(x, w1, a1, DT * s, "rk4")
+    )(st, w, a),
     "propagate_covariance_final/rk4": lambda st, w, a, s: jaximu.propagate_covariance_final(
-        st, P0, w, a, DT * s, noise(s), "rk4"),
-    "propagate_covariance_final/euler autodiff, rotating, lever arm":
-        lambda st, w, a, s: jaximu.propagate_covariance_final(
-            st, P0, w[:, :T], a[:, :T], DT * s, noise(s), jacobians="autodiff",
-            omega_coriolis=EARTH, body_P_sensor=LEVER),
+        st, P0, w, a, DT * s, noise(s), "rk4"
+    ),
+    "propagate_covariance_final/euler autodiff, rotating, lever arm": lambda st, w, a, s: (
+        jaximu.propagate_covariance_final(
+            st,
+            P0,
+            w[:, :T],
+            a[:, :T],
+            DT * s,
+            noise(s),
+            jacobians="autodiff",
+            omega_coriolis=EARTH,
+            body_P_sensor=LEVER,
+        )
+    ),
     "preintegrate/euler": lambda st, w, a, s: jaximu.preintegrate(
-        w[:, :T], a[:, :T], DT * s, st.bias, noise(s)),
+        w[:, :T], a[:, :T], DT * s, st.bias, noise(s)
+    ),
     "preintegrate/midpoint": lambda st, w, a, s: jaximu.preintegrate(
-        w, a, DT * s, st.bias, noise(s), "midpoint"),
+        w, a, DT * s, st.bias, noise(s), "midpoint"
+    ),
 }
 # Gradients under the mesh: the shard_map's transpose and the cross-device sum of the shared
 # scalar are run_blocked's, the same for every kernel, checked here on propagate_final.
@@ -72,14 +88,17 @@ GRADIENTS = {"propagate_final/euler"}
 
 def scalar(f):
     def loss(st, w, a, s):
-        return sum(jnp.sum(jnp.sin(x)) for x in jax.tree_util.tree_leaves(f(st, w, a, s))
-                   if jnp.issubdtype(x.dtype, jnp.floating))
+        return sum(
+            jnp.sum(jnp.sin(x))
+            for x in jax.tree_util.tree_leaves(f(st, w, a, s))
+            if jnp.issubdtype(x.dtype, jnp.floating)
+        )
+
     return loss
 
 
 def close(name, got, want):
-    for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),
-                    strict=True):
+    for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
         x, y = np.asarray(x), np.asarray(y)
         scale = max(np.max(np.abs(y)), np.finfo(y.dtype).tiny)
         err = np.max(np.abs(x - y)) / scale
@@ -137,9 +156,11 @@ w1 = jnp.asarray(rng.normal(size=(Tn, 3)))
 a1 = jnp.asarray(rng.normal(size=(Tn, 3)) + [0.0, 0.0, 9.81])
 ONE = {
     "preintegrate/euler sequential": lambda w, a: jaximu.preintegrate(
-        w, a, DT, st1.bias, noise(1.0), method="sequential"),
+        w, a, DT, st1.bias, noise(1.0), method="sequential"
+    ),
     "propagate_covariance/midpoint": lambda w, a: jaximu.propagate_covariance(
-        st1, P0, w, a, DT, noise(1.0), "midpoint"),
+        st1, P0, w, a, DT, noise(1.0), "midpoint"
+    ),
 }
 for name, f in ONE.items():
     want = jax.jit(f)(w1, a1)

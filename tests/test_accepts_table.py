@@ -25,18 +25,28 @@ from jaximu import (
 )
 
 DOC = pathlib.Path(__file__).parent.parent / "docs" / "accepts.md"
-MODULES = {"jaximu": jaximu, "jaximu.so3": so3, "jaximu.allan": allan,
-           "jaximu.montecarlo": montecarlo, "jaximu.calibration": calibration, "jaximu.io": io,
-           "jaximu.simulate": simulate, "jaximu.recording": recording,
-           "jaximu.keyframes": keyframes,
-           "jaximu.learning": learning}
+MODULES = {
+    "jaximu": jaximu,
+    "jaximu.so3": so3,
+    "jaximu.allan": allan,
+    "jaximu.montecarlo": montecarlo,
+    "jaximu.calibration": calibration,
+    "jaximu.io": io,
+    "jaximu.simulate": simulate,
+    "jaximu.recording": recording,
+    "jaximu.keyframes": keyframes,
+    "jaximu.learning": learning,
+}
 
 
 def public_functions():
     out = {}
     for prefix, mod in MODULES.items():
-        names = getattr(mod, "__all__", None) if mod is not jaximu else \
-            [n for n in dir(mod) if not n.startswith("_")]
+        names = (
+            getattr(mod, "__all__", None)
+            if mod is not jaximu
+            else [n for n in dir(mod) if not n.startswith("_")]
+        )
         for name in names:
             f = getattr(mod, name)
             if inspect.isfunction(f):
@@ -72,8 +82,9 @@ def test_the_table_has_every_public_function_and_no_other():
 def test_each_section_lists_exactly_the_parameters(name):
     rows = documented().get(name, [])
     assert len(rows) == len(set(rows)), f"{name}: a parameter is listed twice"
-    assert set(rows) == set(FUNCTIONS[name]), \
+    assert set(rows) == set(FUNCTIONS[name]), (
         f"{name}: missing {set(FUNCTIONS[name]) - set(rows)}, stale {set(rows) - set(FUNCTIONS[name])}"
+    )
 
 
 def test_the_command_options_part_is_generated_from_the_parser():

@@ -42,8 +42,9 @@ def test_motion_ratio_of_white_noise_is_one_over_root_m():
 def test_motion_ratio_too_short_to_judge_and_constant_axes():
     assert np.isnan(allan.motion_ratio(np.arange(15.0), 0.01, 0.1))  # one whole window
     y = np.stack([np.full(300, 2.0), np.arange(300.0)], axis=1)  # a constant axis counts 0
-    np.testing.assert_allclose(allan.motion_ratio(y, 0.01, 0.1),
-                               allan.motion_ratio(y[:, 1], 0.01, 0.1), rtol=0)
+    np.testing.assert_allclose(
+        allan.motion_ratio(y, 0.01, 0.1), allan.motion_ratio(y[:, 1], 0.01, 0.1), rtol=0
+    )
     assert allan.motion_ratio(np.full(300, 2.0), 0.01, 0.1) == 0.0
 
 

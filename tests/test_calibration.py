@@ -31,8 +31,17 @@ def simulate_data(seed, b_g, b_a, S_g=None, S_a=None, time_offset=0.0, gravity=9
     t_imu = np.arange(int(SECONDS * RATE) + 1) / RATE
     t_true = t_imu + time_offset  # the instant each IMU sample was taken, reference clock
     gyro, accel = sim.ideal_imu(TRAJ, jnp.asarray(t_true), gravity=gravity)
-    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / RATE, WHITE, b_g0=b_g,
-                              b_a0=b_a, gyro_misalignment=S_g, accel_misalignment=S_a)
+    gm, am, _ = sim.add_noise(
+        jax.random.key(seed),
+        gyro,
+        accel,
+        1 / RATE,
+        WHITE,
+        b_g0=b_g,
+        b_a0=b_a,
+        gyro_misalignment=S_g,
+        accel_misalignment=S_a,
+    )
     t_ref = np.arange(-0.5, SECONDS + 0.5, 0.01)
     truth = sim.true_states(TRAJ, jnp.asarray(t_ref))
     ref = cal.Reference(t_ref, np.asarray(truth.q), np.asarray(truth.p), np.asarray(truth.v))
@@ -78,11 +87,19 @@ def test_recovers_all_intrinsics_time_offset_and_gravity():
     b_g, b_a = np.array([0.003, -0.002, 0.004]), np.array([0.05, -0.08, 0.1])
     data = simulate_data(11, b_g, b_a, S_G, S_A, time_offset=0.004, gravity=9.805)
     res = cal.calibrate(problem_for(*data), estimate=cal.FIELDS, steps=300)
-    within(res, {
-        "b_g": b_g, "b_a": b_a, "gyro_scale": np.diag(S_G), "accel_scale": np.diag(S_A),
-        "gyro_misalignment": S_G[[1, 2, 2], [0, 0, 1]],
-        "accel_misalignment": S_A[[1, 2, 2], [0, 0, 1]], "gravity": 9.805,
-        "time_offset": 0.004})
+    within(
+        res,
+        {
+            "b_g": b_g,
+            "b_a": b_a,
+            "gyro_scale": np.diag(S_G),
+            "accel_scale": np.diag(S_A),
+            "gyro_misalignment": S_G[[1, 2, 2], [0, 0, 1]],
+            "accel_misalignment": S_A[[1, 2, 2], [0, 0, 1]],
+            "gravity": 9.805,
+            "time_offset": 0.004,
+        },
+    )
     # Informative, not a trivially wide covariance.
     assert float(res.std.time_offset) < 1e-4 and float(res.std.gravity) < 0.01
     assert np.asarray(res.std.gyro_scale).max() < 2e-4
@@ -107,14 +124,18 @@ def test_reference_without_velocities_estimates_them_as_nuisance():
     init_vec = cal._flatten(cal.ImuCalibration.default(dtype=jnp.float64))
     z = jnp.asarray(np.random.default_rng(1).normal(0, 0.3, 6 + layout.n_velocity))
     _, J = cal._residuals_jacobian(z, prob, init_vec, layout=layout)
-    res_of = jax.jit(lambda z_: cal.calibration_residuals(
-        prob, *cal._unpack(z_, init_vec, prob.velocities, layout)).reshape(-1))
+    res_of = jax.jit(
+        lambda z_: cal.calibration_residuals(
+            prob, *cal._unpack(z_, init_vec, prob.velocities, layout)
+        ).reshape(-1)
+    )
     for col in (6 + 0, 6 + 3 * 7 + 2, 6 + layout.n_velocity - 1):  # first, inner, last
         e = np.zeros(len(z))
         e[col] = 1e-4
         fd = (np.asarray(res_of(z + e)) - np.asarray(res_of(z - e))) / 2e-4
-        np.testing.assert_allclose(np.asarray(J)[:, col], fd, rtol=1e-5,
-                                   atol=1e-7 * np.abs(fd).max())
+        np.testing.assert_allclose(
+            np.asarray(J)[:, col], fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max()
+        )
         assert np.count_nonzero(np.asarray(J)[:, col]) <= 18  # only the windows it bounds
     with_v = cal.calibrate(problem_for(t, gm, am, ref))
     assert np.all(np.asarray(res.std.b_a) > np.asarray(with_v.std.b_a))  # less information
@@ -127,17 +148,26 @@ def test_adam_and_levenberg_marquardt_reach_the_lbfgs_optimum():
     lm = cal.calibrate(prob)  # the default
     assert lm.converged and len(lm.loss_history) < 10
     for name in ("b_g", "b_a"):
-        np.testing.assert_allclose(np.asarray(getattr(lm.calibration, name)),
-                                   np.asarray(getattr(a.calibration, name)),
-                                   atol=0.01 * float(np.asarray(getattr(a.std, name)).min()))
-        np.testing.assert_allclose(np.asarray(getattr(lm.std, name)),
-                                   np.asarray(getattr(a.std, name)), rtol=1e-3)
+        np.testing.assert_allclose(
+            np.asarray(getattr(lm.calibration, name)),
+            np.asarray(getattr(a.calibration, name)),
+            atol=0.01 * float(np.asarray(getattr(a.std, name)).min()),
+        )
+        np.testing.assert_allclose(
+            np.asarray(getattr(lm.std, name)), np.asarray(getattr(a.std, name)), rtol=1e-3
+        )
     assert lm.chi2 <= a.chi2 * (1 + 1e-9)
     b = cal.calibrate(prob, optimizer="adam", learning_rate=0.05, steps=2000, tol=1e-12)
-    np.testing.assert_allclose(np.asarray(b.calibration.b_g), np.asarray(a.calibration.b_g),
-                               atol=0.05 * float(np.asarray(a.std.b_g).min()))
-    np.testing.assert_allclose(np.asarray(b.calibration.b_a), np.asarray(a.calibration.b_a),
-                               atol=0.05 * float(np.asarray(a.std.b_a).min()))
+    np.testing.assert_allclose(
+        np.asarray(b.calibration.b_g),
+        np.asarray(a.calibration.b_g),
+        atol=0.05 * float(np.asarray(a.std.b_g).min()),
+    )
+    np.testing.assert_allclose(
+        np.asarray(b.calibration.b_a),
+        np.asarray(a.calibration.b_a),
+        atol=0.05 * float(np.asarray(a.std.b_a).min()),
+    )
     assert b.loss_history[-1] <= a.loss_history[-1] * (1 + 1e-6)
 
 
@@ -149,10 +179,16 @@ def full_problem():
 
 def test_loss_gradient_matches_finite_differences(full_problem):
     calib = cal.ImuCalibration.default(
-        dtype=jnp.float64, b_g=[0.002, -0.001, 0.003], b_a=[0.04, -0.05, 0.08],
-        gyro_scale=[0.005, -0.002, 0.004], gyro_misalignment=[0.001, -0.002, 0.003],
-        accel_scale=[-0.003, 0.006, 0.002], accel_misalignment=[0.001, 0.002, -0.002],
-        gravity=9.80, time_offset=0.0021)  # off the reference's 10 ms grid (a kink there)
+        dtype=jnp.float64,
+        b_g=[0.002, -0.001, 0.003],
+        b_a=[0.04, -0.05, 0.08],
+        gyro_scale=[0.005, -0.002, 0.004],
+        gyro_misalignment=[0.001, -0.002, 0.003],
+        accel_scale=[-0.003, 0.006, 0.002],
+        accel_misalignment=[0.001, 0.002, -0.002],
+        gravity=9.80,
+        time_offset=0.0021,
+    )  # off the reference's 10 ms grid (a kink there)
     loss = jax.jit(cal.calibration_loss)
     grad = jax.jit(jax.grad(cal.calibration_loss, argnums=1))(full_problem, calib)
     for name in cal.FIELDS:
@@ -167,8 +203,9 @@ def test_loss_gradient_matches_finite_differences(full_problem):
             fp = loss(full_problem, dataclasses.replace(calib, **{name: xp.reshape(shape)}))
             fm = loss(full_problem, dataclasses.replace(calib, **{name: xm.reshape(shape)}))
             fd = (float(fp) - float(fm)) / (2 * h)
-            np.testing.assert_allclose(g[i], fd, rtol=2e-5, atol=1e-6 * abs(fd) + 1e-3,
-                                       err_msg=f"{name}[{i}]")
+            np.testing.assert_allclose(
+                g[i], fd, rtol=2e-5, atol=1e-6 * abs(fd) + 1e-3, err_msg=f"{name}[{i}]"
+            )
 
 
 def test_preintegration_and_propagation_residuals_agree():
@@ -179,8 +216,9 @@ def test_preintegration_and_propagation_residuals_agree():
     data = simulate_data(4, b_g, b_a, S_G, S_A)
     prop = problem_for(*data, scheme="euler")
     pre = dataclasses.replace(prop, model="preintegration")
-    calib = cal.ImuCalibration.default(dtype=jnp.float64, b_g=b_g, b_a=b_a,
-                                       gyro_scale=np.diag(S_G), time_offset=0.0013)
+    calib = cal.ImuCalibration.default(
+        dtype=jnp.float64, b_g=b_g, b_a=b_a, gyro_scale=np.diag(S_G), time_offset=0.0013
+    )
     r_prop = np.asarray(jax.jit(cal.calibration_residuals)(prop, calib))
     r_pre = np.asarray(jax.jit(cal.calibration_residuals)(pre, calib))
     assert r_prop.shape == (prop.n_windows, 9)
@@ -199,16 +237,18 @@ def test_checkpointed_groups_bound_gradient_memory(full_problem):
         comp = f.lower(prob, calib).compile()
         out[per_group] = (comp.memory_analysis().temp_size_in_bytes, comp(prob, calib))
     assert out[4][0] < 0.5 * out[40][0], (out[4][0], out[40][0])
-    np.testing.assert_allclose(np.asarray(out[4][1].b_g), np.asarray(out[40][1].b_g),
-                               rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(out[4][1].b_g), np.asarray(out[40][1].b_g), rtol=1e-9)
 
 
-@pytest.mark.parametrize("mistake, message", [
-    ("gyro_degrees", "deg/s"),
-    ("accel_in_g", "in g"),
-    ("imu_rotated", "axes do not match"),
-    ("quaternion_xyzw", "axes do not match"),
-])
+@pytest.mark.parametrize(
+    "mistake, message",
+    [
+        ("gyro_degrees", "deg/s"),
+        ("accel_in_g", "in g"),
+        ("imu_rotated", "axes do not match"),
+        ("quaternion_xyzw", "axes do not match"),
+    ],
+)
 def test_wrong_units_and_frames_fail_loudly(mistake, message):
     t, gm, am, ref = simulate_data(3, np.array([0.003, 0, 0]), np.array([0.05, 0, 0]))
     if mistake == "gyro_degrees":

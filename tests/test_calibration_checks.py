@@ -26,13 +26,24 @@ RZ90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 def recordings():
     out = []
-    for name, seg in (("jaximu/data V1_02", datasets.euroc_v1_02_segment()),
-                      ("jaximu/data V2_01", datasets.euroc_v2_01_segment())):
-        out.append((name, seg.t, seg.gyro, seg.accel,
-                    cal.Reference(seg.t_gt, seg.q_gt, seg.p_gt, seg.v_gt), ImuNoise.euroc()))
+    for name, seg in (
+        ("jaximu/data V1_02", datasets.euroc_v1_02_segment()),
+        ("jaximu/data V2_01", datasets.euroc_v2_01_segment()),
+    ):
+        out.append(
+            (
+                name,
+                seg.t,
+                seg.gyro,
+                seg.accel,
+                cal.Reference(seg.t_gt, seg.q_gt, seg.p_gt, seg.v_gt),
+                ImuNoise.euroc(),
+            )
+        )
     for name, read, folder, noise in (
-            ("tests/data V1_02", io.read_euroc, "euroc_v1_02_medium", ImuNoise.euroc()),
-            ("tests/data TUM-VI", io.read_tumvi, "tumvi_room4", ImuNoise.tum_vi())):
+        ("tests/data V1_02", io.read_euroc, "euroc_v1_02_medium", ImuNoise.euroc()),
+        ("tests/data TUM-VI", io.read_tumvi, "tumvi_room4", ImuNoise.tum_vi()),
+    ):
         d = read(DATA / folder)
         gt = d.ground_truth
         out.append((name, d.t, d.gyro, d.accel, cal.Reference(gt.t, gt.q, gt.p, gt.v), noise))
@@ -51,16 +62,29 @@ def excerpts():
             sel = slice(k := int(np.searchsorted(t, s)), k + SAMPLES)
             if len(t[sel]) < SAMPLES or t[sel][-1] > end:
                 continue
-            out.append((f"{name} {s - start:.0f}–{s - start + LENGTH:.0f} s", t[sel], gyro[sel],
-                        accel[sel], ref, noise))
+            out.append(
+                (
+                    f"{name} {s - start:.0f}–{s - start + LENGTH:.0f} s",
+                    t[sel],
+                    gyro[sel],
+                    accel[sel],
+                    ref,
+                    noise,
+                )
+            )
     assert len(out) >= 40
     return out
 
 
 def problem(e, gyro=None, accel=None, ref=None):
     _, t, g, a, r, noise = e
-    return cal.calibration_problem(t, g if gyro is None else gyro, a if accel is None else accel,
-                                   r if ref is None else ref, noise)
+    return cal.calibration_problem(
+        t,
+        g if gyro is None else gyro,
+        a if accel is None else accel,
+        r if ref is None else ref,
+        noise,
+    )
 
 
 def test_every_correct_excerpt_is_accepted(excerpts):

@@ -28,20 +28,30 @@ AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 def simulate(traj, pose, seed, b_g, b_a, time_offset):
     t_imu = np.arange(int(SECONDS * RATE) + 1) / RATE
     gyro, accel = sim.ideal_imu(traj, jnp.asarray(t_imu + time_offset), body_P_sensor=pose)
-    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / RATE, WHITE, b_g0=b_g,
-                              b_a0=b_a)
+    gm, am, _ = sim.add_noise(
+        jax.random.key(seed), gyro, accel, 1 / RATE, WHITE, b_g0=b_g, b_a0=b_a
+    )
     t_ref = np.arange(-0.5, SECONDS + 0.5, 0.01)
     truth = sim.true_states(traj, jnp.asarray(t_ref))
     ref = cal.Reference(t_ref, np.asarray(truth.q), np.asarray(truth.p), np.asarray(truth.v))
-    return cal.calibration_problem(t_imu, np.asarray(gm), np.asarray(am), ref, NOISE,
-                                   scheme="midpoint", model="propagation",
-                                   reference_sigma=(0, 0, 0), extrinsics=True)
+    return cal.calibration_problem(
+        t_imu,
+        np.asarray(gm),
+        np.asarray(am),
+        ref,
+        NOISE,
+        scheme="midpoint",
+        model="propagation",
+        reference_sigma=(0, 0, 0),
+        extrinsics=True,
+    )
 
 
 def rotation_error(q_est, q_true):
     """Rotation vector of q_true⁻¹ ⊗ q_est (scipy): the error δθ of q̂ = q ⊗ Exp(δθ)."""
-    r = (Rotation.from_quat(np.asarray(q_true), scalar_first=True).inv()
-         * Rotation.from_quat(np.asarray(q_est), scalar_first=True))
+    r = Rotation.from_quat(np.asarray(q_true), scalar_first=True).inv() * Rotation.from_quat(
+        np.asarray(q_est), scalar_first=True
+    )
     return r.as_rotvec()
 
 
@@ -71,8 +81,9 @@ def test_recovers_rotation_lever_arm_time_offset_and_biases(angle_deg):
 def test_a_motion_that_does_not_turn_leaves_the_lever_arm_unexcited():
     """Constant attitude: ω = α = 0, so the lever arm leaves no trace in the specific force;
     calibrate says so (RuntimeWarning naming the lever arm) instead of a confident value."""
-    still_attitude = sim.Trajectory(lambda t: (jnp.array([1.0, 0, 0, 0]) + 0 * t,
-                                               TRAJ.pose(t)[1]), "translation only")
+    still_attitude = sim.Trajectory(
+        lambda t: (jnp.array([1.0, 0, 0, 0]) + 0 * t, TRAJ.pose(t)[1]), "translation only"
+    )
     pose = SensorPose.from_rotation(Rotation.from_rotvec(0.3 * AXIS).as_matrix(), [0.2, -0.1, 0.3])
     prob = simulate(still_attitude, pose, 7, np.zeros(3), np.zeros(3), 0.0)
     # the rotation is still determined, by the velocity changes (gravity and translation)
@@ -131,8 +142,9 @@ def test_real_euroc_with_a_reference_moved_by_a_lever_arm_recovers_it():
     R = Rotation.from_quat(SEG.q_gt, scalar_first=True)
     b_g = np.stack([np.interp(SEG.t, SEG.t_gt, SEG.b_g_gt[:, i]) for i in range(3)], -1)
     omega = np.stack([np.interp(SEG.t_gt, SEG.t, (SEG.gyro - b_g)[:, i]) for i in range(3)], -1)
-    ref = cal.Reference(SEG.t_gt, SEG.q_gt, SEG.p_gt - R.apply(L),
-                        SEG.v_gt - R.apply(np.cross(omega, L)))
+    ref = cal.Reference(
+        SEG.t_gt, SEG.q_gt, SEG.p_gt - R.apply(L), SEG.v_gt - R.apply(np.cross(omega, L))
+    )
     prob = cal.calibration_problem(SEG.t, SEG.gyro, SEG.accel, ref, NOISE, extrinsics=True)
     res = cal.calibrate(prob, estimate=REAL_ESTIMATE, max_reduced_chi2=None)
     err = np.asarray(res.calibration.p_BS) - L

@@ -29,8 +29,9 @@ def simulate_data(seed=0):
     """IMU at 200 Hz; reference at 100 Hz (pose and velocity), 0.5 s beyond either end."""
     t = np.arange(int(SECONDS * RATE) + 1) / RATE
     gyro, accel = sim.ideal_imu(TRAJ, jnp.asarray(t))
-    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / RATE, WHITE, b_g0=B_G,
-                              b_a0=B_A)
+    gm, am, _ = sim.add_noise(
+        jax.random.key(seed), gyro, accel, 1 / RATE, WHITE, b_g0=B_G, b_a0=B_A
+    )
     t_ref = np.arange(-0.5, SECONDS + 0.5, 0.01)
     truth = sim.true_states(TRAJ, jnp.asarray(t_ref))
     ref = cal.Reference(t_ref, np.asarray(truth.q), np.asarray(truth.p), np.asarray(truth.v))
@@ -65,8 +66,7 @@ GAP = (3.30, 5.20)
 def cut(ref, lo, hi, velocity=True):
     """The reference without its samples strictly between ``lo`` and ``hi`` (a dropout)."""
     keep = ~((ref.t > lo + 0.005) & (ref.t < hi - 0.005))  # the stamps are multiples of 0.01
-    return cal.Reference(ref.t[keep], ref.q[keep], ref.p[keep],
-                         ref.v[keep] if velocity else None)
+    return cal.Reference(ref.t[keep], ref.q[keep], ref.p[keep], ref.v[keep] if velocity else None)
 
 
 def skipped_by_hand(lo, hi, interval=0.5, n_windows=20):
@@ -86,10 +86,18 @@ def without_windows(prob, keep):
         x = np.asarray(x)
         return jnp.asarray(x.reshape((-1,) + x.shape[2:])[:K][keep].reshape((1, n) + x.shape[2:]))
 
-    per_window = ("gyro", "accel", "dt", "t_start", "t_end", "window", "weight", "sqrt_info",
-                  "reference_var")
-    return dataclasses.replace(prob, n_windows=n, **{f: take(getattr(prob, f))
-                                                       for f in per_window})
+    per_window = (
+        "gyro",
+        "accel",
+        "dt",
+        "t_start",
+        "t_end",
+        "window",
+        "weight",
+        "sqrt_info",
+        "reference_var",
+    )
+    return dataclasses.replace(prob, n_windows=n, **{f: take(getattr(prob, f)) for f in per_window})
 
 
 def test_windows_with_a_keyframe_in_a_dropout_are_left_out_as_if_never_built():
@@ -116,9 +124,12 @@ def test_windows_with_a_keyframe_in_a_dropout_are_left_out_as_if_never_built():
     assert res.note == prob.skip_note and never.note == ""
     assert res.dof == never.dof == 9 * 15 - 6
     for name in ("b_g", "b_a"):
-        np.testing.assert_allclose(getattr(res.calibration, name),
-                                   getattr(never.calibration, name),
-                                   rtol=0, atol=1e-6 * float(np.min(getattr(never.std, name))))
+        np.testing.assert_allclose(
+            getattr(res.calibration, name),
+            getattr(never.calibration, name),
+            rtol=0,
+            atol=1e-6 * float(np.min(getattr(never.std, name))),
+        )
         np.testing.assert_allclose(getattr(res.std, name), getattr(never.std, name), rtol=1e-9)
     np.testing.assert_allclose(res.chi2, never.chi2, rtol=1e-9)
     assert np.all(np.abs(res.calibration.b_g - B_G) < 4 * res.std.b_g)
@@ -149,11 +160,13 @@ def test_poses_only_with_a_dropout_the_velocities_it_leaves_unbounded_are_no_par
     weight.reshape(-1)[:20][skip] = 0
     masked = cal.calibrate(dataclasses.replace(whole, weight=jnp.asarray(weight)))
     for name in ("b_g", "b_a"):
-        np.testing.assert_allclose(getattr(res.calibration, name),
-                                   getattr(masked.calibration, name),
-                                   rtol=0, atol=1e-3 * float(np.min(getattr(masked.std, name))))
-    np.testing.assert_allclose(res.velocities[~unbounded], masked.velocities[~unbounded],
-                               atol=1e-6)
+        np.testing.assert_allclose(
+            getattr(res.calibration, name),
+            getattr(masked.calibration, name),
+            rtol=0,
+            atol=1e-3 * float(np.min(getattr(masked.std, name))),
+        )
+    np.testing.assert_allclose(res.velocities[~unbounded], masked.velocities[~unbounded], atol=1e-6)
 
 
 def test_a_gap_between_two_keyframes_leaves_every_window_in():
@@ -168,6 +181,9 @@ def test_a_reference_that_is_all_gap_is_refused_naming_the_gap():
     """Reference samples only before 0.1 s and after 9.9 s: every window has a keyframe in
     the 9.8 s dropout."""
     t, gm, am, ref = simulate_data(4)
-    with pytest.raises(cal.CalibrationError, match=r"every one of the 20 keyframe windows.*"
-                       r"9\.800 s at t = 0\.100 s"):
+    with pytest.raises(
+        cal.CalibrationError,
+        match=r"every one of the 20 keyframe windows.*"
+        r"9\.800 s at t = 0\.100 s",
+    ):
         problem_for(t, gm, am, cut(ref, 0.1, 9.9))

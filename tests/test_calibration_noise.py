@@ -36,8 +36,7 @@ B_G, B_A = np.array([0.003, -0.002, 0.004]), np.array([0.05, -0.08, 0.1])
 def recording(seed):
     t = np.arange(int(SECONDS * RATE) + 1) / RATE
     gyro, accel = sim.ideal_imu(TRAJ, jnp.asarray(t))
-    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / RATE, TRUE, b_g0=B_G,
-                              b_a0=B_A)
+    gm, am, _ = sim.add_noise(jax.random.key(seed), gyro, accel, 1 / RATE, TRUE, b_g0=B_G, b_a0=B_A)
     t_ref = np.arange(0.0, SECONDS + 1e-9, 0.01)
     truth = sim.true_states(TRAJ, jnp.asarray(t_ref))
     rng = np.random.default_rng(seed)
@@ -54,8 +53,9 @@ def data():
 
 @pytest.fixture(scope="module")
 def problem(data):
-    return cal.calibration_problem(*data, START, window_lengths=LENGTHS, scheme="midpoint",
-                                   reference_sigma=2 * REF_SIGMA)
+    return cal.calibration_problem(
+        *data, START, window_lengths=LENGTHS, scheme="midpoint", reference_sigma=2 * REF_SIGMA
+    )
 
 
 def test_covariance_basis_is_preintegrate_covariance(problem):
@@ -68,8 +68,9 @@ def test_covariance_basis_is_preintegrate_covariance(problem):
     scale = np.array([1.5, 0.7, 2.0, 0.3])
     dens = _noise_problem._isotropic(START) * scale
     noise = jaximu.ImuNoise(*dens)
-    direct = jaximu.preintegrate(flat(base.gyro), flat(base.accel), flat(base.dt), noise=noise,
-                                 scheme="midpoint").cov15[:, :9, :9]
+    direct = jaximu.preintegrate(
+        flat(base.gyro), flat(base.accel), flat(base.dt), noise=noise, scheme="midpoint"
+    ).cov15[:, :9, :9]
     model = np.einsum("b,kbij->kij", scale**2, problem.cov_basis[:K0])
     np.testing.assert_allclose(model, direct, rtol=1e-9, atol=1e-12 * np.abs(direct).max())
 
@@ -83,15 +84,22 @@ def test_composed_windows_equal_windows_preintegrated_whole(data, problem):
     base = dataclasses.replace(problem.base, scheme="euler")
     r = np.asarray(_noise_problem._all_residuals(init, base, problem.multiples))
     for k, length in enumerate(problem.window_lengths):
-        whole = cal.calibration_problem(*data, START, keyframe_interval=length, scheme="euler",
-                                        reference_sigma=2 * REF_SIGMA, check=False)
+        whole = cal.calibration_problem(
+            *data,
+            START,
+            keyframe_interval=length,
+            scheme="euler",
+            reference_sigma=2 * REF_SIGMA,
+            check=False,
+        )
         G = whole.gyro.shape[0]
         raw = jax.vmap(lambda g: _group_residuals(whole, init, g, raw=True))(jnp.arange(G))
         raw = np.asarray(raw).reshape(-1, 9)[: whole.n_windows]
         mine = r[_noise_problem._length_slice(problem.multiples, problem.base.n_windows, k)]
         n = min(len(mine), len(raw))
-        np.testing.assert_allclose(mine[:n], raw[:n], rtol=1e-7,
-                                   atol=1e-9 * (1 + np.abs(raw).max()))
+        np.testing.assert_allclose(
+            mine[:n], raw[:n], rtol=1e-7, atol=1e-9 * (1 + np.abs(raw).max())
+        )
 
 
 def _dense_nll(problem, r, u, windows=None):
@@ -107,19 +115,19 @@ def _dense_nll(problem, r, u, windows=None):
     n_xi = 15 * K + 9 * (K + 1)
     L = np.zeros((9 * K, n_xi))
     C = np.zeros((n_xi, n_xi))
-    eps = np.repeat(problem.reference_sigma ** 2 * c[4:], 3)
+    eps = np.repeat(problem.reference_sigma**2 * c[4:], 3)
     for k in range(K):
         rows = slice(9 * k, 9 * k + 9)
-        L[rows, 15 * k:15 * k + 9] = np.eye(9)
+        L[rows, 15 * k : 15 * k + 9] = np.eye(9)
         for j in range(k):
-            L[rows, 15 * j + 9:15 * j + 15] = F[k]
+            L[rows, 15 * j + 9 : 15 * j + 15] = F[k]
         e0 = 15 * K + 9 * k
-        L[rows, e0:e0 + 9] = A[k]
-        L[rows, e0 + 9:e0 + 18] = B[k]
-        C[15 * k:15 * k + 15, 15 * k:15 * k + 15] = cov15[k]
+        L[rows, e0 : e0 + 9] = A[k]
+        L[rows, e0 + 9 : e0 + 18] = B[k]
+        C[15 * k : 15 * k + 15, 15 * k : 15 * k + 15] = cov15[k]
     for k in range(K + 1):
         e0 = 15 * K + 9 * k
-        C[e0:e0 + 9, e0:e0 + 9] = np.diag(eps)
+        C[e0 : e0 + 9, e0 : e0 + 9] = np.diag(eps)
     S = L @ C @ L.T
     x = np.asarray(r).reshape(-1)
     if windows is not None:  # the marginal density of those windows
@@ -155,8 +163,7 @@ def test_filter_predicts_through_windows_in_a_reference_gap(problem):
     r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,)))
     f, g = cn.nll_and_gradient(gap, U, init)
     assert np.all(np.isfinite(g))
-    np.testing.assert_allclose(f, _dense_nll(problem, r, U, np.flatnonzero(kept[:K0])),
-                               rtol=1e-9)
+    np.testing.assert_allclose(f, _dense_nll(problem, r, U, np.flatnonzero(kept[:K0])), rtol=1e-9)
 
 
 def test_residual_bias_jacobian_equals_central_differences(problem):
@@ -167,16 +174,30 @@ def test_residual_bias_jacobian_equals_central_differences(problem):
     calibration (zero biases), where the model is linearised."""
     init = cal.ImuCalibration.default(dtype=jnp.float64)
     b0 = np.zeros(6)
-    res = jax.jit(lambda b: _noise_problem._all_residuals(dataclasses.replace(init, b_g=b[:3], b_a=b[3:]),
-                                              problem.base, (1,)))
+    res = jax.jit(
+        lambda b: _noise_problem._all_residuals(
+            dataclasses.replace(init, b_g=b[:3], b_a=b[3:]), problem.base, (1,)
+        )
+    )
     h = 1e-6
-    fd = np.stack([(np.asarray(res(b0 + h * e)) - np.asarray(res(b0 - h * e))) / (2 * h)
-                   for e in np.eye(6)], -1)
+    fd = np.stack(
+        [(np.asarray(res(b0 + h * e)) - np.asarray(res(b0 - h * e))) / (2 * h) for e in np.eye(6)],
+        -1,
+    )
     F = problem.window_bias_jacobian
     np.testing.assert_allclose(F, -fd, rtol=1e-5, atol=1e-7 * np.abs(F).max())
-    T = np.asarray(_noise_problem._long_window_bases(*(x.reshape((-1,) + x.shape[2:]) for x in (
-        problem.base.gyro, problem.base.accel, problem.base.dt)), START, (1,),
-        scheme="midpoint", fast=False)[1])[:problem.base.n_windows]
+    T = np.asarray(
+        _noise_problem._long_window_bases(
+            *(
+                x.reshape((-1,) + x.shape[2:])
+                for x in (problem.base.gyro, problem.base.accel, problem.base.dt)
+            ),
+            START,
+            (1,),
+            scheme="midpoint",
+            fast=False,
+        )[1]
+    )[: problem.base.n_windows]
     np.testing.assert_allclose(F, T, atol=0.05 * np.abs(F).max())
 
 
@@ -187,7 +208,11 @@ def test_innovations_are_white_with_unit_variance_at_the_true_values(problem):
     from jaximu.calibration import _noise_filter as nf
 
     init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=B_G, b_a=B_A)
-    u = np.log(np.concatenate([_noise_problem._isotropic(TRUE) / _noise_problem._isotropic(START), [0.5] * 3]))
+    u = np.log(
+        np.concatenate(
+            [_noise_problem._isotropic(TRUE) / _noise_problem._isotropic(START), [0.5] * 3]
+        )
+    )
     (H, Qb, P0b), kept, d, _ = cn._filter_arrays(problem, jnp.float64)
     r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,))) / d
     w = np.asarray(nf.whitened_innovations(jnp.asarray(u), jnp.asarray(r), H, Qb, P0b, kept))
@@ -204,8 +229,16 @@ def test_likelihood_gradient_equals_central_differences(problem):
     f0, g = cn.nll_and_gradient(problem, U)
     assert np.isfinite(f0) and np.all(np.isfinite(g))
     h = 1e-5
-    fd = np.array([(cn.nll_and_gradient(problem, U + h * e)[0]
-                    - cn.nll_and_gradient(problem, U - h * e)[0]) / (2 * h) for e in np.eye(7)])
+    fd = np.array(
+        [
+            (
+                cn.nll_and_gradient(problem, U + h * e)[0]
+                - cn.nll_and_gradient(problem, U - h * e)[0]
+            )
+            / (2 * h)
+            for e in np.eye(7)
+        ]
+    )
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())
 
 
@@ -228,17 +261,25 @@ def test_fit_hessian_equals_central_differences_of_the_gradient(problem):
     p = np.concatenate([[0.3, -0.2], U[[0, 2, 3, 5, 6]]])
     _, g, Hs = derivs(p)
     h = 1e-5
-    fd = np.array([(np.asarray(derivs(p + h * e)[1]) - np.asarray(derivs(p - h * e)[1]))
-                   / (2 * h) for e in np.eye(len(p))])
-    np.testing.assert_allclose(Hs, 0.5 * (fd + fd.T), rtol=1e-5,
-                               atol=1e-7 * np.abs(Hs).max())
+    fd = np.array(
+        [
+            (np.asarray(derivs(p + h * e)[1]) - np.asarray(derivs(p - h * e)[1])) / (2 * h)
+            for e in np.eye(len(p))
+        ]
+    )
+    np.testing.assert_allclose(Hs, 0.5 * (fd + fd.T), rtol=1e-5, atol=1e-7 * np.abs(Hs).max())
 
 
 def fit_all(seed):
     """The biases, the four densities and the reference's σ from 2.5× the truth (the
     densities) and 2× (the reference's σ)."""
-    prob = cal.calibration_problem(*recording(seed), START, window_lengths=LENGTHS,
-                                   scheme="midpoint", reference_sigma=2 * REF_SIGMA)
+    prob = cal.calibration_problem(
+        *recording(seed),
+        START,
+        window_lengths=LENGTHS,
+        scheme="midpoint",
+        reference_sigma=2 * REF_SIGMA,
+    )
     return cal.calibrate(prob, estimate=("b_g", "b_a") + cal.NOISE_FIELDS)
 
 
@@ -284,8 +325,9 @@ def test_imu_yaml_reads_back(result, tmp_path):
 
 def test_write_imu_yaml_refuses_per_axis_and_bad_values(tmp_path):
     with pytest.raises(ValueError, match="one number per density"):
-        kalibr.write_imu_yaml(tmp_path / "a.yaml", jaximu.ImuNoise(np.ones(3), 1.0, 1.0, 1.0),
-                              200.0)
+        kalibr.write_imu_yaml(
+            tmp_path / "a.yaml", jaximu.ImuNoise(np.ones(3), 1.0, 1.0, 1.0), 200.0
+        )
     with pytest.raises(ValueError, match="≥ 0"):
         kalibr.write_imu_yaml(tmp_path / "a.yaml", jaximu.ImuNoise(-1.0, 1.0, 1.0, 1.0), 200.0)
     with pytest.raises(ValueError, match="rate_hz"):
@@ -293,18 +335,20 @@ def test_write_imu_yaml_refuses_per_axis_and_bad_values(tmp_path):
 
 
 def test_one_length_problem_is_refused_naming_window_lengths(data):
-    prob = cal.calibration_problem(*data, START, keyframe_interval=0.5,
-                                   reference_sigma=REF_SIGMA)
+    prob = cal.calibration_problem(*data, START, keyframe_interval=0.5, reference_sigma=REF_SIGMA)
     with pytest.raises(InputError, match="window_lengths=") as e:
         cal.calibrate(prob, estimate=("b_g", "gyroscope_noise_density"))
     assert "without window_lengths" in str(e.value)
 
 
-@pytest.mark.parametrize("lengths, match", [
-    ((0.0,), "positive"),
-    ((0.25, 0.6), "whole multiple"),
-    ((0.25, -1.0), "positive"),
-])
+@pytest.mark.parametrize(
+    "lengths, match",
+    [
+        ((0.0,), "positive"),
+        ((0.25, 0.6), "whole multiple"),
+        ((0.25, -1.0), "positive"),
+    ],
+)
 def test_bad_window_lengths_are_refused(data, lengths, match):
     with pytest.raises(InputError, match=match) as e:
         cal.calibration_problem(*data, START, window_lengths=lengths)
@@ -315,7 +359,9 @@ def test_problems_that_cannot_separate_the_noises_are_refused(problem):
     """Fewer consecutive windows in the fit than the correlations need: refused naming
     window_lengths and a fix; the fields alone (densities fixed) still fit."""
     K0 = problem.base.n_windows
-    few = dataclasses.replace(problem, kept=np.arange(len(problem.kept)) < _noise_problem.MIN_WINDOWS - 1)
+    few = dataclasses.replace(
+        problem, kept=np.arange(len(problem.kept)) < _noise_problem.MIN_WINDOWS - 1
+    )
     assert few.kept[:K0].sum() == _noise_problem.MIN_WINDOWS - 1
     with pytest.raises(InputError, match=f"at least {_noise_problem.MIN_WINDOWS}") as e:
         cal.calibrate(few, estimate=("gyroscope_random_walk",))

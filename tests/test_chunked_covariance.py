@@ -20,7 +20,8 @@ from jaximu.engine import _dispatch
 NOISE = jaximu.ImuNoise.euroc()
 P0 = jnp.diag(jnp.asarray(np.r_[[3e-4] * 3, [1e-2] * 3, [1e-2] * 3, [1e-6] * 3, [1e-4] * 3]))
 POSE = jaximu.SensorPose.from_rotation(
-    np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15]))
+    np.asarray(jaximu.so3.exp_matrix(jnp.asarray([0.3, -0.5, 0.4]))), np.array([0.3, -0.2, 0.15])
+)
 OMEGA = np.asarray(jaximu.earth_rate(48.0)) * 100  # a fast turn, that the maps matter
 
 
@@ -51,21 +52,28 @@ def sequence(T, seed=3, dtype=np.float64, rate=1.0):
     state, gyro, accel = random_inputs(1, T, seed=seed)
     state = jax.tree_util.tree_map(lambda x: jnp.asarray(x[0], dtype), state)
     dt = np.random.default_rng(seed + 1).uniform(0.003, 0.007, T)
-    return state, jnp.asarray(gyro[0] * rate, dtype), jnp.asarray(accel[0], dtype), \
-        jnp.asarray(dt, dtype)
+    return (
+        state,
+        jnp.asarray(gyro[0] * rate, dtype),
+        jnp.asarray(accel[0], dtype),
+        jnp.asarray(dt, dtype),
+    )
 
 
 def covariances(scheme, jacobians, attitude="quaternion", rotating=False, outputs="final+stored"):
     """Final and/or stored covariance (one jitted function) of one sequence (or, under
     ``jax.vmap``, a few), from a sensor at a lever arm, in a still or a turning world."""
-    kw = {"jacobians": jacobians, "attitude": attitude, "body_P_sensor": POSE,
-          "omega_coriolis": OMEGA if rotating else None}
+    kw = {
+        "jacobians": jacobians,
+        "attitude": attitude,
+        "body_P_sensor": POSE,
+        "omega_coriolis": OMEGA if rotating else None,
+    }
 
     def run(state, gyro, accel, dt):
         P = jnp.asarray(P0, gyro.dtype)
         fns = {"final": jaximu.propagate_covariance_final, "stored": jaximu.propagate_covariance}
-        return [fns[o](state, P, gyro, accel, dt, NOISE, scheme, **kw)
-                for o in outputs.split("+")]
+        return [fns[o](state, P, gyro, accel, dt, NOISE, scheme, **kw) for o in outputs.split("+")]
 
     return jax.jit(run)
 
@@ -85,12 +93,14 @@ def assert_close(a, b, rtol):
 # steps), as one chunk, as chunks of one step (each reading the next chunk's first sample).
 # The world's maps and the second pass of the stored covariances are the same code for every
 # scheme, so not every scheme runs every world and output (the compile time of the suite).
-CASES = [("euler", "analytic", "quaternion", False, 7, "final+stored"),
-         ("midpoint", "analytic", "matrix", True, 100, "stored"),
-         ("rk4", "analytic", "quaternion", False, 1, "final"),
-         ("euler", "autodiff", "euler_angles", True, 4, "final"),
-         ("midpoint", "autodiff", "quaternion_first_order", False, 7, "stored"),
-         ("rk4", "autodiff", "quaternion", False, 3, "final")]
+CASES = [
+    ("euler", "analytic", "quaternion", False, 7, "final+stored"),
+    ("midpoint", "analytic", "matrix", True, 100, "stored"),
+    ("rk4", "analytic", "quaternion", False, 1, "final"),
+    ("euler", "autodiff", "euler_angles", True, 4, "final"),
+    ("midpoint", "autodiff", "quaternion_first_order", False, 7, "stored"),
+    ("rk4", "autodiff", "quaternion", False, 3, "final"),
+]
 
 
 @functools.lru_cache
@@ -99,12 +109,14 @@ def sequential(case, dtype=np.float64):
     scheme, jacobians, attitude, rotating, _, outputs = case
     with table():
         return covariances(scheme, jacobians, attitude, rotating, outputs)(
-            *case_inputs(case, dtype))
+            *case_inputs(case, dtype)
+        )
 
 
 def case_inputs(case, dtype=np.float64):
-    return sequence(100, seed=len(case[2]), dtype=dtype,
-                    rate=0.3 if case[2] == "euler_angles" else 1.0)
+    return sequence(
+        100, seed=len(case[2]), dtype=dtype, rate=0.3 if case[2] == "euler_angles" else 1.0
+    )
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: "-".join(map(str, c)))
@@ -114,11 +126,20 @@ def test_chunks_equal_the_sequential_scan(case):
     output's largest value."""
     scheme, jacobians, attitude, rotating, chunks, outputs = case
     with table(chunked_from=1, chunks=lambda n: chunks):
-        assert _dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                                lanes=1, steps=100, rotating=rotating,
-                                lever=True) == "soa_cov_chunked"
-        chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(
-            *case_inputs(case))
+        assert (
+            _dispatch.kernel(
+                "covariance",
+                scheme,
+                attitude=attitude,
+                jacobians=jacobians,
+                lanes=1,
+                steps=100,
+                rotating=rotating,
+                lever=True,
+            )
+            == "soa_cov_chunked"
+        )
+        chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(*case_inputs(case))
     assert_close(chunked, sequential(case), 1e-12)
 
 
@@ -131,8 +152,12 @@ def test_float32_chunks_are_as_close_to_float64_as_the_sequential_scan():
     args = case_inputs(case, np.float32)
     with table(chunked_from=1, chunks=lambda n: chunks):
         chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(*args)
-    for c, s, r in zip(*(jax.tree_util.tree_leaves(x) for x in (
-            chunked, sequential(case, np.float32), sequential(case)))):
+    for c, s, r in zip(
+        *(
+            jax.tree_util.tree_leaves(x)
+            for x in (chunked, sequential(case, np.float32), sequential(case))
+        )
+    ):
         assert c.dtype == jnp.float32
         c, s, r = (np.asarray(x, np.float64) for x in (c, s, r))
         scale = np.abs(r).max()
@@ -167,9 +192,11 @@ def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
     here on the CPU: tests/_shared.dispatch_as) the table's own threshold, a short sequence,
     runs as the chunks its lanes take (8 of 32 steps), composed by a parallel prefix scan,
     the final covariance and every one stored. Both: the sequential scan's results to 1e-12."""
+
     def kernel(on, lanes, steps, jac="analytic", attitude="quaternion"):
-        return _dispatch.kernel("covariance", "euler", attitude=attitude, jacobians=jac,
-                                lanes=lanes, steps=steps, on=on)
+        return _dispatch.kernel(
+            "covariance", "euler", attitude=attitude, jacobians=jac, lanes=lanes, steps=steps, on=on
+        )
 
     for on in (_dispatch.CPU, _dispatch.ACCELERATOR):
         long, most = _dispatch.COV_CHUNK_STEPS[on], _dispatch.COV_CHUNK_LANES[on]
@@ -179,8 +206,9 @@ def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
         assert kernel(on, most + 1, long) == "soa_cov_analytic"
 
     def run(state, gyro, accel, dt):
-        return jax.vmap(lambda s, g, a, d: jaximu.propagate_covariance_final(
-            s, P0, g, a, d, NOISE))(state, gyro, accel, dt)
+        return jax.vmap(
+            lambda s, g, a, d: jaximu.propagate_covariance_final(s, P0, g, a, d, NOISE)
+        )(state, gyro, accel, dt)
 
     pair = [sequence(100, seed=s) for s in (21, 22)]
     args = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *pair)
@@ -200,8 +228,18 @@ def test_dispatch_picks_the_chunks_for_a_few_long_sequences():
     n = _dispatch.COV_CHUNK_STEPS[_dispatch.ACCELERATOR]
     args = sequence(n, seed=23)
     with dispatch_as(_dispatch.ACCELERATOR):
-        assert _dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                                lanes=1, steps=n, lever=True) == "soa_cov_chunked"
+        assert (
+            _dispatch.kernel(
+                "covariance",
+                scheme,
+                attitude=attitude,
+                jacobians=jacobians,
+                lanes=1,
+                steps=n,
+                lever=True,
+            )
+            == "soa_cov_chunked"
+        )
         assert _dispatch.covariance_chunks(1, n, "float64") == n // _dispatch.MIN_CHUNK_STEPS
         chunked = covariances(scheme, jacobians, attitude, rotating, outputs)(*args)
     with table():

@@ -22,8 +22,14 @@ def run(*args, cwd=None, default_codegen=False):
     env = None
     if default_codegen:
         env = dict(os.environ, XLA_FLAGS=os.environ.get("JAXIMU_TEST_CALLER_XLA_FLAGS", ""))
-    return subprocess.run([sys.executable, "-m", "jaximu", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=300, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "jaximu", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+        env=env,
+    )
 
 
 def run_here(capsys, *args):
@@ -56,8 +62,9 @@ def test_demo_runs_and_reports_drift(tmp_path):
     res = run("demo", "--seconds", "2", "--plot", str(out), default_codegen=True)
     assert res.returncode == 0, res.stderr
     assert "EuRoC MAV V1_02_medium" in res.stdout and "position drift" in res.stdout
-    lines = [ln for ln in res.stdout.splitlines()
-             if ln.split()[:1] in (["euler"], ["midpoint"], ["rk4"])]
+    lines = [
+        ln for ln in res.stdout.splitlines() if ln.split()[:1] in (["euler"], ["midpoint"], ["rk4"])
+    ]
     assert len(lines) == 3
     # Dead reckoning over 2 s from the ground-truth state: centimetres, not metres (a wrong
     # gravity sign or quaternion order gives tens of metres).
@@ -93,15 +100,17 @@ def test_user_mistakes_exit_non_zero_without_traceback(tmp_path, capsys):
     one_line_error(run("propagate", str(bad)), "line 3", "expected at least 7 columns")
     here = lambda *a: run_here(capsys, *a)
     one_line_error(here("demo", "--seconds", "-1", "--no-plot"), "--seconds must be positive")
-    one_line_error(here("propagate", str(tmp_path / "missing.csv")), "no such file",
-                   "missing.csv")
+    one_line_error(here("propagate", str(tmp_path / "missing.csv")), "no such file", "missing.csv")
     one_line_error(here("calibrate", str(bad)), "line 3")
-    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"),
-                   "--bias needs 6")
-    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--duration", "0"),
-                   "--duration must be positive")
-    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--out",
-                        str(tmp_path / "no" / "x.tum")), "does not exist")
+    one_line_error(here("propagate", str(DATA / "tumvi_room4"), "--bias", "1 2"), "--bias needs 6")
+    one_line_error(
+        here("propagate", str(DATA / "tumvi_room4"), "--duration", "0"),
+        "--duration must be positive",
+    )
+    one_line_error(
+        here("propagate", str(DATA / "tumvi_room4"), "--out", str(tmp_path / "no" / "x.tum")),
+        "does not exist",
+    )
     in_g = tmp_path / "g.csv"  # an accelerometer in g: the advice names the command's flag
     in_g.write_text("".join(f"{0.005 * k:.3f},0,0,0,0,0,1.0\n" for k in range(50)))
     one_line_error(here("propagate", str(in_g)), "in g? pass --accel-unit g")
@@ -123,8 +132,17 @@ def test_propagate_euroc_segment_from_ground_truth(tmp_path):
 
     pytest.importorskip("matplotlib")
     tum, states, png = tmp_path / "traj.tum", tmp_path / "states.npz", tmp_path / "p.png"
-    res = run("propagate", str(DATA / "euroc_v1_02_medium"), "--init-from-groundtruth",
-              "--out", str(tum), "--states", str(states), "--plot", str(png))
+    res = run(
+        "propagate",
+        str(DATA / "euroc_v1_02_medium"),
+        "--init-from-groundtruth",
+        "--out",
+        str(tum),
+        "--states",
+        str(states),
+        "--plot",
+        str(png),
+    )
     assert res.returncode == 0, res.stderr
     assert "initial state from the ground truth (pose, velocity, biases)" in res.stdout
     data = io.read_euroc(DATA / "euroc_v1_02_medium")
@@ -143,8 +161,16 @@ def test_propagate_euroc_segment_from_ground_truth(tmp_path):
 
 
 def test_propagate_without_ground_truth_init_says_how(tmp_path):
-    res = run("propagate", str(DATA / "tumvi_room4"), "--duration", "1", "--noise", "tum-vi",
-              "--out", str(tmp_path / "t.tum"))
+    res = run(
+        "propagate",
+        str(DATA / "tumvi_room4"),
+        "--duration",
+        "1",
+        "--noise",
+        "tum-vi",
+        "--out",
+        str(tmp_path / "t.tum"),
+    )
     assert res.returncode == 0, res.stderr
     assert "gravity alignment" in res.stdout and "biases zero" in res.stdout
     assert "not initialised from it" in res.stdout  # TUM-VI has mocap: compared, with a warning
@@ -162,10 +188,12 @@ def test_chunked_propagation_equals_one_call():
     state0, _ = io.initial_state(data, still_seconds=1.0)
     P0 = np.diag(np.full(15, 1e-4))
     noise = jaximu.ImuNoise.euroc()
-    t, states, cov = cli.propagate_recording(data, state0, P0, noise, "midpoint", jnp.float64,
-                                             chunk=233)
-    ref_states, ref_cov = jaximu.propagate_covariance(state0, P0, data.gyro, data.accel, data.dt,
-                                                      noise, "midpoint")
+    t, states, cov = cli.propagate_recording(
+        data, state0, P0, noise, "midpoint", jnp.float64, chunk=233
+    )
+    ref_states, ref_cov = jaximu.propagate_covariance(
+        state0, P0, data.gyro, data.accel, data.dt, noise, "midpoint"
+    )
     assert len(t) == len(states.p) == 700
     np.testing.assert_allclose(states.p[1:], ref_states.p, rtol=0, atol=1e-12)
     np.testing.assert_allclose(states.q[1:], ref_states.q, rtol=0, atol=1e-14)

@@ -14,13 +14,21 @@ SEG = str(pathlib.Path(__file__).parent / "data" / "euroc_v1_02_medium")
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "jaximu", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "jaximu", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_preintegrate_windows_against_ground_truth(tmp_path):
-    res = run("preintegrate", SEG, "--window", "0.5", "--bias-from-groundtruth",
-              "--out", str(tmp_path / "pim.npz"))
+    res = run(
+        "preintegrate",
+        SEG,
+        "--window",
+        "0.5",
+        "--bias-from-groundtruth",
+        "--out",
+        str(tmp_path / "pim.npz"),
+    )
     assert res.returncode == 0, res.stderr
     assert "10 windows of 100 samples" in res.stdout
     med = res.stdout.split("residuals against the ground truth")[1]
@@ -32,8 +40,9 @@ def test_preintegrate_windows_against_ground_truth(tmp_path):
 
 
 def test_montecarlo_command():
-    res = run("montecarlo", "--runs", "64", "--seconds", "0.5", "--rate", "100",
-              "--trajectory", "circle")
+    res = run(
+        "montecarlo", "--runs", "64", "--seconds", "0.5", "--rate", "100", "--trajectory", "circle"
+    )
     assert res.returncode == 0, res.stderr
     assert "average NEES" in res.stdout and "predicted" in res.stdout
 
@@ -65,8 +74,13 @@ def test_preintegrate_when_the_ground_truth_starts_later(tmp_path):
     (mav0 / "imu0" / "data.csv").write_text((src / "imu0" / "data.csv").read_text())
     gt = (src / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines(True)
     (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text(gt[0] + "".join(gt[201:801]))
-    res = run("preintegrate", str(tmp_path / "seq"), "--bias-from-groundtruth",
-              "--out", str(tmp_path / "pim.npz"))
+    res = run(
+        "preintegrate",
+        str(tmp_path / "seq"),
+        "--bias-from-groundtruth",
+        "--out",
+        str(tmp_path / "pim.npz"),
+    )
     assert res.returncode == 0, res.stderr
     assert "median over the 5 windows inside it" in res.stdout
     assert (tmp_path / "pim.npz").exists()
@@ -80,16 +94,30 @@ def test_calibrate_command_fits_noise_densities_and_writes_an_imu_yaml(tmp_path)
     from jaximu import kalibr
 
     out, yaml = tmp_path / "cal.json", tmp_path / "imu.yaml"
-    res = run("calibrate", SEG, "--estimate", "b_g,b_a,noise",
-              "--window-lengths", "0.05,0.1,0.2,0.5", "--out", str(out), "--imu-yaml", str(yaml))
+    res = run(
+        "calibrate",
+        SEG,
+        "--estimate",
+        "b_g,b_a,noise",
+        "--window-lengths",
+        "0.05,0.1,0.2,0.5",
+        "--out",
+        str(out),
+        "--imu-yaml",
+        str(yaml),
+    )
     assert res.returncode == 0, res.stderr
     assert "noise densities by likelihood" in res.stdout and "Kalibr imu.yaml written" in res.stdout
     noise = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
     noise = noise["noise"]
     assert noise["window_lengths"] == pytest.approx([0.05, 0.1, 0.2, 0.5], rel=1e-3)
     back = kalibr.read_sensor_yaml(yaml).noise
-    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
-                 "gyroscope_random_walk", "accelerometer_random_walk"):
+    for name in (
+        "gyroscope_noise_density",
+        "accelerometer_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_random_walk",
+    ):
         value, std = noise[name]["value"], noise[name]["std"]
         assert value > 0 and (std is None or std > 0), (name, value, std)
         assert float(getattr(back, name)) == pytest.approx(value, rel=1e-15)

@@ -28,8 +28,9 @@ def test_earth_rate_in_east_north_up():
     np.testing.assert_allclose(jaximu.earth_rate(0.0), [0, OMEGA_E, 0], rtol=0, atol=1e-20)
     np.testing.assert_allclose(jaximu.earth_rate(90.0), [0, 0, OMEGA_E], rtol=0, atol=1e-20)
     lat = np.deg2rad(47.3769)  # Zürich
-    np.testing.assert_allclose(jaximu.earth_rate(47.3769),
-                               [0, OMEGA_E * np.cos(lat), OMEGA_E * np.sin(lat)], rtol=1e-14)
+    np.testing.assert_allclose(
+        jaximu.earth_rate(47.3769), [0, OMEGA_E * np.cos(lat), OMEGA_E * np.sin(lat)], rtol=1e-14
+    )
     with pytest.raises(ValueError, match=r"latitude_deg must be in \[-90, 90\]"):
         jaximu.earth_rate(100.0)
 
@@ -52,13 +53,14 @@ def _gtsam_params(omega, second_order):
 
 def _window():
     k0, n = 2000, 200
-    gyro, accel = SEG.gyro[k0:k0 + n], SEG.accel[k0:k0 + n]
-    dt = np.diff(SEG.t[k0:k0 + n + 1])
+    gyro, accel = SEG.gyro[k0 : k0 + n], SEG.accel[k0 : k0 + n]
+    dt = np.diff(SEG.t[k0 : k0 + n + 1])
     b_g, b_a = SEG.b_g_gt[k0], SEG.b_a_gt[k0]
     q0 = SEG.q_gt[k0] / np.linalg.norm(SEG.q_gt[k0])
     p0 = SEG.p_gt[k0] + np.array([30.0, -20.0, 5.0])  # far from the origin: centrifugal
-    state = jaximu.NavState(*(jnp.asarray(x) for x in (q0, p0, SEG.v_gt[k0], b_g + 1e-3,
-                                                       b_a - 2e-2)))
+    state = jaximu.NavState(
+        *(jnp.asarray(x) for x in (q0, p0, SEG.v_gt[k0], b_g + 1e-3, b_a - 2e-2))
+    )
     return gyro, accel, dt, jaximu.ImuBias(b_g, b_a), state
 
 
@@ -76,12 +78,14 @@ def test_exact_predict_with_omega_coriolis_equals_gtsam(omega, second_order):
     ref = gtsam.PreintegratedImuMeasurementsManifold(_gtsam_params(omega, second_order), b)
     for k in range(len(dt)):
         ref.integrateMeasurement(accel[k], gyro[k], dt[k])
-    pred = ref.predict(gtsam.NavState(gtsam.Rot3.Quaternion(*np.asarray(state.q)),
-                                      np.asarray(state.p), np.asarray(state.v)),
-                       gtsam.imuBias.ConstantBias(np.asarray(state.b_a), np.asarray(state.b_g)))
+    pred = ref.predict(
+        gtsam.NavState(
+            gtsam.Rot3.Quaternion(*np.asarray(state.q)), np.asarray(state.p), np.asarray(state.v)
+        ),
+        gtsam.imuBias.ConstantBias(np.asarray(state.b_a), np.asarray(state.b_g)),
+    )
     pim = jaximu.preintegrate(gyro, accel, dt, bias, NOISE)
-    ours = jaximu.predict(state, pim, omega_coriolis=omega,
-                          coriolis_second_order=second_order)
+    ours = jaximu.predict(state, pim, omega_coriolis=omega, coriolis_second_order=second_order)
     np.testing.assert_allclose(ours.R, pred.attitude().matrix(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(ours.p, pred.position(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(ours.v, pred.velocity(), rtol=0, atol=1e-9)
@@ -99,8 +103,7 @@ def _classic_predict_numpy(state, pim, omega, second_order, g=9.81):
 
     R = Rotation.from_quat(np.asarray(state.q), scalar_first=True).as_matrix()
     p, v = np.asarray(state.p), np.asarray(state.v)
-    dq, dv_, dp_ = (np.asarray(x) for x in jaximu.preintegration._corrected_deltas(
-        pim, state.bias))
+    dq, dv_, dp_ = (np.asarray(x) for x in jaximu.preintegration._corrected_deltas(pim, state.bias))
     T = float(pim.delta_t)
     gv = np.array([0, 0, -g])
     wxv = np.cross(omega, v)
@@ -150,36 +153,49 @@ def rotating_signals():
     traj = sim.helix(radius=3.0, turn_rate=0.8, climb_rate=0.5)
     t_end = 2.0
     truth = sim.true_states(traj, jnp.array([0.0, t_end]))
-    x0 = jaximu.NavState(truth.q[0], truth.p[0] + jnp.array([4.0, 0.0, 0.0]), truth.v[0],
-                         jnp.zeros(3), jnp.zeros(3))
+    x0 = jaximu.NavState(
+        truth.q[0], truth.p[0] + jnp.array([4.0, 0.0, 0.0]), truth.v[0], jnp.zeros(3), jnp.zeros(3)
+    )
     moved = sim.Trajectory(lambda s: (traj.pose(s)[0], traj.pose(s)[1] + jnp.array([4.0, 0, 0])))
     out = {}
     for dt in (0.01, 0.005):
         n = int(round(t_end / dt))
-        gyro, accel = sim.ideal_imu(moved, jnp.asarray(dt * np.arange(n + 1)),
-                                    omega_coriolis=W_FAST)
+        gyro, accel = sim.ideal_imu(
+            moved, jnp.asarray(dt * np.arange(n + 1)), omega_coriolis=W_FAST
+        )
         out[dt] = (gyro, accel, jnp.full(n, dt))
     return x0, np.asarray(truth.p[1]) + [4.0, 0, 0], np.asarray(truth.q[1]), out
 
 
 def _errors(sig, scheme="midpoint", **kw):
     x0, p_end, _, data = sig
-    return [float(np.linalg.norm(np.asarray(jaximu.propagate_final(x0, *data[dt], scheme,
-                                                                   **kw).p) - p_end))
-            for dt in (0.01, 0.005)]
+    return [
+        float(
+            np.linalg.norm(
+                np.asarray(jaximu.propagate_final(x0, *data[dt], scheme, **kw).p) - p_end
+            )
+        )
+        for dt in (0.01, 0.005)
+    ]
 
 
 @pytest.mark.parametrize("scheme,order", [("euler", 1), ("midpoint", 2)])
 def test_rotating_world_propagation_converges_to_the_exact_rotating_frame_motion(
-        scheme, order, rotating_signals):
+    scheme, order, rotating_signals
+):
     """Samples of a motion given in a world turning at 0.23 rad/s (Coriolis and centrifugal,
     by autodiff): the exact transition keeps the scheme's order (the error falls 2^order
     when dt halves); the classic second-order terms converge at first order; the
     first-order terms (centrifugal missing) and a still world do not converge."""
     exact = _errors(rotating_signals, scheme, omega_coriolis=W_FAST)
     assert abs(np.log2(exact[0] / exact[1]) - order) < 0.3, exact
-    classic = _errors(rotating_signals, scheme, omega_coriolis=W_FAST, coriolis_exact=False,
-                      coriolis_second_order=True)
+    classic = _errors(
+        rotating_signals,
+        scheme,
+        omega_coriolis=W_FAST,
+        coriolis_exact=False,
+        coriolis_second_order=True,
+    )
     assert classic[0] / classic[1] > 1.7, classic
     still = _errors(rotating_signals, scheme)
     first = _errors(rotating_signals, scheme, omega_coriolis=W_FAST, coriolis_exact=False)
@@ -188,8 +204,7 @@ def test_rotating_world_propagation_converges_to_the_exact_rotating_frame_motion
 
 
 @pytest.mark.parametrize("exact", [True, False])
-def test_covariance_in_a_rotating_world_is_phi_phi_t_by_finite_differences(exact,
-                                                                           rotating_signals):
+def test_covariance_in_a_rotating_world_is_phi_phi_t_by_finite_differences(exact, rotating_signals):
     """Zero noise, P0 = I: P = Φ Φᵀ, Φ by central finite differences of propagate_final
     with omega_coriolis (the generic kernels with the increments' [p, v] Jacobian)."""
     x0, _, _, data = rotating_signals
@@ -214,49 +229,89 @@ def _rotating_inputs(rng, B, T, lane_dt, lane_omega):
     dt = jnp.asarray(rng.uniform(0.005, 0.02, (B, T)) if lane_dt else np.full(T, 0.01))
     omega = jnp.asarray(rng.normal(0, 0.2, (B, 3)) if lane_omega else W_FAST)
     q0 = rng.normal(size=(B, 4))
-    x0 = jaximu.NavState(jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
-                         jnp.asarray(rng.normal(0, 50, (B, 3))),
-                         jnp.asarray(rng.normal(0, 3, (B, 3))), jnp.zeros((B, 3)),
-                         jnp.zeros((B, 3)))
+    x0 = jaximu.NavState(
+        jnp.asarray(q0 / np.linalg.norm(q0, axis=-1, keepdims=True)),
+        jnp.asarray(rng.normal(0, 50, (B, 3))),
+        jnp.asarray(rng.normal(0, 3, (B, 3))),
+        jnp.zeros((B, 3)),
+        jnp.zeros((B, 3)),
+    )
     return x0, gyro, accel, dt, omega, jnp.array([0.0, 0.0, -9.81])
 
 
 # Each case pairs a scheme with a Coriolis model and a batching of dt and ω, so that every
 # scheme, every model and both layouts (shared and per-lane) of dt and ω are covered once.
-ROTATING_SOA_CASES = [("euler", "exact", False, False), ("midpoint", "first_order", True, False),
-                      ("rk4", "second_order", False, True), ("midpoint", "exact", True, True)]
+ROTATING_SOA_CASES = [
+    ("euler", "exact", False, False),
+    ("midpoint", "first_order", True, False),
+    ("rk4", "second_order", False, True),
+    ("midpoint", "exact", True, True),
+]
 
 
 @pytest.mark.parametrize("scheme,coriolis,lane_dt,lane_omega", ROTATING_SOA_CASES)
 def test_rotating_world_mean_on_the_soa_kernel_equals_the_generic_kernel(
-        scheme, coriolis, lane_dt, lane_omega):
+    scheme, coriolis, lane_dt, lane_omega
+):
     """The dispatch table's column: the mean in a rotating world takes the structure-of-arrays
     row, and equals the generic scan of
     jaximu.propagate.rotating_step at every state (float64, relative 1e-12)."""
     from jaximu.engine.propagate import _propagate
 
-    assert _dispatch.kernel("mean", scheme, attitude="quaternion", lanes=64,
-                            rotating=True, on=_dispatch.CPU) == "soa_mean"
+    assert (
+        _dispatch.kernel(
+            "mean", scheme, attitude="quaternion", lanes=64, rotating=True, on=_dispatch.CPU
+        )
+        == "soa_mean"
+    )
     rng = np.random.default_rng(1)
     # 32 lanes: the SoA row's minimum
     x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 32, 25, lane_dt, lane_omega)
-    fast, generic = (_propagate(x0, gyro, accel, dt, g, omega, scheme=scheme,
-                                attitude="quaternion", save_all=True, fast=f,
-                                coriolis=coriolis)[0] for f in (True, False))
+    fast, generic = (
+        _propagate(
+            x0,
+            gyro,
+            accel,
+            dt,
+            g,
+            omega,
+            scheme=scheme,
+            attitude="quaternion",
+            save_all=True,
+            fast=f,
+            coriolis=coriolis,
+        )[0]
+        for f in (True, False)
+    )
     for a, b in ((fast.q, generic.q), (fast.p, generic.p), (fast.v, generic.v)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(np.asarray(b)).max())
     # and the world's terms are in it: the still world's states differ
-    still = _propagate(x0, gyro, accel, dt, g, None, scheme=scheme, attitude="quaternion",
-                       save_all=False, fast=True)[0]
+    still = _propagate(
+        x0,
+        gyro,
+        accel,
+        dt,
+        g,
+        None,
+        scheme=scheme,
+        attitude="quaternion",
+        save_all=False,
+        fast=True,
+    )[0]
     assert np.abs(np.asarray(still.p) - np.asarray(fast.p[:, -1])).max() > 1e-3
 
 
-@pytest.mark.parametrize("scheme,coriolis,jacobians,lane_dt,lane_omega", [
-    ("midpoint", "exact", "analytic", True, False),
-    ("rk4", "second_order", "autodiff", False, True),
-    ("euler", "first_order", "analytic", False, False)])
+@pytest.mark.parametrize(
+    "scheme,coriolis,jacobians,lane_dt,lane_omega",
+    [
+        ("midpoint", "exact", "analytic", True, False),
+        ("rk4", "second_order", "autodiff", False, True),
+        ("euler", "first_order", "analytic", False, False),
+    ],
+)
 def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
-        scheme, coriolis, jacobians, lane_dt, lane_omega):
+    scheme, coriolis, jacobians, lane_dt, lane_omega
+):
     """The covariance in a rotating world takes the structure-of-arrays rows (the world's
     error maps as block congruences, jaximu.world.covariance_step, on either layout) and
     equals the generic kernel (float64, relative 1e-12), whose covariance the
@@ -265,22 +320,61 @@ def test_rotating_world_covariance_on_the_soa_kernel_equals_the_generic_kernel(
     from jaximu.engine.errorstate import _propagate_covariance
 
     row = "soa_cov_" + jacobians
-    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
-                            lanes=4, rotating=True, on=_dispatch.CPU) == row
+    assert (
+        _dispatch.kernel(
+            "covariance",
+            scheme,
+            attitude="quaternion",
+            jacobians=jacobians,
+            lanes=4,
+            rotating=True,
+            on=_dispatch.CPU,
+        )
+        == row
+    )
     rng = np.random.default_rng(2)
     x0, gyro, accel, dt, omega, g = _rotating_inputs(rng, 4, 15, lane_dt, lane_omega)
     A = rng.normal(size=(4, 15, 15))
     P0 = jnp.asarray(A @ np.swapaxes(A, -1, -2) * 1e-3)
     (s_f, P_f, _), (s_g, P_g, _) = (
-        _propagate_covariance(x0, P0, gyro, accel, dt, g, NOISE, omega, scheme=scheme,
-                              attitude="quaternion", jacobians=jacobians, save_all=False,
-                              fast=f, coriolis=coriolis) for f in (True, False))
+        _propagate_covariance(
+            x0,
+            P0,
+            gyro,
+            accel,
+            dt,
+            g,
+            NOISE,
+            omega,
+            scheme=scheme,
+            attitude="quaternion",
+            jacobians=jacobians,
+            save_all=False,
+            fast=f,
+            coriolis=coriolis,
+        )
+        for f in (True, False)
+    )
     np.testing.assert_allclose(P_f, P_g, rtol=0, atol=1e-12 * np.abs(np.asarray(P_g)).max())
     np.testing.assert_allclose(s_f.p, s_g.p, rtol=0, atol=1e-12 * np.abs(np.asarray(s_g.p)).max())
-    P_still = _propagate_covariance(x0, P0, gyro, accel, dt, g, NOISE, None, scheme=scheme,
-                                    attitude="quaternion", jacobians=jacobians, save_all=False,
-                                    fast=True)[1]
-    assert np.abs(np.asarray(P_still) - np.asarray(P_g)).max() > 1e-6 * np.abs(np.asarray(P_g)).max()
+    P_still = _propagate_covariance(
+        x0,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        NOISE,
+        None,
+        scheme=scheme,
+        attitude="quaternion",
+        jacobians=jacobians,
+        save_all=False,
+        fast=True,
+    )[1]
+    assert (
+        np.abs(np.asarray(P_still) - np.asarray(P_g)).max() > 1e-6 * np.abs(np.asarray(P_g)).max()
+    )
 
 
 def test_bad_omega_coriolis_is_refused():
@@ -288,5 +382,6 @@ def test_bad_omega_coriolis_is_refused():
     with pytest.raises(ValueError, match=r"omega_coriolis must be the world's rotation rate"):
         jaximu.propagate(x0, np.zeros((4, 3)), np.zeros((4, 3)), 0.01, omega_coriolis=7e-5)
     with pytest.raises(ValueError, match=r"omega_coriolis contains non-finite"):
-        jaximu.propagate(x0, np.zeros((4, 3)), np.zeros((4, 3)), 0.01,
-                         omega_coriolis=[0, np.nan, 0])
+        jaximu.propagate(
+            x0, np.zeros((4, 3)), np.zeros((4, 3)), 0.01, omega_coriolis=[0, np.nan, 0]
+        )

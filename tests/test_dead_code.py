@@ -25,8 +25,9 @@ def windows(n, seed=0):
     gyro = jnp.asarray(rng.normal(size=(n, T, 3)) * 0.8)
     accel = jnp.asarray(rng.normal(size=(n, T, 3)) * 2 + [0, 0, 9.81])
     dt = jnp.asarray(0.005 + 0.001 * rng.random((n, T)))
-    bias = ImuBias(jnp.asarray(rng.normal(size=(n, 3)) * 0.01),
-                   jnp.asarray(rng.normal(size=(n, 3)) * 0.1))
+    bias = ImuBias(
+        jnp.asarray(rng.normal(size=(n, 3)) * 0.01), jnp.asarray(rng.normal(size=(n, 3)) * 0.1)
+    )
     return gyro, accel, dt, bias
 
 
@@ -36,8 +37,18 @@ def nine(gyro, accel, dt, bias):
 
 
 def generic(gyro, accel, dt, bias):
-    pim = _preintegrate(gyro, accel, dt, bias, NOISE, scheme="euler", method="sequential",
-                        jacobians="analytic", prefixes=False, fast=False)
+    pim = _preintegrate(
+        gyro,
+        accel,
+        dt,
+        bias,
+        NOISE,
+        scheme="euler",
+        method="sequential",
+        jacobians="analytic",
+        prefixes=False,
+        fast=False,
+    )
     return tuple(getattr(pim, k) for k in NINE)
 
 
@@ -74,8 +85,9 @@ def test_unread_cov15_is_pruned_and_values_hold():
     got = jax.jit(nine)(gyro, accel, dt, bias)
     ref = generic(gyro, accel, dt, bias)
     for k, x, y in zip(NINE, got, ref):
-        np.testing.assert_allclose(x, y, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(y))),
-                                   err_msg=k)
+        np.testing.assert_allclose(
+            x, y, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(y))), err_msg=k
+        )
 
 
 def test_vmap_of_a_pruned_call():
@@ -83,18 +95,17 @@ def test_vmap_of_a_pruned_call():
     (``kept``): ``vmap`` of the pruned program equals the reference per window."""
     gyro, accel, dt, bias = windows(4, seed=1)
     closed = jax.make_jaxpr(nine)(gyro[0], accel[0], dt[0], ImuBias(bias.b_g[0], bias.b_a[0]))
-    pruned, _ = pe.dce_jaxpr(closed.jaxpr, [False, False, True, False, True, True],
-                             instantiate=True)
+    pruned, _ = pe.dce_jaxpr(
+        closed.jaxpr, [False, False, True, False, True, True], instantiate=True
+    )
     (kept,) = entry_eqns(pruned, "jaximu_preintegrate")
     assert kept.params["kept"] is not None
     fn = jaxpr_as_fun(jax.extend.core.ClosedJaxpr(pruned, closed.consts))
-    got = jax.vmap(lambda g, a, d, bg, ba: fn(g, a, d, bg, ba))(gyro, accel, dt, bias.b_g,
-                                                                   bias.b_a)
+    got = jax.vmap(lambda g, a, d, bg, ba: fn(g, a, d, bg, ba))(gyro, accel, dt, bias.b_g, bias.b_a)
     for i in range(4):
         ref = generic(gyro[i], accel[i], dt[i], ImuBias(bias.b_g[i], bias.b_a[i]))
         for x, y in zip(got, (ref[2], ref[4], ref[5])):
-            np.testing.assert_allclose(x[i], y, rtol=1e-11,
-                                       atol=1e-11 * float(jnp.max(jnp.abs(y))))
+            np.testing.assert_allclose(x[i], y, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(y))))
 
 
 def test_gradient_through_a_pruned_program():
@@ -119,8 +130,9 @@ def test_an_unread_call_is_dropped():
 
     def f(g, a, d, b):
         jaximu.preintegrate(g, a, d, b, NOISE)
-        jaximu.propagate_final(jaximu.NavState(jnp.array([1.0, 0, 0, 0]), *(jnp.zeros(3),) * 4),
-                               g[0], a[0], d[0])
+        jaximu.propagate_final(
+            jaximu.NavState(jnp.array([1.0, 0, 0, 0]), *(jnp.zeros(3),) * 4), g[0], a[0], d[0]
+        )
         return jnp.sum(g)
 
     closed = jax.make_jaxpr(f)(gyro, accel, dt, bias)

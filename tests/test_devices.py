@@ -15,8 +15,9 @@ CHECK = Path(__file__).with_name("devices_check.py")
 
 def test_lanes_split_over_a_mesh_give_the_single_device_results():
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    out = subprocess.run([sys.executable, str(CHECK)], capture_output=True, text=True,
-                         env=env, timeout=900)
+    out = subprocess.run(
+        [sys.executable, str(CHECK)], capture_output=True, text=True, env=env, timeout=900
+    )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-6000:]
     ok = [line for line in out.stdout.splitlines() if line.startswith("OK ")]
     # 7 cases at 32 lanes (split), 2 at 33 (not split), 2 under an Explicit mesh, 2 with

@@ -18,7 +18,7 @@ DESIGN = pathlib.Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
 
 def documented_table():
     text = DESIGN.read_text(encoding="utf-8")
-    section = text[text.index("## 5. Dispatch"):]
+    section = text[text.index("## 5. Dispatch") :]
     rows = []
     for line in section.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
@@ -35,8 +35,21 @@ def test_design_notes_table_is_the_code_table():
     assert len(doc) == len(_dispatch.TABLE)
     stored = {"final": False, "all": True}
     for cells, row in zip(doc, _dispatch.TABLE):
-        (entry, schemes, attitude, jac, save, lanes, max_lanes, steps, dtypes, rotating, lever,
-         backends, kernel) = cells
+        (
+            entry,
+            schemes,
+            attitude,
+            jac,
+            save,
+            lanes,
+            max_lanes,
+            steps,
+            dtypes,
+            rotating,
+            lever,
+            backends,
+            kernel,
+        ) = cells
         assert entry == row.entry
         assert words(schemes) == row.schemes
         assert words(attitude) == (row.attitudes or ())
@@ -58,13 +71,19 @@ def test_every_citation_of_the_design_notes_points_at_the_file():
         for m in re.finditer(r"(\S*)DESIGN\.md", path.read_text(encoding="utf-8")):
             assert m.group(1).endswith("docs/"), f"{path.name} cites {m.group(0)!r}"
     assert "perf report" not in "".join(
-        p.read_text(encoding="utf-8") for p in (root / "jaximu").rglob("*.py"))
+        p.read_text(encoding="utf-8") for p in (root / "jaximu").rglob("*.py")
+    )
 
 
-@pytest.mark.parametrize("B,T,backend,expect", [
-    (2, 160, "cpu", "parallel"), (3, 40, "cpu", "sequential"),
-    # an accelerator's block holds every lane: 40 windows are few there
-    (40, 100, "accelerator", "parallel")])
+@pytest.mark.parametrize(
+    "B,T,backend,expect",
+    [
+        (2, 160, "cpu", "parallel"),
+        (3, 40, "cpu", "sequential"),
+        # an accelerator's block holds every lane: 40 windows are few there
+        (40, 100, "accelerator", "parallel"),
+    ],
+)
 def test_auto_method_equals_both_methods(B, T, backend, expect):
     rng = np.random.default_rng(7)
     gyro = rng.normal(size=(B, T, 3))
@@ -74,8 +93,10 @@ def test_auto_method_equals_both_methods(B, T, backend, expect):
     noise = jaximu.ImuNoise.euroc()
     with dispatch_as(backend):
         assert _dispatch.preint_method("auto", B, T, np.float64) == expect
-        out = {m: jaximu.preintegrate(gyro, accel, dt, bias, noise, method=m)
-               for m in ("auto", "sequential", "parallel")}
+        out = {
+            m: jaximu.preintegrate(gyro, accel, dt, bias, noise, method=m)
+            for m in ("auto", "sequential", "parallel")
+        }
     for m in ("sequential", "parallel"):
         for a, b in zip(jax.tree_util.tree_leaves(out["auto"]), jax.tree_util.tree_leaves(out[m])):
             scale = max(1.0, float(np.abs(b).max()))
@@ -98,17 +119,23 @@ def kernel_picked(entry, lanes, steps, monkeypatch, **kw):
 
     monkeypatch.setattr(_dispatch, "kernel", spy)
     f32 = lambda *shape: jax.ShapeDtypeStruct(shape, np.float32)  # noqa: E731
-    state = jaximu.NavState(f32(lanes, 4), f32(lanes, 3), f32(lanes, 3), f32(lanes, 3),
-                            f32(lanes, 3))
+    state = jaximu.NavState(
+        f32(lanes, 4), f32(lanes, 3), f32(lanes, 3), f32(lanes, 3), f32(lanes, 3)
+    )
     samples = (f32(lanes, steps, 3), f32(lanes, steps, 3), f32(steps))
     noise = jaximu.ImuNoise.euroc()
     try:
         if entry == "mean":
-            jax.eval_shape(lambda s, g, a, d: jaximu.propagate_final(s, g, a, d, **kw), state,
-                           *samples)
+            jax.eval_shape(
+                lambda s, g, a, d: jaximu.propagate_final(s, g, a, d, **kw), state, *samples
+            )
         else:
-            jax.eval_shape(lambda s, P, g, a, d: jaximu.propagate_covariance_final(
-                s, P, g, a, d, noise, **kw), state, f32(15, 15), *samples)
+            jax.eval_shape(
+                lambda s, P, g, a, d: jaximu.propagate_covariance_final(s, P, g, a, d, noise, **kw),
+                state,
+                f32(15, 15),
+                *samples,
+            )
     except Picked as picked:
         return picked.args[0]
     finally:
@@ -128,19 +155,27 @@ def test_accelerator_takes_time_chunks_from_the_tables_thresholds(monkeypatch):
     cov_n, cov_b = _dispatch.COV_CHUNK_STEPS[acc], _dispatch.COV_CHUNK_LANES[acc]
     assert _dispatch.MEAN_CHUNK_STEPS < 2048 and cov_n < _dispatch.COV_CHUNK_STEPS["cpu"]
     with dispatch_as(acc):
-        for lanes, steps, expect in [(1, mean_n, "soa_mean_chunked"), (1, mean_n - 1, "generic"),
-                                     (mean_b, mean_n, "soa_mean_chunked"),
-                                     (mean_b + 1, mean_n, "generic")]:
+        for lanes, steps, expect in [
+            (1, mean_n, "soa_mean_chunked"),
+            (1, mean_n - 1, "generic"),
+            (mean_b, mean_n, "soa_mean_chunked"),
+            (mean_b + 1, mean_n, "generic"),
+        ]:
             assert kernel_picked("mean", lanes, steps, monkeypatch) == expect, (lanes, steps)
-        for lanes, steps, expect in [(1, cov_n, "soa_cov_chunked"),
-                                     (1, cov_n - 1, "soa_cov_analytic"),
-                                     (cov_b, cov_n, "soa_cov_chunked"),
-                                     (cov_b + 1, cov_n, "soa_cov_analytic")]:
-            assert kernel_picked("covariance", lanes, steps, monkeypatch) == expect, (
-                lanes, steps)
+        for lanes, steps, expect in [
+            (1, cov_n, "soa_cov_chunked"),
+            (1, cov_n - 1, "soa_cov_analytic"),
+            (cov_b, cov_n, "soa_cov_chunked"),
+            (cov_b + 1, cov_n, "soa_cov_analytic"),
+        ]:
+            assert kernel_picked("covariance", lanes, steps, monkeypatch) == expect, (lanes, steps)
         # also where the mean's own pass gives the chunks' starts (Euler angles)
-        assert kernel_picked("covariance", 2, cov_n, monkeypatch, jacobians="autodiff",
-                              attitude="euler_angles") == "soa_cov_chunked"
+        assert (
+            kernel_picked(
+                "covariance", 2, cov_n, monkeypatch, jacobians="autodiff", attitude="euler_angles"
+            )
+            == "soa_cov_chunked"
+        )
     assert kernel_picked("mean", 1, mean_n, monkeypatch) == "soa_mean"
     assert kernel_picked("covariance", 1, cov_n, monkeypatch) == "soa_cov_analytic"
 
@@ -156,12 +191,16 @@ def test_accelerator_mean_of_short_sequences_in_time_chunks_equals_the_scan():
     dt = jnp.asarray(np.random.default_rng(32).uniform(0.003, 0.007, (2, n)))
 
     def run(s, g, a, d):
-        return (jaximu.propagate_final(s, g, a, d, "midpoint"),
-                jaximu.propagate(s, g, a, d, "midpoint"))
+        return (
+            jaximu.propagate_final(s, g, a, d, "midpoint"),
+            jaximu.propagate(s, g, a, d, "midpoint"),
+        )
 
     with dispatch_as(_dispatch.ACCELERATOR):
-        assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", lanes=2,
-                                steps=n) == "soa_mean_chunked"
+        assert (
+            _dispatch.kernel("mean", "midpoint", attitude="quaternion", lanes=2, steps=n)
+            == "soa_mean_chunked"
+        )
         assert _dispatch.mean_chunks(2, n) == 4
         chunked = jax.jit(run)(state, gyro, accel, dt)
     ref = jax.jit(run)(state, gyro, accel, dt)

@@ -11,7 +11,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def quickstart_commands():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text[text.index("## Quickstart"):]
+    section = text[text.index("## Quickstart") :]
     block = re.search(r"```bash\n(.*?)```", section, re.DOTALL).group(1)
     return [line.split("#")[0].strip() for line in block.splitlines() if line.strip()]
 

@@ -22,8 +22,10 @@ def random_state(seed, batch=()):
     rng = np.random.default_rng(seed)
     n = int(np.prod(batch, dtype=int))
     q = Rotation.random(n, random_state=seed).as_quat(scalar_first=True).reshape(batch + (4,))
-    return jaximu.NavState(jnp.asarray(q), *(jnp.asarray(rng.normal(size=batch + (3,)) * s)
-                                             for s in (1.0, 1.0, 0.02, 0.2)))
+    return jaximu.NavState(
+        jnp.asarray(q),
+        *(jnp.asarray(rng.normal(size=batch + (3,)) * s) for s in (1.0, 1.0, 0.02, 0.2)),
+    )
 
 
 def random_samples(seed, batch=()):
@@ -60,8 +62,9 @@ def test_autodiff_jacobians_equal_central_differences(scheme, attitude):
     rel), and so do the blockwise ones (9 directions)."""
     state = random_state(1)
     if attitude == "euler_angles":  # keep away from gimbal lock
-        state = state.replace(q=jnp.asarray(Rotation.from_euler("ZYX", [0.5, 0.3, -0.2])
-                                            .as_quat(scalar_first=True)))
+        state = state.replace(
+            q=jnp.asarray(Rotation.from_euler("ZYX", [0.5, 0.3, -0.2]).as_quat(scalar_first=True))
+        )
     w0, a0, w1, a1 = random_samples(2)
     h = jnp.asarray(0.02)
     Phi, G_ = jacobians_autodiff(scheme, get_attitude(attitude), state, w0, a0, w1, a1, h, G_W)
@@ -96,10 +99,12 @@ def test_analytic_jacobians_at_zero_rate():
     state = random_state(5)
     zeros = jnp.zeros(3)
     for scheme in jaximu.SCHEMES:
-        Phi_ad, G_ad = jaximu.step_jacobians(state, zeros, jnp.array([0, 0, G]), 0.01,
-                                             scheme=scheme, method="autodiff")
-        Phi_an, G_an = jaximu.step_jacobians(state, zeros, jnp.array([0, 0, G]), 0.01,
-                                             scheme=scheme, method="analytic")
+        Phi_ad, G_ad = jaximu.step_jacobians(
+            state, zeros, jnp.array([0, 0, G]), 0.01, scheme=scheme, method="autodiff"
+        )
+        Phi_an, G_an = jaximu.step_jacobians(
+            state, zeros, jnp.array([0, 0, G]), 0.01, scheme=scheme, method="analytic"
+        )
         assert np.all(np.isfinite(Phi_ad)) and np.all(np.isfinite(G_ad))
         np.testing.assert_allclose(Phi_an, Phi_ad, rtol=0, atol=1e-12)
         np.testing.assert_allclose(G_an, G_ad, rtol=0, atol=1e-12)
@@ -160,8 +165,9 @@ def test_one_step_covariance_matches_gtsam_check_covariance():
     5.00868e-05 - 5e-05)."""
     noise = jaximu.ImuNoise(np.deg2rad(0.5) / 60, 0.1 / 60)
     s0 = jaximu.NavState.identity(dtype=jnp.float64)
-    _, P = jaximu.propagate_covariance_final(s0, jnp.zeros((15, 15)), [[np.pi / 100, 0, 0]],
-                                             [[0.1, 0, 0]], [0.5], noise)
+    _, P = jaximu.propagate_covariance_final(
+        s0, jnp.zeros((15, 15)), [[np.pi / 100, 0, 0]], [[0.1, 0, 0]], [0.5], noise
+    )
     np.testing.assert_allclose(np.diag(P)[0:3], 1.0577e-08, rtol=1e-4)
     np.testing.assert_allclose(np.diag(P)[3:6], 5.00868e-05 - 5e-5, rtol=2e-3)
     np.testing.assert_allclose(np.diag(P)[6:9], 1.38889e-06, rtol=1e-5)
@@ -186,13 +192,17 @@ def _random_P0(seed):
 def test_structured_analytic_covariance_equals_dense_autodiff(scheme):
     gyro, accel = _trajectory(7, 60, (2,))
     state = random_state(8, (2,))
-    noise = jaximu.ImuNoise(jnp.array([1e-3, 2e-3, 3e-3]), 2e-2, 1e-4, jnp.array([1e-3, 2e-3, 5e-4]))
+    noise = jaximu.ImuNoise(
+        jnp.array([1e-3, 2e-3, 3e-3]), 2e-2, 1e-4, jnp.array([1e-3, 2e-3, 5e-4])
+    )
     P0 = _random_P0(9)
     dt = np.random.default_rng(10).uniform(0.002, 0.02, size=60)
-    s1, P1 = jaximu.propagate_covariance(state, P0, gyro, accel, dt, noise, scheme,
-                                         jacobians="analytic")
-    s2, P2 = jaximu.propagate_covariance(state, P0, gyro, accel, dt, noise, scheme,
-                                         jacobians="autodiff")
+    s1, P1 = jaximu.propagate_covariance(
+        state, P0, gyro, accel, dt, noise, scheme, jacobians="analytic"
+    )
+    s2, P2 = jaximu.propagate_covariance(
+        state, P0, gyro, accel, dt, noise, scheme, jacobians="autodiff"
+    )
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-10 * np.abs(P2).max())
     np.testing.assert_allclose(s1.p, s2.p, rtol=0, atol=1e-14)
     s3 = jaximu.propagate(state, gyro, accel, dt, scheme)
@@ -223,8 +233,13 @@ def test_covariance_growth_of_still_imu_matches_closed_form():
     n, dt = 2000, 0.005
     t = n * dt
     _, P = jaximu.propagate_covariance_final(
-        jaximu.NavState.identity(dtype=jnp.float64), np.zeros((15, 15)), np.zeros((n, 3)),
-        np.tile([0, 0, G], (n, 1)), dt, jaximu.ImuNoise(sg, sa))
+        jaximu.NavState.identity(dtype=jnp.float64),
+        np.zeros((15, 15)),
+        np.zeros((n, 3)),
+        np.tile([0, 0, G], (n, 1)),
+        dt,
+        jaximu.ImuNoise(sg, sa),
+    )
     np.testing.assert_allclose(np.diag(P)[0:3], sg**2 * t, rtol=1e-12)
     expected_vv = sa**2 * t + G**2 * sg**2 * t**3 / 3
     np.testing.assert_allclose(np.diag(P)[6:8], expected_vv, rtol=2e-3)
@@ -245,8 +260,10 @@ def monte_carlo_runs():
     P0 = _random_P0(17) * 0.01
     L = np.linalg.cholesky(P0)
     d0 = (L @ rng.normal(size=(N, 15, 1)))[..., 0]
-    starts = boxplus(jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (N,) + x.shape), state),
-                     jnp.asarray(d0))
+    starts = boxplus(
+        jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (N,) + x.shape), state),
+        jnp.asarray(d0),
+    )
     sg, sa, sbg, sba = noise.sample_std(dt)
     # The estimator sees the clean samples and keeps its biases constant. The truth starts at
     # x ⊞ δ0 and its bias walks, b(k) = b_start + W(k) with W(k) the sum of the steps before
@@ -258,9 +275,21 @@ def monte_carlo_runs():
     ba_walk = np.concatenate([np.zeros((N, 1, 3)), ba_walk[:, :-1]], axis=1)
     noisy_gyro = gyro - bg_walk - rng.normal(size=(N, T + 1, 3)) * np.asarray(sg)
     noisy_accel = accel - ba_walk - rng.normal(size=(N, T + 1, 3)) * np.asarray(sa)
-    return dict(N=N, T=T, dt=dt, noise=noise, gyro=gyro, accel=accel, state=state, P0=P0,
-                starts=starts, noisy_gyro=noisy_gyro, noisy_accel=noisy_accel,
-                bg_walk=bg_walk, ba_walk=ba_walk)
+    return dict(
+        N=N,
+        T=T,
+        dt=dt,
+        noise=noise,
+        gyro=gyro,
+        accel=accel,
+        state=state,
+        P0=P0,
+        starts=starts,
+        noisy_gyro=noisy_gyro,
+        noisy_accel=noisy_accel,
+        bg_walk=bg_walk,
+        ba_walk=ba_walk,
+    )
 
 
 @pytest.mark.parametrize("scheme", ["euler"])
@@ -276,19 +305,23 @@ def test_monte_carlo_nees_is_consistent(scheme, monte_carlo_runs):
     """
     c = monte_carlo_runs
     T, N = c["T"], c["N"]
-    truth = jaximu.propagate(c["starts"], c["noisy_gyro"][:, :T], c["noisy_accel"][:, :T],
-                             c["dt"], scheme)
-    final_truth = truth[:, -1].replace(b_g=truth.b_g[:, -1] + c["bg_walk"][:, T],
-                                       b_a=truth.b_a[:, -1] + c["ba_walk"][:, T])
-    est, P = jaximu.propagate_covariance_final(c["state"], c["P0"], c["gyro"][:T],
-                                               c["accel"][:T], c["dt"], c["noise"], scheme)
+    truth = jaximu.propagate(
+        c["starts"], c["noisy_gyro"][:, :T], c["noisy_accel"][:, :T], c["dt"], scheme
+    )
+    final_truth = truth[:, -1].replace(
+        b_g=truth.b_g[:, -1] + c["bg_walk"][:, T], b_a=truth.b_a[:, -1] + c["ba_walk"][:, T]
+    )
+    est, P = jaximu.propagate_covariance_final(
+        c["state"], c["P0"], c["gyro"][:T], c["accel"][:T], c["dt"], c["noise"], scheme
+    )
     err = np.asarray(boxminus(final_truth, est))
     nees = np.einsum("ni,ij,nj->n", err, np.linalg.inv(np.asarray(P)), err)
     lo, hi = stats.chi2.ppf([0.005, 0.995], 15 * N) / N
     assert lo < nees.mean() < hi, (nees.mean(), lo, hi)
     wrong = jaximu.ImuNoise(*(4 * np.asarray(x) for x in (2e-2, 5e-2, 1e-2, 5e-2)))
-    _, P_wrong = jaximu.propagate_covariance_final(c["state"], c["P0"], c["gyro"][:T],
-                                                   c["accel"][:T], c["dt"], wrong, scheme)
+    _, P_wrong = jaximu.propagate_covariance_final(
+        c["state"], c["P0"], c["gyro"][:T], c["accel"][:T], c["dt"], wrong, scheme
+    )
     nees_wrong = np.einsum("ni,ij,nj->n", err, np.linalg.inv(np.asarray(P_wrong)), err)
     assert not lo < nees_wrong.mean() < hi
 
@@ -318,8 +351,12 @@ def test_discrete_process_noise_is_g_qc_gt():
     _, G_ = jaximu.step_jacobians(state, [0.1, 0.2, 0.3], [0.0, 0.5, 9.8], 0.01)
     noise = jaximu.ImuNoise(1e-3, 2e-2, 3e-4, 4e-3)
     Qc = np.diag(np.repeat(np.array([1e-3, 2e-2, 3e-4, 4e-3]) ** 2 / 0.01, 3))
-    np.testing.assert_allclose(jaximu.discrete_process_noise(G_, noise, 0.01),
-                               np.asarray(G_) @ Qc @ np.asarray(G_).T, rtol=1e-13, atol=1e-30)
+    np.testing.assert_allclose(
+        jaximu.discrete_process_noise(G_, noise, 0.01),
+        np.asarray(G_) @ Qc @ np.asarray(G_).T,
+        rtol=1e-13,
+        atol=1e-30,
+    )
 
 
 def test_float32_covariance_stays_finite_and_close():
@@ -327,13 +364,19 @@ def test_float32_covariance_stays_finite_and_close():
     out = {}
     for dtype in (jnp.float32, jnp.float64):
         state = jaximu.NavState.identity(dtype=dtype)
-        _, P = jaximu.propagate_covariance_final(state, np.eye(15, dtype=dtype) * 1e-4,
-                                                 gyro.astype(dtype), accel.astype(dtype),
-                                                 np.asarray(0.005, dtype), jaximu.ImuNoise.euroc())
+        _, P = jaximu.propagate_covariance_final(
+            state,
+            np.eye(15, dtype=dtype) * 1e-4,
+            gyro.astype(dtype),
+            accel.astype(dtype),
+            np.asarray(0.005, dtype),
+            jaximu.ImuNoise.euroc(),
+        )
         out[dtype] = np.asarray(P, np.float64)
     assert np.all(np.isfinite(out[jnp.float32]))
-    np.testing.assert_allclose(out[jnp.float32], out[jnp.float64], rtol=0,
-                               atol=1e-4 * np.abs(out[jnp.float64]).max())
+    np.testing.assert_allclose(
+        out[jnp.float32], out[jnp.float64], rtol=0, atol=1e-4 * np.abs(out[jnp.float64]).max()
+    )
 
 
 @pytest.mark.parametrize(
@@ -354,12 +397,19 @@ def test_covariance_bad_input(kwargs, message):
     args = dict(P0=np.eye(15) * 1e-4, noise=jaximu.ImuNoise.euroc())
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
-        jaximu.propagate_covariance(jaximu.NavState.identity(dtype=jnp.float64), args.pop("P0"),
-                                    np.zeros((5, 3)), np.zeros((5, 3)), 0.01, args.pop("noise"),
-                                    **args)
+        jaximu.propagate_covariance(
+            jaximu.NavState.identity(dtype=jnp.float64),
+            args.pop("P0"),
+            np.zeros((5, 3)),
+            np.zeros((5, 3)),
+            0.01,
+            args.pop("noise"),
+            **args,
+        )
 
 
 def test_step_jacobians_bad_method():
     with pytest.raises(ValueError, match="unknown Jacobian method"):
-        jaximu.step_jacobians(jaximu.NavState.identity(), np.zeros(3), np.zeros(3), 0.01,
-                              method="fd")
+        jaximu.step_jacobians(
+            jaximu.NavState.identity(), np.zeros(3), np.zeros(3), 0.01, method="fd"
+        )

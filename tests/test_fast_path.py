@@ -22,14 +22,30 @@ G_W = jnp.array([0.0, 0.0, -9.81])
 
 @functools.partial(jax.jit, static_argnames=("save_all", "fast", "scheme"))
 def mean(state, gyro, accel, dt, g, *, save_all, fast, scheme="euler"):
-    return _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude="quaternion",
-                      save_all=save_all, fast=fast)[0]
+    return _propagate(
+        state,
+        gyro,
+        accel,
+        dt,
+        g,
+        scheme=scheme,
+        attitude="quaternion",
+        save_all=save_all,
+        fast=fast,
+    )[0]
 
 
-@pytest.mark.parametrize("B,T,big,per_lane_dt,scheme", [
-    (64, 97, False, False, "euler"), (40, 50, True, True, "euler"),
-    (2100, 40, False, False, "euler"), (40, 50, True, True, "midpoint"),
-    (64, 97, False, False, "rk4"), (40, 50, True, True, "rk4")])
+@pytest.mark.parametrize(
+    "B,T,big,per_lane_dt,scheme",
+    [
+        (64, 97, False, False, "euler"),
+        (40, 50, True, True, "euler"),
+        (2100, 40, False, False, "euler"),
+        (40, 50, True, True, "midpoint"),
+        (64, 97, False, False, "rk4"),
+        (40, 50, True, True, "rk4"),
+    ],
+)
 @pytest.mark.parametrize("save_all", [False, True])
 def test_mean_fast_path_equals_generic(B, T, big, per_lane_dt, scheme, save_all):
     assert B >= _dispatch.TABLE[0].min_lanes
@@ -58,14 +74,26 @@ def test_mean_fast_path_float32_and_batch_shapes():
 
 @functools.partial(jax.jit, static_argnames=("fast",))
 def cov(state, P0, gyro, accel, dt, g, noise, *, fast):
-    states, P, _ = _propagate_covariance(state, P0, gyro, accel, dt, g, noise, scheme="euler",
-                                         attitude="quaternion", jacobians="analytic",
-                                         save_all=False, fast=fast)
+    states, P, _ = _propagate_covariance(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        noise,
+        scheme="euler",
+        attitude="quaternion",
+        jacobians="analytic",
+        save_all=False,
+        fast=fast,
+    )
     return states, P
 
 
-@pytest.mark.parametrize("B,T,big,batched_noise", [(1, 60, False, False), (33, 41, True, True),
-                                                   (5, 200, False, True)])
+@pytest.mark.parametrize(
+    "B,T,big,batched_noise", [(1, 60, False, False), (33, 41, True, True), (5, 200, False, True)]
+)
 def test_covariance_fast_path_equals_generic(B, T, big, batched_noise):
     state, gyro, accel = inputs(B, T, seed=3, big_angles=big)
     rng = np.random.default_rng(4)
@@ -74,9 +102,12 @@ def test_covariance_fast_path_equals_generic(B, T, big, batched_noise):
     dt = jnp.asarray(rng.uniform(0.002, 0.02, size=(B, T)))
     noise = jaximu.ImuNoise.euroc()
     if batched_noise:
-        noise = jaximu.ImuNoise(jnp.asarray(rng.uniform(1e-4, 1e-3, size=(B, 3))), 2e-3,
-                                jnp.asarray(rng.uniform(1e-5, 1e-4, size=(B, 1)) * np.ones(3)),
-                                3e-3)
+        noise = jaximu.ImuNoise(
+            jnp.asarray(rng.uniform(1e-4, 1e-3, size=(B, 3))),
+            2e-3,
+            jnp.asarray(rng.uniform(1e-5, 1e-4, size=(B, 1)) * np.ones(3)),
+            3e-3,
+        )
     s1, P1 = cov(state, P0, gyro, accel, dt, G_W, noise, fast=True)
     s2, P2 = cov(state, P0, gyro, accel, dt, G_W, noise, fast=False)
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
@@ -90,7 +121,7 @@ def test_fast_path_gradients_equal_generic_ones_at_zero_rate():
 
     def loss(gyro, accel, b_g, fast):
         s = mean(state.replace(b_g=b_g), gyro, accel, dt, G_W, save_all=False, fast=fast)
-        return jnp.sum(s.p ** 2) + jnp.sum(s.q[..., 1:] * 3.0)
+        return jnp.sum(s.p**2) + jnp.sum(s.q[..., 1:] * 3.0)
 
     g_fast = jax.grad(loss, argnums=(0, 1, 2))(gyro, accel, state.b_g * 0, True)
     g_ref = jax.grad(loss, argnums=(0, 1, 2))(gyro, accel, state.b_g * 0, False)
@@ -111,8 +142,9 @@ def test_half_angle_kernels_match_trig(dtype):
     k_ref = np.where(theta > 0, np.sin(theta / 2) / safe, 0.5)
     eps = np.finfo(dtype).eps
     # cos(θ/2) is only as good as θ/2 itself for large angles: tolerance 8 eps max(1, θ).
-    assert np.all(np.abs(np.asarray(c, np.float64) - np.cos(theta / 2))
-                  <= 8 * eps * np.maximum(1, theta))
+    assert np.all(
+        np.abs(np.asarray(c, np.float64) - np.cos(theta / 2)) <= 8 * eps * np.maximum(1, theta)
+    )
     np.testing.assert_allclose(k, k_ref, rtol=0, atol=8 * eps)
     small = theta**2 < lane_math._THR
     cs, ks = jax.jit(lane_math._half_small)(t2[small])
@@ -120,17 +152,23 @@ def test_half_angle_kernels_match_trig(dtype):
     np.testing.assert_allclose(ks, k_ref[small], rtol=0, atol=4 * eps)
 
 
-@pytest.mark.parametrize("B,T,scheme,save_all,intervals,backend", [
-    # the accelerator's time chunks: the final state's deltas reduced as a tree, every state
-    # from a prefix scan of them; 2049 steps as 64 chunks of 33 (63 padding steps, dt = 0)
-    (1, 2080, "midpoint", False, False, "accelerator"),
-    (1, 2051, "euler", True, False, "accelerator"), (2, 2050, "rk4", True, True, "accelerator"),
-    (2, 2050, "rk4", False, True, "accelerator"),
-    # 132 chunks of 33 steps: the last three all padding
-    (1, 4229, "rk4", True, True, "accelerator"),
-    # the CPU: the one-block kernel over the long sequence (no chunks on the CPU)
-    (1, 2051, "euler", False, False, "cpu"), (1, 2051, "euler", True, False, "cpu"),
-    (2, 2050, "rk4", True, True, "cpu")])
+@pytest.mark.parametrize(
+    "B,T,scheme,save_all,intervals,backend",
+    [
+        # the accelerator's time chunks: the final state's deltas reduced as a tree, every state
+        # from a prefix scan of them; 2049 steps as 64 chunks of 33 (63 padding steps, dt = 0)
+        (1, 2080, "midpoint", False, False, "accelerator"),
+        (1, 2051, "euler", True, False, "accelerator"),
+        (2, 2050, "rk4", True, True, "accelerator"),
+        (2, 2050, "rk4", False, True, "accelerator"),
+        # 132 chunks of 33 steps: the last three all padding
+        (1, 4229, "rk4", True, True, "accelerator"),
+        # the CPU: the one-block kernel over the long sequence (no chunks on the CPU)
+        (1, 2051, "euler", False, False, "cpu"),
+        (1, 2051, "euler", True, False, "cpu"),
+        (2, 2050, "rk4", True, True, "cpu"),
+    ],
+)
 def test_long_sequences_equal_the_plain_scan(B, T, scheme, save_all, intervals, backend):
     """A few long float64 sequences on an accelerator run as time chunks side by side
     (deltas from the identity, composed as a tree; every state stored runs the chunks again
@@ -143,9 +181,15 @@ def test_long_sequences_equal_the_plain_scan(B, T, scheme, save_all, intervals, 
     dt = jnp.asarray(rng.uniform(0.002, 0.008, size=(T - 1,) if intervals else (T,)))
     steps = dt.shape[-1]
     with dispatch_as(backend):
-        assert _dispatch.kernel("mean", scheme, attitude="quaternion", save_all=save_all,
-                                lanes=B, steps=steps, on=backend) == (
-            "soa_mean_chunked" if backend == _dispatch.ACCELERATOR else "soa_mean")
+        assert _dispatch.kernel(
+            "mean",
+            scheme,
+            attitude="quaternion",
+            save_all=save_all,
+            lanes=B,
+            steps=steps,
+            on=backend,
+        ) == ("soa_mean_chunked" if backend == _dispatch.ACCELERATOR else "soa_mean")
         fast = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=True, scheme=scheme)
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme=scheme)
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
@@ -173,15 +217,20 @@ def test_long_sequence_gradient_equals_generic(save_all):
     w = jnp.asarray(np.random.default_rng(14).normal(size=(2100, 3)))
 
     def loss(scale, fast):
-        s = mean(state, gyro * scale, accel, dt, G_W, save_all=save_all, fast=fast,
-                 scheme="midpoint")
+        s = mean(
+            state, gyro * scale, accel, dt, G_W, save_all=save_all, fast=fast, scheme="midpoint"
+        )
         if not save_all:
             return jnp.sum(s.p[0] * w[0]) + jnp.sum(s.q[0] * w[1, :1])
         return jnp.sum(s.p[0] * w) * 1e-3 + jnp.sum(s.q[0] * w[:, :1])
 
     with dispatch_as("accelerator"):
-        assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=save_all,
-                                lanes=1, steps=2100) == "soa_mean_chunked"
+        assert (
+            _dispatch.kernel(
+                "mean", "midpoint", attitude="quaternion", save_all=save_all, lanes=1, steps=2100
+            )
+            == "soa_mean_chunked"
+        )
         fast = jax.grad(loss)(1.1, True)
     np.testing.assert_allclose(fast, jax.grad(loss)(1.1, False), rtol=1e-10)
 
@@ -194,29 +243,48 @@ def test_long_float32_sequence_in_time_chunks_on_an_accelerator():
     save_all = True
     state, gyro, accel = inputs(1, 2051, seed=12)
     dt = jnp.full((2051,), 0.005)
+
     def f32(x):
         return jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)
 
-    assert _dispatch.kernel("mean", "midpoint", attitude="quaternion", save_all=save_all,
-                            lanes=1, steps=2051, dtype="float32",
-                            on=_dispatch.ACCELERATOR) == "soa_mean_chunked"
+    assert (
+        _dispatch.kernel(
+            "mean",
+            "midpoint",
+            attitude="quaternion",
+            save_all=save_all,
+            lanes=1,
+            steps=2051,
+            dtype="float32",
+            on=_dispatch.ACCELERATOR,
+        )
+        == "soa_mean_chunked"
+    )
     with dispatch_as(_dispatch.ACCELERATOR):
-        fast = mean(*f32((state, gyro, accel, dt, G_W)), save_all=save_all, fast=True,
-                    scheme="midpoint")
+        fast = mean(
+            *f32((state, gyro, accel, dt, G_W)), save_all=save_all, fast=True, scheme="midpoint"
+        )
     ref = mean(state, gyro, accel, dt, G_W, save_all=save_all, fast=False, scheme="midpoint")
     for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(ref)):
         assert a.dtype == jnp.float32 and a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=2e-4 * max(1.0, np.abs(b).max()))
 
 
-@pytest.mark.parametrize("scheme,B,intervals,jac,save_all,backend", [
-    ("euler", 3, False, "autodiff", True, "cpu"), ("midpoint", 2, True, "autodiff", True, "cpu"),
-    ("rk4", 2, False, "autodiff", False, "cpu"), ("midpoint", 3, False, "analytic", False, "cpu"),
-    ("rk4", 2, True, "analytic", True, "cpu"),
-    ("midpoint", 2, True, "autodiff", False, "accelerator"),
-    ("rk4", 3, False, "analytic", True, "accelerator")])
-def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals, jac, save_all,
-                                                           backend):
+@pytest.mark.parametrize(
+    "scheme,B,intervals,jac,save_all,backend",
+    [
+        ("euler", 3, False, "autodiff", True, "cpu"),
+        ("midpoint", 2, True, "autodiff", True, "cpu"),
+        ("rk4", 2, False, "autodiff", False, "cpu"),
+        ("midpoint", 3, False, "analytic", False, "cpu"),
+        ("rk4", 2, True, "analytic", True, "cpu"),
+        ("midpoint", 2, True, "autodiff", False, "accelerator"),
+        ("rk4", 3, False, "analytic", True, "accelerator"),
+    ],
+)
+def test_soa_covariance_kernels_equal_generic_closed_forms(
+    scheme, B, intervals, jac, save_all, backend
+):
     """soa_cov_autodiff (blocks by jax.linearize of the SoA step, 9 directions) and
     soa_cov_analytic (Scheme.blocks on the SoA layout) against the generic kernel with the
     closed-form blocks on arrays: same mean and covariance to rounding, final or after every
@@ -231,12 +299,35 @@ def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals,
     noise = jaximu.ImuNoise(jnp.asarray([1e-3, 2e-3, 3e-3]), 2e-3, 1e-4, 3e-3)
 
     def run(jac, fast):
-        return jax.jit(lambda s, P, w, a, h: _propagate_covariance(
-            s, P, w, a, h, G_W, noise, scheme=scheme, attitude="quaternion", jacobians=jac,
-            save_all=save_all, fast=fast)[:2])(state, P0, gyro, accel, dt)
+        return jax.jit(
+            lambda s, P, w, a, h: _propagate_covariance(
+                s,
+                P,
+                w,
+                a,
+                h,
+                G_W,
+                noise,
+                scheme=scheme,
+                attitude="quaternion",
+                jacobians=jac,
+                save_all=save_all,
+                fast=fast,
+            )[:2]
+        )(state, P0, gyro, accel, dt)
 
-    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jac,
-                            save_all=save_all, lanes=B, on=backend) == f"soa_cov_{jac}"
+    assert (
+        _dispatch.kernel(
+            "covariance",
+            scheme,
+            attitude="quaternion",
+            jacobians=jac,
+            save_all=save_all,
+            lanes=B,
+            on=backend,
+        )
+        == f"soa_cov_{jac}"
+    )
     with dispatch_as(backend):
         s1, P1 = run(jac, True)
     s2, P2 = run("analytic", False)
@@ -244,10 +335,22 @@ def test_soa_covariance_kernels_equal_generic_closed_forms(scheme, B, intervals,
     np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
     if scheme == "euler":  # float32 in, float32 out, close to float64
         f32 = lambda x: jax.tree_util.tree_map(lambda y: jnp.asarray(y, jnp.float32), x)  # noqa: E731
-        s3, P3 = jax.jit(lambda s, P, w, a, h: _propagate_covariance(
-            s, P, w, a, h, G_W.astype(jnp.float32), f32(noise), scheme=scheme,
-            attitude="quaternion", jacobians="autodiff", save_all=save_all, fast=True)[:2])(
-            *f32((state, P0, gyro, accel, dt)))
+        s3, P3 = jax.jit(
+            lambda s, P, w, a, h: _propagate_covariance(
+                s,
+                P,
+                w,
+                a,
+                h,
+                G_W.astype(jnp.float32),
+                f32(noise),
+                scheme=scheme,
+                attitude="quaternion",
+                jacobians="autodiff",
+                save_all=save_all,
+                fast=True,
+            )[:2]
+        )(*f32((state, P0, gyro, accel, dt)))
         assert P3.dtype == jnp.float32 and s3.q.dtype == jnp.float32
         np.testing.assert_allclose(P3, P2, rtol=0, atol=1e-4 * np.abs(P2).max())
     for a, b in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):

@@ -16,17 +16,37 @@ from jaximu.kernels import fast_preint as _fast_preint
 from jaximu.kernels.soa import block_lanes
 
 
-def uses_fast_path(scheme, jacobians, prefixes, method="sequential", lanes=1024, fast=True,
-                   lever=False):
-    return _dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
-                                         method=method, lanes=lanes, fast=fast,
-                                         lever=lever) != "generic"
+def uses_fast_path(
+    scheme, jacobians, prefixes, method="sequential", lanes=1024, fast=True, lever=False
+):
+    return (
+        _dispatch.preintegrate_kernel(
+            scheme,
+            jacobians=jacobians,
+            prefixes=prefixes,
+            method=method,
+            lanes=lanes,
+            fast=fast,
+            lever=lever,
+        )
+        != "generic"
+    )
+
 
 FIELDS = ("delta_t", "delta_q", "delta_v", "delta_p", "transition", "cov15", "cov")
 
 
-def inputs(batch, T, seed=0, per_lane_dt=False, big=False, batched_bias=False,
-           batched_noise=False, intervals=False, dtype=np.float64):
+def inputs(
+    batch,
+    T,
+    seed=0,
+    per_lane_dt=False,
+    big=False,
+    batched_bias=False,
+    batched_noise=False,
+    intervals=False,
+    dtype=np.float64,
+):
     rng = np.random.default_rng(seed)
     g = rng.normal(size=batch + (T, 3)) * 0.8
     if big:  # some steps turn by more than π/2: the range-reduced half angle
@@ -36,17 +56,30 @@ def inputs(batch, T, seed=0, per_lane_dt=False, big=False, batched_bias=False,
     dt = rng.uniform(0.002, 0.02, size=batch + (n,) if per_lane_dt else (n,))
     bias = jaximu.ImuBias(
         jnp.asarray(rng.normal(size=batch + (3,) if batched_bias else (3,)) * 0.01, dtype),
-        jnp.asarray(rng.normal(size=(3,)) * 0.1, dtype))
+        jnp.asarray(rng.normal(size=(3,)) * 0.1, dtype),
+    )
     sg = jnp.asarray(rng.uniform(1e-4, 3e-4, size=batch + (3,) if batched_noise else (3,)), dtype)
     noise = jaximu.ImuNoise(sg, 2e-3, 2e-5, jnp.asarray([3e-3, 2e-3, 1e-3], dtype))
     return (jnp.asarray(g, dtype), jnp.asarray(a, dtype), jnp.asarray(dt, dtype), bias, noise)
 
 
 @functools.partial(jax.jit, static_argnames=("method", "fast", "scheme", "jacobians"))
-def pre(gyro, accel, dt, bias, noise, lever=None, *, method, fast, scheme="euler",
-        jacobians="analytic"):
-    return _preintegrate(gyro, accel, dt, bias, noise, lever, scheme=scheme, method=method,
-                         jacobians=jacobians, prefixes=False, fast=fast)
+def pre(
+    gyro, accel, dt, bias, noise, lever=None, *, method, fast, scheme="euler", jacobians="analytic"
+):
+    return _preintegrate(
+        gyro,
+        accel,
+        dt,
+        bias,
+        noise,
+        lever,
+        scheme=scheme,
+        method=method,
+        jacobians=jacobians,
+        prefixes=False,
+        fast=fast,
+    )
 
 
 def assert_same(fast, ref, rel):
@@ -54,8 +87,9 @@ def assert_same(fast, ref, rel):
         a, b = np.asarray(getattr(fast, name)), np.asarray(getattr(ref, name))
         assert a.shape == b.shape and a.dtype == b.dtype, name
         assert np.all(np.isfinite(a)), name
-        np.testing.assert_allclose(a, b, rtol=0, atol=rel * max(np.abs(b).max(), 1e-300),
-                                   err_msg=name)
+        np.testing.assert_allclose(
+            a, b, rtol=0, atol=rel * max(np.abs(b).max(), 1e-300), err_msg=name
+        )
 
 
 def test_dispatch():
@@ -78,31 +112,45 @@ def test_dispatch():
     assert C == lanes or (lanes - lanes // 16 <= C < lanes and 100000 % C == 0)
 
 
-@pytest.mark.parametrize("batch,T,method,kw", [
-    ((5,), 60, "sequential", {}),
-    ((5,), 60, "parallel", {}),
-    ((), 300, "parallel", {}),
-    ((), 301, "parallel", {"big": True}),  # padded last chunk, big angles
-    ((3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
-                                 "batched_noise": True}),
-    ((2,), 400, "parallel", {"per_lane_dt": True, "batched_bias": True,
-                             "batched_noise": True, "intervals": True}),
-    # 64 chunks of 67 steps padded to 68 (whole kernel time chunks): the last one all padding
-    ((), 4229, "parallel", {"per_lane_dt": True}),
-    ((1100,), 40, "sequential", {"big": True}),  # several batch blocks
-    ((4,), 80, "sequential", {}),  # a few windows: one block of 4 lanes
-])
+@pytest.mark.parametrize(
+    "batch,T,method,kw",
+    [
+        ((5,), 60, "sequential", {}),
+        ((5,), 60, "parallel", {}),
+        ((), 300, "parallel", {}),
+        ((), 301, "parallel", {"big": True}),  # padded last chunk, big angles
+        (
+            (3, 2),
+            100,
+            "sequential",
+            {"per_lane_dt": True, "batched_bias": True, "batched_noise": True},
+        ),
+        (
+            (2,),
+            400,
+            "parallel",
+            {"per_lane_dt": True, "batched_bias": True, "batched_noise": True, "intervals": True},
+        ),
+        # 64 chunks of 67 steps padded to 68 (whole kernel time chunks): the last one all padding
+        ((), 4229, "parallel", {"per_lane_dt": True}),
+        ((1100,), 40, "sequential", {"big": True}),  # several batch blocks
+        ((4,), 80, "sequential", {}),  # a few windows: one block of 4 lanes
+    ],
+)
 def test_fast_path_equals_generic(batch, T, method, kw):
     """The reference is the generic sequential scan (quick to compile; the generic parallel
     method equals it to rounding, tests/test_preintegration.py), once the generic parallel."""
     args = inputs(batch, T, **kw)
     ref_method = "parallel" if (batch, T) == ((), 300) else "sequential"
-    assert_same(pre(*args, method=method, fast=True), pre(*args, method=ref_method, fast=False),
-                1e-12)
+    assert_same(
+        pre(*args, method=method, fast=True), pre(*args, method=ref_method, fast=False), 1e-12
+    )
 
 
-@pytest.mark.parametrize("scheme,batch,T,method,per_lane", [
-    ("midpoint", (8,), 60, "sequential", True), ("euler", (2,), 150, "parallel", True)])
+@pytest.mark.parametrize(
+    "scheme,batch,T,method,per_lane",
+    [("midpoint", (8,), 60, "sequential", True), ("euler", (2,), 150, "parallel", True)],
+)
 def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per_lane):
     """Samples of a sensor at a lever arm (its specific force moves with the gyro bias and
     noise: jaximu/geometry/sensor.py): the SoA kernels' extra terms equal the generic recursion's
@@ -114,8 +162,11 @@ def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per
     lever = jnp.asarray(rng.normal(size=batch + (3,) if per_lane else (3,)) * 0.3)
     assert uses_fast_path(scheme, "analytic", False, method, int(np.prod(batch)), lever=True)
     fast = pre(g, a, dt, bias, noise, lever, method=method, fast=True, scheme=scheme)
-    assert_same(fast, pre(g, a, dt, bias, noise, lever, method="sequential", fast=False,
-                          scheme=scheme), 1e-12)
+    assert_same(
+        fast,
+        pre(g, a, dt, bias, noise, lever, method="sequential", fast=False, scheme=scheme),
+        1e-12,
+    )
     plain = pre(g, a, dt, bias, noise, None, method="sequential", fast=False, scheme=scheme)
     assert np.abs(np.asarray(fast.cov - plain.cov)).max() > 1e-3 * np.abs(plain.cov).max()
 
@@ -123,16 +174,20 @@ def test_fast_path_with_a_lever_arm_equals_generic(scheme, batch, T, method, per
 @pytest.mark.parametrize("method", ["sequential", "parallel"])
 def test_fast_path_float32(method):
     args = inputs((), 1000, seed=2, dtype=np.float32)
-    assert_same(pre(*args, method=method, fast=True),
-                pre(*args, method="sequential", fast=False), 3e-5)
+    assert_same(
+        pre(*args, method=method, fast=True), pre(*args, method="sequential", fast=False), 3e-5
+    )
 
 
 def test_fast_path_without_noise_and_scalar_dt():
     g, a, _, bias, _ = inputs((4,), 50, seed=3)
     dt = jnp.asarray(0.005)
     for method in ("sequential", "parallel"):
-        assert_same(pre(g, a, dt, bias, None, method=method, fast=True),
-                    pre(g, a, dt, bias, None, method="sequential", fast=False), 1e-12)
+        assert_same(
+            pre(g, a, dt, bias, None, method=method, fast=True),
+            pre(g, a, dt, bias, None, method="sequential", fast=False),
+            1e-12,
+        )
 
 
 @pytest.mark.parametrize("scheme", ["euler", "midpoint"])
@@ -140,13 +195,23 @@ def test_fast_path_gradients_equal_generic(scheme):
     g, a, dt, bias, _ = inputs((8,), 64, seed=4)
 
     def loss(g, a, bg, sigma, fast, method):
-        pim = pre(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
-                  jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), method=method, fast=fast,
-                  scheme=scheme)
-        return (jnp.sum(pim.delta_p * jnp.array([1.0, -2, 0.5])) + jnp.sum(pim.delta_q)
-                + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
-                + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
-                + jnp.sum(pim.transition[..., 0:9, 9:15]))
+        pim = pre(
+            g,
+            a,
+            dt,
+            jaximu.ImuBias(bg, bias.b_a),
+            jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3),
+            method=method,
+            fast=fast,
+            scheme=scheme,
+        )
+        return (
+            jnp.sum(pim.delta_p * jnp.array([1.0, -2, 0.5]))
+            + jnp.sum(pim.delta_q)
+            + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
+            + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
+            + jnp.sum(pim.transition[..., 0:9, 9:15])
+        )
 
     args = (g, a, bias.b_g, jnp.asarray(1.7e-4))
     # One compiled gradient per path (far cheaper than op-by-op reverse mode here); each
@@ -174,20 +239,27 @@ def test_shared_dt_with_batched_windows():
     assert_same(fast, ref, 1e-12)
     for i in range(3):
         one = jaximu.preintegrate(g[i], a[i], dt, bias, noise)
-        np.testing.assert_allclose(fast.cov15[i], one.cov15, rtol=0,
-                                   atol=1e-13 * np.abs(one.cov15).max())
+        np.testing.assert_allclose(
+            fast.cov15[i], one.cov15, rtol=0, atol=1e-13 * np.abs(one.cov15).max()
+        )
 
 
-@pytest.mark.parametrize("batch,T,method,kw", [
-    ((9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}),
-    ((3, 3), 61, "sequential", {"per_lane_dt": True, "intervals": True}),
-    ((300,), 30, "parallel", {"big": True}),  # parallel from a full block of windows
-])
+@pytest.mark.parametrize(
+    "batch,T,method,kw",
+    [
+        ((9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}),
+        ((3, 3), 61, "sequential", {"per_lane_dt": True, "intervals": True}),
+        ((300,), 30, "parallel", {"big": True}),  # parallel from a full block of windows
+    ],
+)
 def test_midpoint_fast_path_equals_generic(batch, T, method, kw):
     args = inputs(batch, T, seed=7, **kw)
     assert uses_fast_path("midpoint", "analytic", False, method, int(np.prod(batch)))
-    assert_same(pre(*args, method=method, fast=True, scheme="midpoint"),
-                pre(*args, method="sequential", fast=False, scheme="midpoint"), 1e-12)
+    assert_same(
+        pre(*args, method=method, fast=True, scheme="midpoint"),
+        pre(*args, method="sequential", fast=False, scheme="midpoint"),
+        1e-12,
+    )
 
 
 @pytest.mark.parametrize("T,big", [(301, True), (4229, False)])
@@ -198,14 +270,20 @@ def test_midpoint_parallel_long_sequence(T, big):
     a step: over 600 of them it overflows on every path)."""
     args = inputs((), T, seed=9, per_lane_dt=True, big=big)
     assert _fast_preint.num_chunks(1, T, "parallel", jnp.float64) > 1
-    assert_same(pre(*args, method="parallel", fast=True, scheme="midpoint"),
-                pre(*args, method="sequential", fast=False, scheme="midpoint"), 1e-12)
+    assert_same(
+        pre(*args, method="parallel", fast=True, scheme="midpoint"),
+        pre(*args, method="sequential", fast=False, scheme="midpoint"),
+        1e-12,
+    )
 
 
 def test_midpoint_fast_path_float32():
     args = inputs((9,), 300, seed=8, dtype=np.float32)
-    assert_same(pre(*args, method="sequential", fast=True, scheme="midpoint"),
-                pre(*args, method="sequential", fast=False, scheme="midpoint"), 3e-5)
+    assert_same(
+        pre(*args, method="sequential", fast=True, scheme="midpoint"),
+        pre(*args, method="sequential", fast=False, scheme="midpoint"),
+        3e-5,
+    )
 
 
 @pytest.mark.parametrize("jacobians", ["analytic", "autodiff"])
@@ -219,10 +297,17 @@ def test_fast_path_per_axis_accelerometer_noise(jacobians):
     scalar = jaximu.ImuNoise(2e-4, 2e-3, 2e-5, 3e-3)
     for method in ("sequential", "parallel"):
         for noise in (per_axis, scalar):
-            assert_same(pre(g, a, dt, bias, noise, method=method, fast=True,
-                            jacobians=jacobians),
-                        pre(g, a, dt, bias, noise, method="sequential", fast=False), 1e-12)
-    d = pre(g, a, dt, bias, per_axis, method="sequential", fast=True).cov - pre(
-        g, a, dt, bias, scalar, method="sequential", fast=True).cov
-    assert np.abs(np.asarray(d)).max() > 0.1 * np.abs(np.asarray(
-        pre(g, a, dt, bias, scalar, method="sequential", fast=True).cov)).max()
+            assert_same(
+                pre(g, a, dt, bias, noise, method=method, fast=True, jacobians=jacobians),
+                pre(g, a, dt, bias, noise, method="sequential", fast=False),
+                1e-12,
+            )
+    d = (
+        pre(g, a, dt, bias, per_axis, method="sequential", fast=True).cov
+        - pre(g, a, dt, bias, scalar, method="sequential", fast=True).cov
+    )
+    assert (
+        np.abs(np.asarray(d)).max()
+        > 0.1
+        * np.abs(np.asarray(pre(g, a, dt, bias, scalar, method="sequential", fast=True).cov)).max()
+    )

@@ -13,14 +13,23 @@ from test_fast_preintegration import assert_same, inputs, pre, uses_fast_path
 import jaximu
 
 
-@pytest.mark.parametrize("scheme,batch,T,method,kw,lever", [
-    ("euler", (3, 2), 100, "sequential", {"per_lane_dt": True, "batched_bias": True,
-                                          "batched_noise": True}, False),
-    ("euler", (), 301, "parallel", {"big": True}, False),  # padded last chunk, big angles
-    ("euler", (2,), 150, "parallel", {"per_lane_dt": True}, True),
-    ("midpoint", (9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}, True),
-    ("midpoint", (), 301, "parallel", {"big": True, "per_lane_dt": True}, False),
-])
+@pytest.mark.parametrize(
+    "scheme,batch,T,method,kw,lever",
+    [
+        (
+            "euler",
+            (3, 2),
+            100,
+            "sequential",
+            {"per_lane_dt": True, "batched_bias": True, "batched_noise": True},
+            False,
+        ),
+        ("euler", (), 301, "parallel", {"big": True}, False),  # padded last chunk, big angles
+        ("euler", (2,), 150, "parallel", {"per_lane_dt": True}, True),
+        ("midpoint", (9,), 60, "sequential", {"batched_bias": True, "batched_noise": True}, True),
+        ("midpoint", (), 301, "parallel", {"big": True, "per_lane_dt": True}, False),
+    ],
+)
 def test_autodiff_fast_path_equals_generic_autodiff(scheme, batch, T, method, kw, lever):
     """``jacobians="autodiff"`` on the SoA kernels (their blocks by ``jax.jvp`` of the SoA
     step: preint_euler._autodiff_blocks, preint_midpoint._mid_autodiff) against the generic recursion's
@@ -30,11 +39,13 @@ def test_autodiff_fast_path_equals_generic_autodiff(scheme, batch, T, method, kw
     last assertion)."""
     args = inputs(batch, T, seed=11, **kw)
     r = jnp.asarray(np.random.default_rng(12).normal(size=batch + (3,)) * 0.3) if lever else None
-    assert uses_fast_path(scheme, "autodiff", False, method, int(np.prod(batch)),
-                          lever=lever)
+    assert uses_fast_path(scheme, "autodiff", False, method, int(np.prod(batch)), lever=lever)
     fast = pre(*args, r, method=method, fast=True, jacobians="autodiff", scheme=scheme)
-    assert_same(fast, pre(*args, r, method="sequential", fast=False, jacobians="autodiff",
-                          scheme=scheme), 1e-12)
+    assert_same(
+        fast,
+        pre(*args, r, method="sequential", fast=False, jacobians="autodiff", scheme=scheme),
+        1e-12,
+    )
     if scheme == "midpoint":
         vins = pre(*args, r, method=method, fast=True, scheme=scheme)
         diff = np.abs(np.asarray(fast.transition - vins.transition)).max()
@@ -50,12 +61,23 @@ def test_autodiff_fast_path_gradients_equal_generic():
     g, a, dt, bias, _ = inputs((3,), 24, seed=13)
 
     def loss(g, bg, sigma, fast):
-        pim = pre(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
-                  jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), method="sequential", fast=fast,
-                  jacobians="autodiff", scheme=scheme)
-        return (jnp.sum(pim.delta_p) + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
-                + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
-                + jnp.sum(pim.transition[..., 0:9, 9:15] ** 2))
+        pim = pre(
+            g,
+            a,
+            dt,
+            jaximu.ImuBias(bg, bias.b_a),
+            jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3),
+            method="sequential",
+            fast=fast,
+            jacobians="autodiff",
+            scheme=scheme,
+        )
+        return (
+            jnp.sum(pim.delta_p)
+            + 1e6 * jnp.sum(jnp.trace(pim.cov, axis1=-2, axis2=-1))
+            + 1e3 * jnp.sum(pim.cov15[..., 9:15, 0:9])
+            + jnp.sum(pim.transition[..., 0:9, 9:15] ** 2)
+        )
 
     grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
     args = (g, bias.b_g, jnp.asarray(1.7e-4))

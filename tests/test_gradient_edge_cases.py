@@ -29,8 +29,9 @@ def test_sensor_pose_gradient_with_a_zero_per_axis_density():
     T = 8
     gyro = jnp.asarray(rng.normal(size=(T, 3)))
     accel = jnp.asarray(rng.normal(size=(T, 3)) + [0.0, 0.0, 9.81])
-    noise = jaximu.ImuNoise(jnp.array([1.7e-4, 0.0, 2e-4]), jnp.array([2e-3, 2e-3, 3e-3]),
-                            jnp.zeros(3), jnp.zeros(3))
+    noise = jaximu.ImuNoise(
+        jnp.array([1.7e-4, 0.0, 2e-4]), jnp.array([2e-3, 2e-3, 3e-3]), jnp.zeros(3), jnp.zeros(3)
+    )
 
     @jax.jit
     def loss(theta):
@@ -59,11 +60,22 @@ def test_parallel_prefixes_autodiff_gradient_with_padded_chunks():
 
     @jax.jit
     def loss(x):
-        pim = jaximu.preintegrate(gyro, accel, 0.005, jaximu.ImuBias(x[:3], b_a),
-                                  jaximu.ImuNoise(x[3], 2e-3, 1.9e-5, 3e-3), "euler",
-                                  "parallel", prefixes=True, jacobians="autodiff")
-        return (jnp.sum(pim.delta_p[-1]) + jnp.sum(pim.transition[-1, 3:9, 9:12])
-                + 1e6 * jnp.sum(pim.cov[-1]))
+        pim = jaximu.preintegrate(
+            gyro,
+            accel,
+            0.005,
+            jaximu.ImuBias(x[:3], b_a),
+            jaximu.ImuNoise(x[3], 2e-3, 1.9e-5, 3e-3),
+            "euler",
+            "parallel",
+            prefixes=True,
+            jacobians="autodiff",
+        )
+        return (
+            jnp.sum(pim.delta_p[-1])
+            + jnp.sum(pim.transition[-1, 3:9, 9:12])
+            + 1e6 * jnp.sum(pim.cov[-1])
+        )
 
     x0 = np.array([0.01, -0.02, 0.005, 1.7e-4])
     g = np.asarray(jax.grad(loss)(jnp.asarray(x0)))

@@ -46,7 +46,9 @@ def test_euroc_segment_keeps_nanoseconds_and_ground_truth():
     # the imu0/data.csv path and the mav0 folder give the same
     assert len(io.read_euroc(EUROC / "mav0/imu0/data.csv")) == len(data)
     # the bundled flat excerpt (imu.csv + groundtruth.csv)
-    assert len(io.read_euroc(pathlib.Path(jaximu.__file__).parent / "data/euroc_v1_02_medium")) == 4002
+    assert (
+        len(io.read_euroc(pathlib.Path(jaximu.__file__).parent / "data/euroc_v1_02_medium")) == 4002
+    )
 
 
 def test_tumvi_segment_pose_only_ground_truth_with_dropouts():
@@ -65,8 +67,9 @@ def test_tumvi_segment_pose_only_ground_truth_with_dropouts():
     tq = 0.5 * (gt.t[200:210] + gt.t[201:211])
     ref = Slerp(gt.t[195:215], Rotation.from_quat(gt.q[195:215][:, [1, 2, 3, 0]]))(tq)
     q, _, _ = gt.interpolate(tq)
-    np.testing.assert_allclose((Rotation.from_quat(q[:, [1, 2, 3, 0]]) * ref.inv()).magnitude(),
-                               0, atol=1e-12)
+    np.testing.assert_allclose(
+        (Rotation.from_quat(q[:, [1, 2, 3, 0]]) * ref.inv()).magnitude(), 0, atol=1e-12
+    )
     # the 0.483 s mocap dropout is not bridged
     k = int(np.argmax(np.diff(gt.t)))
     assert abs(gt.t[k + 1] - gt.t[k] - 0.483) < 1e-3
@@ -104,15 +107,24 @@ def test_generic_csv_round_trip_with_names_and_units(tmp_path):
         vals = np.r_[a[k] / io.STANDARD_GRAVITY, np.rad2deg(w[k])]
         lines.append(ms + ";" + ";".join(repr(float(x)) for x in vals) + ";25.0")
     path = write_csv(tmp_path / "imu.txt", lines)
-    data = io.read_csv(path, time="time_ms", gyro=("gx_dps", "gy_dps", "gz_dps"),
-                       accel=("ax_g", "ay_g", "az_g"), time_unit="ms", gyro_unit="deg/s",
-                       accel_unit="g")
+    data = io.read_csv(
+        path,
+        time="time_ms",
+        gyro=("gx_dps", "gy_dps", "gz_dps"),
+        accel=("ax_g", "ay_g", "az_g"),
+        time_unit="ms",
+        gyro_unit="deg/s",
+        accel_unit="g",
+    )
     np.testing.assert_array_equal(data.stamps_ns, ns)  # exact from the decimal text
     np.testing.assert_allclose(data.gyro, w, rtol=1e-14)
     np.testing.assert_allclose(data.accel, a, rtol=1e-14)
     # by index, whitespace separated, seconds
-    lines = [f"{ns[k] // 10**9}.{ns[k] % 10**9:09d} " + " ".join(repr(float(x)) for x in np.r_[w[k], a[k]])
-             for k in range(n)]
+    lines = [
+        f"{ns[k] // 10**9}.{ns[k] % 10**9:09d} "
+        + " ".join(repr(float(x)) for x in np.r_[w[k], a[k]])
+        for k in range(n)
+    ]
     data2 = io.read_csv(write_csv(tmp_path / "imu2.txt", lines))
     np.testing.assert_array_equal(data2.stamps_ns, ns)
     np.testing.assert_array_equal(data2.gyro, w)
@@ -147,8 +159,7 @@ def samples(n=40, rate=200.0, seed=2):
 
 
 def euroc_csv(path, ns, w, a, raw=None):
-    rows = [f"{s}," + ",".join(repr(float(x)) for x in np.r_[w[k], a[k]])
-            for k, s in enumerate(ns)]
+    rows = [f"{s}," + ",".join(repr(float(x)) for x in np.r_[w[k], a[k]]) for k, s in enumerate(ns)]
     if raw:
         for k, text in raw.items():
             rows[k] = text
@@ -193,8 +204,9 @@ def test_duplicates_named_and_dropped():
     data = io.from_arrays(ns2, w2, a2, time_unit="ns", drop_duplicates=True)
     np.testing.assert_array_equal(data.stamps_ns, ns)
     np.testing.assert_array_equal(data.gyro, w)  # the first of the two is kept
-    assert data.repairs == ("dropped 1 sample(s) with a duplicate timestamp (0 identical to "
-                            "the kept one): row 16",)
+    assert data.repairs == (
+        "dropped 1 sample(s) with a duplicate timestamp (0 identical to the kept one): row 16",
+    )
 
 
 def test_gaps_named_kept_and_split():
@@ -248,8 +260,13 @@ def trajectory(n=30, seed=3):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return NavState(q=q, p=rng.normal(0, 5, (n, 3)), v=rng.normal(size=(n, 3)),
-                    b_g=rng.normal(0, 1e-3, (n, 3)), b_a=rng.normal(0, 1e-2, (n, 3)))
+    return NavState(
+        q=q,
+        p=rng.normal(0, 5, (n, 3)),
+        v=rng.normal(size=(n, 3)),
+        b_g=rng.normal(0, 1e-3, (n, 3)),
+        b_a=rng.normal(0, 1e-2, (n, 3)),
+    )
 
 
 def test_tum_export_read_back(tmp_path):
@@ -324,15 +341,17 @@ def test_initial_state_and_errors_against_known_perturbations():
     # errors: the truth itself, shifted by 1 cm and rotated by a known body-frame rotation
     dtheta = np.array([0.01, -0.02, 0.005])
     R_hat = Rotation.from_quat(gt.q[:, [1, 2, 3, 0]]) * Rotation.from_rotvec(dtheta)
-    est = NavState(q=R_hat.as_quat()[:, [3, 0, 1, 2]], p=gt.p + [0.01, 0, 0], v=gt.v,
-                   b_g=gt.b_g, b_a=gt.b_a)
+    est = NavState(
+        q=R_hat.as_quat()[:, [3, 0, 1, 2]], p=gt.p + [0.01, 0, 0], v=gt.v, b_g=gt.b_g, b_a=gt.b_a
+    )
     err = io.trajectory_errors(gt.t, est, gt)
     np.testing.assert_allclose(err.position, np.tile([0.01, 0, 0], (len(gt), 1)), atol=1e-12)
     np.testing.assert_allclose(err.rotation, np.tile(dtheta, (len(gt), 1)), atol=1e-6)
     np.testing.assert_allclose(err.velocity, 0, atol=1e-12)
     pos, vel, att = err.at(1.0)
-    assert pos == pytest.approx(0.01) and att == pytest.approx(np.degrees(np.linalg.norm(dtheta)),
-                                                                rel=1e-4)
+    assert pos == pytest.approx(0.01) and att == pytest.approx(
+        np.degrees(np.linalg.norm(dtheta)), rel=1e-4
+    )
 
 
 # --------------------------------------------------------------------------- properties
@@ -341,25 +360,44 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
 
-_values = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
-                    st.floats(-20, 20))
+_values = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64), st.floats(-20, 20))
 
 
-@settings(max_examples=300, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(n=st.integers(0, 12), data=st.data(),
-       t_dtype=st.sampled_from([np.float64, np.float32, np.int64]),
-       repair=st.booleans())
+@settings(
+    max_examples=300,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    n=st.integers(0, 12),
+    data=st.data(),
+    t_dtype=st.sampled_from([np.float64, np.float32, np.int64]),
+    repair=st.booleans(),
+)
 def test_from_arrays_returns_clean_data_or_a_data_error(n, data, t_dtype, repair):
     """Random lengths (0 included), NaN/inf anywhere, unsorted and repeated times, huge
     steps: either a DataError/ValueError, or an ImuData with strictly increasing stamps,
     finite samples and at least two of them."""
-    t = data.draw(hnp.arrays(t_dtype, n, elements=(st.integers(0, 10**6) if t_dtype == np.int64
-                                                    else st.floats(-1e30, 1e30, width=64))))
+    t = data.draw(
+        hnp.arrays(
+            t_dtype,
+            n,
+            elements=(
+                st.integers(0, 10**6) if t_dtype == np.int64 else st.floats(-1e30, 1e30, width=64)
+            ),
+        )
+    )
     gyro = data.draw(hnp.arrays(np.float64, (n, 3), elements=_values))
     accel = data.draw(hnp.arrays(np.float64, (n, 3), elements=_values))
-    kw = dict(sort=True, drop_duplicates=True, drop_nonfinite=True, allow_gaps=True,
-              check_units=False) if repair else {}
+    kw = (
+        dict(
+            sort=True, drop_duplicates=True, drop_nonfinite=True, allow_gaps=True, check_units=False
+        )
+        if repair
+        else {}
+    )
     try:
         out = io.from_arrays(t, gyro, accel, time_unit="ms", **kw)
     except ValueError as e:  # DataError is a ValueError
@@ -375,14 +413,14 @@ def test_stamps_float64_seconds_cannot_separate_are_an_error():
     t = np.array([0.0, -1e-5, -1.35286059e11])  # ms
     zeros = np.zeros((3, 3))
     with pytest.raises(io.DataError, match="equal in float64 seconds"):
-        io.from_arrays(t, zeros, zeros, time_unit="ms", sort=True, allow_gaps=True,
-                       check_units=False)
+        io.from_arrays(
+            t, zeros, zeros, time_unit="ms", sort=True, allow_gaps=True, check_units=False
+        )
 
 
 def test_header_detection_never_drops_data(tmp_path):
     ns, w, a = samples(10)
-    body = [f"{s}," + ",".join(repr(float(x)) for x in np.r_[w[k], a[k]]) for k, s in
-            enumerate(ns)]
+    body = [f"{s}," + ",".join(repr(float(x)) for x in np.r_[w[k], a[k]]) for k, s in enumerate(ns)]
     # headerless, with a text status column: the first row is data, not a header
     path = write_csv(tmp_path / "status.csv", [r + ",ok" for r in body])
     data = io.read_csv(path, time_unit="ns")
@@ -390,10 +428,15 @@ def test_header_detection_never_drops_data(tmp_path):
     with pytest.raises(io.DataError, match=r"line 1: 'ok' is not a number"):
         io.read_csv(path, time_unit="ns", gyro=(7, 2, 3))
     # a byte-order mark and a free-text comment above the ASL-style header
-    text = ("\ufeff# recorded by foo, units SI\n#t,wx,wy,wz,ax,ay,az\n" + "\n".join(body) + "\n")
+    text = "\ufeff# recorded by foo, units SI\n#t,wx,wy,wz,ax,ay,az\n" + "\n".join(body) + "\n"
     (tmp_path / "bom.csv").write_text(text, encoding="utf-8")
-    data = io.read_csv(tmp_path / "bom.csv", time="t", gyro=("wx", "wy", "wz"),
-                       accel=("ax", "ay", "az"), time_unit="ns")
+    data = io.read_csv(
+        tmp_path / "bom.csv",
+        time="t",
+        gyro=("wx", "wy", "wz"),
+        accel=("ax", "ay", "az"),
+        time_unit="ns",
+    )
     np.testing.assert_array_equal(data.gyro, w)
     # fractional nanoseconds in an ASL file: the file is in another unit
     with pytest.raises(io.DataError, match="not a whole number of nanoseconds"):

@@ -86,8 +86,9 @@ def test_interpolation_at_imu_times_against_scipy():
     q, p, v = gt.interpolate(t)
     assert v is None
     ref = Slerp(t_gt, Rotation.from_quat(pose[:, 3:7]))(t)  # scipy reads x y z w as stored
-    np.testing.assert_allclose((Rotation.from_quat(q[:, [1, 2, 3, 0]]) * ref.inv()).magnitude(),
-                               0, atol=1e-12)
+    np.testing.assert_allclose(
+        (Rotation.from_quat(q[:, [1, 2, 3, 0]]) * ref.inv()).magnitude(), 0, atol=1e-12
+    )
     p_ref = np.stack([np.interp(t, t_gt, pose[:, j]) for j in range(3)], axis=1)
     np.testing.assert_allclose(p, p_ref, rtol=0, atol=1e-12)
     # no velocity in the file: central differences of the positions
@@ -102,8 +103,12 @@ def test_pose_file_in_asl_folder_explicit_path_and_imu_file(tmp_path):
     (mav0 / "imu0").mkdir(parents=True)
     shutil.copy(MH03 / "imu.csv", mav0 / "imu0" / "data.csv")
     shutil.copy(MH03 / POSE, mav0 / POSE)
-    for path in (tmp_path / "MH_03_medium", mav0, mav0 / "imu0" / "data.csv",  # ASL
-                 MH03 / "imu.csv"):  # a flat folder's imu.csv: its ground truth beside it
+    for path in (
+        tmp_path / "MH_03_medium",
+        mav0,
+        mav0 / "imu0" / "data.csv",  # ASL
+        MH03 / "imu.csv",
+    ):  # a flat folder's imu.csv: its ground truth beside it
         data = io.read_euroc(path)
         np.testing.assert_array_equal(data.stamps_ns, flat.stamps_ns)
         np.testing.assert_array_equal(data.ground_truth.q, flat.ground_truth.q)
@@ -114,8 +119,10 @@ def test_pose_file_in_asl_folder_explicit_path_and_imu_file(tmp_path):
     assert io.read_euroc(imu_only).ground_truth is None  # none there: not an error
     explicit = io.read_euroc(imu_only, groundtruth=MH03 / POSE)
     np.testing.assert_array_equal(explicit.ground_truth.p, flat.ground_truth.p)
-    tabs = write_lines(tmp_path / "poses.tum", [ln.replace(" ", "\t") if i else ln
-                                                for i, ln in enumerate(lines_of(MH03 / POSE))])
+    tabs = write_lines(
+        tmp_path / "poses.tum",
+        [ln.replace(" ", "\t") if i else ln for i, ln in enumerate(lines_of(MH03 / POSE))],
+    )
     explicit = io.read_euroc(imu_only, groundtruth=tabs)  # tab separated: a TUM pose too
     np.testing.assert_array_equal(explicit.ground_truth.q, flat.ground_truth.q)
     assert io.read_euroc(MH03, groundtruth=False).ground_truth is None
@@ -127,8 +134,10 @@ def test_full_state_csv_of_the_same_poses_reads_the_same_and_comes_first(tmp_pat
     shutil.copy(MH03 / "imu.csv", tmp_path / "imu.csv")
     shutil.copy(MH03 / POSE, tmp_path / POSE)
     gt_ns, pose = plain_pose(MH03 / POSE)
-    rows = [f"{s}," + ",".join(repr(float(x)) for x in r[[0, 1, 2, 6, 3, 4, 5]])
-            for s, r in zip(gt_ns, pose)]
+    rows = [
+        f"{s}," + ",".join(repr(float(x)) for x in r[[0, 1, 2, 6, 3, 4, 5]])
+        for s, r in zip(gt_ns, pose)
+    ]
     write_lines(tmp_path / "groundtruth.csv", ["#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z", *rows])
     data = io.read_euroc(tmp_path)
     assert data.source.endswith("groundtruth.csv")
@@ -140,8 +149,9 @@ def test_full_state_csv_of_the_same_poses_reads_the_same_and_comes_first(tmp_pat
 # --------------------------------------------------------------------------- bad input
 
 
-@pytest.mark.parametrize("reader, gt_dir", [(io.read_euroc, "state_groundtruth_estimate0"),
-                                            (io.read_tumvi, "mocap0")])
+@pytest.mark.parametrize(
+    "reader, gt_dir", [(io.read_euroc, "state_groundtruth_estimate0"), (io.read_tumvi, "mocap0")]
+)
 def test_a_folder_that_is_no_sequence(tmp_path, reader, gt_dir):
     (tmp_path / "notes.txt").write_text("not a sequence\n")
     (tmp_path / "nested" / "mav0").mkdir(parents=True)  # mav0 without imu0
@@ -150,8 +160,13 @@ def test_a_folder_that_is_no_sequence(tmp_path, reader, gt_dir):
             reader(path)
         msg = str(e.value)
         assert "\n" not in msg and msg.startswith(f"{path} is not a ")
-        for expected in ("mav0/imu0/data.csv", f"mav0/{gt_dir}/data.csv", "imu.csv",
-                         "groundtruth.csv", POSE):
+        for expected in (
+            "mav0/imu0/data.csv",
+            f"mav0/{gt_dir}/data.csv",
+            "imu.csv",
+            "groundtruth.csv",
+            POSE,
+        ):
             assert expected in msg
 
 
@@ -168,24 +183,51 @@ def broken(tmp_path, text):
     return write_lines(tmp_path / POSE, lines)
 
 
-@pytest.mark.parametrize("text, message", [
-    pytest.param(GOOD.rsplit(" ", 1)[0], r"groundtruth_pose.txt, line 6: a TUM pose has 8 "
-                 r"values .* got 7", id="7 columns"),
-    pytest.param(GOOD + " 0.1", r"groundtruth_pose.txt, line 6: .* got 9", id="9 columns"),
-    pytest.param(GOOD.replace(" ", ","), r"groundtruth_pose.txt, line 6: .* got 1",
-                 id="commas"),
-    pytest.param(ROW.format("nan"), r"ground truth .*groundtruth_pose.txt: NaN or inf at "
-                 r"line 6", id="NaN value"),
-    pytest.param(GOOD.replace("1403637132.90832", "nan"), r"groundtruth_pose.txt, line 6: "
-                 r"timestamp 'nan' is not a finite number", id="NaN stamp"),
-    pytest.param(GOOD.replace(".90832", ".90332"), r"groundtruth_pose.txt: timestamps not "
-                 r"increasing at line 6", id="repeated stamp"),  # = line 5's
-    pytest.param(GOOD.replace(".90832", ".89832"), r"groundtruth_pose.txt: timestamps not "
-                 r"increasing at line 6", id="stamp going back"),  # before line 5's
-    pytest.param(ROW.format("-1.156384"), r"groundtruth_pose.txt: the quaternion is not a "
-                 r"\[w, x, y, z\] unit quaternion at line 6: its norm is 1\.5\d*",
-                 id="non-unit quaternion"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        pytest.param(
+            GOOD.rsplit(" ", 1)[0],
+            r"groundtruth_pose.txt, line 6: a TUM pose has 8 "
+            r"values .* got 7",
+            id="7 columns",
+        ),
+        pytest.param(GOOD + " 0.1", r"groundtruth_pose.txt, line 6: .* got 9", id="9 columns"),
+        pytest.param(
+            GOOD.replace(" ", ","), r"groundtruth_pose.txt, line 6: .* got 1", id="commas"
+        ),
+        pytest.param(
+            ROW.format("nan"),
+            r"ground truth .*groundtruth_pose.txt: NaN or inf at "
+            r"line 6",
+            id="NaN value",
+        ),
+        pytest.param(
+            GOOD.replace("1403637132.90832", "nan"),
+            r"groundtruth_pose.txt, line 6: "
+            r"timestamp 'nan' is not a finite number",
+            id="NaN stamp",
+        ),
+        pytest.param(
+            GOOD.replace(".90832", ".90332"),
+            r"groundtruth_pose.txt: timestamps not "
+            r"increasing at line 6",
+            id="repeated stamp",
+        ),  # = line 5's
+        pytest.param(
+            GOOD.replace(".90832", ".89832"),
+            r"groundtruth_pose.txt: timestamps not "
+            r"increasing at line 6",
+            id="stamp going back",
+        ),  # before line 5's
+        pytest.param(
+            ROW.format("-1.156384"),
+            r"groundtruth_pose.txt: the quaternion is not a "
+            r"\[w, x, y, z\] unit quaternion at line 6: its norm is 1\.5\d*",
+            id="non-unit quaternion",
+        ),
+    ],
+)
 def test_broken_pose_files_name_file_and_line(tmp_path, text, message):
     path = broken(tmp_path, text)
     with pytest.raises(io.DataError, match=message) as e:

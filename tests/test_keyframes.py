@@ -53,8 +53,9 @@ def test_coverage_of_a_ground_truth_with_a_known_gap():
     assert cover.in_gap.tolist() == [False] * 4 + [True, True] + [False] * 5
     assert cover.checked.tolist() == [True] * 4 + [False, False] + [True] * 4 + [False]
     # the span counts to the clock tolerance, and no further
-    near = keyframes.groundtruth_coverage(gt, [-0.5 * io.CLOCK_TOLERANCE, -2 * io.CLOCK_TOLERANCE],
-                                          [1.0, 1.0])
+    near = keyframes.groundtruth_coverage(
+        gt, [-0.5 * io.CLOCK_TOLERANCE, -2 * io.CLOCK_TOLERANCE], [1.0, 1.0]
+    )
     assert near.inside.tolist() == [True, False]
 
 
@@ -73,19 +74,34 @@ def test_residuals_against_a_constant_velocity_truth():
     assert np.all(np.isnan(r[~checked])) and not np.any(np.isnan(r[checked]))
     np.testing.assert_allclose(r[checked], 0.0, atol=1e-10)
     delta = np.array([0.01, -0.02, 0.03])
-    r = keyframes.groundtruth_residuals(pim, gt, w.t_i, w.t_j,
-                                        jaximu.ImuBias(jnp.zeros(3), jnp.asarray(delta)))
+    r = keyframes.groundtruth_residuals(
+        pim, gt, w.t_i, w.t_j, jaximu.ImuBias(jnp.zeros(3), jnp.asarray(delta))
+    )
     dt = 1.0
-    np.testing.assert_allclose(r[checked][:, 3:6], np.tile(0.5 * dt**2 * delta, (8, 1)),
-                               rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(r[checked][:, 6:9], np.tile(dt * delta, (8, 1)),
-                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        r[checked][:, 3:6], np.tile(0.5 * dt**2 * delta, (8, 1)), rtol=1e-9, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        r[checked][:, 6:9], np.tile(dt * delta, (8, 1)), rtol=1e-9, atol=1e-12
+    )
     np.testing.assert_allclose(r[checked][:, [0, 1, 2, 9, 10, 11, 12, 13, 14]], 0.0, atol=1e-10)
     # in float32: the residuals in pim's dtype, the same to float32 rounding of |p| ≈ 10 m
-    pim32 = jaximu.preintegrate(gyro.astype(jnp.float32), accel.astype(jnp.float32),
-                                jnp.asarray(w.dt, jnp.float32), None, None, "euler")
-    r32 = keyframes.groundtruth_residuals(pim32, gt, w.t_i, w.t_j, jaximu.ImuBias(
-        jnp.zeros(3, jnp.float32), jnp.asarray(delta, jnp.float32)))
+    pim32 = jaximu.preintegrate(
+        gyro.astype(jnp.float32),
+        accel.astype(jnp.float32),
+        jnp.asarray(w.dt, jnp.float32),
+        None,
+        None,
+        "euler",
+    )
+    r32 = keyframes.groundtruth_residuals(
+        pim32,
+        gt,
+        w.t_i,
+        w.t_j,
+        jaximu.ImuBias(jnp.zeros(3, jnp.float32), jnp.asarray(delta, jnp.float32)),
+    )
     assert r32.dtype == np.float64 and np.array_equal(np.isnan(r32), np.isnan(r))
-    np.testing.assert_allclose(r32[checked], r[checked], rtol=0,
-                               atol=50 * np.finfo(np.float32).eps * 10)
+    np.testing.assert_allclose(
+        r32[checked], r[checked], rtol=0, atol=50 * np.finfo(np.float32).eps * 10
+    )

@@ -15,8 +15,18 @@ ROOT = pathlib.Path(__file__).resolve().parents[1] / "jaximu"
 # layers before it. ``errors`` is the one module of the lowest layer; the package root
 # (``jaximu/__init__.py``, ``__main__.py`` and the modules that keep the old import paths,
 # e.g. ``jaximu/so3.py``) is the facade above them all, and no layer imports it.
-LAYERS = ("errors", "geometry", "schemes", "kernels", "engine", "io", "studies", "calibration",
-          "learning", "app")
+LAYERS = (
+    "errors",
+    "geometry",
+    "schemes",
+    "kernels",
+    "engine",
+    "io",
+    "studies",
+    "calibration",
+    "learning",
+    "app",
+)
 
 
 def module_names():
@@ -44,10 +54,11 @@ def imports_of(name, path):
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
+                base = ".".join(package[: len(package) - node.level + 1] + ([base] if base else []))
             # a name imported from a package is a module when there is one of that name
-            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in MODULES else base
-                       for a in node.names]
+            targets = [
+                f"{base}.{a.name}" if f"{base}.{a.name}" in MODULES else base for a in node.names
+            ]
         else:
             continue
         for t in targets:
@@ -76,10 +87,15 @@ def test_every_module_has_a_layer():
         if name in ("jaximu", "jaximu.__main__"):
             continue
         tree = ast.parse(MODULES[name].read_text(encoding="utf-8"))
-        defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))
-                and n.name != "__getattr__"]  # a module's forwarding of its other names
-        assert not defs, f"{name} sits at the package root but defines {defs[0].name}: " \
-                         f"give it a home in one of {LAYERS}"
+        defs = [
+            n
+            for n in tree.body
+            if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name != "__getattr__"
+        ]  # a module's forwarding of its other names
+        assert not defs, (
+            f"{name} sits at the package root but defines {defs[0].name}: "
+            f"give it a home in one of {LAYERS}"
+        )
 
 
 def test_imports_point_down():

@@ -64,8 +64,12 @@ def test_generator_moments_to_fourth_order(draws):
     estimate (SEs 1, √2, √6, √96 over √n), per stream and pooled."""
     for z in list(draws.reshape(16, -1)) + [draws.ravel()]:
         n = z.size
-        for stat, expected, se in ((z.mean(), 0.0, 1.0), ((z**2).mean(), 1.0, 2**0.5),
-                                   ((z**3).mean(), 0.0, 6**0.5), ((z**4).mean(), 3.0, 96**0.5)):
+        for stat, expected, se in (
+            (z.mean(), 0.0, 1.0),
+            ((z**2).mean(), 1.0, 2**0.5),
+            ((z**3).mean(), 0.0, 6**0.5),
+            ((z**4).mean(), 3.0, 96**0.5),
+        ):
             assert abs(stat - expected) < Z * se / n**0.5, (stat, expected)
 
 
@@ -80,6 +84,7 @@ def test_generator_kolmogorov_smirnov(draws):
 def test_generator_correlation_between_steps_runs_and_streams(draws):
     """Sample correlations of consecutive steps, consecutive runs and of every pair of
     streams (including the two normals of one Box-Muller pair) within Z/√n of zero."""
+
     def corr(a, b):
         a, b = a.ravel(), b.ravel()
         return np.corrcoef(a, b)[0, 1], a.size
@@ -119,8 +124,16 @@ def test_chunks_fill_every_round():
     """Chunks go out in rounds of ``slots``: their size keeps the fewest rounds that chunks
     of ``chunk_size`` would need, is at most ``chunk_size`` and at least 2 lanes, and
     leaves less than one chunk of idle lanes in the last round."""
-    for n, size, slots in [(10_000, 2048, 2), (10_000, 2048, 1), (57, 16, 2), (57, 16, 4),
-                           (3, 1, 2), (1_000_000, 2048, 3), (5, 100, 8), (4097, 4096, 2)]:
+    for n, size, slots in [
+        (10_000, 2048, 2),
+        (10_000, 2048, 1),
+        (57, 16, 2),
+        (57, 16, 4),
+        (3, 1, 2),
+        (1_000_000, 2048, 3),
+        (5, 100, 8),
+        (4097, 4096, 2),
+    ]:
         chunk = _chunk_runs(n, size, slots)
         n_chunks = -(-n // chunk)
         rounds = -(-n_chunks // slots)
@@ -138,30 +151,51 @@ def setup():
 @pytest.fixture(scope="module")
 def study(setup):
     traj, times, P0, noise = setup
-    return monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), keep_nees=True,
-                       **STUDY)
+    return monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), keep_nees=True, **STUDY)
 
 
 @pytest.mark.default_codegen
 def test_chunk_size_and_devices_do_not_change_the_statistics(setup, study):
     traj, times, P0, noise = setup
-    other = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5),
-                        keep_nees=True, shard=False, **dict(STUDY, chunk_size=N_RUNS))
+    other = monte_carlo(
+        traj,
+        times,
+        P0,
+        noise,
+        N_RUNS,
+        jax.random.key(5),
+        keep_nees=True,
+        shard=False,
+        **dict(STUDY, chunk_size=N_RUNS),
+    )
     scale = np.abs(study.error_cov).max(axis=(1, 2), keepdims=True)
-    np.testing.assert_allclose(other.error_cov / scale, study.error_cov / scale, rtol=0,
-                               atol=1e-12)
+    np.testing.assert_allclose(other.error_cov / scale, study.error_cov / scale, rtol=0, atol=1e-12)
     np.testing.assert_allclose(other.nees, study.nees, rtol=1e-10)
     np.testing.assert_array_equal(other.sample_errors, study.sample_errors)
     np.testing.assert_allclose(other.nees_mean, study.nees.mean(0), rtol=1e-12)
     # chunks of one run, and one kept run: a one-lane program would round differently
-    one = monte_carlo(traj, times, P0, noise, 3, jax.random.key(5), keep_nees=True,
-                      **dict(STUDY, chunk_size=1, n_keep=1))
+    one = monte_carlo(
+        traj,
+        times,
+        P0,
+        noise,
+        3,
+        jax.random.key(5),
+        keep_nees=True,
+        **dict(STUDY, chunk_size=1, n_keep=1),
+    )
     np.testing.assert_allclose(one.nees, study.nees[:3], rtol=1e-10)
     np.testing.assert_array_equal(one.sample_errors, study.sample_errors[:1])
     assert one.settings["chunk_size"] == 1
     # the streamed moments equal the two-pass ones of the per-run errors
-    errs = np.stack([sample_run(traj, times, P0, noise, jax.random.key(5), i, record_every=25,
-                                scheme="midpoint").errors for i in (0, 1, 2, 3)])
+    errs = np.stack(
+        [
+            sample_run(
+                traj, times, P0, noise, jax.random.key(5), i, record_every=25, scheme="midpoint"
+            ).errors
+            for i in (0, 1, 2, 3)
+        ]
+    )
     np.testing.assert_array_equal(errs, study.sample_errors)
 
 
@@ -170,8 +204,9 @@ def test_run_regenerated_alone_reproduces_the_study_and_its_samples(setup, study
     """sample_run(i) gives run i's errors bit for bit, and its samples, propagated by the
     generic engine (jaximu.propagate) against the noise-free propagation, give them too."""
     traj, times, P0, noise = setup
-    run = sample_run(traj, times, P0, noise, jax.random.key(5), 2, record_every=25,
-                     scheme="midpoint")
+    run = sample_run(
+        traj, times, P0, noise, jax.random.key(5), 2, record_every=25, scheme="midpoint"
+    )
     np.testing.assert_array_equal(run.errors, study.sample_errors[2])
     dt = np.diff(times)
     est = jaximu.propagate(run.start, run.gyro, run.accel, dt, "midpoint")
@@ -180,8 +215,7 @@ def test_run_regenerated_alone_reproduces_the_study_and_its_samples(setup, study
     x0 = sim.true_states(traj, t)[0]
     clean = jaximu.propagate(x0, gyro, accel, dt, "midpoint")
     rec = np.array([24, 49, 74, 99])
-    truth = NavState(clean.q[rec], clean.p[rec], clean.v[rec], run.b_g[rec + 1],
-                     run.b_a[rec + 1])
+    truth = NavState(clean.q[rec], clean.p[rec], clean.v[rec], run.b_g[rec + 1], run.b_a[rec + 1])
     e = np.asarray(boxminus(truth, jax.tree_util.tree_map(lambda x: x[rec], est)))
     scale = np.sqrt(np.diagonal(study.predicted_cov, 0, 1, 2))
     np.testing.assert_allclose(e, run.errors, rtol=0, atol=1e-9 * scale.max())
@@ -206,8 +240,16 @@ def test_result_saves_and_loads(study, tmp_path):
     path = tmp_path / "mc.npz"
     study.save(path)
     back = load_result(path)
-    for k in ("times", "mean_error", "error_cov", "predicted_cov", "nees", "nees_mean",
-              "sample_errors", "nees_hist"):
+    for k in (
+        "times",
+        "mean_error",
+        "error_cov",
+        "predicted_cov",
+        "nees",
+        "nees_mean",
+        "sample_errors",
+        "nees_hist",
+    ):
         np.testing.assert_array_equal(getattr(back, k), getattr(study, k))
     assert back.n_runs == N_RUNS and back.settings["scheme"] == "midpoint"
     assert back.nis_mean is None
@@ -218,13 +260,17 @@ def test_float32_study_agrees_with_float64(setup, study):
     numbers to rounding): the average NEES agrees to 1e-3 relative, so a float32 study is
     as consistent as a float64 one (docs/DESIGN.md section 6, "Float32 consistency")."""
     traj, times, P0, noise = setup
-    f32 = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), dtype=jnp.float32,
-                      **STUDY)
+    f32 = monte_carlo(traj, times, P0, noise, N_RUNS, jax.random.key(5), dtype=jnp.float32, **STUDY)
     np.testing.assert_allclose(f32.nees_mean, study.nees_mean, rtol=1e-3)
-    np.testing.assert_allclose(f32.error_cov, study.error_cov,
-                               rtol=0, atol=1e-3 * np.abs(study.error_cov).max())
-    np.testing.assert_allclose(f32.sample_errors, study.sample_errors,
-                               rtol=0, atol=1e-4 * np.abs(study.sample_errors).max())
+    np.testing.assert_allclose(
+        f32.error_cov, study.error_cov, rtol=0, atol=1e-3 * np.abs(study.error_cov).max()
+    )
+    np.testing.assert_allclose(
+        f32.sample_errors,
+        study.sample_errors,
+        rtol=0,
+        atol=1e-4 * np.abs(study.sample_errors).max(),
+    )
 
 
 # --------------------------------------------------------------------------- EKF update
@@ -240,8 +286,15 @@ def _np_joseph(q, p, v, bg, ba, P, nu, H, R):
     x, y, z, w = rot.as_quat()
     q1 = np.array([w, x, y, z]) * np.sign(np.dot([w, x, y, z], q))
     A = np.eye(15) - K @ H
-    return (q1, p + d[3:6], v + d[6:9], bg + d[9:12], ba + d[12:15],
-            A @ P @ A.T + K @ R @ K.T, nu @ np.linalg.solve(S, nu))
+    return (
+        q1,
+        p + d[3:6],
+        v + d[6:9],
+        bg + d[9:12],
+        ba + d[12:15],
+        A @ P @ A.T + K @ R @ K.T,
+        nu @ np.linalg.solve(S, nu),
+    )
 
 
 def test_ekf_update_matches_numpy_transcription():
@@ -258,8 +311,15 @@ def test_ekf_update_matches_numpy_transcription():
     st, P1, nis = ekf_update(NavState(q, p, v, bg, ba), P, nu, H, R)
     for b in range(B):
         ref = _np_joseph(q[b], p[b], v[b], bg[b], ba[b], P[b], nu[b], H, R)
-        got = (np.asarray(st.q[b]) * np.sign(np.dot(st.q[b], ref[0])), st.p[b], st.v[b],
-               st.b_g[b], st.b_a[b], P1[b], nis[b])
+        got = (
+            np.asarray(st.q[b]) * np.sign(np.dot(st.q[b], ref[0])),
+            st.p[b],
+            st.v[b],
+            st.b_g[b],
+            st.b_a[b],
+            P1[b],
+            nis[b],
+        )
         for g, r in zip(got, ref):
             np.testing.assert_allclose(g, r, rtol=1e-12, atol=1e-12 * np.abs(r).max())
 
@@ -279,16 +339,21 @@ def test_kalman_update_and_nees_on_soa_lanes_match_the_numpy_transcription():
     R = Rm @ Rm.T + 0.01 * np.eye(3)
     nu = rng.normal(size=(B, 3)) * 0.1
     e = rng.normal(size=(B, 15)) * 0.1
-    lanes = {k: jnp.moveaxis(jnp.asarray(v), 0, -1)
-             for k, v in _blocks.dense_to_blocks(P).items()}  # (3, 3, B)
-    up = jax.jit(lambda Pb, nu: _blocks.kalman_update(
-        Pb, (None, "I", None, None, None), SOA.from_arrays(R), nu, SOA))(
-            lanes, jnp.asarray(nu.T[:, None, :]))
+    lanes = {
+        k: jnp.moveaxis(jnp.asarray(v), 0, -1) for k, v in _blocks.dense_to_blocks(P).items()
+    }  # (3, 3, B)
+    up = jax.jit(
+        lambda Pb, nu: _blocks.kalman_update(
+            Pb, (None, "I", None, None, None), SOA.from_arrays(R), nu, SOA
+        )
+    )(lanes, jnp.asarray(nu.T[:, None, :]))
     y = jax.jit(lambda Pb, e: _blocks.whiten(Pb, e, SOA))(
-        lanes, [jnp.asarray(e.T[3 * i:3 * i + 3, None]) for i in range(5)])
+        lanes, [jnp.asarray(e.T[3 * i : 3 * i + 3, None]) for i in range(5)]
+    )
     H = np.asarray(position_jacobian(jnp.float64))
-    P1 = np.asarray(_blocks.blocks_to_dense({k: jnp.moveaxis(v, -1, 0)
-                                             for k, v in up.P.items()}))  # (B, 15, 15)
+    P1 = np.asarray(
+        _blocks.blocks_to_dense({k: jnp.moveaxis(v, -1, 0) for k, v in up.P.items()})
+    )  # (B, 15, 15)
     dx = np.concatenate([np.asarray(d)[:, 0] for d in up.dx], 0).T
     for b in range(B):
         S = H @ P[b] @ H.T + R
@@ -297,8 +362,7 @@ def test_kalman_update_and_nees_on_soa_lanes_match_the_numpy_transcription():
         ref = A @ P[b] @ A.T + K @ R @ K.T
         np.testing.assert_allclose(P1[b], ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
         np.testing.assert_allclose(dx[b], K @ nu[b], rtol=1e-12, atol=1e-14)
-        np.testing.assert_allclose(up.nis[0, 0, b], nu[b] @ np.linalg.solve(S, nu[b]),
-                                   rtol=1e-12)
+        np.testing.assert_allclose(up.nis[0, 0, b], nu[b] @ np.linalg.solve(S, nu[b]), rtol=1e-12)
         nees = sum(float(np.sum(np.asarray(yi)[:, 0, b] ** 2)) for yi in y)
         np.testing.assert_allclose(nees, e[b] @ np.linalg.solve(P[b], e[b]), rtol=1e-10)
 
@@ -316,8 +380,9 @@ def test_ekf_update_gradient_wrt_noise_parameters_matches_finite_differences():
 
     def f(params):
         sg, sa, sr = params[0], params[1], params[2]
-        est, P = jaximu.propagate_covariance_final(x0, P0, gyro[:-1], accel[:-1],
-                                                   jnp.diff(t), jaximu.ImuNoise(sg, sa))
+        est, P = jaximu.propagate_covariance_final(
+            x0, P0, gyro[:-1], accel[:-1], jnp.diff(t), jaximu.ImuNoise(sg, sa)
+        )
         _, P1, nis = ekf_update(est, P, nu, H, sr**2 * jnp.eye(3))
         return jnp.trace(P1) * 1e3 + nis
 
@@ -340,15 +405,37 @@ def test_filter_study_nees_and_nis_inside_their_bounds_and_a_wrong_model_outside
     is detected (its NEES far below)."""
     traj, times, P0, noise = setup
     fix = PositionFix(0.01)
-    res = monte_carlo(traj, times, P0, noise, 400, jax.random.key(11), update_every=20,
-                      measurement=fix, confidence=0.99, n_keep=0)
+    res = monte_carlo(
+        traj,
+        times,
+        P0,
+        noise,
+        400,
+        jax.random.key(11),
+        update_every=20,
+        measurement=fix,
+        confidence=0.99,
+        n_keep=0,
+    )
     assert res.nees_mean.shape == (5,) and res.nis_mean.shape == (5,)
     assert np.all(res.consistent), (res.nees_mean, res.nees_bounds)
     assert np.all((res.nis_mean > res.nis_bounds[0]) & (res.nis_mean < res.nis_bounds[1])), (
-        res.nis_mean, res.nis_bounds)
+        res.nis_mean,
+        res.nis_bounds,
+    )
     twice = jaximu.ImuNoise(4e-3, 4e-2, 2e-4, 4e-3)
-    wrong = monte_carlo(traj, times, P0, (noise, twice), 400, jax.random.key(11),
-                        update_every=20, measurement=fix, confidence=0.99, n_keep=0)
+    wrong = monte_carlo(
+        traj,
+        times,
+        P0,
+        (noise, twice),
+        400,
+        jax.random.key(11),
+        update_every=20,
+        measurement=fix,
+        confidence=0.99,
+        n_keep=0,
+    )
     assert np.all(wrong.nees_mean < wrong.nees_bounds[0])
 
 
@@ -361,12 +448,31 @@ def test_filter_study_kernel_calls_no_lapack(setup):
     from jaximu.studies.montecarlo import _chunk, _prepare
 
     traj, times, P0, noise = setup
-    st = _prepare(traj, times, P0, noise, jax.random.key(0), scheme="euler", gravity=9.81,
-                  b_g0=None, b_a0=None, record_every=1, dtype=jnp.float32, update_every=20,
-                  measurement=PositionFix(0.01))
+    st = _prepare(
+        traj,
+        times,
+        P0,
+        noise,
+        jax.random.key(0),
+        scheme="euler",
+        gravity=9.81,
+        b_g0=None,
+        b_a0=None,
+        record_every=1,
+        dtype=jnp.float32,
+        update_every=20,
+        measurement=PositionFix(0.01),
+    )
     run = jnp.arange(4, dtype=jnp.uint32)
-    hlo = _chunk.lower(run, jnp.ones(4, jnp.float32), st.consts, scheme=st.scheme,
-                       seg=st.seg, mode="stats", filt=True).as_text()
+    hlo = _chunk.lower(
+        run,
+        jnp.ones(4, jnp.float32),
+        st.consts,
+        scheme=st.scheme,
+        seg=st.seg,
+        mode="stats",
+        filt=True,
+    ).as_text()
     assert "while" in hlo  # the lowered study (its scans), not an empty text
     assert "custom_call" not in hlo, [ln for ln in hlo.splitlines() if "custom_call" in ln][:3]
 
@@ -408,10 +514,23 @@ def test_two_processes_give_the_statistics_of_one(study):
                                    process_id=int(sys.argv[1]))
     """).format(port=port) + _STUDY.format(tests=os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ)  # the parent's XLA flags: the same compiled arithmetic
-    procs = [subprocess.Popen([sys.executable, "-c", dist, str(i)], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=env) for i in range(2)]
-    ref = dict(cov=study.error_cov, mean=study.mean_error, nees=study.nees_mean,
-               hist=study.nees_hist, keep=study.sample_errors)
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", dist, str(i)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        for i in range(2)
+    ]
+    ref = dict(
+        cov=study.error_cov,
+        mean=study.mean_error,
+        nees=study.nees_mean,
+        hist=study.nees_hist,
+        keep=study.sample_errors,
+    )
     outs = [p.communicate(timeout=300) for p in procs]
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err

@@ -34,42 +34,65 @@ def _runs(fn, *arrays):
 def test_the_tag_reaches_the_compiled_kernel():
     state, gyro, accel = inputs(B, T)
     P0 = jnp.broadcast_to(jnp.eye(15) * 1e-4, (B, 15, 15))
-    hlo = jax.jit(lambda s, w, a: jaximu.propagate_covariance_final(s, P0, w, a, 0.005, NOISE)
-                  ).lower(state, gyro, accel).compile().as_text()
+    hlo = (
+        jax.jit(lambda s, w, a: jaximu.propagate_covariance_final(s, P0, w, a, 0.005, NOISE))
+        .lower(state, gyro, accel)
+        .compile()
+        .as_text()
+    )
     calls = [ln for ln in hlo.splitlines() if " call(" in ln and "xla_cpu_small_call" in ln]
     assert calls and all('inlineable="false"' in ln for ln in calls)
 
 
 def test_constant_inputs_mean_and_every_state():
     state, gyro, accel = inputs(40, T // 4)  # 40 lanes: the structure-of-arrays rows
-    for fn in (lambda w, a: jaximu.propagate_final(state, w, a, 0.005),
-               lambda w, a: jaximu.propagate(state, w, a, 0.005)):
+    for fn in (
+        lambda w, a: jaximu.propagate_final(state, w, a, 0.005),
+        lambda w, a: jaximu.propagate(state, w, a, 0.005),
+    ):
         _close(*_runs(fn, gyro, accel))
 
 
 def test_constant_inputs_covariance():
     state, gyro, accel = inputs(B, T)
     P0 = jnp.broadcast_to(jnp.eye(15) * 1e-4, (B, 15, 15))
-    _close(*_runs(lambda w, a: jaximu.propagate_covariance_final(
-        state, P0, w, a, 0.005, NOISE), gyro, accel))
+    _close(
+        *_runs(
+            lambda w, a: jaximu.propagate_covariance_final(state, P0, w, a, 0.005, NOISE),
+            gyro,
+            accel,
+        )
+    )
 
 
 def test_constant_inputs_preintegration():
     _, gyro, accel = inputs(B, T)
     for method in ("sequential", "parallel"):
-        _close(*_runs(lambda w, a: jaximu.preintegrate(w, a, 0.005, None, NOISE,
-                                                       method=method), gyro, accel))
-    _close(*_runs(lambda w, a: jaximu.preintegrate(w[0], a[0], 0.005, None, NOISE), gyro,
-                  accel))
+        _close(
+            *_runs(
+                lambda w, a: jaximu.preintegrate(w, a, 0.005, None, NOISE, method=method),
+                gyro,
+                accel,
+            )
+        )
+    _close(*_runs(lambda w, a: jaximu.preintegrate(w[0], a[0], 0.005, None, NOISE), gyro, accel))
     for scheme in ("euler", "midpoint"):  # blocks by jax.jvp inside the kernel
-        _close(*_runs(lambda w, a: jaximu.preintegrate(w, a, 0.005, None, NOISE, scheme,
-                                                       jacobians="autodiff"), gyro, accel))
+        _close(
+            *_runs(
+                lambda w, a: jaximu.preintegrate(
+                    w, a, 0.005, None, NOISE, scheme, jacobians="autodiff"
+                ),
+                gyro,
+                accel,
+            )
+        )
 
 
 def test_blocks_outside_the_emitter_list_run_as_plain_calls():
     x = jnp.ones((3, 3))
-    safe = jax.make_jaxpr(lambda x: jax.lax.scan(lambda c, _: (c * 2.0 + 1.0, None), x,
-                                                  None, length=3)[0])(x).jaxpr
+    safe = jax.make_jaxpr(
+        lambda x: jax.lax.scan(lambda c, _: (c * 2.0 + 1.0, None), x, None, length=3)[0]
+    )(x).jaxpr
     dot = jax.make_jaxpr(lambda x: jax.lax.cond(True, lambda y: y @ y, lambda y: y, x))(x)
     assert _soa._kernel_safe(safe)
     assert not _soa._kernel_safe(dot.jaxpr)  # a dot nested in a branch is found
@@ -92,16 +115,24 @@ def test_derivatives_run_the_plain_call():
 
     def tagged_calls(fn):
         hlo = jax.jit(fn).lower(gyro).compile().as_text()
-        return [ln for ln in hlo.splitlines()
-                if "xla_cpu_small_call" in ln and 'inlineable="false"' in ln]
+        return [
+            ln
+            for ln in hlo.splitlines()
+            if "xla_cpu_small_call" in ln and 'inlineable="false"' in ln
+        ]
 
     # losses that read the primal (a linear one needs only the residuals of its derivative)
-    for loss in (lambda w: (jaximu.preintegrate(w, accel, 0.005, None, NOISE).delta_p ** 2).sum(),
-                 lambda w: (jaximu.propagate_final(state, w, accel, 0.005).p ** 2).sum()):
+    for loss in (
+        lambda w: (jaximu.preintegrate(w, accel, 0.005, None, NOISE).delta_p ** 2).sum(),
+        lambda w: (jaximu.propagate_final(state, w, accel, 0.005).p ** 2).sum(),
+    ):
         assert tagged_calls(loss)
-        for derivative in (jax.grad(loss), jax.value_and_grad(loss),
-                           jax.linearize(loss, gyro)[1],
-                           lambda w: jax.jvp(loss, (w,), (jnp.ones_like(w),))):
+        for derivative in (
+            jax.grad(loss),
+            jax.value_and_grad(loss),
+            jax.linearize(loss, gyro)[1],
+            lambda w: jax.jvp(loss, (w,), (jnp.ones_like(w),)),
+        ):
             assert "xla_cpu_small_call" not in jax.jit(derivative).lower(gyro).as_text()
 
 
@@ -115,7 +146,8 @@ def test_linearize_on_closed_over_samples():
         state, _, accel = inputs(B, T // 8, dtype=dtype)
         accel = np.asarray(accel)  # closed over: a constant
         return (lambda w: jaximu.propagate_final(state, w, accel, 0.005).p), inputs(
-            B, T // 8, dtype=dtype)[1]
+            B, T // 8, dtype=dtype
+        )[1]
 
     f32, g32 = f(np.float32)
     _, f_lin = jax.linearize(f32, g32)

@@ -41,8 +41,11 @@ def gtsam_params(combined=False, g=9.81):
 
 def gtsam_pim(gyro, accel, dt, bias, combined=False):
     b = gtsam.imuBias.ConstantBias(np.asarray(bias.b_a), np.asarray(bias.b_g))
-    cls = (gtsam.PreintegratedCombinedMeasurementsManifold if combined
-           else gtsam.PreintegratedImuMeasurementsManifold)
+    cls = (
+        gtsam.PreintegratedCombinedMeasurementsManifold
+        if combined
+        else gtsam.PreintegratedImuMeasurementsManifold
+    )
     pim = cls(gtsam_params(combined), b)
     for k in range(len(dt)):
         pim.integrateMeasurement(accel[k], gyro[k], dt[k])
@@ -88,8 +91,9 @@ def test_combined_covariance_equals_gtsam_combined_manifold(start, length):
     gyro, accel, dt, bias = window(start, length)
     ref = gtsam_pim(gyro, accel, dt, bias, combined=True).preintMeasCov()
     pim = jaximu.preintegrate(gyro, accel, dt, bias, NOISE, "euler")
-    np.testing.assert_allclose(pim.covariance("gtsam", combined=True), ref, rtol=0,
-                               atol=1e-8 * np.abs(ref).max())
+    np.testing.assert_allclose(
+        pim.covariance("gtsam", combined=True), ref, rtol=0, atol=1e-8 * np.abs(ref).max()
+    )
 
 
 # --------------------------------------------------------------------------- GTSAM anchors
@@ -98,13 +102,15 @@ def test_combined_covariance_equals_gtsam_combined_manifold(start, length):
 def test_gtsam_preintegrated_measurements_anchor():
     """testImuFactor PreintegratedMeasurements: acc (0.1,0,0), ω (π/100,0,0), dt 0.5, twice."""
     one = jaximu.preintegrate([[np.pi / 100, 0, 0]], [[0.1, 0, 0]], [0.5])
-    np.testing.assert_allclose(one.delta_R, Rotation.from_rotvec([np.pi / 200, 0, 0]).as_matrix(),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        one.delta_R, Rotation.from_rotvec([np.pi / 200, 0, 0]).as_matrix(), atol=1e-12
+    )
     np.testing.assert_allclose(one.delta_p, [0.0125, 0, 0], atol=1e-12)
     np.testing.assert_allclose(one.delta_v, [0.05, 0, 0], atol=1e-12)
     two = jaximu.preintegrate([[np.pi / 100, 0, 0]] * 2, [[0.1, 0, 0]] * 2, [0.5, 0.5])
-    np.testing.assert_allclose(two.delta_R, Rotation.from_rotvec([np.pi / 100, 0, 0]).as_matrix(),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        two.delta_R, Rotation.from_rotvec([np.pi / 100, 0, 0]).as_matrix(), atol=1e-12
+    )
     np.testing.assert_allclose(two.delta_p, [0.05, 0, 0], atol=1e-12)
     np.testing.assert_allclose(two.delta_v, [0.1, 0, 0], atol=1e-12)
     assert float(two.delta_t) == 1.0
@@ -125,8 +131,12 @@ def test_gtsam_check_covariance_anchor():
 def test_gtsam_predict_position_and_velocity_anchor():
     """z-down g = 10, ω 0, acc (0,1,-10), 1000 × 1 ms, linearised at b_a = (0.2,0,0), predicted
     with zero bias from identity: R = I, p = (0, 0.5, 0), v = (0, 1, 0) (1e-9)."""
-    pim = jaximu.preintegrate(np.zeros((1000, 3)), np.tile([0.0, 1, -10], (1000, 1)), 0.001,
-                              jaximu.ImuBias(jnp.zeros(3), jnp.array([0.2, 0, 0])))
+    pim = jaximu.preintegrate(
+        np.zeros((1000, 3)),
+        np.tile([0.0, 1, -10], (1000, 1)),
+        0.001,
+        jaximu.ImuBias(jnp.zeros(3), jnp.array([0.2, 0, 0])),
+    )
     s = jaximu.predict(jaximu.NavState.identity(dtype=jnp.float64), pim, gravity=[0, 0, 10.0])
     np.testing.assert_allclose(s.R, np.eye(3), atol=1e-9)
     np.testing.assert_allclose(s.p, [0, 0.5, 0], atol=1e-9)
@@ -141,8 +151,11 @@ def test_gtsam_predict_arbitrary_anchor():
     a = np.tile([0.1, 0.2, -10.0], (1000, 1))
     pim = jaximu.preintegrate(w, a, 0.001, jaximu.ImuBias(jnp.zeros(3), jnp.array([0.2, 0, 0])))
     s = jaximu.predict(jaximu.NavState.identity(dtype=jnp.float64), pim, gravity=[0, 0, 10.0])
-    R = [[0.903715275, -0.250741668, 0.347026393], [0.347026393, 0.903715275, -0.250741668],
-         [-0.250741668, 0.347026393, 0.903715275]]
+    R = [
+        [0.903715275, -0.250741668, 0.347026393],
+        [0.347026393, 0.903715275, -0.250741668],
+        [-0.250741668, 0.347026393, 0.903715275],
+    ]
     np.testing.assert_allclose(s.R, R, atol=1e-7)
     np.testing.assert_allclose(s.p, [-0.516077031, 0.57842919, 0.0876478403], atol=1e-7)
     np.testing.assert_allclose(s.v, [-1.62337767, 1.57954409, 0.343833571], atol=1e-7)
@@ -153,13 +166,16 @@ def test_gtsam_compare_with_preintegrated_rotation_anchor():
     (1.05, 2, 3): Roll(0.025) (first order is exact about a fixed axis); J = -Jr(ω dt) dt."""
     bias = jaximu.ImuBias(jnp.array([1.0, 2, 3]), jnp.zeros(3))
     pim = jaximu.preintegrate([[1.1, 2, 3]], [[0.0, 0, 0]], [0.5], bias)
-    np.testing.assert_allclose(pim.delta_R, Rotation.from_rotvec([0.05, 0, 0]).as_matrix(),
-                               atol=1e-12)
-    np.testing.assert_allclose(pim.dR_dbg, -so3.right_jacobian(jnp.array([0.05, 0, 0])) * 0.5,
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        pim.delta_R, Rotation.from_rotvec([0.05, 0, 0]).as_matrix(), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        pim.dR_dbg, -so3.right_jacobian(jnp.array([0.05, 0, 0])) * 0.5, atol=1e-15
+    )
     c = jaximu.correct(pim, jaximu.ImuBias(jnp.array([1.05, 2, 3]), jnp.zeros(3)))
-    np.testing.assert_allclose(c.delta_R, Rotation.from_rotvec([0.025, 0, 0]).as_matrix(),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        c.delta_R, Rotation.from_rotvec([0.025, 0, 0]).as_matrix(), atol=1e-9
+    )
 
 
 # --------------------------------------------------------------------------- VINS-Mono
@@ -168,8 +184,14 @@ def test_gtsam_compare_with_preintegrated_rotation_anchor():
 def _eigen_qmul(a, b):
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
 def _eigen_rotate(q, v):
@@ -182,9 +204,13 @@ def _eigen_rotate(q, v):
 def _eigen_matrix(q):
     """Eigen's ``toRotationMatrix`` (no normalisation)."""
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _sk(v):
@@ -196,7 +222,7 @@ def vins_mono_integration(gyro, accel, dt, ba, bg, ACC_N, GYR_N, ACC_W, GYR_W):
     factor/integration_base.h), transcribed in numpy, in its own order [p, θ, v, b_a, b_g]."""
     noise = np.zeros((18, 18))
     for i, s in enumerate([ACC_N, GYR_N, ACC_N, GYR_N, ACC_W, GYR_W]):
-        noise[3 * i:3 * i + 3, 3 * i:3 * i + 3] = s * s * np.eye(3)
+        noise[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = s * s * np.eye(3)
     dp, dv, dq = np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0])
     jac, cov = np.eye(15), np.zeros((15, 15))
     acc_0, gyr_0 = accel[0], gyro[0]
@@ -255,16 +281,24 @@ def test_midpoint_equals_vins_mono_transcription(method):
     """Mean, jacobian (bias Jacobians) and 15×15 covariance equal VINS-Mono's (1e-10 rel), with
     acc_n = σ_a √(2/dt), gyr_n = σ_g √(2/dt), acc_w = σ_ba/√dt, gyr_w = σ_bg/√dt."""
     k0, n = 1600, 300  # 1.5 s of flight
-    gyro, accel = SEG.gyro[k0:k0 + n + 1], SEG.accel[k0:k0 + n + 1]
+    gyro, accel = SEG.gyro[k0 : k0 + n + 1], SEG.accel[k0 : k0 + n + 1]
     h = 0.005
     dt = np.full(n, h)  # n intervals between n + 1 samples: VINS-Mono's push_back
     ba, bg = SEG.b_a_gt[k0], SEG.b_g_gt[k0]
     dp, dq, dv, jac, cov = vins_mono_integration(
-        gyro, accel, dt, ba, bg, NOISE.accelerometer_noise_density * np.sqrt(2 / h),
-        NOISE.gyroscope_noise_density * np.sqrt(2 / h), NOISE.accelerometer_random_walk / np.sqrt(h),
-        NOISE.gyroscope_random_walk / np.sqrt(h))
-    pim = jaximu.preintegrate(gyro, accel, dt, jaximu.ImuBias(jnp.asarray(bg), jnp.asarray(ba)),
-                              NOISE, "midpoint", method)
+        gyro,
+        accel,
+        dt,
+        ba,
+        bg,
+        NOISE.accelerometer_noise_density * np.sqrt(2 / h),
+        NOISE.gyroscope_noise_density * np.sqrt(2 / h),
+        NOISE.accelerometer_random_walk / np.sqrt(h),
+        NOISE.gyroscope_random_walk / np.sqrt(h),
+    )
+    pim = jaximu.preintegrate(
+        gyro, accel, dt, jaximu.ImuBias(jnp.asarray(bg), jnp.asarray(ba)), NOISE, "midpoint", method
+    )
     np.testing.assert_allclose(pim.delta_p, dp, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(pim.delta_v, dv, rtol=1e-10, atol=1e-14)
     assert abs(abs(np.dot(np.asarray(pim.delta_q), dq)) - 1) < 1e-15
@@ -292,10 +326,10 @@ def test_parallel_equals_sequential_and_prefixes(scheme, flight):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-10 * max(np.abs(a).max(), 1e-300))
     # prefix k equals preintegrating the first k + 1 samples alone
     k = 57
-    short = jaximu.preintegrate(gyro[:k + 1], accel[:k + 1], dt[:k + 1], bias, NOISE, scheme)
+    short = jaximu.preintegrate(gyro[: k + 1], accel[: k + 1], dt[: k + 1], bias, NOISE, scheme)
     prefix = jax.tree_util.tree_map(lambda x: x[k], seq)
     if scheme == "midpoint":  # the short window holds its last sample instead of using k + 1
-        short = jaximu.preintegrate(gyro[:k + 2], accel[:k + 2], dt[:k + 1], bias, NOISE, scheme)
+        short = jaximu.preintegrate(gyro[: k + 2], accel[: k + 2], dt[: k + 1], bias, NOISE, scheme)
     for a, b in zip(jax.tree_util.tree_leaves(short), jax.tree_util.tree_leaves(prefix)):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-15)
 
@@ -306,14 +340,18 @@ def test_bias_jacobians_analytic_equal_jacfwd_of_the_mean(flight):
     (jacobians='analytic') differs at first order in dt (measured 2e-4 relative at 200 Hz)."""
     gyro, accel, dt, bias = flight
     names = ("dR_dbg", "dp_dbg", "dp_dba", "dv_dbg", "dv_dba")
-    for scheme, jac, tol in [("euler", "analytic", 1e-10), ("midpoint", "autodiff", 1e-10),
-                             ("midpoint", "analytic", 1e-3)]:
+    for scheme, jac, tol in [
+        ("euler", "analytic", 1e-10),
+        ("midpoint", "autodiff", 1e-10),
+        ("midpoint", "analytic", 1e-3),
+    ]:
         ref = jaximu.bias_jacobians_autodiff(gyro, accel, dt, bias, scheme)
         pim = jaximu.preintegrate(gyro, accel, dt, bias, scheme=scheme, jacobians=jac)
         for name, J in zip(names, ref):
             scale = np.abs(np.asarray(J)).max()
-            np.testing.assert_allclose(getattr(pim, name), J, rtol=0, atol=tol * scale,
-                                       err_msg=f"{scheme} {jac} {name}")
+            np.testing.assert_allclose(
+                getattr(pim, name), J, rtol=0, atol=tol * scale, err_msg=f"{scheme} {jac} {name}"
+            )
 
 
 def test_euler_autodiff_and_analytic_covariances_agree(flight):
@@ -337,10 +375,13 @@ def test_correct_is_second_order(scheme, flight):
         new = jaximu.ImuBias(bias.b_g + db[:3], bias.b_a + db[3:])
         exact = jaximu.preintegrate(gyro, accel, dt, new, scheme=scheme)
         approx = jaximu.correct(pim, new)
-        errors.append(np.linalg.norm(np.asarray(approx.delta_p - exact.delta_p))
-                      + np.linalg.norm(np.asarray(approx.delta_v - exact.delta_v))
-                      + np.linalg.norm(np.asarray(so3.log(so3.quat_mul(so3.quat_conj(exact.delta_q),
-                                                                         approx.delta_q)))))
+        errors.append(
+            np.linalg.norm(np.asarray(approx.delta_p - exact.delta_p))
+            + np.linalg.norm(np.asarray(approx.delta_v - exact.delta_v))
+            + np.linalg.norm(
+                np.asarray(so3.log(so3.quat_mul(so3.quat_conj(exact.delta_q), approx.delta_q)))
+            )
+        )
     ratios = np.array(errors[:-1]) / np.array(errors[1:])
     assert np.all((3.6 < ratios) & (ratios < 4.4)), (errors, ratios)
 
@@ -357,12 +398,18 @@ def _propagated_states(flight, scheme):
     gyro, accel, dt, bias = flight
     k0 = int(round(9.0 / 0.005))
     q0 = SEG.q_gt[k0] / np.linalg.norm(SEG.q_gt[k0])
-    s0 = jaximu.NavState(jnp.asarray(q0), jnp.asarray(SEG.p_gt[k0]), jnp.asarray(SEG.v_gt[k0]),
-                         bias.b_g, bias.b_a)
+    s0 = jaximu.NavState(
+        jnp.asarray(q0), jnp.asarray(SEG.p_gt[k0]), jnp.asarray(SEG.v_gt[k0]), bias.b_g, bias.b_a
+    )
     # Propagation with gravity is an independent route to the same end state.
-    s1 = jaximu.propagate_final(s0, gyro, accel, dt, scheme,
-                                attitude="quaternion" if scheme == "euler" else
-                                "quaternion_first_order")
+    s1 = jaximu.propagate_final(
+        s0,
+        gyro,
+        accel,
+        dt,
+        scheme,
+        attitude="quaternion" if scheme == "euler" else "quaternion_first_order",
+    )
     return s0, s1
 
 
@@ -391,9 +438,13 @@ def test_residual_zero_on_gtsam_accelerating_scenario():
     z = jnp.zeros(3)
 
     def state(k, dv=0.0):
-        return jaximu.NavState(jnp.asarray(R_t[k].as_quat(scalar_first=True)),
-                               jnp.asarray(p0 + v0 * t[k] + 0.5 * a_n * t[k] ** 2),
-                               jnp.asarray(v0 + a_n * t[k] + dv), z, z)
+        return jaximu.NavState(
+            jnp.asarray(R_t[k].as_quat(scalar_first=True)),
+            jnp.asarray(p0 + v0 * t[k] + 0.5 * a_n * t[k] ** 2),
+            jnp.asarray(v0 + a_n * t[k] + dv),
+            z,
+            z,
+        )
 
     np.testing.assert_allclose(jaximu.residual(state(0), state(n), pim), np.zeros(15), atol=1e-9)
     offset = np.array([0.1, 0.1, 0.1])
@@ -457,16 +508,19 @@ def test_compose_is_associative_and_equals_one_window(flight):
     """compose(compose(a, b), c) = compose(a, compose(b, c)) = preintegrate(a+b+c) for Euler."""
     gyro, accel, dt, bias = flight
     cuts = [0, 70, 130, 200]
-    parts = [jaximu.preintegrate(gyro[i:j], accel[i:j], dt[i:j], bias, NOISE, "euler")
-             for i, j in zip(cuts[:-1], cuts[1:])]
+    parts = [
+        jaximu.preintegrate(gyro[i:j], accel[i:j], dt[i:j], bias, NOISE, "euler")
+        for i, j in zip(cuts[:-1], cuts[1:])
+    ]
     left = jaximu.compose(jaximu.compose(parts[0], parts[1]), parts[2])
     right = jaximu.compose(parts[0], jaximu.compose(parts[1], parts[2]))
     whole = jaximu.preintegrate(gyro, accel, dt, bias, NOISE, "euler")
     for f in ("delta_q", "delta_v", "delta_p", "delta_t", "transition", "cov15", "cov"):
         w = np.asarray(getattr(whole, f))
         for got in (left, right):
-            np.testing.assert_allclose(getattr(got, f), w, rtol=0, atol=1e-10 * np.abs(w).max(),
-                                       err_msg=f)
+            np.testing.assert_allclose(
+                getattr(got, f), w, rtol=0, atol=1e-10 * np.abs(w).max(), err_msg=f
+            )
 
 
 def test_compose_corrects_to_the_first_bias(flight):
@@ -501,10 +555,14 @@ def test_gradients_wrt_measurements_bias_and_noise(flight):
 
     @functools.partial(jax.jit, static_argnames="scheme")
     def loss(g, a, bg, sigma, scheme):
-        pim = jaximu.preintegrate(g, a, dt, jaximu.ImuBias(bg, bias.b_a),
-                                  jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), scheme)
-        return (jnp.sum(pim.delta_p * jnp.array([1.0, -2, 0.5])) + jnp.sum(so3.log(pim.delta_q))
-                + 1e6 * jnp.trace(pim.cov))
+        pim = jaximu.preintegrate(
+            g, a, dt, jaximu.ImuBias(bg, bias.b_a), jaximu.ImuNoise(sigma, 2e-3, 2e-5, 3e-3), scheme
+        )
+        return (
+            jnp.sum(pim.delta_p * jnp.array([1.0, -2, 0.5]))
+            + jnp.sum(so3.log(pim.delta_q))
+            + 1e6 * jnp.trace(pim.cov)
+        )
 
     for scheme in jaximu.preintegration.SCHEMES:
         args = (jnp.asarray(gyro), jnp.asarray(accel), bias.b_g, jnp.asarray(1.7e-4))
@@ -526,14 +584,17 @@ def test_float32_preintegration_close_to_float64(flight):
     out = {}
     for dtype in (jnp.float32, jnp.float64):
         b = jaximu.ImuBias(bias.b_g.astype(dtype), bias.b_a.astype(dtype))
-        out[dtype] = jaximu.preintegrate(gyro.astype(dtype), accel.astype(dtype), dt.astype(dtype),
-                                         b, NOISE, "euler", "parallel")
+        out[dtype] = jaximu.preintegrate(
+            gyro.astype(dtype), accel.astype(dtype), dt.astype(dtype), b, NOISE, "euler", "parallel"
+        )
     assert out[jnp.float32].delta_p.dtype == jnp.float32
-    np.testing.assert_allclose(np.asarray(out[jnp.float32].delta_p, float),
-                               out[jnp.float64].delta_p, atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(out[jnp.float32].delta_p, float), out[jnp.float64].delta_p, atol=1e-5
+    )
     c64 = np.asarray(out[jnp.float64].cov)
-    np.testing.assert_allclose(np.asarray(out[jnp.float32].cov, float), c64, rtol=0,
-                               atol=1e-4 * np.abs(c64).max())
+    np.testing.assert_allclose(
+        np.asarray(out[jnp.float32].cov, float), c64, rtol=0, atol=1e-4 * np.abs(c64).max()
+    )
 
 
 @pytest.mark.parametrize(

@@ -16,8 +16,14 @@ G = 9.81
 G_W = np.array([0.0, 0.0, -G])
 
 
-def nav(q=(1.0, 0, 0, 0), p=(0.0, 0, 0), v=(0.0, 0, 0), b_g=(0.0, 0, 0), b_a=(0.0, 0, 0),
-        dtype=jnp.float64):
+def nav(
+    q=(1.0, 0, 0, 0),
+    p=(0.0, 0, 0),
+    v=(0.0, 0, 0),
+    b_g=(0.0, 0, 0),
+    b_a=(0.0, 0, 0),
+    dtype=jnp.float64,
+):
     return jaximu.NavState(*(jnp.asarray(x, dtype) for x in (q, p, v, b_g, b_a)))
 
 
@@ -53,8 +59,9 @@ def test_constant_rate_orientation_exact(scheme, attitude):
 def test_first_order_quaternion_angle_error_is_the_known_one():
     """q ⊗ [1, φ/2] normalised rotates by 2 atan(θ/2) per step instead of θ."""
     omega, dt, n = np.array([0.0, 0.0, 3.0]), 0.1, 10
-    states = jaximu.propagate(nav(), np.tile(omega, (n, 1)), np.zeros((n, 3)), dt,
-                              attitude="quaternion_first_order")
+    states = jaximu.propagate(
+        nav(), np.tile(omega, (n, 1)), np.zeros((n, 3)), dt, attitude="quaternion_first_order"
+    )
     per_step = 2 * np.arctan(np.linalg.norm(omega) * dt / 2)
     yaw = rot(np.asarray(states.q[-1])).as_euler("ZYX")[0]
     np.testing.assert_allclose(yaw, n * per_step, rtol=0, atol=1e-13)
@@ -70,8 +77,9 @@ def test_constant_world_acceleration_without_rotation_is_exact(scheme, attitude)
     a_w = np.array([0.3, -0.4, 0.25])
     f_b = rot(q0).inv().apply(a_w - G_W)
     dt = np.random.default_rng(3).uniform(0.001, 0.05, size=200)
-    states = jaximu.propagate(nav(q0, p0, v0), np.zeros((200, 3)), np.tile(f_b, (200, 1)), dt,
-                              scheme, attitude=attitude)
+    states = jaximu.propagate(
+        nav(q0, p0, v0), np.zeros((200, 3)), np.tile(f_b, (200, 1)), dt, scheme, attitude=attitude
+    )
     t = np.cumsum(dt)[:, None]
     np.testing.assert_allclose(states.p, p0 + v0 * t + 0.5 * a_w * t**2, rtol=0, atol=1e-10)
     np.testing.assert_allclose(states.v, v0 + a_w * t, rtol=0, atol=1e-11)
@@ -95,8 +103,7 @@ def test_gtsam_accelerating_scenario(scheme):
     f = R_t.inv().apply(a_n - np.array([0.0, 0, -g]))
     q0 = Rotation.from_matrix(nRb).as_quat(scalar_first=True)
     # n+1 samples so that the midpoint step into t = 3 s has its sample k+1.
-    states = jaximu.propagate(nav(q0, p0, v0), np.tile(omega, (n + 1, 1)), f, dt, scheme,
-                              gravity=g)
+    states = jaximu.propagate(nav(q0, p0, v0), np.tile(omega, (n + 1, 1)), f, dt, scheme, gravity=g)
     final = states[n - 1]  # the state at t = 3 s
     np.testing.assert_allclose(final.p, [160.0, 20.9, 0.0], atol=1e-9)
     np.testing.assert_allclose(final.v, v0 + a_n * 3.0, atol=1e-9)
@@ -111,8 +118,9 @@ def test_still_and_level_for_60_seconds(scheme):
     n = 12000
     gyro = np.tile(b_g, (n, 1))
     accel = np.tile(rot(q0).inv().apply(-G_W) + b_a, (n, 1))
-    final = jaximu.propagate_final(nav(q0, (1.0, 2, 3), b_g=b_g, b_a=b_a), gyro, accel, 0.005,
-                                   scheme)
+    final = jaximu.propagate_final(
+        nav(q0, (1.0, 2, 3), b_g=b_g, b_a=b_a), gyro, accel, 0.005, scheme
+    )
     np.testing.assert_allclose(final.p, [1.0, 2, 3], atol=1e-9)
     np.testing.assert_allclose(final.v, 0.0, atol=1e-10)
     assert angle_between(final.q, q0) < 1e-12
@@ -137,8 +145,9 @@ def test_circle_one_revolution(scheme, tol):
     w, f = circle_signals()
     n = int(round(2 * np.pi / 0.5 / 0.01))
     dt = 2 * np.pi / 0.5 / n
-    states = jaximu.propagate(nav(v=(2.0, 0, 0)), np.tile(w, (n + 1, 1)), np.tile(f, (n + 1, 1)),
-                              dt, scheme)
+    states = jaximu.propagate(
+        nav(v=(2.0, 0, 0)), np.tile(w, (n + 1, 1)), np.tile(f, (n + 1, 1)), dt, scheme
+    )
     final = states[n - 1]
     np.testing.assert_allclose(final.p, [0.0, 0.0, 0.0], atol=tol)
     np.testing.assert_allclose(final.v, [2.0, 0.0, 0.0], atol=tol)
@@ -154,8 +163,14 @@ def _ode_reference(q0, p0, v0, omega_fn, f_fn, t_end, g=G_W):
     def qmul(a, b):
         w1, x1, y1, z1 = a
         w2, x2, y2, z2 = b
-        return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                         w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+        return np.array(
+            [
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            ]
+        )
 
     def rhs(t, y):
         q, v = y[:4], y[7:10]
@@ -173,9 +188,11 @@ def _measured_order(errors, steps):
     return slope
 
 
-LINEAR_INPUT_DTS = {"euler": [0.04, 0.02, 0.01, 0.005],
-                    "midpoint": [0.08, 0.04, 0.02, 0.01],
-                    "rk4": [0.2, 0.1, 0.05, 0.025]}
+LINEAR_INPUT_DTS = {
+    "euler": [0.04, 0.02, 0.01, 0.005],
+    "midpoint": [0.08, 0.04, 0.02, 0.01],
+    "rk4": [0.2, 0.1, 0.05, 0.025],
+}
 
 
 @pytest.fixture(scope="module")
@@ -205,9 +222,11 @@ def test_convergence_order_with_linear_inputs(scheme, linear_input_reference):
         accel = c["f0"] + c["f1"] * t[:, None]
         final = jaximu.propagate(nav(c["q0"], c["p0"], c["v0"]), gyro, accel, dt, scheme)[n - 1]
         q_ref, p_ref, v_ref = c["ref"]
-        errors.append(np.linalg.norm(np.asarray(final.p) - p_ref)
-                      + np.linalg.norm(np.asarray(final.v) - v_ref)
-                      + angle_between(final.q, q_ref))
+        errors.append(
+            np.linalg.norm(np.asarray(final.p) - p_ref)
+            + np.linalg.norm(np.asarray(final.v) - v_ref)
+            + angle_between(final.q, q_ref)
+        )
     order = _measured_order(errors, steps)
     expected = jaximu.integrators.ORDER[scheme]
     assert abs(order - expected) < 0.25, (order, errors)
@@ -224,9 +243,14 @@ def smooth_trajectory(t):
     psi = 0.5 * t + 0.4 * np.sin(0.5 * t)
     dphi, dth = 0.33 * np.cos(1.1 * t), 0.14 * np.cos(0.7 * t)
     dpsi = 0.5 + 0.2 * np.cos(0.5 * t)
-    omega = np.stack([dphi - np.sin(th) * dpsi,
-                      np.cos(phi) * dth + np.sin(phi) * np.cos(th) * dpsi,
-                      -np.sin(phi) * dth + np.cos(phi) * np.cos(th) * dpsi], -1)
+    omega = np.stack(
+        [
+            dphi - np.sin(th) * dpsi,
+            np.cos(phi) * dth + np.sin(phi) * np.cos(th) * dpsi,
+            -np.sin(phi) * dth + np.cos(phi) * np.cos(th) * dpsi,
+        ],
+        -1,
+    )
     p = np.stack([2 * np.sin(0.6 * t), np.cos(0.8 * t) - 1, 0.3 * np.sin(1.3 * t)], -1)
     v = np.stack([1.2 * np.cos(0.6 * t), -0.8 * np.sin(0.8 * t), 0.39 * np.cos(1.3 * t)], -1)
     a = np.stack([-0.72 * np.sin(0.6 * t), -0.64 * np.cos(0.8 * t), -0.507 * np.sin(1.3 * t)], -1)
@@ -252,11 +276,14 @@ def test_convergence_order_on_sampled_smooth_trajectory(scheme, order):
     for dt in steps:
         n = int(round(t_end / dt))
         _, _, _, w, f = smooth_trajectory(dt * np.arange(n + 1))
-        final = jaximu.propagate(nav(R0.as_quat(scalar_first=True), p0, v0), w, f, dt,
-                                 scheme)[n - 1]
-        errors.append(np.linalg.norm(np.asarray(final.p) - p_end)
-                      + np.linalg.norm(np.asarray(final.v) - v_end)
-                      + angle_between(final.q, R_end.as_quat(scalar_first=True)))
+        final = jaximu.propagate(nav(R0.as_quat(scalar_first=True), p0, v0), w, f, dt, scheme)[
+            n - 1
+        ]
+        errors.append(
+            np.linalg.norm(np.asarray(final.p) - p_end)
+            + np.linalg.norm(np.asarray(final.v) - v_end)
+            + angle_between(final.q, R_end.as_quat(scalar_first=True))
+        )
     assert abs(_measured_order(errors, steps) - order) < 0.25, errors
 
 
@@ -288,7 +315,9 @@ def test_final_equals_last_of_all_states():
     for scheme in jaximu.SCHEMES:
         all_states = jaximu.propagate(nav(), w, a, 0.01, scheme)
         final = jaximu.propagate_final(nav(), w, a, 0.01, scheme)
-        for x, y in zip(jax.tree_util.tree_leaves(all_states[-1]), jax.tree_util.tree_leaves(final)):
+        for x, y in zip(
+            jax.tree_util.tree_leaves(all_states[-1]), jax.tree_util.tree_leaves(final)
+        ):
             np.testing.assert_allclose(x, y, rtol=0, atol=1e-14)
 
 
@@ -326,7 +355,8 @@ def test_euler_angles_singularity_is_reported():
     with pytest.raises(ValueError, match="singularity"):
         jaximu.propagate(nav(), gyro, accel, 0.01, attitude="euler_angles")
     states = jax.jit(lambda w, a: jaximu.propagate(nav(), w, a, 0.01, attitude="euler_angles"))(
-        gyro, accel)
+        gyro, accel
+    )
     q = np.asarray(states.q)
     first_nan = np.argmax(np.isnan(q[:, 0]))
     assert 150 <= first_nan <= 158 and np.all(np.isnan(q[first_nan:]))
@@ -353,8 +383,9 @@ def test_batch_shapes_match_a_loop(batch, scheme):
     states = jaximu.propagate(nav(q, p, v, bg, ba), w, a, dt, scheme)
     assert states.q.shape == batch + (T, 4) and states.p.shape == batch + (T, 3)
     for idx in np.ndindex(*batch):
-        one = jaximu.propagate(nav(q[idx], p[idx], v[idx], bg[idx], ba[idx]), w[idx], a[idx],
-                               dt[idx], scheme)
+        one = jaximu.propagate(
+            nav(q[idx], p[idx], v[idx], bg[idx], ba[idx]), w[idx], a[idx], dt[idx], scheme
+        )
         np.testing.assert_allclose(states.p[idx], one.p, rtol=0, atol=1e-13)
         np.testing.assert_allclose(states.q[idx], one.q, rtol=0, atol=1e-14)
 
@@ -399,8 +430,9 @@ def test_float32_stays_close_to_float64_over_1e5_samples(scheme):
     out = {}
     for dtype in (jnp.float32, jnp.float64):
         s0 = nav(v=(2.0, 0, 0), dtype=dtype)
-        out[dtype] = jaximu.propagate_final(s0, gyro.astype(dtype), accel.astype(dtype),
-                                            np.asarray(0.005, dtype), scheme)
+        out[dtype] = jaximu.propagate_final(
+            s0, gyro.astype(dtype), accel.astype(dtype), np.asarray(0.005, dtype), scheme
+        )
     f32, f64 = out[jnp.float32], out[jnp.float64]
     assert f32.p.dtype == jnp.float32 and f64.p.dtype == jnp.float64
     assert np.all(np.isfinite(np.asarray(f32.p)))
@@ -411,8 +443,9 @@ def test_float32_stays_close_to_float64_over_1e5_samples(scheme):
 
 def test_float32_inputs_give_float32_outputs():
     s0 = nav(dtype=jnp.float32)
-    states = jaximu.propagate(s0, np.zeros((5, 3), np.float32), np.zeros((5, 3), np.float32),
-                              np.float32(0.01), "rk4")
+    states = jaximu.propagate(
+        s0, np.zeros((5, 3), np.float32), np.zeros((5, 3), np.float32), np.float32(0.01), "rk4"
+    )
     assert all(x.dtype == jnp.float32 for x in jax.tree_util.tree_leaves(states))
 
 
@@ -424,8 +457,11 @@ def _loss(gyro, accel, b_g, b_a, p0, v0, delta_theta, g, scheme):
     q0 = so3.quat_mul(jnp.array([1.0, 0, 0, 0]), so3.exp(delta_theta))
     s = jaximu.NavState(q0, p0, v0, b_g, b_a)
     final = jaximu.propagate_final(s, gyro, accel, 0.01, scheme, gravity=g)
-    return (jnp.sum(final.p * jnp.array([1.0, 2.0, -0.5])) + jnp.sum(final.v ** 2)
-            + jnp.sum(so3.log(final.q) * jnp.array([0.3, -1.0, 2.0])))
+    return (
+        jnp.sum(final.p * jnp.array([1.0, 2.0, -0.5]))
+        + jnp.sum(final.v**2)
+        + jnp.sum(so3.log(final.q) * jnp.array([0.3, -1.0, 2.0]))
+    )
 
 
 _grad_loss = jax.jit(jax.grad(_loss, argnums=tuple(range(8))), static_argnames="scheme")
@@ -437,8 +473,16 @@ def test_gradients_finite_at_zero_rate_and_match_finite_differences(scheme):
     central finite differences (float64)."""
     T = 12
     rng = np.random.default_rng(21)
-    args = [np.zeros((T, 3)), rng.normal(size=(T, 3)) + [0, 0, G], np.zeros(3), np.zeros(3),
-            rng.normal(size=3), rng.normal(size=3), np.zeros(3), np.asarray(G)]
+    args = [
+        np.zeros((T, 3)),
+        rng.normal(size=(T, 3)) + [0, 0, G],
+        np.zeros(3),
+        np.zeros(3),
+        rng.normal(size=3),
+        rng.normal(size=3),
+        np.zeros(3),
+        np.asarray(G),
+    ]
     args = [jnp.asarray(x, jnp.float64) for x in args]
     grads = _grad_loss(*args, scheme=scheme)
     eps = 1e-6
@@ -486,15 +530,27 @@ def good():
         (dict(dt=np.r_[0.01, -0.01, np.full(8, 0.01)]), r"dt\[1\] = -0.01"),
         (dict(dt=np.r_[np.nan, np.full(9, 0.01)]), r"dt\[0\] = nan"),
         (dict(dt=np.inf), "dt must be positive and finite"),
-        (dict(gyro=np.r_[np.zeros((3, 3)), [[0, np.nan, 0]], np.zeros((6, 3))]),
-         r"gyro contains non-finite values .* index \[3, 1\]"),
+        (
+            dict(gyro=np.r_[np.zeros((3, 3)), [[0, np.nan, 0]], np.zeros((6, 3))]),
+            r"gyro contains non-finite values .* index \[3, 1\]",
+        ),
         (dict(accel=np.r_[np.zeros((9, 3)), [[np.inf, 0, 0]]]), r"accel contains non-finite"),
         (dict(scheme="heun"), r"unknown scheme 'heun'"),
         (dict(attitude="rodrigues"), r"unknown attitude form 'rodrigues'"),
         (dict(state=nav(q=(1.0, 0.1, 0, 0))), r"state.q is not a unit quaternion"),
         (dict(state=nav(p=(0.0, np.nan, 0))), r"state.p contains non-finite"),
-        (dict(state=jaximu.NavState(jnp.array([1.0, 0, 0, 0]), jnp.zeros(2), jnp.zeros(3),
-                                    jnp.zeros(3), jnp.zeros(3))), r"state.p must have shape"),
+        (
+            dict(
+                state=jaximu.NavState(
+                    jnp.array([1.0, 0, 0, 0]),
+                    jnp.zeros(2),
+                    jnp.zeros(3),
+                    jnp.zeros(3),
+                    jnp.zeros(3),
+                )
+            ),
+            r"state.p must have shape",
+        ),
         (dict(state=(1, 0, 0, 0)), "state must be a jaximu.NavState"),
         (dict(gravity=np.zeros(2)), "gravity must be a magnitude"),
         (dict(gyro=np.zeros((2, 10, 3)), accel=np.zeros((3, 10, 3))), "do not broadcast"),
@@ -504,8 +560,9 @@ def test_bad_input_raises_clear_value_error(good, change, message):
     kw = dict(good, **change)
     scheme = kw.pop("scheme", "euler")
     with pytest.raises(ValueError, match=message):
-        jaximu.propagate(kw.pop("state"), kw.pop("gyro"), kw.pop("accel"), kw.pop("dt"), scheme,
-                         **kw)
+        jaximu.propagate(
+            kw.pop("state"), kw.pop("gyro"), kw.pop("accel"), kw.pop("dt"), scheme, **kw
+        )
 
 
 def test_input_arrays_are_not_modified(good):

@@ -83,8 +83,9 @@ def check_call(expect: Expect, fn, *args, **kwargs):
     except ValueError as e:
         msg = str(e)
         assert expect.allowed, f"valid input of moderate size raised: {msg}"
-        assert any(re.search(p, msg) for p in expect.allowed), \
+        assert any(re.search(p, msg) for p in expect.allowed), (
             f"message {msg!r} names none of the problems {expect.allowed}"
+        )
         return None
     assert not expect.must, f"invalid input {expect.allowed} returned instead of raising"
     assert_finite(out)
@@ -140,11 +141,15 @@ def draw_dt(data, T, batch, expect, hot):
     forms = ("scalar", "samples", "batched") + (("intervals",) if T > 1 else ())
     form = data.draw(st.sampled_from(forms), label="dt form")
     dtype = data.draw(st.sampled_from((np.float64, np.float32)), label="dt dtype")
-    kinds = ("zero", "negative", "nan", "inf", "huge", "tiny", "length") if hot else \
-        ("normal", "normal", "int")
+    kinds = (
+        ("zero", "negative", "nan", "inf", "huge", "tiny", "length")
+        if hot
+        else ("normal", "normal", "int")
+    )
     kind = data.draw(st.sampled_from(kinds), label="dt kind")
-    shape = {"scalar": (), "samples": (T,), "intervals": (T - 1,),
-             "batched": tuple(batch) + (T,)}[form]
+    shape = {"scalar": (), "samples": (T,), "intervals": (T - 1,), "batched": tuple(batch) + (T,)}[
+        form
+    ]
     if kind == "length":
         shape = shape[:-1] + (T + 1,) if shape else (T + 1,)
         expect.bad(r"dt must be a scalar or have shape")
@@ -170,13 +175,17 @@ def draw_dt(data, T, batch, expect, hot):
 def draw_imu(data, expect, dtype, target):
     """``(gyro, accel, dt, batch)``: ``T`` in {1, 2, 3} and batch in {(), (2,), (0,)}; with
     ``target == "shape"`` one shape fault (``T = 0``, mismatched ``T``, last axis, batch)."""
-    fault = data.draw(st.sampled_from(("T=0", "samples", "axis", "batch")), label="fault") \
-        if target == "shape" else None
+    fault = (
+        data.draw(st.sampled_from(("T=0", "samples", "axis", "batch")), label="fault")
+        if target == "shape"
+        else None
+    )
     T = 0 if fault == "T=0" else data.draw(st.sampled_from((1, 3, 2)), label="T")
     batch = data.draw(st.sampled_from(((), (2,), (0,))), label="batch")
     gyro = draw_array(data, "gyro", batch + (T, 3), dtype, expect, target == "gyro")
-    accel = draw_array(data, "accel", batch + (T, 3), dtype, expect, target == "accel",
-                       center=np.r_[0, 0, 9.81])
+    accel = draw_array(
+        data, "accel", batch + (T, 3), dtype, expect, target == "accel", center=np.r_[0, 0, 9.81]
+    )
     dt = draw_dt(data, max(T, 1), batch, expect, target == "dt")
     if fault == "T=0":
         expect.bad("no samples")
@@ -200,8 +209,10 @@ def draw_state(data, expect, dtype, batch, hot, name="state"):
     rng = rng_of(data)
     q = rng.normal(size=sbatch + (4,))
     q = (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(dtype)
-    f = {"q": q, **{k: rng.normal(size=sbatch + (3,)).astype(dtype)
-                    for k in ("p", "v", "b_g", "b_a")}}
+    f = {
+        "q": q,
+        **{k: rng.normal(size=sbatch + (3,)).astype(dtype) for k in ("p", "v", "b_g", "b_a")},
+    }
     kinds = ("nonunit", "nan", "huge", "huge", "shape") if hot else ("ok", "ok", "int_q")
     kind = data.draw(st.sampled_from(kinds), label=f"{name} kind")
     field = data.draw(st.sampled_from(("p", "v", "b_g", "b_a")), label=f"{name} field")
@@ -212,8 +223,9 @@ def draw_state(data, expect, dtype, batch, hot, name="state"):
         expect.bad(rf"{name}\.{field} contains non-finite")
     elif kind == "huge":
         # a float64 field next to a float32 q: the computation dtype may still be float32
-        f[field] = f[field].astype(data.draw(st.sampled_from((np.float64, dtype)),
-                                             label="field dtype"))
+        f[field] = f[field].astype(
+            data.draw(st.sampled_from((np.float64, dtype)), label="field dtype")
+        )
         if inject(data, f[field], huge_value(data, f[field].dtype.type)):
             expect.may()
     elif kind == "int_q":
@@ -229,8 +241,13 @@ def draw_gravity(data, expect, hot):
     kind = data.draw(st.sampled_from(kinds), label="gravity kind")
     if kind == "default":
         return {}
-    g = {"magnitude": 9.81, "vector": np.array([0.1, 0.0, -9.8]), "nan": np.nan,
-         "huge": 1e300, "shape": np.zeros(2)}[kind]
+    g = {
+        "magnitude": 9.81,
+        "vector": np.array([0.1, 0.0, -9.8]),
+        "nan": np.nan,
+        "huge": 1e300,
+        "shape": np.zeros(2),
+    }[kind]
     if kind == "nan":
         expect.bad("gravity contains non-finite")
     elif kind == "huge":
@@ -246,10 +263,14 @@ def draw_noise(data, expect, hot):
     if kind == "type":
         expect.bad("noise must be a jaximu.ImuNoise")
         return (1e-3, 1e-2, 0.0, 0.0)
-    vals = {"euroc": (1.7e-4, 2e-3, 1.9e-5, 3e-3), "zero": (0.0, 0.0, 0.0, 0.0),
-            "nan": (np.nan, 2e-3, 0.0, 0.0), "negative": (1.7e-4, -2e-3, 0.0, 0.0),
-            "huge": (1.7e-4, 2e-3, 1e300, 0.0),
-            "axes": (np.full(3, 1.7e-4), np.full(3, 2e-3), 1.9e-5, 3e-3)}[kind]
+    vals = {
+        "euroc": (1.7e-4, 2e-3, 1.9e-5, 3e-3),
+        "zero": (0.0, 0.0, 0.0, 0.0),
+        "nan": (np.nan, 2e-3, 0.0, 0.0),
+        "negative": (1.7e-4, -2e-3, 0.0, 0.0),
+        "huge": (1.7e-4, 2e-3, 1e300, 0.0),
+        "axes": (np.full(3, 1.7e-4), np.full(3, 2e-3), 1.9e-5, 3e-3),
+    }[kind]
     if kind == "nan":
         expect.bad("noise.gyroscope_noise_density contains non-finite")
     elif kind == "negative":
@@ -273,11 +294,13 @@ def run_propagate(data, target):
     state = draw_state(data, expect, dtype, batch, target == "state")
     kw = draw_gravity(data, expect, target == "gravity")
     scheme = data.draw(st.sampled_from(("euler", "midpoint", "rk4")), label="scheme")
-    attitude = data.draw(st.sampled_from(("quaternion",) * 4 + ("matrix", "euler_angles")),
-                         label="attitude")
+    attitude = data.draw(
+        st.sampled_from(("quaternion",) * 4 + ("matrix", "euler_angles")), label="attitude"
+    )
     if target == "option":
-        scheme, attitude = data.draw(st.sampled_from(((scheme, "rodrigues"), ("heun", attitude))),
-                                     label="option")
+        scheme, attitude = data.draw(
+            st.sampled_from(((scheme, "rodrigues"), ("heun", attitude))), label="option"
+        )
         expect.bad("unknown scheme 'heun'|unknown attitude form 'rodrigues'")
     if attitude == "euler_angles":
         expect.may("singularity")  # huge rates can reach pitch ±90°
@@ -286,8 +309,11 @@ def run_propagate(data, target):
 
 
 def draw_p0(data, expect, batch, hot):
-    kinds = ("nan", "asym", "indefinite", "huge", "shape", "batch") if hot else \
-        ("ok", "batched") + (("empty",) if batch in ((), (0,)) else ())
+    kinds = (
+        ("nan", "asym", "indefinite", "huge", "shape", "batch")
+        if hot
+        else ("ok", "batched") + (("empty",) if batch in ((), (0,)) else ())
+    )
     kind = data.draw(st.sampled_from(kinds), label="P0 kind")
     P0 = np.eye(15) * 1e-4
     if kind == "batched":
@@ -327,8 +353,10 @@ def run_propagate_covariance(data, target):
     noise = draw_noise(data, expect, target == "noise")
     P0 = draw_p0(data, expect, batch, target == "P0")
     scheme = data.draw(st.sampled_from(("euler", "midpoint", "rk4")), label="scheme")
-    fn = data.draw(st.sampled_from((jaximu.propagate_covariance_final,
-                                    jaximu.propagate_covariance)), label="fn")
+    fn = data.draw(
+        st.sampled_from((jaximu.propagate_covariance_final, jaximu.propagate_covariance)),
+        label="fn",
+    )
     check_call(expect, fn, state, P0, gyro, accel, dt, noise, scheme, **kw)
 
 
@@ -363,16 +391,20 @@ def run_preintegrate(data, target):
     dtype = draw_dtype(data)
     gyro, accel, dt, batch = draw_imu(data, expect, dtype, target)
     bias = draw_bias(data, expect, dtype, batch, target == "bias")
-    noise = draw_noise(data, expect, True) if target == "noise" else \
-        data.draw(st.sampled_from((None, ImuNoise.euroc())), label="noise")
+    noise = (
+        draw_noise(data, expect, True)
+        if target == "noise"
+        else data.draw(st.sampled_from((None, ImuNoise.euroc())), label="noise")
+    )
     scheme = data.draw(st.sampled_from(("euler", "midpoint")), label="scheme")
     method = data.draw(st.sampled_from(("sequential", "parallel")), label="method")
     if target == "option":
         scheme = "rk4"
         expect.bad("unknown preintegration scheme 'rk4'")
     prefixes = data.draw(st.sampled_from((False, False, True)), label="prefixes")
-    check_call(expect, jaximu.preintegrate, gyro, accel, dt, bias, noise, scheme, method,
-               prefixes=prefixes)
+    check_call(
+        expect, jaximu.preintegrate, gyro, accel, dt, bias, noise, scheme, method, prefixes=prefixes
+    )
 
 
 _PIMS = {}
@@ -385,8 +417,9 @@ def a_pim(dtype, batch):
         rng = np.random.default_rng(0)
         gyro = rng.normal(0, 0.5, (2, 3, 3)).astype(dtype)
         accel = (np.r_[0, 0, 9.81] + rng.normal(0, 1, (2, 3, 3))).astype(dtype)
-        _PIMS[key] = jaximu.preintegrate(gyro, accel, np.asarray(0.01, dtype),
-                                         noise=ImuNoise.euroc())
+        _PIMS[key] = jaximu.preintegrate(
+            gyro, accel, np.asarray(0.01, dtype), noise=ImuNoise.euroc()
+        )
     return _PIMS[key] if batch else jax.tree_util.tree_map(lambda x: x[0], _PIMS[key])
 
 
@@ -400,8 +433,16 @@ def run_use(data, fn, target):
         if data.draw(st.booleans(), label="pim NaN"):
             delta_v = np.array(pim.delta_v)
             delta_v[..., 1] = np.nan
-            pim = jaximu.Preintegrated(pim.delta_t, pim.delta_q, delta_v, pim.delta_p,
-                                       pim.transition, pim.cov15, pim.cov, pim.bias_hat)
+            pim = jaximu.Preintegrated(
+                pim.delta_t,
+                pim.delta_q,
+                delta_v,
+                pim.delta_p,
+                pim.transition,
+                pim.cov15,
+                pim.cov,
+                pim.bias_hat,
+            )
             expect.bad(r"pim\.delta_v contains non-finite")
         else:
             pim = (pim.delta_q, pim.delta_v)
@@ -445,8 +486,14 @@ def run_allan(data, target):
         expect.bad("dt must be positive and finite")
     elif dt in (1e300, 1e-320):
         expect.may(r"overflowed float64")
-    taus = data.draw(st.sampled_from(([np.nan], [-1.0], [1e300], [np.inf]) if target == "taus"
-                                     else (None, None, [0.05, 0.1], [])), label="taus")
+    taus = data.draw(
+        st.sampled_from(
+            ([np.nan], [-1.0], [1e300], [np.inf])
+            if target == "taus"
+            else (None, None, [0.05, 0.1], [])
+        ),
+        label="taus",
+    )
     if target == "taus":
         expect.bad("every τ must be positive and finite|shorter than half the recording")
     elif taus and dt == 1e-320:  # τ = 0.05 s is 5e318 samples
@@ -463,9 +510,11 @@ def run_allan(data, target):
 PROPAGATE_TARGETS = ("gyro", "accel", "dt", "state", "gravity", "shape", "option")
 COVARIANCE_TARGETS = ("gyro", "accel", "dt", "state", "gravity", "shape", "noise", "P0")
 PREINTEGRATE_TARGETS = ("gyro", "accel", "dt", "bias", "noise", "shape", "option")
-USE_TARGETS = [("predict", t) for t in ("pim", "state_i", "gravity")] + \
-    [("residual", t) for t in ("pim", "state_i", "state_j")] + \
-    [("correct", t) for t in ("pim", "bias", "bias batch")]
+USE_TARGETS = (
+    [("predict", t) for t in ("pim", "state_i", "gravity")]
+    + [("residual", t) for t in ("pim", "state_i", "state_j")]
+    + [("correct", t) for t in ("pim", "bias", "bias batch")]
+)
 ALLAN_TARGETS = ("y", "shape", "dt", "taus", "ppd")
 
 
@@ -537,20 +586,28 @@ def test_allan_deviation_bad_inputs_raise_value_error(data, target):
 
 # The defects these properties found, pinned as plain regression tests.
 
+
 def test_overflow_from_finite_inputs_is_a_value_error_not_nan():
     """dt = 1e30 in float32 used to return NaN/inf states, covariances and deltas silently."""
     s32 = NavState.identity((), jnp.float32)
     w, a = np.zeros((3, 3), np.float32), np.tile(np.float32([0, 0, 9.81]), (3, 1))
-    with pytest.raises(ValueError, match=r"propagate produced a non-finite value .* in output\.p "
-                                         r"at index \[0, 0\]: dt or the IMU samples are too large "
-                                         r"for float32"):
+    with pytest.raises(
+        ValueError,
+        match=r"propagate produced a non-finite value .* in output\.p "
+        r"at index \[0, 0\]: dt or the IMU samples are too large "
+        r"for float32",
+    ):
         jaximu.propagate(s32, w, a, np.float32(1e30))
     with pytest.raises(ValueError, match=r"preintegrate produced a non-finite value.*float64"):
         jaximu.preintegrate(np.full((3, 3), 1e300), np.zeros((3, 3)), 0.01)
-    with pytest.raises(ValueError, match=r"propagate_covariance_final produced a non-finite value"
-                                         r".*output\[1\].*σ²/dt overflows"):
-        jaximu.propagate_covariance_final(s32, np.eye(15, dtype=np.float32), w, a,
-                                          np.float32(1e-45), ImuNoise.euroc())
+    with pytest.raises(
+        ValueError,
+        match=r"propagate_covariance_final produced a non-finite value"
+        r".*output\[1\].*σ²/dt overflows",
+    ):
+        jaximu.propagate_covariance_final(
+            s32, np.eye(15, dtype=np.float32), w, a, np.float32(1e-45), ImuNoise.euroc()
+        )
     # the eager check only: under the caller's jit the numbers come back as they are
     out = jax.jit(jaximu.propagate_final)(s32, w, a, np.float32(1e30))
     assert not np.isfinite(np.asarray(out.p)).all()
@@ -564,8 +621,11 @@ def test_values_that_do_not_fit_the_computation_dtype_are_named():
     process."""
     s32 = NavState.identity((), jnp.float32)
     w = np.zeros((2, 3), np.float32)
-    with pytest.raises(ValueError, match=r"dt must be positive and finite; dt = 1e\+300, "
-                                         r"which is inf in the computation dtype float32"):
+    with pytest.raises(
+        ValueError,
+        match=r"dt must be positive and finite; dt = 1e\+300, "
+        r"which is inf in the computation dtype float32",
+    ):
         jaximu.propagate(s32, w, w, 1e300)
     with pytest.raises(ValueError, match=r"dt = 1e-300, which is 0.0 in the computation dtype"):
         jaximu.preintegrate(w, w, 1e-300)
@@ -584,13 +644,20 @@ def test_values_that_do_not_fit_the_computation_dtype_are_named():
                 print(e)
     """
     env = {**os.environ, "JAX_ENABLE_X64": "0"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                         text=True, timeout=300).stdout.splitlines()
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    ).stdout.splitlines()
     assert len(out) == 3, out
-    assert re.search(r"dt must be positive and finite; dt\[1\] = 1e\+300, which is inf in the "
-                     r"computation dtype float32", out[0]), out[0]
-    assert re.search(r"state\.p\[1\] = 1e\+300 is too large for the computation dtype "
-                     r"float32", out[1]), out[1]
+    assert re.search(
+        r"dt must be positive and finite; dt\[1\] = 1e\+300, which is inf in the "
+        r"computation dtype float32",
+        out[0],
+    ), out[0]
+    assert re.search(
+        r"state\.p\[1\] = 1e\+300 is too large for the computation dtype "
+        r"float32",
+        out[1],
+    ), out[1]
     assert re.search(r"P0\[0, 0\] = 1e\+300 is too large", out[2]), out[2]
 
 
@@ -598,8 +665,14 @@ def test_batch_and_type_errors_name_the_problem():
     s = NavState.identity((), jnp.float64)
     w = np.zeros((2, 3))
     with pytest.raises(ValueError, match="batch shapes of the inputs do not broadcast"):
-        jaximu.propagate_covariance(s, np.zeros((3, 15, 15)), np.zeros((2, 2, 3)),
-                                    np.zeros((2, 2, 3)), 0.01, ImuNoise.euroc())
+        jaximu.propagate_covariance(
+            s,
+            np.zeros((3, 15, 15)),
+            np.zeros((2, 2, 3)),
+            np.zeros((2, 2, 3)),
+            0.01,
+            ImuNoise.euroc(),
+        )
     with pytest.raises(ValueError, match=r"delta must have shape \(\.\.\., 15\)"):
         jaximu.boxplus(s, np.zeros(14))
     pim = jaximu.preintegrate(w, w, 0.01)
@@ -655,21 +728,29 @@ def so3_outputs(phi, v, p, q):
     R = so3.exp_matrix(phi)
     log_q = so3.log(q)
     unit = {
-        "exp": so3.exp(phi), "quat_mul": so3.quat_mul(p, q), "quat_conj": so3.quat_conj(q),
+        "exp": so3.exp(phi),
+        "quat_mul": so3.quat_mul(p, q),
+        "quat_conj": so3.quat_conj(q),
         "quat_normalize": so3.quat_normalize(2 * q),
         "quat_first_order_update": so3.quat_first_order_update(q, phi),
         "matrix_to_quat": so3.matrix_to_quat(so3.quat_to_matrix(q)),
         "matrix_to_quat(exp_matrix)": so3.matrix_to_quat(R),
         "euler_zyx_to_quat": so3.euler_zyx_to_quat(phi),
-        "xyzw_to_wxyz": so3.xyzw_to_wxyz(q), "wxyz_to_xyzw": so3.wxyz_to_xyzw(q),
-        "jpl_to_hamilton": so3.jpl_to_hamilton(q), "hamilton_to_jpl": so3.hamilton_to_jpl(q),
+        "xyzw_to_wxyz": so3.xyzw_to_wxyz(q),
+        "wxyz_to_xyzw": so3.wxyz_to_xyzw(q),
+        "jpl_to_hamilton": so3.jpl_to_hamilton(q),
+        "hamilton_to_jpl": so3.hamilton_to_jpl(q),
         "quat_identity": so3.quat_identity(phi.shape[:-1], phi.dtype),
     }
     chi = phi.at[..., 1].set(jnp.clip(phi[..., 1], -1.4, 1.4))  # E(χ) is singular at ±π/2
     other = {
-        "quat_rotate": so3.quat_rotate(q, v), "log": log_q, "exp_matrix": R,
-        "R Rᵀ": R @ jnp.swapaxes(R, -1, -2), "log_matrix": so3.log_matrix(R),
-        "skew": so3.skew(v), "right_jacobian": so3.right_jacobian(phi),
+        "quat_rotate": so3.quat_rotate(q, v),
+        "log": log_q,
+        "exp_matrix": R,
+        "R Rᵀ": R @ jnp.swapaxes(R, -1, -2),
+        "log_matrix": so3.log_matrix(R),
+        "skew": so3.skew(v),
+        "right_jacobian": so3.right_jacobian(phi),
         "left_jacobian": so3.left_jacobian(phi),
         "right_jacobian_inv": so3.right_jacobian_inv(log_q),  # θ ≤ π < 2π
         "euler_zyx_to_matrix": so3.euler_zyx_to_matrix(phi),
@@ -683,8 +764,12 @@ def so3_outputs(phi, v, p, q):
 def so3_int_outputs(phi, v):
     """The kernels that accept integer vectors (angles, body vectors)."""
     q = so3.exp(phi)
-    return (q, so3.quat_first_order_update(q, phi)), \
-        (so3.skew(v), so3.exp_matrix(phi), so3.right_jacobian(phi), so3.quat_rotate(q, v))
+    return (q, so3.quat_first_order_update(q, phi)), (
+        so3.skew(v),
+        so3.exp_matrix(phi),
+        so3.right_jacobian(phi),
+        so3.quat_rotate(q, v),
+    )
 
 
 @fast_settings(25)
@@ -712,15 +797,21 @@ def test_so3_kernels_finite_and_unit_on_moderate_input(data):
         assert_unit(x, dtype)
     assert_finite(other)
     tol = 1e-4 if dtype == np.float32 else 1e-10
-    np.testing.assert_allclose(np.linalg.norm(np.asarray(other["quat_rotate"], float), axis=-1),
-                               np.linalg.norm(v, axis=-1), rtol=tol, atol=tol)
+    np.testing.assert_allclose(
+        np.linalg.norm(np.asarray(other["quat_rotate"], float), axis=-1),
+        np.linalg.norm(v, axis=-1),
+        rtol=tol,
+        atol=tol,
+    )
     angle = np.linalg.norm(np.asarray(other["log"], float), axis=-1)
     assert np.all(angle <= np.pi * (1 + 1e-6))
-    np.testing.assert_allclose(np.asarray(other["R Rᵀ"], float),
-                               np.broadcast_to(np.eye(3), batch + (3, 3)), atol=tol)
+    np.testing.assert_allclose(
+        np.asarray(other["R Rᵀ"], float), np.broadcast_to(np.eye(3), batch + (3, 3)), atol=tol
+    )
     # eager calls as a user makes them, on the same numbers
-    np.testing.assert_allclose(np.asarray(so3.exp(jnp.asarray(phi, dtype))),
-                               np.asarray(unit["exp"]), rtol=tol, atol=tol)
+    np.testing.assert_allclose(
+        np.asarray(so3.exp(jnp.asarray(phi, dtype))), np.asarray(unit["exp"]), rtol=tol, atol=tol
+    )
 
 
 @fast_settings(20)
@@ -731,19 +822,23 @@ def test_boxplus_boxminus_finite_unit_and_shape_checked(data):
     dtype = data.draw(st.sampled_from((np.float64, np.float32)), label="dtype")
     batch = data.draw(st.sampled_from(((), (2,), (0,))), label="batch")
     rng = rng_of(data)
-    state = NavState(jnp.asarray(random_unit_quat(rng, batch, dtype)),
-                     *(jnp.asarray(rng.normal(0, 10, batch + (3,)), dtype) for _ in range(4)))
+    state = NavState(
+        jnp.asarray(random_unit_quat(rng, batch, dtype)),
+        *(jnp.asarray(rng.normal(0, 10, batch + (3,)), dtype) for _ in range(4)),
+    )
     delta = rng.normal(0, 1, batch + (15,))
     delta[..., :3] *= 2.5 / max(1.0, np.linalg.norm(delta[..., :3], axis=-1).max(initial=0.0))
-    fault = data.draw(st.sampled_from((None, None, None, "delta", "state", "batch", "type")),
-                      label="fault")
+    fault = data.draw(
+        st.sampled_from((None, None, None, "delta", "state", "batch", "type")), label="fault"
+    )
     if fault is None:
         moved = jaximu.boxplus(state, jnp.asarray(delta, dtype))
         assert_unit(moved.q, dtype)
         assert_finite(moved)
         back = jaximu.boxminus(moved, state)
-        np.testing.assert_allclose(np.asarray(back, float), delta,
-                                   atol=2e-3 if dtype == np.float32 else 1e-9)
+        np.testing.assert_allclose(
+            np.asarray(back, float), delta, atol=2e-3 if dtype == np.float32 else 1e-9
+        )
         return
     with pytest.raises(ValueError) as err:
         if fault == "delta":
@@ -757,6 +852,10 @@ def test_boxplus_boxminus_finite_unit_and_shape_checked(data):
                 jaximu.boxplus(NavState.identity((2,), dtype), np.zeros((5, 15), dtype))
         else:
             jaximu.boxplus((state.q, state.p), delta)
-    pattern = {"delta": r"delta must have shape \(\.\.\., 15\)", "state": r"state\.p must have",
-               "batch": "do not broadcast", "type": "state must be a jaximu.NavState"}[fault]
+    pattern = {
+        "delta": r"delta must have shape \(\.\.\., 15\)",
+        "state": r"state\.p must have",
+        "batch": "do not broadcast",
+        "type": "state must be a jaximu.NavState",
+    }[fault]
     assert re.search(pattern, str(err.value)), str(err.value)

@@ -9,21 +9,11 @@ import types
 import pytest
 
 PATHS = {
-    "jaximu": (
-        "jaximu",
-    ),
-    "ImuBias": (
-        "jaximu.ImuBias",
-    ),
-    "ImuNoise": (
-        "jaximu.ImuNoise",
-    ),
-    "NavState": (
-        "jaximu.NavState",
-    ),
-    "SensorPose": (
-        "jaximu.SensorPose",
-    ),
+    "jaximu": ("jaximu",),
+    "ImuBias": ("jaximu.ImuBias",),
+    "ImuNoise": ("jaximu.ImuNoise",),
+    "NavState": ("jaximu.NavState",),
+    "SensorPose": ("jaximu.SensorPose",),
     "allan": (
         "jaximu.allan",
         "jaximu.allan.allan_deviation",
@@ -32,18 +22,10 @@ PATHS = {
         "jaximu.allan.motion_ratio",
         "jaximu.allan.static_intervals",
     ),
-    "app": (
-        "jaximu.app.main",
-    ),
-    "bias_jacobians_autodiff": (
-        "jaximu.bias_jacobians_autodiff",
-    ),
-    "boxminus": (
-        "jaximu.boxminus",
-    ),
-    "boxplus": (
-        "jaximu.boxplus",
-    ),
+    "app": ("jaximu.app.main",),
+    "bias_jacobians_autodiff": ("jaximu.bias_jacobians_autodiff",),
+    "boxminus": ("jaximu.boxminus",),
+    "boxplus": ("jaximu.boxplus",),
     "calibration": (
         "jaximu.calibration",
         "jaximu.calibration.calibrate",
@@ -57,25 +39,15 @@ PATHS = {
         "jaximu.cli.main",
         "jaximu.cli.options_table",
     ),
-    "compose": (
-        "jaximu.compose",
-    ),
-    "correct": (
-        "jaximu.correct",
-    ),
+    "compose": ("jaximu.compose",),
+    "correct": ("jaximu.correct",),
     "datasets": (
         "jaximu.datasets",
         "jaximu.datasets.euroc_v1_02_segment",
     ),
-    "discrete_process_noise": (
-        "jaximu.discrete_process_noise",
-    ),
-    "earth_rate": (
-        "jaximu.earth_rate",
-    ),
-    "ekf_update": (
-        "jaximu.ekf_update",
-    ),
+    "discrete_process_noise": ("jaximu.discrete_process_noise",),
+    "earth_rate": ("jaximu.earth_rate",),
+    "ekf_update": ("jaximu.ekf_update",),
     "errors": (
         "jaximu.errors",
         "jaximu.errors.Fix",
@@ -153,34 +125,18 @@ PATHS = {
         "jaximu.montecarlo.monte_carlo",
         "jaximu.montecarlo.sample_run",
     ),
-    "needs_reintegration": (
-        "jaximu.needs_reintegration",
-    ),
-    "plots": (
-        "jaximu.plots",
-    ),
-    "predict": (
-        "jaximu.predict",
-    ),
-    "preintegrate": (
-        "jaximu.preintegrate",
-    ),
-    "preintegration": (
-        "jaximu.preintegration.ImuBias",
-    ),
+    "needs_reintegration": ("jaximu.needs_reintegration",),
+    "plots": ("jaximu.plots",),
+    "predict": ("jaximu.predict",),
+    "preintegrate": ("jaximu.preintegrate",),
+    "preintegration": ("jaximu.preintegration.ImuBias",),
     "propagate": (
         "jaximu.propagate",
         "jaximu.propagate.sensor_engine_inputs",
     ),
-    "propagate_covariance": (
-        "jaximu.propagate_covariance",
-    ),
-    "propagate_covariance_final": (
-        "jaximu.propagate_covariance_final",
-    ),
-    "propagate_final": (
-        "jaximu.propagate_final",
-    ),
+    "propagate_covariance": ("jaximu.propagate_covariance",),
+    "propagate_covariance_final": ("jaximu.propagate_covariance_final",),
+    "propagate_final": ("jaximu.propagate_final",),
     "recording": (
         "jaximu.recording",
         "jaximu.recording.default_P0",
@@ -188,9 +144,7 @@ PATHS = {
         "jaximu.recording.propagate_recording",
         "jaximu.recording.run_demo",
     ),
-    "residual": (
-        "jaximu.residual",
-    ),
+    "residual": ("jaximu.residual",),
     "sensor": (
         "jaximu.sensor",
         "jaximu.sensor.SensorPose",
@@ -244,15 +198,9 @@ PATHS = {
         "jaximu.state.boxminus",
         "jaximu.state.boxplus",
     ),
-    "step_jacobians": (
-        "jaximu.step_jacobians",
-    ),
-    "whitened_residual": (
-        "jaximu.whitened_residual",
-    ),
-    "world": (
-        "jaximu.world",
-    ),
+    "step_jacobians": ("jaximu.step_jacobians",),
+    "whitened_residual": ("jaximu.whitened_residual",),
+    "world": ("jaximu.world",),
 }
 
 
@@ -267,7 +215,7 @@ def resolve(path):
         attr = getattr(obj, parts[i], None)
         leads_on = i + 1 == len(parts) or hasattr(attr, parts[i + 1])
         if attr is None or not (isinstance(attr, types.ModuleType) or leads_on):
-            attr = importlib.import_module(".".join(parts[:i + 1]))
+            attr = importlib.import_module(".".join(parts[: i + 1]))
         obj = attr
     return obj
 
@@ -293,7 +241,10 @@ def test_old_and_new_paths_are_the_same_objects():
     from jaximu.engine import errorstate, jacobians, update
     from jaximu.geometry import so3
 
-    assert jaximu.so3.exp is so3.exp and jaximu.errorstate.position_jacobian is update.position_jacobian
+    assert (
+        jaximu.so3.exp is so3.exp
+        and jaximu.errorstate.position_jacobian is update.position_jacobian
+    )
     assert jaximu.errorstate._check_cov is errorstate._check_cov
     assert jaximu.errorstate.blocks_autodiff is jacobians.blocks_autodiff
     assert callable(jaximu.propagate)  # the function, as before (not the module of that name)

@@ -32,9 +32,12 @@ def test_renormalize_after_unit_increments_is_the_division(dtype):
         ds = tuple(jnp.asarray(d[:, i], dtype) for i in range(4))
         if k == 0:  # one step against the division of the same (rounded) product
             p64 = np.stack([np.asarray(x, np.float64) for x in quat_mul_components(qs, ds)], -1)
-            np.testing.assert_allclose(np.stack([np.asarray(x) for x in renorm(qs, ds)], -1),
-                                       p64 / np.linalg.norm(p64, axis=-1, keepdims=True),
-                                       rtol=0, atol=2 * eps)
+            np.testing.assert_allclose(
+                np.stack([np.asarray(x) for x in renorm(qs, ds)], -1),
+                p64 / np.linalg.norm(p64, axis=-1, keepdims=True),
+                rtol=0,
+                atol=2 * eps,
+            )
         qs = renorm(qs, ds)
         r = np.stack(quat_mul_components(tuple(ref.T), tuple(d.T)), -1)
         ref = r / np.linalg.norm(r, axis=-1, keepdims=True)
@@ -59,8 +62,9 @@ def test_renormalize_off_unit_keeps_the_direction():
     assert np.all(np.abs(norm - 1.0) <= 0.375 * eps2 * (1 + 1e-3) + 4e-16)
     assert np.abs(norm - 1.0).max() > 0.1 * 0.375 * eps2.max()  # the bound is the error's
     np.testing.assert_allclose(once / norm[:, None], u, rtol=0, atol=4e-16)
-    twice = np.stack(lane_math._quat_renormalize(tuple(jnp.asarray(once[:, i]) for i in range(4))),
-                     -1)
+    twice = np.stack(
+        lane_math._quat_renormalize(tuple(jnp.asarray(once[:, i]) for i in range(4))), -1
+    )
     np.testing.assert_allclose(np.linalg.norm(twice, axis=-1), 1.0, rtol=0, atol=4e-16)
 
 
@@ -75,15 +79,38 @@ def test_a_start_off_unit_propagates_as_its_rotation(norm):
     from jaximu.engine.propagate import _propagate
 
     state, gyro, accel = random_inputs(4, 200, seed=5)
-    scaled = jaximu.NavState(state.q * jnp.asarray([norm, 1.0, norm, 1 / norm])[:, None],
-                             state.p, state.v, state.b_g, state.b_a)
+    scaled = jaximu.NavState(
+        state.q * jnp.asarray([norm, 1.0, norm, 1 / norm])[:, None],
+        state.p,
+        state.v,
+        state.b_g,
+        state.b_a,
+    )
     dt = jnp.full((200,), 0.005)
     g = jnp.asarray([0.0, 0.0, -9.81])
     for scheme in ("euler", "midpoint", "rk4"):
-        ref = _propagate(state, gyro, accel, dt, g, scheme=scheme, attitude="quaternion",
-                         save_all=True, fast=False)[0]
+        ref = _propagate(
+            state,
+            gyro,
+            accel,
+            dt,
+            g,
+            scheme=scheme,
+            attitude="quaternion",
+            save_all=True,
+            fast=False,
+        )[0]
         for fast in (True, False):
-            got = _propagate(scaled, gyro, accel, dt, g, scheme=scheme, attitude="quaternion",
-                             save_all=True, fast=fast)[0]
+            got = _propagate(
+                scaled,
+                gyro,
+                accel,
+                dt,
+                g,
+                scheme=scheme,
+                attitude="quaternion",
+                save_all=True,
+                fast=fast,
+            )[0]
             for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(ref)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))

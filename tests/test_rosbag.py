@@ -173,11 +173,15 @@ def test_unknown_stamp_option(tmp_path):
 def test_topic_selection(tmp_path, fmt):
     s0, l0, g0, a0 = make_series(5)
     s1, l1, g1, a1 = make_series(6, n=40, t0_ns=T0_NS + 1_234_567)
-    path = write_bag(tmp_path, fmt, {
-        "/imu0": imu_topic(s0, l0, g0, a0),
-        "/imu1": imu_topic(s1, l1, g1, a1),
-        "/status": (STRING, [(l0[0] + 1, "ok"), (l0[10] + 1, "still ok")]),
-    })
+    path = write_bag(
+        tmp_path,
+        fmt,
+        {
+            "/imu0": imu_topic(s0, l0, g0, a0),
+            "/imu1": imu_topic(s1, l1, g1, a1),
+            "/status": (STRING, [(l0[0] + 1, "ok"), (l0[10] + 1, "still ok")]),
+        },
+    )
     with pytest.raises(DataError) as err:
         read_rosbag(path)
     assert "/imu0" in str(err.value) and "/imu1" in str(err.value)
@@ -263,7 +267,7 @@ def test_unit_advice_works(tmp_path, kind):
     path = write_bag(tmp_path, "ros1", {"/imu0": imu_topic(stamps, log, gyro, accel)})
     with pytest.raises(DataError, match=pattern) as err:
         read_rosbag(path)
-    (name, value), = option.items()
+    ((name, value),) = option.items()
     assert f"{name}='{value}'" in str(err.value)  # the advice the user is given ...
     data = read_rosbag(path, **option)  # ... works
     np.testing.assert_array_equal(data.stamps_ns, stamps)
@@ -298,12 +302,15 @@ def test_missing_path(tmp_path):
             read_rosbag(missing)
 
 
-@pytest.mark.parametrize("name, content", [
-    ("notes.txt", b"timestamp,wx,wy,wz,ax,ay,az\n1,0,0,0,0,0,9.81\n"),
-    ("garbage.bag", bytes(range(256)) * 8),
-    ("garbage.db3", b"not sqlite at all" * 10),
-    ("garbage.mcap", b"\x89MCAP0\r\n" + b"\x00" * 50),
-])
+@pytest.mark.parametrize(
+    "name, content",
+    [
+        ("notes.txt", b"timestamp,wx,wy,wz,ax,ay,az\n1,0,0,0,0,0,9.81\n"),
+        ("garbage.bag", bytes(range(256)) * 8),
+        ("garbage.db3", b"not sqlite at all" * 10),
+        ("garbage.mcap", b"\x89MCAP0\r\n" + b"\x00" * 50),
+    ],
+)
 def test_not_a_bag_file(tmp_path, name, content):
     path = tmp_path / name
     path.write_bytes(content)

@@ -27,9 +27,12 @@ POSE = SensorPose.from_rotation(R_BS.as_matrix(), P_BS)
 
 def fast_rotation():
     """Rates up to ~5 rad/s about every axis, changing (α up to ~25 rad/s²)."""
-    return sim.lissajous(amplitude=(1.0, 0.8, 0.4), frequency=(0.3, 0.4, 0.5),
-                         attitude_amplitude=(0.8, 0.6, 1.5),
-                         attitude_frequency=(0.7, 0.9, 0.5))
+    return sim.lissajous(
+        amplitude=(1.0, 0.8, 0.4),
+        frequency=(0.3, 0.4, 0.5),
+        attitude_amplitude=(0.8, 0.6, 1.5),
+        attitude_frequency=(0.7, 0.9, 0.5),
+    )
 
 
 def test_ideal_imu_of_an_offset_sensor_on_a_circle_is_the_closed_form():
@@ -70,11 +73,13 @@ def test_angular_acceleration_is_numpys_second_order_gradient_on_an_uneven_grid(
     t = np.concatenate([[0.0], np.cumsum(dt[:-1])])
     w = rng.normal(size=(40, 3))
     ref = np.gradient(w, t, axis=0, edge_order=1)
-    np.testing.assert_allclose(jaximu.sensor.angular_acceleration(jnp.asarray(w), dt), ref,
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        jaximu.sensor.angular_acceleration(jnp.asarray(w), dt), ref, rtol=1e-12, atol=1e-12
+    )
     # dt of T-1 intervals: the same grid
-    np.testing.assert_allclose(jaximu.sensor.angular_acceleration(jnp.asarray(w), dt[:-1]), ref,
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        jaximu.sensor.angular_acceleration(jnp.asarray(w), dt[:-1]), ref, rtol=1e-12, atol=1e-12
+    )
 
 
 T_END = 0.6
@@ -97,8 +102,17 @@ def sensor_signals():
 
 def _errors(sig, scheme, pose, **kw):
     x0, p_end, data = sig
-    return [float(np.linalg.norm(np.asarray(jaximu.propagate_final(
-        x0, *data[dt], scheme, body_P_sensor=pose, **kw).p) - p_end)) for dt in DTS]
+    return [
+        float(
+            np.linalg.norm(
+                np.asarray(
+                    jaximu.propagate_final(x0, *data[dt], scheme, body_P_sensor=pose, **kw).p
+                )
+                - p_end
+            )
+        )
+        for dt in DTS
+    ]
 
 
 @pytest.mark.parametrize("scheme,order", [("euler", 1), ("midpoint", 2), ("rk4", 2)])
@@ -148,8 +162,9 @@ def test_preintegrate_with_body_P_sensor_equals_gtsam(start, length):
     np.testing.assert_allclose(pim.delta_p, ref.deltaPij(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(pim.bias_hat.b_g, bias.b_g, rtol=0, atol=0)
     q0 = SEG.q_gt[k0] / np.linalg.norm(SEG.q_gt[k0])
-    state = jaximu.NavState(*(jnp.asarray(x) for x in (q0, SEG.p_gt[k0], SEG.v_gt[k0],
-                                                       bias.b_g, bias.b_a)))
+    state = jaximu.NavState(
+        *(jnp.asarray(x) for x in (q0, SEG.p_gt[k0], SEG.v_gt[k0], bias.b_g, bias.b_a))
+    )
     nav = gtsam.NavState(gtsam.Rot3.Quaternion(*q0), SEG.p_gt[k0], SEG.v_gt[k0])
     pred = ref.predict(nav, gtsam.imuBias.ConstantBias(np.asarray(bias.b_a), np.asarray(bias.b_g)))
     ours = jaximu.predict(state, pim)
@@ -172,15 +187,21 @@ def test_tangential_term_is_gtsams_model_plus_alpha_cross_r_from_numpy_gradient(
     pim = jaximu.preintegrate(gyro, accel, dt, bias, NOISE, body_P_sensor=POSE)
     np.testing.assert_allclose(pim.delta_v, ref.deltaVij(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(pim.delta_p, ref.deltaPij(), rtol=0, atol=1e-9)
-    without = jaximu.preintegrate(gyro, accel, dt, bias, NOISE, body_P_sensor=POSE,
-                                  tangential=False)
+    without = jaximu.preintegrate(
+        gyro, accel, dt, bias, NOISE, body_P_sensor=POSE, tangential=False
+    )
     assert np.abs(np.asarray(without.delta_v - pim.delta_v)).max() > 1e-4
 
 
 @needs_gtsam
-@pytest.mark.parametrize("lever,jacobians,method", [(False, "analytic", "sequential"),
-                                                    (True, "analytic", "sequential"),
-                                                    (True, "autodiff", "parallel")])
+@pytest.mark.parametrize(
+    "lever,jacobians,method",
+    [
+        (False, "analytic", "sequential"),
+        (True, "analytic", "sequential"),
+        (True, "autodiff", "parallel"),
+    ],
+)
 def test_covariance_of_a_sensor_at_a_pose_equals_gtsam(lever, jacobians, method):
     """preintMeasCov in GTSAM's chart to 1e-8 relative (isotropic densities, GTSAM's model:
     tangential=False). With a lever arm the gyro noise also moves the body's specific force
@@ -188,8 +209,17 @@ def test_covariance_of_a_sensor_at_a_pose_equals_gtsam(lever, jacobians, method)
     _, gyro, accel, dt, bias = window(10.0, 1.0)
     pose = POSE if lever else SensorPose(POSE.q, jnp.zeros(3))
     ref = gtsam_pim(gyro, accel, dt, bias, pose).preintMeasCov()
-    pim = jaximu.preintegrate(gyro, accel, dt, bias, NOISE, body_P_sensor=pose,
-                              tangential=False, jacobians=jacobians, method=method)
+    pim = jaximu.preintegrate(
+        gyro,
+        accel,
+        dt,
+        bias,
+        NOISE,
+        body_P_sensor=pose,
+        tangential=False,
+        jacobians=jacobians,
+        method=method,
+    )
     np.testing.assert_allclose(pim.covariance("gtsam"), ref, rtol=0, atol=1e-8 * np.abs(ref).max())
     if lever:  # the lever arm's part is far above the tolerance
         no_lever = gtsam_pim(gyro, accel, dt, bias, SensorPose(POSE.q, jnp.zeros(3)))
@@ -201,16 +231,16 @@ def test_bias_jacobians_of_a_sensor_at_a_pose_are_sensor_frame_derivatives(schem
     """∂Δ/∂b with the bias in the sensor frame: central finite differences of re-integration
     at b ± ε e_i, rotation and lever arm (a gyro bias also moves ω×(ω×r))."""
     _, gyro, accel, dt, bias = window(6.3, 0.2)
-    pim = jaximu.preintegrate(gyro, accel, dt, bias, scheme=scheme, jacobians=jacobians,
-                              body_P_sensor=POSE)
+    pim = jaximu.preintegrate(
+        gyro, accel, dt, bias, scheme=scheme, jacobians=jacobians, body_P_sensor=POSE
+    )
     eps = 1e-6
     for i in range(3):
         e = np.eye(3)[i] * eps
         out = []
         for s in (1, -1):
             b = jaximu.ImuBias(bias.b_g + s * e, bias.b_a + s * e)
-            out.append(jaximu.preintegrate(gyro, accel, dt, b, scheme=scheme,
-                                           body_P_sensor=POSE))
+            out.append(jaximu.preintegrate(gyro, accel, dt, b, scheme=scheme, body_P_sensor=POSE))
         dv = (out[0].delta_v - out[1].delta_v) / (2 * eps)
         np.testing.assert_allclose(dv, pim.dv_dbg[:, i] + pim.dv_dba[:, i], rtol=0, atol=1e-6)
         dp = (out[0].delta_p - out[1].delta_p) / (2 * eps)
@@ -225,13 +255,15 @@ def _offset_sensor_on_a_fast_body(n=60, dt=0.005):
     t = jnp.asarray(dt * np.arange(n))
     gyro, accel = sim.ideal_imu(traj, t, body_P_sensor=POSE)
     x0 = sim.true_states(traj, t[:1])
-    x0 = jaximu.NavState(x0.q[0], x0.p[0], x0.v[0], jnp.array([0.01, -0.02, 0.005]),
-                         jnp.array([0.1, 0.0, -0.05]))
+    x0 = jaximu.NavState(
+        x0.q[0], x0.p[0], x0.v[0], jnp.array([0.01, -0.02, 0.005]), jnp.array([0.1, 0.0, -0.05])
+    )
     return x0, gyro, accel, dt
 
 
-@pytest.mark.parametrize("scheme,jacobians", [("euler", "analytic"), ("midpoint", "autodiff"),
-                                              ("rk4", "analytic")])
+@pytest.mark.parametrize(
+    "scheme,jacobians", [("euler", "analytic"), ("midpoint", "autodiff"), ("rk4", "analytic")]
+)
 def test_propagate_covariance_of_a_sensor_at_a_pose_is_phi_phit(scheme, jacobians):
     """Zero noise, P0 = I: the covariance is Φ Φᵀ with Φ by central finite differences of
     propagate_final in the 15 error directions (bias errors in S), sensor rotated and at a
@@ -239,15 +271,16 @@ def test_propagate_covariance_of_a_sensor_at_a_pose_is_phi_phit(scheme, jacobian
     (final state) and the generic one (every state) agree to 1e-12."""
     x0, gyro, accel, dt = _offset_sensor_on_a_fast_body()
     zero = jaximu.ImuNoise(0.0, 0.0, 0.0, 0.0)
-    _, P = jaximu.propagate_covariance_final(x0, jnp.eye(15), gyro, accel, dt, zero, scheme,
-                                             body_P_sensor=POSE, jacobians=jacobians)
-    run = jax.jit(lambda x: jaximu.propagate_final(x, gyro, accel, dt, scheme,
-                                                   body_P_sensor=POSE))
+    _, P = jaximu.propagate_covariance_final(
+        x0, jnp.eye(15), gyro, accel, dt, zero, scheme, body_P_sensor=POSE, jacobians=jacobians
+    )
+    run = jax.jit(lambda x: jaximu.propagate_final(x, gyro, accel, dt, scheme, body_P_sensor=POSE))
     Phi = central_difference_phi(run, x0)
     ref = Phi @ Phi.T
     np.testing.assert_allclose(P, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
-    _, P_all = jaximu.propagate_covariance(x0, jnp.eye(15), gyro, accel, dt, zero, scheme,
-                                           body_P_sensor=POSE, jacobians=jacobians)
+    _, P_all = jaximu.propagate_covariance(
+        x0, jnp.eye(15), gyro, accel, dt, zero, scheme, body_P_sensor=POSE, jacobians=jacobians
+    )
     np.testing.assert_allclose(P_all[-1], P, rtol=0, atol=1e-12 * np.abs(P).max())
 
 
@@ -269,18 +302,28 @@ def test_gyro_noise_of_a_sensor_at_a_lever_arm_reaches_the_velocity():
     Jg, Ja = (J.reshape(15, -1) for J in jax.jacfwd(error, argnums=(0, 1))(gyro, accel))
     ref = sg2 * Jg @ Jg.T + sa2 * Ja @ Ja.T
     for jacobians in ("analytic", "autodiff"):
-        _, P = jaximu.propagate_covariance_final(x0, jnp.zeros((15, 15)), gyro, accel, dt, noise,
-                                                 body_P_sensor=POSE, jacobians=jacobians,
-                                                 tangential=False)
-        np.testing.assert_allclose(P, ref, rtol=0, atol=1e-12 * np.abs(ref).max(),
-                                   err_msg=jacobians)
+        _, P = jaximu.propagate_covariance_final(
+            x0,
+            jnp.zeros((15, 15)),
+            gyro,
+            accel,
+            dt,
+            noise,
+            body_P_sensor=POSE,
+            jacobians=jacobians,
+            tangential=False,
+        )
+        np.testing.assert_allclose(
+            P, ref, rtol=0, atol=1e-12 * np.abs(ref).max(), err_msg=jacobians
+        )
     # the same samples already in the body frame, the rate not moving the specific force:
     # what the covariance was without the coupling
     gyro_b, accel_b = jaximu.sensor.to_body(POSE, gyro, accel, dt, x0.b_g, tangential=False)
     x0_b = jaximu.NavState(x0.q, x0.p, x0.v, POSE.R @ x0.b_g, POSE.R @ x0.b_a)
     nominal_b = jaximu.propagate_final(x0_b, gyro_b, accel_b, dt)
-    Jg_b = jax.jacfwd(lambda g: jaximu.boxminus(jaximu.propagate_final(x0_b, g, accel_b, dt),
-                                                nominal_b))(gyro_b).reshape(15, -1)
+    Jg_b = jax.jacfwd(
+        lambda g: jaximu.boxminus(jaximu.propagate_final(x0_b, g, accel_b, dt), nominal_b)
+    )(gyro_b).reshape(15, -1)
     uncoupled = sg2 * Jg_b @ Jg_b.T + sa2 * Ja @ Ja.T
     assert np.abs(uncoupled - ref)[:9, :9].max() > 1e-3 * np.abs(ref).max()
 
@@ -292,13 +335,25 @@ def test_vins_midpoint_covariance_of_a_sensor_at_a_lever_arm_is_near_the_exact_o
     covariance by ~2e-2 (a large gyro density makes it dominant)."""
     _, gyro, accel, dt, bias = window(10.0, 1.0)
     noise = jaximu.ImuNoise(2e-2, 2e-3, 0.0, 0.0)
-    a, b = (jaximu.preintegrate(gyro, accel, dt, bias, noise, "midpoint", jacobians=j,
-                                body_P_sensor=POSE) for j in ("analytic", "autodiff"))
+    a, b = (
+        jaximu.preintegrate(
+            gyro, accel, dt, bias, noise, "midpoint", jacobians=j, body_P_sensor=POSE
+        )
+        for j in ("analytic", "autodiff")
+    )
     for f in ("transition", "cov15"):
         x, y = np.asarray(getattr(a, f)), np.asarray(getattr(b, f))
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-3 * np.abs(y).max(), err_msg=f)
-    rotated = jaximu.preintegrate(gyro, accel, dt, bias, noise, "midpoint", jacobians="autodiff",
-                                  body_P_sensor=SensorPose(POSE.q, jnp.zeros(3)))
+    rotated = jaximu.preintegrate(
+        gyro,
+        accel,
+        dt,
+        bias,
+        noise,
+        "midpoint",
+        jacobians="autodiff",
+        body_P_sensor=SensorPose(POSE.q, jnp.zeros(3)),
+    )
     assert np.abs(np.asarray(rotated.cov15 - b.cov15)).max() > 1e-2 * np.abs(b.cov15).max()
 
 
@@ -315,23 +370,33 @@ def test_grad_through_the_lever_arm_and_vmap_and_float32():
 
     @jax.jit
     def f(p):
-        return jaximu.propagate_final(x0, gyro, accel, 0.005,
-                                      body_P_sensor=SensorPose(POSE.q, p)).p[0]
+        return jaximu.propagate_final(
+            x0, gyro, accel, 0.005, body_P_sensor=SensorPose(POSE.q, p)
+        ).p[0]
 
     g = jax.grad(f)(jnp.asarray(P_BS))
     eps = 1e-6
     fd = [(f(P_BS + eps * e) - f(P_BS - eps * e)) / (2 * eps) for e in np.eye(3)]
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
     ps = jnp.asarray(np.stack([P_BS, 2 * P_BS, -P_BS]))
-    batched = jax.vmap(lambda p: jaximu.propagate_final(
-        x0, gyro, accel, 0.005, body_P_sensor=SensorPose(POSE.q, p)).p)(ps)
+    batched = jax.vmap(
+        lambda p: (
+            jaximu.propagate_final(x0, gyro, accel, 0.005, body_P_sensor=SensorPose(POSE.q, p)).p
+        )
+    )(ps)
     for k in range(3):
-        one = jaximu.propagate_final(x0, gyro, accel, 0.005,
-                                     body_P_sensor=SensorPose(POSE.q, ps[k])).p
+        one = jaximu.propagate_final(
+            x0, gyro, accel, 0.005, body_P_sensor=SensorPose(POSE.q, ps[k])
+        ).p
         np.testing.assert_allclose(batched[k], one, rtol=0, atol=1e-12)
     pose32 = SensorPose(POSE.q.astype(jnp.float32), POSE.p.astype(jnp.float32))
-    out = jaximu.propagate_final(jaximu.NavState.identity(), gyro.astype(jnp.float32),
-                                 accel.astype(jnp.float32), 0.005, body_P_sensor=pose32)
+    out = jaximu.propagate_final(
+        jaximu.NavState.identity(),
+        gyro.astype(jnp.float32),
+        accel.astype(jnp.float32),
+        0.005,
+        body_P_sensor=pose32,
+    )
     assert out.p.dtype == jnp.float32
     ref = jaximu.propagate_final(x0, gyro, accel, 0.005, body_P_sensor=POSE)
     np.testing.assert_allclose(out.p, ref.p, rtol=0, atol=1e-4)
@@ -339,8 +404,7 @@ def test_grad_through_the_lever_arm_and_vmap_and_float32():
 
 def test_sensor_biases_come_back_in_the_sensor_frame():
     _, gyro, accel, dt, bias = window(6.3, 0.2)
-    x0 = jaximu.NavState(jnp.array([1.0, 0, 0, 0]), jnp.zeros(3), jnp.zeros(3), bias.b_g,
-                         bias.b_a)
+    x0 = jaximu.NavState(jnp.array([1.0, 0, 0, 0]), jnp.zeros(3), jnp.zeros(3), bias.b_g, bias.b_a)
     out = jaximu.propagate(x0, gyro, accel, dt, body_P_sensor=POSE)
     np.testing.assert_array_equal(out.b_g, np.tile(bias.b_g, (len(dt), 1)))
     np.testing.assert_array_equal(out.b_a, np.tile(bias.b_a, (len(dt), 1)))
@@ -360,11 +424,13 @@ def test_bad_sensor_poses_are_refused_with_the_argument_named():
     with pytest.raises(ValueError, match=r"lever arm p_BS must have shape \(3,\)"):
         SensorPose.from_rotation(np.eye(3), np.zeros(2))
     with pytest.raises(ValueError, match=r"body_P_sensor.q is not a unit quaternion"):
-        jaximu.propagate(x0, w, a, 0.01, body_P_sensor=SensorPose(jnp.array([1.0, 0.1, 0, 0]),
-                                                                  jnp.zeros(3)))
+        jaximu.propagate(
+            x0, w, a, 0.01, body_P_sensor=SensorPose(jnp.array([1.0, 0.1, 0, 0]), jnp.zeros(3))
+        )
     with pytest.raises(ValueError, match=r"body_P_sensor.p must be the lever arm p_BS of shape"):
-        jaximu.preintegrate(w, a, 0.01, body_P_sensor=SensorPose(jnp.array([1.0, 0, 0, 0]),
-                                                                 jnp.zeros(2)))
+        jaximu.preintegrate(
+            w, a, 0.01, body_P_sensor=SensorPose(jnp.array([1.0, 0, 0, 0]), jnp.zeros(2))
+        )
     with pytest.raises(ValueError, match=r"body_P_sensor must be a jaximu.SensorPose"):
         jaximu.propagate(x0, w, a, 0.01, body_P_sensor=np.eye(4))
     with pytest.raises(ValueError, match=r"last row must be \[0, 0, 0, 1\]"):

@@ -25,8 +25,9 @@ G_W = jnp.array([0.0, 0.0, -9.81])
 def _sensor_inputs(state, gyro, accel, dt, body_P_sensor, tangential, omega_coriolis):
     """The samples moved into the body frame first, by the whole-array transform (the generic
     kernel's inputs), the state with body-frame biases, and ``ω_W``."""
-    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
-                                              omega_coriolis)
+    tangential, omega, pose = _sensor_options(
+        state, gyro, accel, body_P_sensor, tangential, omega_coriolis
+    )
     state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
     return state, gyro, accel, omega
 
@@ -42,12 +43,17 @@ def case_inputs(batch, T, n, per_lane_dt, per_lane_pose, dtype, seed=0):
     gyro = rng.normal(size=batch + (T, 3)) * 3.0
     accel = rng.normal(size=batch + (T, 3)) + [0.0, 0.0, 9.8]
     dt = rng.uniform(0.003, 0.008, size=(batch if per_lane_dt else ()) + (n,))
-    state = jaximu.NavState(unit(rng.normal(size=batch + (4,))), rng.normal(size=batch + (3,)),
-                            rng.normal(size=batch + (3,)), 0.01 * rng.normal(size=batch + (3,)),
-                            0.1 * rng.normal(size=batch + (3,)))
+    state = jaximu.NavState(
+        unit(rng.normal(size=batch + (4,))),
+        rng.normal(size=batch + (3,)),
+        rng.normal(size=batch + (3,)),
+        0.01 * rng.normal(size=batch + (3,)),
+        0.1 * rng.normal(size=batch + (3,)),
+    )
     pb = batch if per_lane_pose else ()
-    pose = SensorPose(unit(rng.normal(size=pb + (4,)) + [2.0, 0, 0, 0]),
-                      rng.uniform(-0.4, 0.4, size=pb + (3,)))
+    pose = SensorPose(
+        unit(rng.normal(size=pb + (4,)) + [2.0, 0, 0, 0]), rng.uniform(-0.4, 0.4, size=pb + (3,))
+    )
     cast = lambda t: jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), t)  # noqa: E731
     return cast(state), cast(gyro), cast(accel), cast(dt), cast(pose)
 
@@ -55,18 +61,37 @@ def case_inputs(batch, T, n, per_lane_dt, per_lane_pose, dtype, seed=0):
 @functools.partial(jax.jit, static_argnames=("scheme", "save_all", "tangential", "attitude"))
 def in_kernel(state, gyro, accel, dt, pose, omega, *, scheme, save_all, tangential, attitude):
     """The engine as the entries call it: raw sensor samples, the pose, sensor-frame biases."""
-    return _propagate(state, gyro, accel, dt, G_W.astype(gyro.dtype), omega, pose,
-                      scheme=scheme, attitude=attitude, save_all=save_all,
-                      tangential=tangential)[0]
+    return _propagate(
+        state,
+        gyro,
+        accel,
+        dt,
+        G_W.astype(gyro.dtype),
+        omega,
+        pose,
+        scheme=scheme,
+        attitude=attitude,
+        save_all=save_all,
+        tangential=tangential,
+    )[0]
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "save_all", "tangential", "attitude"))
-def moved_first(state, gyro, accel, dt, pose, omega, *, scheme, save_all, tangential,
-                attitude):
+def moved_first(state, gyro, accel, dt, pose, omega, *, scheme, save_all, tangential, attitude):
     """The reference: the whole-array transform, then the generic kernel."""
     inner, gyro, accel, _ = _sensor_inputs(state, gyro, accel, dt, pose, tangential, None)
-    return _propagate(inner, gyro, accel, dt, G_W.astype(gyro.dtype), omega, scheme=scheme,
-                      attitude=attitude, save_all=save_all, fast=False)[0]
+    return _propagate(
+        inner,
+        gyro,
+        accel,
+        dt,
+        G_W.astype(gyro.dtype),
+        omega,
+        scheme=scheme,
+        attitude=attitude,
+        save_all=save_all,
+        fast=False,
+    )[0]
 
 
 def assert_close(got, want, rtol):
@@ -89,16 +114,29 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("scheme,batch,T,intervals,lane_dt,lane_pose,save_all,tangential,"
-                         "attitude,rotating,dtype", CASES)
+@pytest.mark.parametrize(
+    "scheme,batch,T,intervals,lane_dt,lane_pose,save_all,tangential,attitude,rotating,dtype", CASES
+)
 def test_samples_moved_in_the_kernel_equal_the_samples_moved_first(
-        scheme, batch, T, intervals, lane_dt, lane_pose, save_all, tangential, attitude,
-        rotating, dtype):
-    state, gyro, accel, dt, pose = case_inputs(batch, T, T - 1 if intervals else T, lane_dt,
-                                               lane_pose, dtype)
+    scheme, batch, T, intervals, lane_dt, lane_pose, save_all, tangential, attitude, rotating, dtype
+):
+    state, gyro, accel, dt, pose = case_inputs(
+        batch, T, T - 1 if intervals else T, lane_dt, lane_pose, dtype
+    )
     lanes = int(np.prod(batch))
-    assert _dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
-                            steps=dt.shape[-1], dtype=dtype, rotating=rotating) == "soa_mean"
+    assert (
+        _dispatch.kernel(
+            "mean",
+            scheme,
+            attitude=attitude,
+            save_all=save_all,
+            lanes=lanes,
+            steps=dt.shape[-1],
+            dtype=dtype,
+            rotating=rotating,
+        )
+        == "soa_mean"
+    )
     omega = jnp.asarray(jaximu.earth_rate(48.0), dtype) if rotating else None
     kw = dict(scheme=scheme, save_all=save_all, tangential=tangential, attitude=attitude)
     got = in_kernel(state, gyro, accel, dt, pose, omega, **kw)
@@ -118,7 +156,7 @@ def test_gradients_through_the_pose_and_samples_equal_the_reference():
 
     def loss(fn, p, q, w):
         out = fn(state, w, accel, dt, SensorPose(q, p), None, **kw)
-        return jnp.sum(out.p ** 2) + jnp.sum(jnp.sin(out.q))
+        return jnp.sum(out.p**2) + jnp.sum(jnp.sin(out.q))
 
     got = jax.grad(functools.partial(loss, in_kernel), argnums=(0, 1, 2))(pose.p, pose.q, gyro)
     want = jax.grad(functools.partial(loss, moved_first), argnums=(0, 1, 2))(pose.p, pose.q, gyro)
@@ -136,17 +174,23 @@ def test_covariance_with_samples_moved_in_the_kernel_equals_the_samples_moved_fi
     state, gyro, accel, dt, pose = case_inputs((3,), 77, 77, False, True, np.float64, seed=2)
     P0 = jnp.asarray(np.diag(np.linspace(1e-4, 1e-2, 15)))
     noise = jaximu.ImuNoise.euroc()
-    assert _dispatch.kernel("covariance", scheme, attitude="quaternion", jacobians=jacobians,
-                            save_all=save_all, lanes=3, lever=True).startswith("soa_cov")
+    assert _dispatch.kernel(
+        "covariance",
+        scheme,
+        attitude="quaternion",
+        jacobians=jacobians,
+        save_all=save_all,
+        lanes=3,
+        lever=True,
+    ).startswith("soa_cov")
     kw = dict(scheme=scheme, attitude="quaternion", jacobians=jacobians, save_all=save_all)
-    got = _propagate_covariance(state, P0, gyro, accel, dt, G_W, noise, None, pose.p, pose,
-                                **kw)
+    got = _propagate_covariance(state, P0, gyro, accel, dt, G_W, noise, None, pose.p, pose, **kw)
     inner, g_b, a_b, _ = _sensor_inputs(state, gyro, accel, dt, pose, True, None)
-    want = _propagate_covariance(inner, P0, g_b, a_b, dt, G_W, noise, None, pose.p, fast=False,
-                                 **kw)
+    want = _propagate_covariance(
+        inner, P0, g_b, a_b, dt, G_W, noise, None, pose.p, fast=False, **kw
+    )
     assert_close(got[0], want[0], 1e-12)
-    np.testing.assert_allclose(got[1], want[1], rtol=0,
-                               atol=1e-12 * float(np.abs(want[1]).max()))
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-12 * float(np.abs(want[1]).max()))
 
 
 @pytest.mark.parametrize("dtype,per_lane", [(np.float64, "p"), (np.float32, "q")])

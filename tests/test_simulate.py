@@ -48,13 +48,16 @@ def test_true_states_are_consistent_with_the_pose():
 def test_waypoint_spline_passes_through_waypoints_and_is_smooth():
     times = np.array([0.0, 1.0, 2.5, 4.0])
     pos = np.array([[0.0, 0, 0], [1, 0, 0.5], [1, 2, 1], [0, 3, 1]])
-    quats = Rotation.from_euler("ZYX", [[0, 0, 0], [1.0, 0.1, 0], [2.5, 0, 0.2], [3.5, -0.1, 0]]
-                                ).as_quat(scalar_first=True)
+    quats = Rotation.from_euler(
+        "ZYX", [[0, 0, 0], [1.0, 0.1, 0], [2.5, 0, 0.2], [3.5, -0.1, 0]]
+    ).as_quat(scalar_first=True)
     traj = sim.waypoints(times, pos, quats)
     q, p = jax.vmap(traj.pose)(jnp.asarray(times))
     np.testing.assert_allclose(p, pos, atol=1e-12)
-    ang = (Rotation.from_quat(np.asarray(q), scalar_first=True).inv()
-           * Rotation.from_quat(quats, scalar_first=True)).magnitude()
+    ang = (
+        Rotation.from_quat(np.asarray(q), scalar_first=True).inv()
+        * Rotation.from_quat(quats, scalar_first=True)
+    ).magnitude()
     assert ang.max() < 1e-12
     # C2: the IMU signals are continuous across a knot
     g1, a1 = sim.ideal_imu(traj, jnp.array([1.0 - 1e-7, 1.0 + 1e-7]))
@@ -97,8 +100,10 @@ def test_white_noise_and_bias_walk_statistics():
     for x, sigma in ((white_g, 2e-3 / np.sqrt(dt)), (white_a, 3e-2 / np.sqrt(dt))):
         lo, hi = stats.chi2.ppf([0.0005, 0.9995], x.size - 1) / (x.size - 1)
         assert lo < x.var(ddof=1) / sigma**2 < hi
-    for end, srw in ((np.asarray(err.b_g_end).reshape(-1), 4e-4),
-                     (np.asarray(err.b_a_end).reshape(-1), 5e-3)):
+    for end, srw in (
+        (np.asarray(err.b_g_end).reshape(-1), 4e-4),
+        (np.asarray(err.b_a_end).reshape(-1), 5e-3),
+    ):
         k = end.size
         lo, hi = stats.chi2.ppf([0.0005, 0.9995], k) / k
         assert lo < np.mean(end**2) / (srw**2 * T * dt) < hi
@@ -108,8 +113,15 @@ def test_turn_on_bias_scale_and_misalignment():
     S = np.array([[0.01, 0.002, 0.0], [-0.001, -0.02, 0.003], [0.0, 0.001, 0.005]])
     f = jnp.tile(jnp.array([0.5, -1.0, G]), (10, 1))
     zero = jaximu.ImuNoise(0.0, 0.0)
-    _, a, err = sim.add_noise(jax.random.key(0), jnp.zeros((10, 3)), f, 0.01, zero,
-                              b_a0=jnp.array([0.1, 0.2, 0.3]), accel_misalignment=S)
+    _, a, err = sim.add_noise(
+        jax.random.key(0),
+        jnp.zeros((10, 3)),
+        f,
+        0.01,
+        zero,
+        b_a0=jnp.array([0.1, 0.2, 0.3]),
+        accel_misalignment=S,
+    )
     np.testing.assert_allclose(a, np.asarray(f) @ (np.eye(3) + S).T + [0.1, 0.2, 0.3], atol=1e-12)
     np.testing.assert_allclose(err.b_a, np.tile([0.1, 0.2, 0.3], (10, 1)))
 
@@ -117,8 +129,9 @@ def test_turn_on_bias_scale_and_misalignment():
 def test_chi2_interval_matches_scipy():
     """Wilson-Hilferty against scipy, at the tolerances the docstring states."""
     for dof, tol in ((15, 1.3e-2), (150, 2e-4), (1500, 5e-6), (30000, 6e-8)):
-        np.testing.assert_allclose(chi2_interval(dof, 0.99), stats.chi2.ppf([0.005, 0.995], dof),
-                                   rtol=tol)
+        np.testing.assert_allclose(
+            chi2_interval(dof, 0.99), stats.chi2.ppf([0.005, 0.995], dof), rtol=tol
+        )
 
 
 @pytest.fixture(scope="module")
@@ -137,8 +150,9 @@ def test_monte_carlo_nees_is_consistent_and_a_wrong_model_is_detected(mc_setup):
     # 4 recorded times at 99%: a false alarm for ~3% of keys (the times are correlated). With
     # the counter-based generator key 0 draws an average NEES 2.9σ low at t = 0.25 s; over
     # 12 keys the z-scores of the 4 times have mean -0.28 (SE 0.29) and sd 1.13: no bias.
-    res = monte_carlo(traj, times, P0, noise, 2000, jax.random.key(1), record_every=50,
-                      confidence=0.99)
+    res = monte_carlo(
+        traj, times, P0, noise, 2000, jax.random.key(1), record_every=50, confidence=0.99
+    )
     assert res.nees is None and res.times[-1] == pytest.approx(1.0)
     assert np.all(res.consistent), (res.nees_mean, res.nees_bounds)
     # The empirical covariance agrees with the predicted one: relative Frobenius error of the
@@ -147,8 +161,9 @@ def test_monte_carlo_nees_is_consistent_and_a_wrong_model_is_detected(mc_setup):
     assert np.linalg.norm(C - P) / np.linalg.norm(P) < 0.12
     twice = jaximu.ImuNoise(*(2 * np.array([2e-3, 2e-2, 1e-4, 2e-3])))
     # (the same record times as above: the study's compiled chunk serves this one too)
-    wrong = monte_carlo(traj, times, P0, (noise, twice), 2000, jax.random.key(0),
-                        record_every=50, confidence=0.99)
+    wrong = monte_carlo(
+        traj, times, P0, (noise, twice), 2000, jax.random.key(0), record_every=50, confidence=0.99
+    )
     assert wrong.nees_mean[-1] < 0.6 * wrong.nees_bounds[0]
     assert np.abs(res.discretization_error[-1][3:6]).max() < 1e-2
 
@@ -177,8 +192,9 @@ def test_sharded_and_single_device_runs_agree(tmp_path):
     # options; without them the child's two compilations take ~1.6x longer)
     flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
     env = dict(os.environ, XLA_FLAGS=flags.strip())
-    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
-                         timeout=300)
+    res = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     np.testing.assert_allclose(out["True"][0], out["False"][0], rtol=1e-10)
@@ -192,7 +208,8 @@ def test_allan_deviation_recovers_the_noise_densities():
     sw, srw = 1.6968e-04, 1.9393e-05
     rng = np.random.default_rng(5)
     y = rng.normal(size=(n, 3)) * sw / np.sqrt(dt) + np.cumsum(
-        rng.normal(size=(n, 3)) * srw * np.sqrt(dt), axis=0)
+        rng.normal(size=(n, 3)) * srw * np.sqrt(dt), axis=0
+    )
     taus, adev = allan.allan_deviation(y, dt)
     fit = allan.fit_noise(taus, adev)
     np.testing.assert_allclose(fit.white, sw, rtol=0.10)

@@ -227,9 +227,7 @@ def test_reference_jpl_formula_sanity():
     th = 0.7
     qbar = np.array([0, 0, np.sin(th / 2), np.cos(th / 2)])
     c, s = np.cos(th), np.sin(th)
-    np.testing.assert_allclose(
-        np_jpl_C(qbar), [[c, s, 0], [-s, c, 0], [0, 0, 1]], atol=1e-15
-    )
+    np.testing.assert_allclose(np_jpl_C(qbar), [[c, s, 0], [-s, c, 0], [0, 0, 1]], atol=1e-15)
 
 
 def test_reference_jr_series_sanity():
@@ -393,7 +391,9 @@ def test_log_at_pi_sign_ambiguity():
 
 
 def test_log_exp_round_trip(rng):
-    phi = np.concatenate([random_rotvecs(rng, N, max_angle=PI - 1e-6), edge_rotvecs()[:-len(AXES)]])
+    phi = np.concatenate(
+        [random_rotvecs(rng, N, max_angle=PI - 1e-6), edge_rotvecs()[: -len(AXES)]]
+    )
     assert np.linalg.norm(phi, axis=-1).max() < PI
     np.testing.assert_allclose(J.log(J.exp(jnp.asarray(phi))), phi, atol=TOL64)
     np.testing.assert_allclose(J.log_matrix(J.exp_matrix(jnp.asarray(phi))), phi, atol=TOL64)

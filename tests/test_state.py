@@ -14,8 +14,9 @@ def random_nav(seed, batch=()):
     rng = np.random.default_rng(seed)
     n = int(np.prod(batch, dtype=int))
     q = Rotation.random(n, random_state=seed).as_quat(scalar_first=True).reshape(batch + (4,))
-    return jaximu.NavState(jnp.asarray(q), *(jnp.asarray(rng.normal(size=batch + (3,)))
-                                             for _ in range(4)))
+    return jaximu.NavState(
+        jnp.asarray(q), *(jnp.asarray(rng.normal(size=batch + (3,))) for _ in range(4))
+    )
 
 
 @pytest.mark.parametrize("batch", [(), (7,), (2, 3)])
@@ -25,8 +26,9 @@ def test_boxplus_is_right_perturbation_and_boxminus_inverts_it(batch):
     delta = np.random.default_rng(2).normal(size=batch + (15,))
     delta[..., THETA] *= 0.5
     y = jaximu.boxplus(x, jnp.asarray(delta))
-    R_expected = (Rotation.from_quat(np.asarray(x.q).reshape(-1, 4), scalar_first=True)
-                  * Rotation.from_rotvec(delta[..., THETA].reshape(-1, 3)))
+    R_expected = Rotation.from_quat(
+        np.asarray(x.q).reshape(-1, 4), scalar_first=True
+    ) * Rotation.from_rotvec(delta[..., THETA].reshape(-1, 3))
     R_got = Rotation.from_quat(np.asarray(y.q).reshape(-1, 4), scalar_first=True)
     assert np.max((R_expected.inv() * R_got).magnitude()) < 1e-14
     np.testing.assert_allclose(y.p, np.asarray(x.p) + delta[..., POS], atol=1e-15)
@@ -38,9 +40,13 @@ def test_boxplus_is_right_perturbation_and_boxminus_inverts_it(batch):
 
 def test_boxminus_rotation_is_in_the_reference_body_frame():
     """Log(R_refᵀ R): a small rotation about the reference's body x axis reads as (ε, 0, 0)."""
-    ref = jaximu.NavState(jnp.asarray(Rotation.from_euler("ZYX", [1.0, 0.2, 0.3])
-                                      .as_quat(scalar_first=True)), *(jnp.zeros(3),) * 4)
-    R = Rotation.from_quat(np.asarray(ref.q), scalar_first=True) * Rotation.from_rotvec([1e-3, 0, 0])
+    ref = jaximu.NavState(
+        jnp.asarray(Rotation.from_euler("ZYX", [1.0, 0.2, 0.3]).as_quat(scalar_first=True)),
+        *(jnp.zeros(3),) * 4,
+    )
+    R = Rotation.from_quat(np.asarray(ref.q), scalar_first=True) * Rotation.from_rotvec(
+        [1e-3, 0, 0]
+    )
     other = ref.replace(q=jnp.asarray(R.as_quat(scalar_first=True)))
     np.testing.assert_allclose(jaximu.boxminus(other, ref)[THETA], [1e-3, 0, 0], atol=1e-15)
 
@@ -54,8 +60,9 @@ def test_navstate_is_a_pytree_that_jits_vmaps_and_indexes():
     norms = jax.vmap(lambda s: jnp.linalg.norm(s.q))(x)
     np.testing.assert_allclose(norms, 1.0, atol=1e-15)
     assert x[2].p.shape == (3,) and x.batch_shape == (5,)
-    np.testing.assert_allclose(x.R, Rotation.from_quat(np.asarray(x.q), scalar_first=True).as_matrix(),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        x.R, Rotation.from_quat(np.asarray(x.q), scalar_first=True).as_matrix(), atol=1e-15
+    )
     assert isinstance(x.bias, jaximu.ImuBias)
 
 

@@ -79,9 +79,11 @@ def _estimate(text, cal):
     known = cal.FIELDS + cal.NOISE_FIELDS
     unknown = [s for s in names if s not in known]
     if unknown or not names:
-        raise UsageError(f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
-                         f"--estimate; fields: {', '.join(cal.FIELDS)}, and the noise's "
-                         f"{', '.join(cal.NOISE_FIELDS)} (or noise for all of them)")
+        raise UsageError(
+            f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
+            f"--estimate; fields: {', '.join(cal.FIELDS)}, and the noise's "
+            f"{', '.join(cal.NOISE_FIELDS)} (or noise for all of them)"
+        )
     return tuple(names)
 
 
@@ -95,8 +97,10 @@ def cmd_calibrate(args):
     if args.keyframe_interval is not None and not args.keyframe_interval > 0:
         raise UsageError("--keyframe-interval must be positive")
     if noise_fit and args.keyframe_interval is not None:
-        raise UsageError("--keyframe-interval with noise densities in --estimate: their windows "
-                         "are --window-lengths (the shortest are the keyframes)")
+        raise UsageError(
+            "--keyframe-interval with noise densities in --estimate: their windows "
+            "are --window-lengths (the shortest are the keyframes)"
+        )
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be at least 1, got {args.steps}")
     lengths = _numbers("--window-lengths", args.window_lengths) if noise_fit else None
@@ -111,8 +115,10 @@ def cmd_calibrate(args):
     data = _load(args)
     gt = data.ground_truth
     if gt is None:
-        raise UsageError(f"{args.file} has no ground truth: calibration needs a reference "
-                         "trajectory (EuRoC state_groundtruth_estimate0 or TUM-VI mocap0)")
+        raise UsageError(
+            f"{args.file} has no ground truth: calibration needs a reference "
+            "trajectory (EuRoC state_groundtruth_estimate0 or TUM-VI mocap0)"
+        )
     dtype = _dtype(args)
     ref = cal.Reference(gt.t, gt.q, gt.p, gt.v)
     _start_at_groundtruth(data, gt)  # a window outside the ground truth: say where it is
@@ -121,51 +127,78 @@ def cmd_calibrate(args):
     pose, omega, yaml_noise = _sensor_and_world(args, data.rate_hz)
     extrinsics = pose is not None or bool({"q_BS", "p_BS"} & set(estimate))
     if noise_fit and extrinsics:
-        raise UsageError("noise densities with extrinsics (--body-P-sensor, q_BS, p_BS): fit "
-                         "the extrinsics first, then the noise on the rotated samples")
+        raise UsageError(
+            "noise densities with extrinsics (--body-P-sensor, q_BS, p_BS): fit "
+            "the extrinsics first, then the noise on the rotated samples"
+        )
     initial = None
     if pose is not None:
-        initial = cal.ImuCalibration.default(dtype=dtype, q_BS=np.asarray(pose.q),
-                                             p_BS=np.asarray(pose.p))
+        initial = cal.ImuCalibration.default(
+            dtype=dtype, q_BS=np.asarray(pose.q), p_BS=np.asarray(pose.p)
+        )
     noise = yaml_noise or _noise(args.noise)
-    kw = ({"window_lengths": lengths} if noise_fit
-          else {"keyframe_interval": args.keyframe_interval or 0.5, "extrinsics": extrinsics})
+    kw = (
+        {"window_lengths": lengths}
+        if noise_fit
+        else {"keyframe_interval": args.keyframe_interval or 0.5, "extrinsics": extrinsics}
+    )
     with _warnings_as_lines():
-        problem = cal.calibration_problem(jnp.asarray(d.t, dtype), jnp.asarray(d.gyro, dtype),
-                                          jnp.asarray(d.accel, dtype), ref, noise,
-                                          scheme=args.scheme, omega_coriolis=omega,
-                                          reference_sigma=ref_sigma, **kw)
+        problem = cal.calibration_problem(
+            jnp.asarray(d.t, dtype),
+            jnp.asarray(d.gyro, dtype),
+            jnp.asarray(d.accel, dtype),
+            ref,
+            noise,
+            scheme=args.scheme,
+            omega_coriolis=omega,
+            reference_sigma=ref_sigma,
+            **kw,
+        )
     base = problem.base if noise_fit else problem
     if "q_BS0" in base.diagnostics:
         angle = float(np.degrees(np.asarray(base.diagnostics["q_BS0_angle"])))
-        print(f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
-              f"form): {angle:.2f}°, q_BS0 = "
-              f"{np.array2string(np.asarray(base.diagnostics['q_BS0']), precision=5)}")
+        print(
+            f"IMU-to-reference rotation from the gyro and the reference's rotations (closed "
+            f"form): {angle:.2f}°, q_BS0 = "
+            f"{np.array2string(np.asarray(base.diagnostics['q_BS0']), precision=5)}"
+        )
     if base.n_skipped:  # keyframes inside a dropout of the reference: left out of the fit
         print(f"note: {base.skip_note}")
-    windows = (f"windows of {', '.join(f'{x:g}' for x in problem.window_lengths)} s"
-               if noise_fit else f"keyframes every {args.keyframe_interval or 0.5:g} s")
+    windows = (
+        f"windows of {', '.join(f'{x:g}' for x in problem.window_lengths)} s"
+        if noise_fit
+        else f"keyframes every {args.keyframe_interval or 0.5:g} s"
+    )
     print(f"calibrating {', '.join(estimate)} on {d.duration:.1f} s ({windows}, {args.scheme})")
     cached = getattr(args, "cache_dir", None)
-    what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step",
-            "adam": "Adam step"}[args.optimizer]
-    print(f"compiling the {what}, then fitting (a first run compiles for about "
-          f"{ {'lm': 5, 'lbfgs': 40, 'adam': 15}[args.optimizer]} s on 2 CPU cores"
-          + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
-          + ")…", flush=True)
+    what = {"lm": "residuals and their Jacobian", "lbfgs": "L-BFGS step", "adam": "Adam step"}[
+        args.optimizer
+    ]
+    print(
+        f"compiling the {what}, then fitting (a first run compiles for about "
+        f"{ {'lm': 5, 'lbfgs': 40, 'adam': 15}[args.optimizer] } s on 2 CPU cores"
+        + (f"; the compilation is kept in {cached} for the next runs" if cached else "")
+        + ")…",
+        flush=True,
+    )
     tic = time.perf_counter()
     with _warnings_as_lines():
-        res = cal.calibrate(problem, initial, estimate=estimate, optimizer=args.optimizer,
-                            steps=args.steps)
-    print(f"done in {time.perf_counter() - tic:.2f} s ({len(res.loss_history) - 1} steps, "
-          f"{'converged' if res.converged else 'not converged'}); χ²/dof = {res.reduced_chi2:.3g}")
+        res = cal.calibrate(
+            problem, initial, estimate=estimate, optimizer=args.optimizer, steps=args.steps
+        )
+    print(
+        f"done in {time.perf_counter() - tic:.2f} s ({len(res.loss_history) - 1} steps, "
+        f"{'converged' if res.converged else 'not converged'}); χ²/dof = {res.reduced_chi2:.3g}"
+    )
     out = {}
     for name in (n for n in estimate if n in cal.FIELDS):
         value = np.asarray(getattr(res.calibration, name), np.float64)
         std = np.asarray(getattr(res.std, name), np.float64)
         out[name] = {"value": value.tolist(), "std": std.tolist()}
-        line = f"{name:>14} = {np.array2string(value, precision=5)} ± " \
-               f"{np.array2string(std, precision=5)}"
+        line = (
+            f"{name:>14} = {np.array2string(value, precision=5)} ± "
+            f"{np.array2string(std, precision=5)}"
+        )
         truth = {"b_g": gt.b_g, "b_a": gt.b_a}.get(name)
         if truth is not None:
             line += f"   (ground truth {np.array2string(truth.mean(0), precision=5)})"
@@ -180,12 +213,22 @@ def cmd_calibrate(args):
     if args.imu_yaml:
         from jaximu.calibration import kalibr
 
-        iso = cal.ImuNoise(*(float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
-                             for n in kalibr.DENSITIES))
-        kalibr.write_imu_yaml(args.imu_yaml, iso, res.rate_hz, comment=(
-            f"jaximu calibrate {args.file}: densities by likelihood over windows of "
-            f"{', '.join(f'{x:g}' for x in res.window_lengths)} s; χ²/dof = "
-            f"{res.reduced_chi2:.3f}"))
+        iso = cal.ImuNoise(
+            *(
+                float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
+                for n in kalibr.DENSITIES
+            )
+        )
+        kalibr.write_imu_yaml(
+            args.imu_yaml,
+            iso,
+            res.rate_hz,
+            comment=(
+                f"jaximu calibrate {args.file}: densities by likelihood over windows of "
+                f"{', '.join(f'{x:g}' for x in res.window_lengths)} s; χ²/dof = "
+                f"{res.reduced_chi2:.3f}"
+            ),
+        )
         print(f"Kalibr imu.yaml written to {args.imu_yaml}")
     return 0
 
@@ -205,10 +248,14 @@ def _noise_json(res, cal):
     check of :attr:`CalibrationResult.chi2_by_length`."""
     out = {}
     for name in cal.NOISE_FIELDS[:4]:
-        out[name] = {"value": _json_numbers(getattr(res.noise, name)),
-                     "std": _json_numbers(getattr(res.noise_std, name))}
-    out["reference_sigma"] = {"value": _json_numbers(res.reference_sigma),
-                              "std": _json_numbers(res.reference_sigma_std)}
+        out[name] = {
+            "value": _json_numbers(getattr(res.noise, name)),
+            "std": _json_numbers(getattr(res.noise_std, name)),
+        }
+    out["reference_sigma"] = {
+        "value": _json_numbers(res.reference_sigma),
+        "std": _json_numbers(res.reference_sigma_std),
+    }
     out["rate_hz"] = res.rate_hz
     out["window_lengths"] = list(res.window_lengths)
     out["chi2_by_length"] = _json_numbers(np.asarray(res.chi2_by_length, np.float64))
@@ -216,43 +263,72 @@ def _noise_json(res, cal):
 
 
 def add_parser(sub):
-    p = sub.add_parser("calibrate", help="fit IMU biases (or scale, misalignment, …, the noise "
-                       "densities) to ground truth",
-                       description="Fit IMU calibration parameters (Levenberg-Marquardt, or "
-                       "optax L-BFGS/Adam) on preintegration residuals between ground-truth "
-                       "keyframes, and the noise densities by likelihood over windows of several "
-                       "lengths; print them with their Laplace 1σ.")
+    p = sub.add_parser(
+        "calibrate",
+        help="fit IMU biases (or scale, misalignment, …, the noise densities) to ground truth",
+        description="Fit IMU calibration parameters (Levenberg-Marquardt, or "
+        "optax L-BFGS/Adam) on preintegration residuals between ground-truth "
+        "keyframes, and the noise densities by likelihood over windows of several "
+        "lengths; print them with their Laplace 1σ.",
+    )
     _add_input_options(p)
-    p.add_argument("--estimate", default="b_g,b_a",
-                   help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
-                   "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, "
-                   "time_offset, q_BS (the IMU's rotation in the reference's body frame, "
-                   "initialised in closed form), p_BS (its lever arm); the noise densities "
-                   "gyroscope_noise_density, accelerometer_noise_density, "
-                   "gyroscope_random_walk, accelerometer_random_walk and reference_sigma, or "
-                   "noise for all five")
-    p.add_argument("--keyframe-interval", type=float, default=None,
-                   help="seconds between keyframes (> 0, at least one sample interval; "
-                   "default 0.5); not with noise densities")
-    p.add_argument("--window-lengths", default=WINDOW_LENGTHS,
-                   help="noise densities: comma-separated window lengths [s], each a whole "
-                   "multiple of the shortest; the shortest are fitted (≥ 16 in the recording), "
-                   "the longer ones check the fit (default: %(default)s)")
-    p.add_argument("--reference-sigma", default="1e-3,1e-3,1e-2",
-                   help="the reference's own noise σ_θ [rad], σ_p [m], σ_v [m/s] (positive; "
-                   "the starting values when reference_sigma is estimated; default: %(default)s)")
+    p.add_argument(
+        "--estimate",
+        default="b_g,b_a",
+        help="comma-separated fields (default: %(default)s); any of b_g, b_a, "
+        "gyro_scale, gyro_misalignment, accel_scale, accel_misalignment, gravity, "
+        "time_offset, q_BS (the IMU's rotation in the reference's body frame, "
+        "initialised in closed form), p_BS (its lever arm); the noise densities "
+        "gyroscope_noise_density, accelerometer_noise_density, "
+        "gyroscope_random_walk, accelerometer_random_walk and reference_sigma, or "
+        "noise for all five",
+    )
+    p.add_argument(
+        "--keyframe-interval",
+        type=float,
+        default=None,
+        help="seconds between keyframes (> 0, at least one sample interval; "
+        "default 0.5); not with noise densities",
+    )
+    p.add_argument(
+        "--window-lengths",
+        default=WINDOW_LENGTHS,
+        help="noise densities: comma-separated window lengths [s], each a whole "
+        "multiple of the shortest; the shortest are fitted (≥ 16 in the recording), "
+        "the longer ones check the fit (default: %(default)s)",
+    )
+    p.add_argument(
+        "--reference-sigma",
+        default="1e-3,1e-3,1e-2",
+        help="the reference's own noise σ_θ [rad], σ_p [m], σ_v [m/s] (positive; "
+        "the starting values when reference_sigma is estimated; default: %(default)s)",
+    )
     p.add_argument("--scheme", default="midpoint", choices=["euler", "midpoint"])
-    p.add_argument("--optimizer", default="lm", choices=["lm", "lbfgs", "adam"],
-                   help="Levenberg-Marquardt on the residuals (default: compiles least, fewest "
-                   "steps), optax L-BFGS or Adam")
-    p.add_argument("--steps", type=int, default=None,
-                   help="optimiser steps (≥ 1; default: 50 LM, 100 L-BFGS, 1000 Adam)")
-    p.add_argument("--noise", default="euroc", choices=NOISE_PRESETS,
-                   help="the densities to whiten with (and to start a noise fit from)")
+    p.add_argument(
+        "--optimizer",
+        default="lm",
+        choices=["lm", "lbfgs", "adam"],
+        help="Levenberg-Marquardt on the residuals (default: compiles least, fewest "
+        "steps), optax L-BFGS or Adam",
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="optimiser steps (≥ 1; default: 50 LM, 100 L-BFGS, 1000 Adam)",
+    )
+    p.add_argument(
+        "--noise",
+        default="euroc",
+        choices=NOISE_PRESETS,
+        help="the densities to whiten with (and to start a noise fit from)",
+    )
     p.add_argument("--out", metavar="JSON", help="write the fitted values")
-    p.add_argument("--imu-yaml", metavar="YAML",
-                   help="write the fitted densities as a Kalibr imu.yaml (with noise in "
-                   "--estimate)")
+    p.add_argument(
+        "--imu-yaml",
+        metavar="YAML",
+        help="write the fitted densities as a Kalibr imu.yaml (with noise in --estimate)",
+    )
     p.add_argument("--float64", action="store_true", help="compute in float64")
     _add_sensor_options(p)
     p.set_defaults(func=cmd_calibrate)

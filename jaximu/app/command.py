@@ -22,8 +22,18 @@ import sys
 from jaximu.app import allan, calibrate, demo, learn, montecarlo, preintegrate, propagate
 from jaximu.app.common import UsageError, check_earth_rate
 
-__all__ = ["API_ONLY_OPTIONS", "FLAGS", "INVERTED_FLAGS", "UsageError", "build_parser",
-           "cache_folder", "enable_compilation_cache", "flag_of", "main", "options_table"]
+__all__ = [
+    "API_ONLY_OPTIONS",
+    "FLAGS",
+    "INVERTED_FLAGS",
+    "UsageError",
+    "build_parser",
+    "cache_folder",
+    "enable_compilation_cache",
+    "flag_of",
+    "main",
+    "options_table",
+]
 
 SUBCOMMANDS = (demo, propagate, preintegrate, montecarlo, calibrate, allan, learn)
 """The modules of the subcommands, in the order ``jaximu --help`` lists them; each registers
@@ -33,9 +43,11 @@ its parser with ``add_parser(sub)``."""
 def build_parser():
     """The command's parser: one subparser per module of :data:`SUBCOMMANDS`."""
     parser = argparse.ArgumentParser(
-        prog="jaximu", description=__doc__.split("\n\n")[0],
+        prog="jaximu",
+        description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1])
+        epilog=__doc__.split("\n\n", 1)[1],
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in SUBCOMMANDS:
         module.add_parser(sub)
@@ -52,11 +64,18 @@ def options_table() -> str:
     commands = []
     for name, p in sub.choices.items():  # `jaximu learn train`: a subcommand's actions too
         nested = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
-        commands += ([(f"{name} {n}", q) for a in nested for n, q in a.choices.items()]
-                     if nested else [(name, p)])
+        commands += (
+            [(f"{name} {n}", q) for a in nested for n, q in a.choices.items()]
+            if nested
+            else [(name, p)]
+        )
     for name, p in commands:
-        lines += [f"### `jaximu {name}`", "", "| option | accepts | default | meaning |",
-                  "|---|---|---|---|"]
+        lines += [
+            f"### `jaximu {name}`",
+            "",
+            "| option | accepts | default | meaning |",
+            "|---|---|---|---|",
+        ]
         for a in p._actions:
             if isinstance(a, argparse._HelpAction):
                 continue
@@ -76,14 +95,25 @@ def options_table() -> str:
 
 # The library's errors carry their repairs as data (jaximu.errors.Fix: option and value); on
 # the command line they are flags.
-FLAGS = {"gyro_unit": "--gyro-unit", "accel_unit": "--accel-unit", "time_unit": "--time-unit",
-         "sort": "--sort", "drop_duplicates": "--drop-duplicates",
-         "drop_nonfinite": "--drop-nonfinite", "allow_gaps": "--allow-gaps",
-         "max_gap": "--max-gap", "gravity": "--gravity",
-         "keyframe_interval": "--keyframe-interval", "seconds": "--seconds",
-         "update_every": "--filter", "estimate": "--estimate",
-         "window_lengths": "--window-lengths", "reference_sigma": "--reference-sigma",
-         "optimizer": "--optimizer", "noise": "--noise"}
+FLAGS = {
+    "gyro_unit": "--gyro-unit",
+    "accel_unit": "--accel-unit",
+    "time_unit": "--time-unit",
+    "sort": "--sort",
+    "drop_duplicates": "--drop-duplicates",
+    "drop_nonfinite": "--drop-nonfinite",
+    "allow_gaps": "--allow-gaps",
+    "max_gap": "--max-gap",
+    "gravity": "--gravity",
+    "keyframe_interval": "--keyframe-interval",
+    "seconds": "--seconds",
+    "update_every": "--filter",
+    "estimate": "--estimate",
+    "window_lengths": "--window-lengths",
+    "reference_sigma": "--reference-sigma",
+    "optimizer": "--optimizer",
+    "noise": "--noise",
+}
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
 API_ONLY_OPTIONS = frozenset({"measurement", "path", "model", "extrinsics"})
 """Options the library's fixes may name that have no flag (rendered as keywords):

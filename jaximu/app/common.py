@@ -12,9 +12,20 @@ import sys
 
 import numpy as np
 
-__all__ = ["UsageError", "add_input_options", "add_output_options", "add_sensor_options",
-           "bias_option", "check_earth_rate", "check_outputs", "compute_dtype", "detect_format",
-           "load_recording", "sensor_and_world", "start_at_groundtruth"]
+__all__ = [
+    "UsageError",
+    "add_input_options",
+    "add_output_options",
+    "add_sensor_options",
+    "bias_option",
+    "check_earth_rate",
+    "check_outputs",
+    "compute_dtype",
+    "detect_format",
+    "load_recording",
+    "sensor_and_world",
+    "start_at_groundtruth",
+]
 
 
 class UsageError(ValueError):
@@ -44,18 +55,24 @@ def sensor_and_world(args, rate_hz=None):
         cfg = kalibr.parse_body_P_sensor(args.body_P_sensor)
         pose, noise = cfg.body_P_sensor, cfg.noise
         if pose is not None:
-            print(f"IMU pose on the body from {cfg.source}: q_BS = "
-                  f"{np.array2string(np.asarray(pose.q), precision=6)}, p_BS = "
-                  f"{np.array2string(np.asarray(pose.p), precision=4)} m")
+            print(
+                f"IMU pose on the body from {cfg.source}: q_BS = "
+                f"{np.array2string(np.asarray(pose.q), precision=6)}, p_BS = "
+                f"{np.array2string(np.asarray(pose.p), precision=4)} m"
+            )
         if noise is not None:
             print(f"noise densities from {cfg.source} (they replace --noise)")
         if cfg.rate_hz and rate_hz and abs(cfg.rate_hz - rate_hz) > 0.05 * rate_hz:
-            print(f"note: the YAML's rate {cfg.rate_hz:g} Hz differs from the recording's "
-                  f"{rate_hz:.1f} Hz")
+            print(
+                f"note: the YAML's rate {cfg.rate_hz:g} Hz differs from the recording's "
+                f"{rate_hz:.1f} Hz"
+            )
     if getattr(args, "earth_rate", None) is not None:
         omega = np.asarray(earth_rate(args.earth_rate), np.float64)
-        print(f"rotating world: Earth's rate at latitude {args.earth_rate:g}° (east-north-up) "
-              f"{np.array2string(omega, precision=4)} rad/s")
+        print(
+            f"rotating world: Earth's rate at latitude {args.earth_rate:g}° (east-north-up) "
+            f"{np.array2string(omega, precision=4)} rad/s"
+        )
     return pose, omega, noise
 
 
@@ -69,14 +86,21 @@ def check_earth_rate(args):
 
 def add_sensor_options(p):
     g = p.add_argument_group("sensor pose and rotating world")
-    g.add_argument("--body-P-sensor", metavar="QW,QX,QY,QZ,PX,PY,PZ|YAML",
-                   help="the IMU's pose in the body frame: q_BS (Hamilton) and the lever arm "
-                   "p_BS [m]; or an EuRoC sensor.yaml (T_BS) or Kalibr camchain (cam0 "
-                   "T_cam_imu: the camera is the body) / imu.yaml, whose noise densities "
-                   "replace --noise")
-    g.add_argument("--earth-rate", type=float, metavar="LAT",
-                   help="latitude [°] of the local east-north-up world: Earth's rotation "
-                   "(Coriolis and centrifugal, exact transition) at it")
+    g.add_argument(
+        "--body-P-sensor",
+        metavar="QW,QX,QY,QZ,PX,PY,PZ|YAML",
+        help="the IMU's pose in the body frame: q_BS (Hamilton) and the lever arm "
+        "p_BS [m]; or an EuRoC sensor.yaml (T_BS) or Kalibr camchain (cam0 "
+        "T_cam_imu: the camera is the body) / imu.yaml, whose noise densities "
+        "replace --noise",
+    )
+    g.add_argument(
+        "--earth-rate",
+        type=float,
+        metavar="LAT",
+        help="latitude [°] of the local east-north-up world: Earth's rotation "
+        "(Coriolis and centrifugal, exact transition) at it",
+    )
 
 
 def detect_format(path: pathlib.Path) -> str:
@@ -112,13 +136,20 @@ def load_recording(args):
     if not path.exists():
         raise UsageError(f"no such file or directory: {path}")
     fmt = args.format if args.format != "auto" else detect_format(path)
-    repair = {"sort": args.sort, "drop_duplicates": args.drop_duplicates,
-              "drop_nonfinite": args.drop_nonfinite, "allow_gaps": args.allow_gaps,
-              "max_gap": args.max_gap, "check_units": not args.no_unit_check}
+    repair = {
+        "sort": args.sort,
+        "drop_duplicates": args.drop_duplicates,
+        "drop_nonfinite": args.drop_nonfinite,
+        "allow_gaps": args.allow_gaps,
+        "max_gap": args.max_gap,
+        "check_units": not args.no_unit_check,
+    }
     units = {"gyro_unit": args.gyro_unit, "accel_unit": args.accel_unit}
     if args.topic is not None and fmt != "rosbag":
-        raise UsageError(f"--topic names a ROS bag's topic; {path} is read as {fmt}: drop "
-                         "--topic (or pass --format rosbag for a bag)")
+        raise UsageError(
+            f"--topic names a ROS bag's topic; {path} is read as {fmt}: drop "
+            "--topic (or pass --format rosbag for a bag)"
+        )
     if args.time_unit is not None and fmt not in ("csv", "npz"):
         raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
     if fmt in ("euroc", "tumvi"):  # SI by definition; the units flags for other ASL folders
@@ -128,14 +159,23 @@ def load_recording(args):
         if len(cols) != 7:
             raise UsageError("--columns needs 7 comma-separated columns: t,wx,wy,wz,ax,ay,az")
         cols = [int(c) if c.lstrip("-").isdigit() else c for c in cols]
-        data = io.read_csv(path, time=cols[0], gyro=cols[1:4], accel=cols[4:7],
-                           time_unit=args.time_unit, **units, **repair)
+        data = io.read_csv(
+            path,
+            time=cols[0],
+            gyro=cols[1:4],
+            accel=cols[4:7],
+            time_unit=args.time_unit,
+            **units,
+            **repair,
+        )
     elif fmt == "npz":
         data = io.read_npz(path, time_unit=args.time_unit or "s", **units, **repair)
     else:
         data = io.read_rosbag(path, args.topic, **units, **repair)
-    print(f"read {len(data)} samples over {data.duration:.3f} s at {data.rate_hz:.1f} Hz from "
-          f"{data.source} ({fmt})" + ("; with ground truth" if data.ground_truth else ""))
+    print(
+        f"read {len(data)} samples over {data.duration:.3f} s at {data.rate_hz:.1f} Hz from "
+        f"{data.source} ({fmt})" + ("; with ground truth" if data.ground_truth else "")
+    )
     for note in data.repairs:
         print(f"repair: {note}", file=sys.stderr)
     if args.start or args.duration is not None:
@@ -144,16 +184,28 @@ def load_recording(args):
 
 
 def add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosbag")):
-    p.add_argument("file", help="EuRoC/TUM-VI sequence folder (mav0/...), imu0/data.csv, a CSV, "
-                   "an NPZ, or a ROS 1/2 bag")
+    p.add_argument(
+        "file",
+        help="EuRoC/TUM-VI sequence folder (mav0/...), imu0/data.csv, a CSV, "
+        "an NPZ, or a ROS 1/2 bag",
+    )
     g = p.add_argument_group("input")
-    g.add_argument("--format", default="auto", choices=formats,
-                   help="input format (default: from the path)")
-    g.add_argument("--columns", default="0,1,2,3,4,5,6", metavar="T,WX,WY,WZ,AX,AY,AZ",
-                   help="CSV columns, indices or header names (default: EuRoC order)")
-    g.add_argument("--time-unit", default=None, choices=["s", "ms", "us", "ns"],
-                   help="CSV/NPZ time unit (default: the unit the CSV header states, such as "
-                   "EuRoC's '#timestamp [ns]', else s)")
+    g.add_argument(
+        "--format", default="auto", choices=formats, help="input format (default: from the path)"
+    )
+    g.add_argument(
+        "--columns",
+        default="0,1,2,3,4,5,6",
+        metavar="T,WX,WY,WZ,AX,AY,AZ",
+        help="CSV columns, indices or header names (default: EuRoC order)",
+    )
+    g.add_argument(
+        "--time-unit",
+        default=None,
+        choices=["s", "ms", "us", "ns"],
+        help="CSV/NPZ time unit (default: the unit the CSV header states, such as "
+        "EuRoC's '#timestamp [ns]', else s)",
+    )
     g.add_argument("--gyro-unit", default="rad/s", choices=["rad/s", "deg/s"])
     g.add_argument("--accel-unit", default="m/s^2", choices=["m/s^2", "g"])
     g.add_argument("--topic", help="ROS bag: the sensor_msgs/Imu topic (default: the only one)")
@@ -161,34 +213,48 @@ def add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosba
     g.add_argument("--duration", type=float, default=None, help="use this many seconds (> 0)")
     r = p.add_argument_group("repairs (off by default: problems are errors)")
     r.add_argument("--sort", action="store_true", help="sort samples by time")
-    r.add_argument("--drop-duplicates", action="store_true",
-                   help="keep the first of samples with equal stamps")
+    r.add_argument(
+        "--drop-duplicates", action="store_true", help="keep the first of samples with equal stamps"
+    )
     r.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/inf")
     r.add_argument("--allow-gaps", action="store_true", help="keep gaps longer than --max-gap")
-    r.add_argument("--max-gap", type=float, default=None,
-                   help="longest interval [s] (default: 5 × the median)")
-    r.add_argument("--no-unit-check", action="store_true",
-                   help="skip the rate and magnitude plausibility checks")
+    r.add_argument(
+        "--max-gap", type=float, default=None, help="longest interval [s] (default: 5 × the median)"
+    )
+    r.add_argument(
+        "--no-unit-check",
+        action="store_true",
+        help="skip the rate and magnitude plausibility checks",
+    )
 
 
 def add_output_options(p, plot_default=None):
-    p.add_argument("--plot", default=plot_default, metavar="PNG",
-                   help="write a plot" + (" (default: %(default)s)" if plot_default else ""))
+    p.add_argument(
+        "--plot",
+        default=plot_default,
+        metavar="PNG",
+        help="write a plot" + (" (default: %(default)s)" if plot_default else ""),
+    )
     p.add_argument("--float64", action="store_true", help="compute in float64")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def check_outputs(**paths):
     """Fail before the work, not after it: the output folders exist, the suffixes are known."""
-    suffixes = {"states": (".csv", ".npz"), "plot": (".png", ".pdf", ".svg", ".jpg"),
-                "save": (".npz",)}
+    suffixes = {
+        "states": (".csv", ".npz"),
+        "plot": (".png", ".pdf", ".svg", ".jpg"),
+        "save": (".npz",),
+    }
     for name, path in paths.items():
         if not path:
             continue
         p = pathlib.Path(path)
         if p.is_dir():
-            raise UsageError(f"--{name} {path} is a folder: name a file in it, e.g. "
-                             f"--{name} {p / ('out' + suffixes.get(name, ('.json',))[0])}")
+            raise UsageError(
+                f"--{name} {path} is a folder: name a file in it, e.g. "
+                f"--{name} {p / ('out' + suffixes.get(name, ('.json',))[0])}"
+            )
         if not p.parent.is_dir():
             raise UsageError(f"--{name} {path}: the folder {p.parent} does not exist")
         if name in suffixes and p.suffix.lower() not in suffixes[name]:
@@ -218,11 +284,17 @@ def start_at_groundtruth(data, gt, flag=None):
         return data if data.t[0] >= gt.t[0] - tol else data.window(gt.t[0] - tol)
     span = f"[{data.t[0]:.3f}, {data.t[-1]:.3f}] s"
     if data.t[-1] < gt.t[0]:
-        raise UsageError(f"the ground truth starts at {gt.t[0]:.3f} s, after the samples used "
-                         f"({span}) end: pass --start ≥ {gt.t[0]:.3f} or a longer --duration"
-                         f"{drop}")
+        raise UsageError(
+            f"the ground truth starts at {gt.t[0]:.3f} s, after the samples used "
+            f"({span}) end: pass --start ≥ {gt.t[0]:.3f} or a longer --duration"
+            f"{drop}"
+        )
     if data.t[0] > gt.t[-1]:
-        raise UsageError(f"the ground truth ends at {gt.t[-1]:.3f} s, before the samples used "
-                         f"({span}) start: pass --start < {gt.t[-1]:.3f}{drop}")
-    raise UsageError(f"the ground truth ([{gt.t[0]:.3f}, {gt.t[-1]:.3f}] s) and the samples "
-                     f"used ({span}) share fewer than 2 samples; pass a longer --duration{drop}")
+        raise UsageError(
+            f"the ground truth ends at {gt.t[-1]:.3f} s, before the samples used "
+            f"({span}) start: pass --start < {gt.t[-1]:.3f}{drop}"
+        )
+    raise UsageError(
+        f"the ground truth ([{gt.t[0]:.3f}, {gt.t[-1]:.3f}] s) and the samples "
+        f"used ({span}) share fewer than 2 samples; pass a longer --duration{drop}"
+    )

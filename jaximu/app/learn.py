@@ -50,8 +50,10 @@ def _check_model_out(path):
     if p.exists() and not p.is_dir():
         raise _Usage(f"--out {p} is a file; a model is saved as a folder: give a new name")
     if p.is_dir() and any(p.iterdir()) and not (p / "model.json").is_file():
-        raise _Usage(f"--out {p} is a folder that holds other files, not a jaximu model; give "
-                     "a new or empty folder (nothing was written)")
+        raise _Usage(
+            f"--out {p} is a folder that holds other files, not a jaximu model; give "
+            "a new or empty folder (nothing was written)"
+        )
     if not p.parent.exists():
         raise _Usage(f"--out {p}: the folder {p.parent} does not exist; create it first")
     return p
@@ -82,32 +84,47 @@ def cmd_train(args):
     result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
     record = dict(result.record)
     record["command"] = "jaximu learn train " + " ".join(
-        [pathlib.Path(d).name for d in args.dirs] + ["--out", out.name, "--seed", str(args.seed)]
+        [pathlib.Path(d).name for d in args.dirs]
+        + ["--out", out.name, "--seed", str(args.seed)]
         + (["--steps", str(args.steps)] if args.steps else [])
-        + (["--accel-head"] if args.accel_head else []))
+        + (["--accel-head"] if args.accel_head else [])
+    )
     learning.save(out, result.model, record)
     wall = time.perf_counter() - t0
-    print(f"saved the model of step {record['best_step']} to {out}; wall time {wall:.0f} s "
-          f"(compile ≈ {record['compile_seconds']:.0f} s, training "
-          f"{record['wall_seconds'] - record['compile_seconds']:.0f} s)")
+    print(
+        f"saved the model of step {record['best_step']} to {out}; wall time {wall:.0f} s "
+        f"(compile ≈ {record['compile_seconds']:.0f} s, training "
+        f"{record['wall_seconds'] - record['compile_seconds']:.0f} s)"
+    )
     return 0
 
 
 def _table(rep, windows=None):
     m = rep.metrics
-    lines = [f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s",
-             f"  {'':16}{'AOE mean':>10}{'AOE RMSE':>10}{'AYE mean':>10}{'AYE RMSE':>10}  [deg]"]
-    for key, label in (("raw", "raw gyro"), ("constant_bias", "constant bias"),
-                       ("learned", "learned")):
+    lines = [
+        f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s",
+        f"  {'':16}{'AOE mean':>10}{'AOE RMSE':>10}{'AYE mean':>10}{'AYE RMSE':>10}  [deg]",
+    ]
+    for key, label in (
+        ("raw", "raw gyro"),
+        ("constant_bias", "constant bias"),
+        ("learned", "learned"),
+    ):
         x = m[key]
-        lines.append(f"  {label:16}{x.aoe_mean:10.2f}{x.aoe_rmse:10.2f}{x.aye_mean:10.2f}"
-                     f"{x.aye_rmse:10.2f}")
-    lines.append(f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 when "
-                 f"consistent), {100 * rep.inside_3sigma:.1f}% of samples inside 3σ")
+        lines.append(
+            f"  {label:16}{x.aoe_mean:10.2f}{x.aoe_rmse:10.2f}{x.aye_mean:10.2f}{x.aye_rmse:10.2f}"
+        )
+    lines.append(
+        f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 when "
+        f"consistent), {100 * rep.inside_3sigma:.1f}% of samples inside 3σ"
+    )
     for w, row in (windows or {}).items():
-        lines.append(f"  dead reckoning over {w} windows from the true state, mean |δv| / |δp|: "
-                     + ", ".join(f"{k.replace('_', ' ')} {a:.3f} m/s / {b:.3f} m"
-                                 for k, (a, b) in row.items()))
+        lines.append(
+            f"  dead reckoning over {w} windows from the true state, mean |δv| / |δp|: "
+            + ", ".join(
+                f"{k.replace('_', ' ')} {a:.3f} m/s / {b:.3f} m" for k, (a, b) in row.items()
+            )
+        )
     return "\n".join(lines)
 
 
@@ -122,25 +139,35 @@ def cmd_evaluate(args):
     reports, windows = [], []
     for s in seqs:
         rep = learning.evaluate_sequence(model, s)
-        win = ({f"{w:g}s": learning.evaluation.window_errors(model, s, w) for w in (1.0, 5.0)}
-               if s.b_g is not None and s.seconds >= 5.0 else {})  # velocities measured
+        win = (
+            {f"{w:g}s": learning.evaluation.window_errors(model, s, w) for w in (1.0, 5.0)}
+            if s.b_g is not None and s.seconds >= 5.0
+            else {}
+        )  # velocities measured
         print(_table(rep, win))
         reports.append(rep)
         windows.append(win)
-    avg = {k: float(np.mean([r.metrics[k].aoe_mean for r in reports]))
-           for k in ("raw", "constant_bias", "learned")}
+    avg = {
+        k: float(np.mean([r.metrics[k].aoe_mean for r in reports]))
+        for k in ("raw", "constant_bias", "learned")
+    }
     print("average mean AOE [deg]: " + ", ".join(f"{k} {v:.2f}" for k, v in avg.items()))
     if json_out is not None:
         seqs_json = [dict(r.to_json(), dead_reckoning=w) for r, w in zip(reports, windows)]
-        doc = {"model": str(args.model), "sequences": seqs_json,
-               "average_aoe_mean_deg": avg,
-               "conventions": {"aoe_mean": "mean over the sequence of the geodesic angle of "
-                               "R_gt^T R_est (AirIMU)", "aoe_rmse": "its RMSE (Brossard)",
-                               "aye": "|yaw| (ZYX Euler) of the world-frame error R_est R_gt^T",
-                               "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
-                               "inside_3sigma": "fraction of samples with NEES <= 14.16",
-                               "dead_reckoning": "window -> variant -> [mean |dv| m/s, mean "
-                               "|dp| m] over consecutive windows from the true state"}}
+        doc = {
+            "model": str(args.model),
+            "sequences": seqs_json,
+            "average_aoe_mean_deg": avg,
+            "conventions": {
+                "aoe_mean": "mean over the sequence of the geodesic angle of R_gt^T R_est (AirIMU)",
+                "aoe_rmse": "its RMSE (Brossard)",
+                "aye": "|yaw| (ZYX Euler) of the world-frame error R_est R_gt^T",
+                "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
+                "inside_3sigma": "fraction of samples with NEES <= 14.16",
+                "dead_reckoning": "window -> variant -> [mean |dv| m/s, mean "
+                "|dp| m] over consecutive windows from the true state",
+            },
+        }
         json_out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {json_out}")
     if plot_out is not None:
@@ -154,8 +181,9 @@ def cmd_evaluate(args):
             for ax, r in zip(axes[:, 0], reports):
                 ax.plot(r.t, r.aoe["constant_bias"], color="0.6", label="constant bias")
                 ax.plot(r.t, r.aoe["learned"], color="C0", label="learned")
-                ax.fill_between(r.t, 0, r.sigma3, color="C0", alpha=0.15,
-                                label="learned 3σ (3 √trace S)")
+                ax.fill_between(
+                    r.t, 0, r.sigma3, color="C0", alpha=0.15, label="learned 3σ (3 √trace S)"
+                )
                 ax.set_title(r.name)
                 ax.set_ylabel("AOE [deg]")
                 ax.legend(loc="upper left")
@@ -169,28 +197,41 @@ def cmd_evaluate(args):
 
 def add_parser(sub):
     """Register ``jaximu learn`` on the command's subparsers."""
-    p = sub.add_parser("learn", help="train and evaluate a learned gyro denoiser",
-                       description=__doc__.split("\n\n")[0])
+    p = sub.add_parser(
+        "learn",
+        help="train and evaluate a learned gyro denoiser",
+        description=__doc__.split("\n\n")[0],
+    )
     learn = p.add_subparsers(dest="learn_command", required=True, metavar="ACTION")
-    t = learn.add_parser("train", help="train on sequence folders with ground truth",
-                         description="Train the denoiser on sequence folders (EuRoC ASL, or "
-                         "imu.csv with groundtruth.csv / groundtruth_pose.txt). The first 80 s "
-                         "of each are for training, the rest for validation; the model with "
-                         "the lowest validation mean AOE is kept.")
+    t = learn.add_parser(
+        "train",
+        help="train on sequence folders with ground truth",
+        description="Train the denoiser on sequence folders (EuRoC ASL, or "
+        "imu.csv with groundtruth.csv / groundtruth_pose.txt). The first 80 s "
+        "of each are for training, the rest for validation; the model with "
+        "the lowest validation mean AOE is kept.",
+    )
     t.add_argument("dirs", nargs="+", metavar="DIR", help="sequence folders")
     t.add_argument("--out", required=True, metavar="MODEL", help="model folder to write")
     t.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
-    t.add_argument("--minutes", type=float, help="stop after this wall time, keeping the best "
-                   "model so far")
+    t.add_argument(
+        "--minutes", type=float, help="stop after this wall time, keeping the best model so far"
+    )
     t.add_argument("--steps", type=int, help="training steps (default: the recipe's)")
-    t.add_argument("--accel-head", action="store_true", help="also correct the accelerometer, "
-                   "trained on velocity increments (sequences with ground-truth velocity)")
+    t.add_argument(
+        "--accel-head",
+        action="store_true",
+        help="also correct the accelerometer, "
+        "trained on velocity increments (sequences with ground-truth velocity)",
+    )
     t.set_defaults(func=cmd_train)
-    e = learn.add_parser("evaluate", help="integrate whole sequences raw, with the constant "
-                         "bias and with the model",
-                         description="Integrate each whole sequence from its first true "
-                         "attitude at the IMU rate three ways and print AOE/AYE (mean and "
-                         "RMSE) and the learned uncertainty's NEES.")
+    e = learn.add_parser(
+        "evaluate",
+        help="integrate whole sequences raw, with the constant bias and with the model",
+        description="Integrate each whole sequence from its first true "
+        "attitude at the IMU rate three ways and print AOE/AYE (mean and "
+        "RMSE) and the learned uncertainty's NEES.",
+    )
     e.add_argument("model", metavar="MODEL", help="a model folder, or 'euroc' (shipped)")
     e.add_argument("dirs", nargs="+", metavar="DIR", help="sequence folders")
     e.add_argument("--json", metavar="FILE", help="write the figures as JSON")

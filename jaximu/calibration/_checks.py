@@ -29,8 +29,9 @@ ten-odd evaluations of a Levenberg–Marquardt fit."""
 @functools.cache
 def _compiled(fn, quick: bool, static_argnames=()):
     """``jax.jit(fn)``, with :data:`QUICK_COMPILE` when ``quick``."""
-    return jax.jit(fn, static_argnames=static_argnames,
-                   compiler_options=QUICK_COMPILE if quick else None)
+    return jax.jit(
+        fn, static_argnames=static_argnames, compiler_options=QUICK_COMPILE if quick else None
+    )
 
 
 def _once(fn):
@@ -43,8 +44,7 @@ def _once(fn):
 def _keyframe_rotations(q):
     """``R_i`` ``(K, 3, 3)`` of keyframes ``0..K-1`` and the rotation vectors ``(K, 3)`` of
     ``q_i⁻¹ q_{i+1}``, from ``(K + 1, 4)`` keyframe attitudes."""
-    return (so3.quat_to_matrix(q[:-1]),
-            so3.log(so3.quat_mul(so3.quat_conj(q[:-1]), q[1:])))
+    return (so3.quat_to_matrix(q[:-1]), so3.log(so3.quat_mul(so3.quat_conj(q[:-1]), q[1:])))
 
 
 def _apply(calib, gyro, accel):
@@ -52,8 +52,18 @@ def _apply(calib, gyro, accel):
 
 
 def _preintegrate_sequential(gyro, accel, dt, bias, noise, *, scheme, fast):
-    return _preintegrate(gyro, accel, dt, bias, noise, scheme=scheme, method="sequential",
-                         jacobians="analytic", prefixes=False, fast=fast)
+    return _preintegrate(
+        gyro,
+        accel,
+        dt,
+        bias,
+        noise,
+        scheme=scheme,
+        method="sequential",
+        jacobians="analytic",
+        prefixes=False,
+        fast=fast,
+    )
 
 
 def _rotation_vectors(dq):
@@ -105,7 +115,8 @@ def _check_frame(name, x_imu, x_ref, floor, diag):
             "R = I). Is the reference the pose of the IMU frame, and its quaternion "
             "[w, x, y, z] of R_WB? If the IMU is mounted rotated on the reference's body, pass "
             "extrinsics=True (jaximu calibrate: --estimate ...,q_BS): the rotation then "
-            "starts from this fit and is estimated (q_BS)")
+            "starts from this fit and is estimated (q_BS)"
+        )
 
 
 def _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt, reference_sigma=(1e-3, 1e-3, 1e-2)):
@@ -123,8 +134,9 @@ def _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt, reference_sigma=(1e
        significant (:func:`_rotation_fit`; the reference's ``σ_θ``, ``σ_v`` bound the noise
        from below).
     """
-    diag = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
-                          "accel_frame_error"), np.nan)
+    diag = dict.fromkeys(
+        ("gyro_ratio", "gyro_frame_error", "accel_ratio", "accel_frame_error"), np.nan
+    )
     rate_ref = np.linalg.norm(phi_ref, axis=-1) / Dt
     rate_imu = np.linalg.norm(phi_imu, axis=-1) / Dt
     moving = rate_ref > 0.2  # rad/s; below, a bias could dominate the gyro's magnitude
@@ -134,20 +146,26 @@ def _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt, reference_sigma=(1e
         if not 1 / 3 < ratio < 3:
             raise CalibrationError(
                 f"the gyroscope's rotation is {ratio:.3g} times the reference's (expected ≈ 1): "
-                "a gyro in deg/s read as rad/s gives ≈ 57; convert to rad/s")
+                "a gyro in deg/s read as rad/s gives ≈ 57; convert to rad/s"
+            )
     excess = float(np.median(rate_imu - rate_ref))
     if excess > GYRO_BIAS_MAX:
         raise CalibrationError(
             f"the gyroscope reads {float(np.median(rate_imu)):.3g} rad/s (median over the windows) "
             f"where the reference turns at {float(np.median(rate_ref)):.3g} rad/s: more than a "
-            f"bias can explain ({GYRO_BIAS_MAX:g} rad/s); is the gyro in deg/s? convert to rad/s")
-    ratio = float(np.median(np.linalg.norm(dv_imu, axis=-1)
-                            / np.maximum(np.linalg.norm(dv_ref, axis=-1), 1e-300)))
+            f"bias can explain ({GYRO_BIAS_MAX:g} rad/s); is the gyro in deg/s? convert to rad/s"
+        )
+    ratio = float(
+        np.median(
+            np.linalg.norm(dv_imu, axis=-1) / np.maximum(np.linalg.norm(dv_ref, axis=-1), 1e-300)
+        )
+    )
     diag["accel_ratio"] = ratio
     if not 1 / 3 < ratio < 3:
         raise CalibrationError(
             f"the accelerometer's velocity change is {ratio:.3g} times the reference's (expected"
-            " ≈ 1): an accelerometer in g read as m/s² gives ≈ 0.10; convert to m/s²")
+            " ≈ 1): an accelerometer in g read as m/s² gives ≈ 0.10; convert to m/s²"
+        )
     s_th, _, s_v = (max(float(x), 0.0) for x in reference_sigma)
     _check_frame("gyro", phi_imu, phi_ref, np.sqrt(2) * s_th, diag)
     _check_frame("accel", dv_imu, dv_ref, np.sqrt(2) * s_v, diag)
@@ -163,15 +181,18 @@ def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
     Determined: the second singular value of the centred inputs exceeds 10× the fit's
     residual noise (two independent directions of motion)."""
     s_th, _, s_v = (max(float(x), 0.0) for x in reference_sigma)
-    for source, x, y, floor in (("gyro", phi_imu, phi_ref, np.sqrt(2) * s_th),
-                                ("accel", dv_imu, dv_ref, np.sqrt(2) * s_v)):
+    for source, x, y, floor in (
+        ("gyro", phi_imu, phi_ref, np.sqrt(2) * s_th),
+        ("accel", dv_imu, dv_ref, np.sqrt(2) * s_v),
+    ):
         if len(x) < 3:
             continue
         theta, stat = _rotation_fit(x, y, floor)
         xc, yc = x - x.mean(0), y - y.mean(0)
         R = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
-        sigma = np.sqrt(max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1),
-                            floor**2, 1e-300))
+        sigma = np.sqrt(
+            max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1), floor**2, 1e-300)
+        )
         if np.linalg.svd(xc, compute_uv=False)[1] > 10 * sigma:
             return theta, stat, source
     return np.zeros(3), np.nan, "none"

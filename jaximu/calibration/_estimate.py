@@ -80,6 +80,7 @@ class CalibrationResult:
             the windows share one realisation of the bias drift). :meth:`noise_table` prints them
             side by side.
     """
+
     calibration: ImuCalibration
     std: ImuCalibration
     covariance: np.ndarray
@@ -108,10 +109,17 @@ class CalibrationResult:
         return noise_table(self, allan)
 
 
-def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None,
-              estimate=("b_g", "b_a"), *, optimizer: str = "lm", steps: int | None = None,
-              learning_rate: float = 0.05, tol: float = 1e-10,
-              max_reduced_chi2: float | None = 100.0) -> CalibrationResult:
+def calibrate(
+    problem: CalibrationProblem,
+    initial: ImuCalibration | None = None,
+    estimate=("b_g", "b_a"),
+    *,
+    optimizer: str = "lm",
+    steps: int | None = None,
+    learning_rate: float = 0.05,
+    tol: float = 1e-10,
+    max_reduced_chi2: float | None = 100.0,
+) -> CalibrationResult:
     """Fit the ``estimate``d fields of an :class:`ImuCalibration` by gradient descent.
 
     Args:
@@ -139,42 +147,55 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     """
     if isinstance(estimate, str):  # tuple("b_g") would be ('b', '_', 'g')
         fix = tuple(n.strip() for n in estimate.split(",") if n.strip())
-        raise ValueError(f"estimate must be a tuple of field names, got the string "
-                         f"{estimate!r}; pass estimate={fix!r}")
+        raise ValueError(
+            f"estimate must be a tuple of field names, got the string "
+            f"{estimate!r}; pass estimate={fix!r}"
+        )
     try:
         estimate = tuple(estimate)
     except TypeError:
-        raise ValueError(f"estimate must be a tuple of field names from {FIELDS}, got "
-                         f"{type(estimate).__name__} {estimate!r}") from None
+        raise ValueError(
+            f"estimate must be a tuple of field names from {FIELDS}, got "
+            f"{type(estimate).__name__} {estimate!r}"
+        ) from None
     unknown = [n for n in estimate if n not in FIELDS + NOISE_FIELDS]
     if unknown:
-        raise ValueError(f"unknown calibration fields {unknown}; fields are {FIELDS} and the "
-                         f"noise's {NOISE_FIELDS}")
+        raise ValueError(
+            f"unknown calibration fields {unknown}; fields are {FIELDS} and the "
+            f"noise's {NOISE_FIELDS}"
+        )
     if not estimate:
         raise ValueError("estimate names no field")
     if isinstance(problem, NoiseProblem):
         if optimizer != "lm":
-            raise InputError(f"optimizer={optimizer!r}: the noise densities are fitted by "
-                             "damped Newton on the likelihood", [Fix("optimizer", "lm")])
+            raise InputError(
+                f"optimizer={optimizer!r}: the noise densities are fitted by "
+                "damped Newton on the likelihood",
+                [Fix("optimizer", "lm")],
+            )
         _check_initial(initial)
         steps = 50 if steps is None else val.check_int("steps", steps, 1)
         tol = val.check_positive("tol", tol, allow_zero=True)
         if max_reduced_chi2 is not None:
             max_reduced_chi2 = val.check_positive("max_reduced_chi2", max_reduced_chi2)
-        return CalibrationResult(**noise_result(problem, initial, estimate, steps, tol,
-                                                max_reduced_chi2))
+        return CalibrationResult(
+            **noise_result(problem, initial, estimate, steps, tol, max_reduced_chi2)
+        )
     noise_names = [n for n in estimate if n in NOISE_FIELDS]
     if noise_names:
         raise InputError(
             f"estimate names {noise_names}, but the problem was built without window_lengths: "
             "the noise fit needs the windows' covariance bases and reference Jacobians",
             [Fix("window_lengths", (0.25, 1, 4))],
-            lead="build the problem with")
+            lead="build the problem with",
+        )
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
     if not isinstance(problem, CalibrationProblem):
-        raise ValueError("problem must be a CalibrationProblem (from calibration_problem), got "
-                         f"{type(problem).__name__}")
+        raise ValueError(
+            "problem must be a CalibrationProblem (from calibration_problem), got "
+            f"{type(problem).__name__}"
+        )
     _check_initial(initial)
     if steps is not None:
         steps = val.check_int("steps", steps, 1)
@@ -189,29 +210,34 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         if problem.q_BS0 is not None:  # the closed-form rotation of calibration_problem
             initial = dataclasses.replace(initial, q_BS=jnp.asarray(problem.q_BS0, dtype))
     if not problem.extrinsics and (
-            {"q_BS", "p_BS"} & set(free)
-            or np.any(np.asarray(initial.q_BS) != [1, 0, 0, 0])
-            or np.any(np.asarray(initial.p_BS) != 0)):
+        {"q_BS", "p_BS"} & set(free)
+        or np.any(np.asarray(initial.q_BS) != [1, 0, 0, 0])
+        or np.any(np.asarray(initial.p_BS) != 0)
+    ):
         problem = dataclasses.replace(problem, extrinsics=True)
     init_vec = jnp.asarray(_flatten(initial), dtype)
     n_v = 0 if problem.has_velocity else problem.velocities.size
     layout = _Layout(free, n_v)
     n = _n_free(free)
     z = jnp.zeros(n + n_v, dtype)
+
     def fit(problem, z0):
         if optimizer == "lm":
+
             def evaluate(z_):
-                r_, J_ = _residuals_jacobian(jnp.asarray(z_, dtype), problem, init_vec,
-                                             layout=layout)
+                r_, J_ = _residuals_jacobian(
+                    jnp.asarray(z_, dtype), problem, init_vec, layout=layout
+                )
                 return np.asarray(r_, np.float64), np.asarray(J_, np.float64)
 
             threshold = max(tol, 10 * float(jnp.finfo(dtype).eps))  # below: loss rounding
             z_np, history, converged, r, J = _levenberg_marquardt(
-                evaluate, np.asarray(z0, np.float64), steps if steps is not None else 50,
-                threshold)
+                evaluate, np.asarray(z0, np.float64), steps if steps is not None else 50, threshold
+            )
             return jnp.asarray(z_np, dtype), history, converged, r, J
-        z, history, converged = _optax_loop(z0, problem, init_vec, layout, optimizer,
-                                            learning_rate, steps, tol, dtype)
+        z, history, converged = _optax_loop(
+            z0, problem, init_vec, layout, optimizer, learning_rate, steps, tol, dtype
+        )
         r, J = _residuals_jacobian(z, problem, init_vec, layout=layout)
         return z, history, converged, r, J
 
@@ -222,9 +248,11 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         calib_now, v_now = _unpack(z, init_vec, problem.velocities, layout)
         cov = _compiled(_sample_noise_covariance, _quick(problem))(problem, calib_now, v_now)
         cov = np.asarray(cov, np.float64) + np.asarray(problem.reference_var, np.float64)[
-            ..., None] * np.eye(9)
-        problem = dataclasses.replace(problem, sqrt_info=jnp.asarray(
-            _sqrt_information(cov, dtype), dtype))
+            ..., None
+        ] * np.eye(9)
+        problem = dataclasses.replace(
+            problem, sqrt_info=jnp.asarray(_sqrt_information(cov, dtype), dtype)
+        )
         z, more, converged, r, J = fit(problem, z)
         history = list(history) + list(more)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
@@ -232,8 +260,9 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     if optimizer != "lm":  # the Levenberg–Marquardt history ends at this point already
         history.append(0.5 * chi2)
     cov_z = np.linalg.pinv(J.T @ J)
-    scale = np.concatenate([np.asarray(_scale_vector(free, dtype), np.float64),
-                            np.full(n_v, _VELOCITY_SCALE)])
+    scale = np.concatenate(
+        [np.asarray(_scale_vector(free, dtype), np.float64), np.full(n_v, _VELOCITY_SCALE)]
+    )
     cov_all = cov_z * scale[:, None] * scale[None, :]
     cov = cov_all[:n, :n]
     calib, v = _unpack(z, init_vec, problem.velocities, layout)
@@ -242,7 +271,7 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
     for name in FIELDS:
         k, shape = _TANGENT[name], (3,) if name == "q_BS" else np.shape(getattr(initial, name))
         if name in free:
-            std[name] = jnp.asarray(sig[off:off + k].reshape(shape), dtype)
+            std[name] = jnp.asarray(sig[off : off + k].reshape(shape), dtype)
             off += k
         else:
             std[name] = jnp.zeros(shape, dtype)
@@ -253,8 +282,10 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
                 f"the motion does not excite the {what}: its 1σ is "
                 f"{np.array2string(np.asarray(std[name], np.float64), precision=3)} {unit} "
                 f"(> {EXCITATION[name]:.3g} {unit}); a lever arm shows in the specific force only "
-                "as ω×(ω×r) + α×r: turn the body faster, about more axes", RuntimeWarning,
-                stacklevel=2)
+                "as ω×(ω×r) + α×r: turn the body faster, about more axes",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     # Windows left out (reference gaps) add zero rows; a keyframe velocity that bounds none of
     # the fit's windows has a zero column and is no parameter.
     kept = problem.kept
@@ -269,9 +300,22 @@ def calibrate(problem: CalibrationProblem, initial: ImuCalibration | None = None
         warnings.warn(
             f"calibration residual χ²/dof = {red:.3g} > {max_reduced_chi2:g}: the model does not"
             " explain the reference (check the IMU-reference frame, units, the time offset, or"
-            " the noise densities)", RuntimeWarning, stacklevel=2)
+            " the noise densities)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return CalibrationResult(
-        calibration=calib, std=ImuCalibration(**std), covariance=cov,
-        free=free, velocities=v, loss_history=np.asarray(history), chi2=chi2,
-        dof=dof, reduced_chi2=red, converged=converged, n_windows=int(kept.sum()),
-        skipped_windows=problem.n_skipped, note=problem.skip_note)
+        calibration=calib,
+        std=ImuCalibration(**std),
+        covariance=cov,
+        free=free,
+        velocities=v,
+        loss_history=np.asarray(history),
+        chi2=chi2,
+        dof=dof,
+        reduced_chi2=red,
+        converged=converged,
+        n_windows=int(kept.sum()),
+        skipped_windows=problem.n_skipped,
+        note=problem.skip_note,
+    )

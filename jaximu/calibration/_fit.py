@@ -41,8 +41,9 @@ def _n_free(free):
 
 
 def _scale_vector(free, dtype):
-    return jnp.asarray(np.concatenate([np.full(_TANGENT[n], SCALES[n]) for n in FIELDS
-                                       if n in free]), dtype)
+    return jnp.asarray(
+        np.concatenate([np.full(_TANGENT[n], SCALES[n]) for n in FIELDS if n in free]), dtype
+    )
 
 
 def _flatten(calib: ImuCalibration):
@@ -53,7 +54,7 @@ def _unflatten(vec) -> ImuCalibration:
     out, off = {}, 0
     for n in FIELDS:
         k = _SIZES[n]
-        out[n] = vec[off:off + k] if k > 1 else vec[off]
+        out[n] = vec[off : off + k] if k > 1 else vec[off]
         off += k
     return ImuCalibration(**out)
 
@@ -67,7 +68,7 @@ def _unpack(z, init_vec, v0, layout: _Layout):
         if name not in layout.free:
             continue
         k = _TANGENT[name]
-        step = SCALES[name] * (z[off:off + k] if _SIZES[name] > 1 else z[off])
+        step = SCALES[name] * (z[off : off + k] if _SIZES[name] > 1 else z[off])
         if name == "q_BS":
             fields[name] = so3.quat_mul(fields[name], so3.exp(step))
         else:
@@ -151,8 +152,11 @@ def _residuals_jacobian_graph(z, problem, init_vec, *, layout):
         zero = jnp.zeros_like(vi)
 
         def column(e):  # one of the 6 directions, in every window of the group
-            return jax.jvp(f, (zero, zero), (jnp.broadcast_to(e[:3], vi.shape),
-                                             jnp.broadcast_to(e[3:], vj.shape)))[1]
+            return jax.jvp(
+                f,
+                (zero, zero),
+                (jnp.broadcast_to(e[:3], vi.shape), jnp.broadcast_to(e[3:], vj.shape)),
+            )[1]
 
         return jax.vmap(column, out_axes=-1)(eye6)  # (C, 9, 6)
 
@@ -216,14 +220,21 @@ def _optax_loop(z, problem, init_vec, layout, optimizer, learning_rate, steps, t
     opt = _optimizer(optimizer, float(learning_rate))
     # Strong-typed leaves (optax's init has weak-typed scalars): the state of step 1 then has
     # the same types as that of later steps, and the step compiles once.
-    opt_state = jax.tree_util.tree_map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype),
-                                       opt.init(z))
+    opt_state = jax.tree_util.tree_map(
+        lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype), opt.init(z)
+    )
     steps = steps if steps is not None else (100 if optimizer == "lbfgs" else 1000)
     history, quiet, converged = [], 0, False
     for _ in range(steps):
-        z_new, opt_state, value, gnorm = _step(z, opt_state, problem, init_vec, layout=layout,
-                                               optimizer=optimizer,
-                                               learning_rate=float(learning_rate))
+        z_new, opt_state, value, gnorm = _step(
+            z,
+            opt_state,
+            problem,
+            init_vec,
+            layout=layout,
+            optimizer=optimizer,
+            learning_rate=float(learning_rate),
+        )
         value = float(value)
         if not np.isfinite(value):
             raise FloatingPointError(f"the calibration loss became {value} at step {len(history)}")

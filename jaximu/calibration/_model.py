@@ -21,14 +21,43 @@ from jaximu.geometry.state import ImuBias, NavState
 from jaximu.io._common import GAP_FACTOR
 from jaximu.schemes._preintegration_steps import _step as _pim_step
 
-FIELDS = ("b_g", "b_a", "gyro_scale", "gyro_misalignment", "accel_scale",
-          "accel_misalignment", "gravity", "time_offset", "q_BS", "p_BS")
-_SIZES = {"b_g": 3, "b_a": 3, "gyro_scale": 3, "gyro_misalignment": 3, "accel_scale": 3,
-          "accel_misalignment": 3, "gravity": 1, "time_offset": 1, "q_BS": 4, "p_BS": 3}
+FIELDS = (
+    "b_g",
+    "b_a",
+    "gyro_scale",
+    "gyro_misalignment",
+    "accel_scale",
+    "accel_misalignment",
+    "gravity",
+    "time_offset",
+    "q_BS",
+    "p_BS",
+)
+_SIZES = {
+    "b_g": 3,
+    "b_a": 3,
+    "gyro_scale": 3,
+    "gyro_misalignment": 3,
+    "accel_scale": 3,
+    "accel_misalignment": 3,
+    "gravity": 1,
+    "time_offset": 1,
+    "q_BS": 4,
+    "p_BS": 3,
+}
 _TANGENT = dict(_SIZES, q_BS=3)  # q_BS is estimated as a rotation vector: q̂ ⊗ Exp(δθ)
-SCALES = {"b_g": 1e-2, "b_a": 1e-1, "gyro_scale": 1e-2, "gyro_misalignment": 1e-2,
-          "accel_scale": 1e-2, "accel_misalignment": 1e-2, "gravity": 1e-1,
-          "time_offset": 1e-2, "q_BS": 1e-2, "p_BS": 1e-1}
+SCALES = {
+    "b_g": 1e-2,
+    "b_a": 1e-1,
+    "gyro_scale": 1e-2,
+    "gyro_misalignment": 1e-2,
+    "accel_scale": 1e-2,
+    "accel_misalignment": 1e-2,
+    "gravity": 1e-1,
+    "time_offset": 1e-2,
+    "q_BS": 1e-2,
+    "p_BS": 1e-1,
+}
 """Typical magnitude of each field [its units]: the unit of the normalised coordinates."""
 EXCITATION = {"q_BS": np.deg2rad(0.5), "p_BS": 0.02}
 """σ [rad, m] above which :func:`calibrate` warns that the motion does not excite the
@@ -73,10 +102,10 @@ class ImuCalibration:
     @classmethod
     def default(cls, gravity=9.81, dtype=None, **fields) -> ImuCalibration:
         """Zero biases, scale, misalignment and offset (unless given in ``fields``)."""
-        dtype = val.compute_dtype("dtype", dtype) if dtype is not None else \
-            jnp.zeros(()).dtype
-        vals = {name: jnp.zeros((_SIZES[name],) if _SIZES[name] > 1 else (), dtype)
-                for name in FIELDS}
+        dtype = val.compute_dtype("dtype", dtype) if dtype is not None else jnp.zeros(()).dtype
+        vals = {
+            name: jnp.zeros((_SIZES[name],) if _SIZES[name] > 1 else (), dtype) for name in FIELDS
+        }
         vals["gravity"] = val.to_dtype("gravity", gravity, dtype)
         vals["q_BS"] = jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)
         for name, x in fields.items():
@@ -104,12 +133,12 @@ class ImuCalibration:
 
     def apply(self, gyro, accel):
         """Corrected samples ``(I + S)⁻¹ (m - b)`` from raw ``(..., T, 3)`` ones."""
+
         def fix(M, b, x):
             Minv = jnp.linalg.inv(M)[..., None, :, :]
             return jnp.einsum("...ij,...j->...i", Minv, x - b[..., None, :])
 
-        return (fix(self.gyro_matrix(), self.b_g, gyro),
-                fix(self.accel_matrix(), self.b_a, accel))
+        return (fix(self.gyro_matrix(), self.b_g, gyro), fix(self.accel_matrix(), self.b_a, accel))
 
 
 def sensor_matrix(scale, misalignment):
@@ -248,8 +277,16 @@ def _window_residuals(problem: CalibrationProblem, calib: ImuCalibration, veloci
     return _group_residuals(problem, calib, g_idx, velocities[k], velocities[k + 1])
 
 
-def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, vi=None,
-                     vj=None, gyro=None, accel=None, raw=False):
+def _group_residuals(
+    problem: CalibrationProblem,
+    calib: ImuCalibration,
+    g_idx,
+    vi=None,
+    vj=None,
+    gyro=None,
+    accel=None,
+    raw=False,
+):
     """``(C, 9)`` whitened residuals of group ``g_idx``; ``vi``, ``vj``: ``(C, 3)`` keyframe
     velocities of each window's ends (default: the reference's); ``gyro``, ``accel``: the
     group's raw samples (default: the problem's); ``raw``: the residuals before whitening."""
@@ -258,8 +295,9 @@ def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, 
     dt = problem.dt[g_idx]
     td = calib.time_offset
     ends = jnp.stack([problem.t_start[g_idx], problem.t_end[g_idx]]) + td  # one graph, both
-    (qi, qj), (pi, pj), (vi_ref, vj_ref) = _interp(ends, problem.ref_t, problem.ref_q,
-                                                   problem.ref_p, problem.ref_v)
+    (qi, qj), (pi, pj), (vi_ref, vj_ref) = _interp(
+        ends, problem.ref_t, problem.ref_q, problem.ref_p, problem.ref_v
+    )
     if vi is None:
         vi, vj = vi_ref, vj_ref
     gyro_c, accel_c = calib.apply(gyro, accel)
@@ -271,18 +309,29 @@ def _group_residuals(problem: CalibrationProblem, calib: ImuCalibration, g_idx, 
         if pose is not None:  # the sensor's samples as the body's (jaximu/geometry/sensor.py)
             gyro_c, accel_c = to_body(pose, gyro_c, accel_c, dt, jnp.zeros_like(pi))
         pim = _preintegrate_mean(gyro_c, accel_c, dt, problem.scheme)
-        r = residual(state_i, state_j, pim, gravity=calib.gravity,
-                     omega_coriolis=problem.omega_coriolis)[..., :9]
+        r = residual(
+            state_i, state_j, pim, gravity=calib.gravity, omega_coriolis=problem.omega_coriolis
+        )[..., :9]
     else:
-        pred = propagate_final(state_i, gyro_c, accel_c, dt, problem.scheme,
-                               gravity=calib.gravity, body_P_sensor=pose,
-                               omega_coriolis=problem.omega_coriolis)
+        pred = propagate_final(
+            state_i,
+            gyro_c,
+            accel_c,
+            dt,
+            problem.scheme,
+            gravity=calib.gravity,
+            body_P_sensor=pose,
+            omega_coriolis=problem.omega_coriolis,
+        )
         qi_inv = so3.quat_conj(qi)
-        r = jnp.concatenate([
-            so3.log(so3.quat_mul(so3.quat_conj(pred.q), qj)),
-            so3.quat_rotate(qi_inv, pj - pred.p),
-            so3.quat_rotate(qi_inv, vj - pred.v),
-        ], axis=-1)
+        r = jnp.concatenate(
+            [
+                so3.log(so3.quat_mul(so3.quat_conj(pred.q), qj)),
+                so3.quat_rotate(qi_inv, pj - pred.p),
+                so3.quat_rotate(qi_inv, vj - pred.v),
+            ],
+            axis=-1,
+        )
     if raw:
         return r
     w = jnp.einsum("...ij,...j->...i", problem.sqrt_info[g_idx], r)
@@ -306,8 +355,7 @@ def _sample_noise_covariance(problem: CalibrationProblem, calib: ImuCalibration,
             if not problem.has_velocity:
                 k = problem.window[g]
                 vi, vj = velocities[k], velocities[k + 1]
-            return _group_residuals(problem, calib, g, vi, vj, gyro + d[0], accel + d[1],
-                                    raw=True)
+            return _group_residuals(problem, calib, g, vi, vj, gyro + d[0], accel + d[1], raw=True)
 
         J = jax.jacfwd(f)(jnp.zeros((2,) + gyro.shape[-2:], gyro.dtype))  # (C, 9, 2, W+1, 3)
         h = problem.dt[g]
@@ -331,13 +379,30 @@ def _preintegrate_mean(gyro, accel, dt, scheme):
     batch = gyro.shape[:-2]
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     zero = jnp.zeros(batch + (3,), dtype)
-    final, _ = _chunk_scan(scheme, _pim_step, zero, zero, None, (None, w0, a0, w1, a1, h, None),
-                           batch, dtype, False, blocks=False)
+    final, _ = _chunk_scan(
+        scheme,
+        _pim_step,
+        zero,
+        zero,
+        None,
+        (None, w0, a0, w1, a1, h, None),
+        batch,
+        dtype,
+        False,
+        blocks=False,
+    )
     dq, dv, dp, t, _ = final
     eye = lambda n: jnp.broadcast_to(jnp.eye(n, dtype=dtype), batch + (n, n))  # noqa: E731
-    return Preintegrated(delta_t=t, delta_q=so3.quat_normalize(dq), delta_v=dv, delta_p=dp,
-                         transition=jnp.zeros(batch + (15, 15), dtype), cov15=eye(15),
-                         cov=eye(9), bias_hat=ImuBias(zero, zero))
+    return Preintegrated(
+        delta_t=t,
+        delta_q=so3.quat_normalize(dq),
+        delta_v=dv,
+        delta_p=dp,
+        transition=jnp.zeros(batch + (15, 15), dtype),
+        cov15=eye(15),
+        cov=eye(9),
+        bias_hat=ImuBias(zero, zero),
+    )
 
 
 def _gap_list(gaps, limit=4) -> str:
@@ -349,30 +414,37 @@ def _gap_list(gaps, limit=4) -> str:
 def _skip_note(n_skipped, n_windows, max_gap, gaps) -> str:
     if not n_skipped:
         return ""
-    return (f"left out {n_skipped} of {n_windows} keyframe windows with a keyframe inside a "
-            f"reference gap longer than {max_gap:.4g} s ({GAP_FACTOR:g} × its median interval; "
-            f"the reference is not interpolated across gaps): {_gap_list(gaps)}")
+    return (
+        f"left out {n_skipped} of {n_windows} keyframe windows with a keyframe inside a "
+        f"reference gap longer than {max_gap:.4g} s ({GAP_FACTOR:g} × its median interval; "
+        f"the reference is not interpolated across gaps): {_gap_list(gaps)}"
+    )
 
 
 def _check_loss_args(problem, calib, velocities):
     """Types (and ``velocities``' shape) of :func:`calibration_loss`'s arguments: static,
     so free inside ``jit``/``grad``. Returns the velocities to use."""
     if not isinstance(problem, CalibrationProblem):
-        raise ValueError("problem must be a CalibrationProblem (from calibration_problem), got "
-                         f"{type(problem).__name__}")
+        raise ValueError(
+            "problem must be a CalibrationProblem (from calibration_problem), got "
+            f"{type(problem).__name__}"
+        )
     if not isinstance(calib, ImuCalibration):
-        raise ValueError("calib must be an ImuCalibration (e.g. ImuCalibration.default()), got "
-                         f"{type(calib).__name__}")
+        raise ValueError(
+            "calib must be an ImuCalibration (e.g. ImuCalibration.default()), got "
+            f"{type(calib).__name__}"
+        )
     if velocities is None:
         return problem.velocities
     if jnp.shape(velocities) != problem.velocities.shape:
-        raise ValueError(f"velocities must have the shape {problem.velocities.shape} of "
-                         f"problem.velocities (one per keyframe), got {jnp.shape(velocities)}")
+        raise ValueError(
+            f"velocities must have the shape {problem.velocities.shape} of "
+            f"problem.velocities (one per keyframe), got {jnp.shape(velocities)}"
+        )
     return velocities
 
 
-def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration,
-                          velocities=None):
+def calibration_residuals(problem: CalibrationProblem, calib: ImuCalibration, velocities=None):
     """``(K, 9)`` whitened residuals ``L_k⁻¹ [r_θ, r_p, r_v]_k`` of every window (zero for
     a window left out for a reference gap: :attr:`CalibrationProblem.kept`)."""
     v = _check_loss_args(problem, calib, velocities)

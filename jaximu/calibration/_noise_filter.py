@@ -73,14 +73,21 @@ def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
     # through it, and a NaN there would still reach the gradient through jnp.where
     cov = np.nan_to_num(np.asarray(cov15_basis, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     F = np.nan_to_num(np.asarray(bias_jacobian, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    Jr = np.nan_to_num(np.asarray(reference_jacobian, np.float64), nan=0.0, posinf=0.0,
-                       neginf=0.0)
+    Jr = np.nan_to_num(np.asarray(reference_jacobian, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     K = cov.shape[0]
     A, B = Jr[:, :, 0, :], Jr[:, :, 1, :]
     s_ref = np.repeat(np.asarray(ref_sigma0, np.float64), 3)  # (9,)
     # a window's bias variance per density; K windows: σ_rw0² T, the bias state's scale
-    var_win = np.stack([cov[:, 2, 9:12, 9:12].trace(axis1=1, axis2=2),
-                        cov[:, 3, 12:15, 12:15].trace(axis1=1, axis2=2)], 1).mean(0) / 3
+    var_win = (
+        np.stack(
+            [
+                cov[:, 2, 9:12, 9:12].trace(axis1=1, axis2=2),
+                cov[:, 3, 12:15, 12:15].trace(axis1=1, axis2=2),
+            ],
+            1,
+        ).mean(0)
+        / 3
+    )
     s_b = np.repeat(np.sqrt(var_win * K), 3)
     s_b = np.where(s_b > 0, s_b, 1.0)
     # the physical noise bases: Cov ν per σ, mapped by Γ_k
@@ -89,7 +96,7 @@ def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
         Qb[:, i, :15, :15] = cov[:, i]  # [n; w] → [r; δb_{k+1}] with Γ = I there
     for j in range(3):
         Rj = np.zeros((9, 9))
-        Rj[3 * j:3 * j + 3, 3 * j:3 * j + 3] = np.eye(3) * ref_sigma0[j] ** 2
+        Rj[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = np.eye(3) * ref_sigma0[j] ** 2
         BR = B @ Rj  # (K, 9, 9)
         Qb[:, 4 + j, :9, :9] = BR @ np.swapaxes(B, 1, 2)
         Qb[:, 4 + j, :9, 15:] = BR
@@ -100,7 +107,7 @@ def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
     G[:, 9:15, :6] = np.eye(6)
     P0b = np.zeros((N_SIGMA, 15, 15))
     for j in range(3):
-        P0b[4 + j, 6 + 3 * j:9 + 3 * j, 6 + 3 * j:9 + 3 * j] = np.eye(3) * ref_sigma0[j] ** 2
+        P0b[4 + j, 6 + 3 * j : 9 + 3 * j, 6 + 3 * j : 9 + 3 * j] = np.eye(3) * ref_sigma0[j] ** 2
     # scaling: residual rows by the marginal σ of the initial model, state by s_x
     marg = Qb.sum(1)[:, :9, :9] + A @ P0b.sum(0)[6:, 6:] @ np.swapaxes(A, 1, 2)
     d = np.sqrt(np.maximum(np.diagonal(marg, axis1=1, axis2=2), 0))
@@ -141,8 +148,7 @@ def filter_pass(u, r, H, Qb, P0b, kept):
     c = jnp.exp(2 * u)
     P0 = jnp.einsum("b,bij->ij", c, P0b)
     m0 = jnp.zeros(15, r.dtype)
-    _, (terms, w) = jax.lax.scan(lambda carry, x: _step(carry, x, c), (m0, P0),
-                                 (r, H, Qb, kept))
+    _, (terms, w) = jax.lax.scan(lambda carry, x: _step(carry, x, c), (m0, P0), (r, H, Qb, kept))
     return jnp.sum(terms), w
 
 

@@ -118,10 +118,15 @@ def length_check(problem: NoiseProblem, calibration, sigmas):
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
     with np.errstate(divide="ignore", invalid="ignore"):
         u = np.where(s0 > 0, np.log(np.asarray(sigmas) / np.where(s0 > 0, s0, 1.0)), 0.0)
-    r = _compiled(_all_residuals, True, ("multiples",))(calibration, problem.base,
-                                                         multiples=problem.multiples)
-    w = np.asarray(_whitened(jnp.asarray(u, dtype), r / jnp.asarray(np.exp(logd), dtype),
-                             jnp.asarray(basis, dtype)), np.float64)
+    r = _compiled(_all_residuals, True, ("multiples",))(
+        calibration, problem.base, multiples=problem.multiples
+    )
+    w = np.asarray(
+        _whitened(
+            jnp.asarray(u, dtype), r / jnp.asarray(np.exp(logd), dtype), jnp.asarray(basis, dtype)
+        ),
+        np.float64,
+    )
     out = []
     for k in range(len(problem.multiples)):
         sl = _length_slice(problem.multiples, problem.base.n_windows, k)
@@ -135,9 +140,12 @@ def length_check(problem: NoiseProblem, calibration, sigmas):
 
 def _free_sigmas(estimate):
     """Indices into :data:`_SIGMAS` of the estimated σ (``reference_sigma``: all three)."""
-    return [i for i, name in enumerate(_SIGMAS)
-            if name in estimate or (name.startswith("reference_sigma")
-                                    and "reference_sigma" in estimate)]
+    return [
+        i
+        for i, name in enumerate(_SIGMAS)
+        if name in estimate
+        or (name.startswith("reference_sigma") and "reference_sigma" in estimate)
+    ]
 
 
 def _check_identifiable(problem: NoiseProblem, estimate, s0):
@@ -150,12 +158,25 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
                 raise InputError(
                     f"reference_sigma = {tuple(problem.reference_sigma)} holds a zero: the fit "
                     "estimates its logarithm and starts from it",
-                    [Fix("reference_sigma", phrase="positive starting values in {}, e.g. (1e-3, 1e-3, 1e-2)")])
+                    [
+                        Fix(
+                            "reference_sigma",
+                            phrase="positive starting values in {}, e.g. (1e-3, 1e-3, 1e-2)",
+                        )
+                    ],
+                )
         elif s0[DENSITIES.index(n)] <= 0:
             raise InputError(
                 f"noise.{n} is {s0[DENSITIES.index(n)]:g}: the fit estimates its logarithm and "
-                "starts from it", [Fix("noise", phrase=f"a positive {n} in {{}} (the datasheet's or an "
-                                                       "Allan fit's) to start from")])
+                "starts from it",
+                [
+                    Fix(
+                        "noise",
+                        phrase=f"a positive {n} in {{}} (the datasheet's or an "
+                        "Allan fit's) to start from",
+                    )
+                ],
+            )
     if not names:  # the fields alone (densities fixed): any windows will do
         return
     K0 = problem.base.n_windows
@@ -166,8 +187,14 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
             f"the recording holds {n_fit} windows of {W:g} s in the fit; estimating noise "
             f"needs at least {MIN_WINDOWS}: white noise, random walk and the reference's "
             "noise separate through how consecutive windows' residuals correlate",
-            [Fix("window_lengths", phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS:.3g}"
-                                          " s in {} (or a longer recording)")])
+            [
+                Fix(
+                    "window_lengths",
+                    phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS:.3g}"
+                    " s in {} (or a longer recording)",
+                )
+            ],
+        )
 
 
 def _filter_arrays(problem: NoiseProblem, dtype):
@@ -212,8 +239,9 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     derivs = nf.compiled_derivatives(base.gyro.size // 3 <= QUICK_COMPILE_SAMPLES)
 
     def evaluate(z):
-        r, J = graph(jnp.asarray(z, dtype), init_vec, base, scale=scale, multiples=(1,),
-                     layout=layout)
+        r, J = graph(
+            jnp.asarray(z, dtype), init_vec, base, scale=scale, multiples=(1,), layout=layout
+        )
         # windows in a reference gap: no update, and their residuals kept out of the sums
         r = jnp.where(kept[:, None], r, 0)
         return r, jnp.where(kept[:, None, None], J, 0)
@@ -253,8 +281,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
             lam = lam / 3
         else:  # worse, or a covariance not positive definite at the trial point: damp
             lam = max(10 * lam, 1e-3 * float(np.max(np.abs(np.diag(Hn)))) or 1e-3)
-    w = np.asarray(nf.whitened_innovations(jnp.asarray(u, dtype), r, H, Qb, P0b, kept),
-                   np.float64)
+    w = np.asarray(nf.whitened_innovations(jnp.asarray(u, dtype), r, H, Qb, P0b, kept), np.float64)
     chi2 = float(np.sum(w * w))
     cov_z = laplace_covariance(Hn)
     calib, _ = _unpack(jnp.asarray(z, dtype), init_vec, base.velocities, layout)
@@ -263,10 +290,19 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     n = n_c + len(free_s)
     with np.errstate(invalid="ignore"):
         sigmas = s0 * np.exp(u - u0)
-    return dict(calibration=calib, sigmas=np.where(np.isfinite(sigmas), sigmas, 0.0),
-                cov_z=cov_z, free=free_c, free_sigmas=free_s, scales=scales,
-                history=np.asarray(history), converged=converged, chi2=chi2,
-                dof=max(9 * n_kept - n, 1), n_windows=n_kept)
+    return dict(
+        calibration=calib,
+        sigmas=np.where(np.isfinite(sigmas), sigmas, 0.0),
+        cov_z=cov_z,
+        free=free_c,
+        free_sigmas=free_s,
+        scales=scales,
+        history=np.asarray(history),
+        converged=converged,
+        chi2=chi2,
+        dof=max(9 * n_kept - n, 1),
+        n_windows=n_kept,
+    )
 
 
 def laplace_covariance(H):
@@ -311,9 +347,11 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
     dtype = problem.base.gyro.dtype
     rigid = [n for n in ("q_BS", "p_BS") if n in estimate]
     if rigid:
-        raise InputError(f"estimate names {rigid} on a problem built with window_lengths: the "
-                         "noise fit does not estimate extrinsics",
-                         [Fix("estimate", phrase="{} without q_BS and p_BS")])
+        raise InputError(
+            f"estimate names {rigid} on a problem built with window_lengths: the "
+            "noise fit does not estimate extrinsics",
+            [Fix("estimate", phrase="{} without q_BS and p_BS")],
+        )
     initial = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     out = fit(problem, initial, estimate, steps, tol)
     free_s, sig = out["free_sigmas"], out["sigmas"]
@@ -324,40 +362,58 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
     names += [_SIGMAS[i] for i in free_s]
     flat = [n for n, e in zip(names, se) if not np.isfinite(e)]
     if flat:
-        warnings.warn(f"noise fit: the likelihood does not determine {', '.join(flat)} (flat "
-                      "or not at a minimum there): their standard errors are NaN; fix them, "
-                      "or add windows that separate them", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"noise fit: the likelihood does not determine {', '.join(flat)} (flat "
+            "or not at a minimum there): their standard errors are NaN; fix them, "
+            "or add windows that separate them",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     std, off = {}, 0
     for name in FIELDS:
         shape = np.shape(getattr(initial, name)) if name != "q_BS" else (3,)
         if name in out["free"]:
             k = _TANGENT[name]
-            std[name] = jnp.asarray(se[off:off + k].reshape(shape), dtype)
+            std[name] = jnp.asarray(se[off : off + k].reshape(shape), dtype)
             off += k
         else:
             std[name] = jnp.zeros(shape, dtype)
     sig_std = np.zeros(7)
     sig_std[free_s] = se[off:]
     given = problem.noise
-    fitted = ImuNoise(*(sig[i] if i in free_s else getattr(given, DENSITIES[i])
-                        for i in range(4)))
+    fitted = ImuNoise(*(sig[i] if i in free_s else getattr(given, DENSITIES[i]) for i in range(4)))
     ref = np.where(np.isin(np.arange(4, 7), free_s), sig[4:], problem.reference_sigma)
     red = out["chi2"] / out["dof"]
     if max_reduced_chi2 is not None and red > max_reduced_chi2:
-        warnings.warn(f"noise fit: χ²/dof = {red:.3g} > {max_reduced_chi2:g} at the estimate: "
-                      "the model does not explain the reference (frames, units, time offset)",
-                      RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"noise fit: χ²/dof = {red:.3g} > {max_reduced_chi2:g} at the estimate: "
+            "the model does not explain the reference (frames, units, time offset)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     base = problem.base
-    by_length = length_check(problem, out["calibration"],
-                             np.concatenate([_isotropic(fitted), ref]))
+    by_length = length_check(problem, out["calibration"], np.concatenate([_isotropic(fitted), ref]))
     return dict(
-        calibration=out["calibration"], std=ImuCalibration(**std), covariance=cov,
+        calibration=out["calibration"],
+        std=ImuCalibration(**std),
+        covariance=cov,
         free=out["free"] + tuple(n for n in NOISE_FIELDS if n in estimate),
-        velocities=np.asarray(base.velocities, np.float64), loss_history=out["history"],
-        chi2=out["chi2"], dof=out["dof"], reduced_chi2=red, converged=out["converged"],
+        velocities=np.asarray(base.velocities, np.float64),
+        loss_history=out["history"],
+        chi2=out["chi2"],
+        dof=out["dof"],
+        reduced_chi2=red,
+        converged=out["converged"],
         n_windows=out["n_windows"],
-        skipped_windows=int((~problem.kept[:base.n_windows]).sum()),
-        note=base.skip_note, noise=fitted, noise_std=ImuNoise(*sig_std[:4]),
-        reference_sigma=ref, reference_sigma_std=sig_std[4:], noise_given=given,
-        reference_sigma_given=problem.reference_sigma, rate_hz=problem.rate_hz,
-        window_lengths=problem.window_lengths, chi2_by_length=by_length)
+        skipped_windows=int((~problem.kept[: base.n_windows]).sum()),
+        note=base.skip_note,
+        noise=fitted,
+        noise_std=ImuNoise(*sig_std[:4]),
+        reference_sigma=ref,
+        reference_sigma_std=sig_std[4:],
+        noise_given=given,
+        reference_sigma_given=problem.reference_sigma,
+        rate_hz=problem.rate_hz,
+        window_lengths=problem.window_lengths,
+        chi2_by_length=by_length,
+    )

@@ -34,8 +34,12 @@ from jaximu.geometry.noise import ImuNoise
 from jaximu.geometry.state import ImuBias, NavState
 from jaximu.schemes.integrators import compose_deltas
 
-DENSITIES = ("gyroscope_noise_density", "accelerometer_noise_density",
-             "gyroscope_random_walk", "accelerometer_random_walk")
+DENSITIES = (
+    "gyroscope_noise_density",
+    "accelerometer_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_random_walk",
+)
 
 
 NOISE_FIELDS = DENSITIES + ("reference_sigma",)
@@ -80,6 +84,7 @@ class NoiseProblem:
         filter: ``(H, Qb, P0b, d)`` of :func:`jaximu.calibration._noise_filter.state_space` from those
             (the likelihood's state space, at the initial σ).
     """
+
     base: CalibrationProblem
     multiples: tuple
     window_lengths: tuple
@@ -104,15 +109,16 @@ class NoiseProblem:
         out, off = [], 0
         for m in self.multiples:
             k = self.base.n_windows // m
-            out.append(int(self.kept[off:off + k].sum()))
+            out.append(int(self.kept[off : off + k].sum()))
             off += k
         return tuple(out)
 
 
 def _isotropic(noise: ImuNoise) -> np.ndarray:
     """The four densities as scalars (per-axis values: their root mean square)."""
-    return np.array([float(np.sqrt(np.mean(np.asarray(getattr(noise, n), np.float64) ** 2)))
-                     for n in DENSITIES])
+    return np.array(
+        [float(np.sqrt(np.mean(np.asarray(getattr(noise, n), np.float64) ** 2))) for n in DENSITIES]
+    )
 
 
 def _check_lengths(window_lengths, period):
@@ -123,15 +129,18 @@ def _check_lengths(window_lengths, period):
     except (TypeError, ValueError):
         lengths = None
     if lengths is None or lengths.ndim != 1 or not np.all(np.isfinite(lengths) & (lengths > 0)):
-        raise InputError(f"window_lengths must be window lengths in seconds, positive, got "
-                         f"{window_lengths!r}",
-                         [Fix("window_lengths", (0.25, 1, 4))])
+        raise InputError(
+            f"window_lengths must be window lengths in seconds, positive, got {window_lengths!r}",
+            [Fix("window_lengths", (0.25, 1, 4))],
+        )
     lengths = np.sort(lengths)
     W = int(round(lengths[0] / period))
     if W < 1:
-        raise InputError(f"window_lengths: the shortest, {lengths[0]:g} s, is shorter than one "
-                         f"sample interval ({period:.3g} s)",
-                         [Fix("window_lengths", phrase=f"{{}} of {period:.3g} s or longer")])
+        raise InputError(
+            f"window_lengths: the shortest, {lengths[0]:g} s, is shorter than one "
+            f"sample interval ({period:.3g} s)",
+            [Fix("window_lengths", phrase=f"{{}} of {period:.3g} s or longer")],
+        )
     ratio = lengths / (W * period)
     m = np.round(ratio).astype(int)
     bad = np.abs(ratio - m) > 1e-3 * ratio
@@ -139,7 +148,8 @@ def _check_lengths(window_lengths, period):
         raise InputError(
             f"window_lengths: {lengths[bad][0]:g} s is not a whole multiple of the shortest "
             f"length {W * period:g} s: a longer window is composed of whole base windows",
-            [Fix("window_lengths", (0.25, 1, 4))])
+            [Fix("window_lengths", (0.25, 1, 4))],
+        )
     return W, tuple(sorted({int(x) for x in m}))
 
 
@@ -164,7 +174,7 @@ def _fold(pims, m):
 def _rows(tree, m):
     """Leading axis ``K m`` (or more: the rest is dropped) → ``(K, m)``."""
     K = jax.tree_util.tree_leaves(tree)[0].shape[0] // m
-    return jax.tree_util.tree_map(lambda x: x[:K * m].reshape((K, m) + x.shape[1:]), tree)
+    return jax.tree_util.tree_map(lambda x: x[: K * m].reshape((K, m) + x.shape[1:]), tree)
 
 
 def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
@@ -177,8 +187,9 @@ def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
     zero3 = jnp.zeros(3, dtype)
     covs, jac, full = [], [], []
     for i, unit in enumerate(_unit_noises(noise0, dtype)):
-        pim = _preintegrate_sequential(gyro, accel, dt, ImuBias(zero3, zero3), unit,
-                                       scheme=scheme, fast=fast)
+        pim = _preintegrate_sequential(
+            gyro, accel, dt, ImuBias(zero3, zero3), unit, scheme=scheme, fast=fast
+        )
         per_m = []
         for m in multiples:
             per_m.append(pim if m == 1 else _fold(_rows(pim, m), m))
@@ -189,20 +200,39 @@ def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
     return jnp.stack(covs, 1), jac, jnp.stack(full, 1)
 
 
-def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, scheme, model,
-                  reference_sigma, initial, windows_per_group, check, extrinsics,
-                  omega_coriolis) -> NoiseProblem:
+def noise_problem(
+    build,
+    t,
+    gyro,
+    accel,
+    reference,
+    noise,
+    *,
+    window_lengths,
+    scheme,
+    model,
+    reference_sigma,
+    initial,
+    windows_per_group,
+    check,
+    extrinsics,
+    omega_coriolis,
+) -> NoiseProblem:
     """:func:`jaximu.calibration.calibration_problem` with ``window_lengths`` (``build`` is
     that function, called for the base windows)."""
     if model != "preintegration":
-        raise InputError("window_lengths: the noise densities are fitted with the "
-                         f"preintegration residual, got model={model!r}",
-                         [Fix("model", "preintegration")])
+        raise InputError(
+            "window_lengths: the noise densities are fitted with the "
+            f"preintegration residual, got model={model!r}",
+            [Fix("model", "preintegration")],
+        )
     if extrinsics:
-        raise InputError("window_lengths: the noise fit does not estimate extrinsics (a lever "
-                         "arm adds the gyro's noise to the specific force): calibrate q_BS, "
-                         "p_BS first, then pass the rotated samples",
-                         [Fix("extrinsics", False)])
+        raise InputError(
+            "window_lengths: the noise fit does not estimate extrinsics (a lever "
+            "arm adds the gyro's noise to the specific force): calibrate q_BS, "
+            "p_BS first, then pass the rotated samples",
+            [Fix("extrinsics", False)],
+        )
     t_np = val.as_numbers("t", t)
     if t_np.ndim != 1 or len(t_np) < 3:
         raise ValueError(f"t must have shape (N,) with N ≥ 3, got {t_np.shape}")
@@ -213,12 +243,25 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
         rp = val.as_numbers("reference.p", reference.p)
         rt = val.as_numbers("reference.t", reference.t)
         if rp.ndim == 2 and len(rt) == len(rp) and len(rt) >= 2 and np.all(np.diff(rt) > 0):
-            reference = Reference(reference.t, reference.q, reference.p,
-                                  np.gradient(rp, rt, axis=0))
-    base = build(t, gyro, accel, reference, noise, keyframe_interval=W * period, scheme=scheme,
-                 model=model, reference_sigma=reference_sigma, initial=initial,
-                 windows_per_group=windows_per_group, check=check, extrinsics=False,
-                 omega_coriolis=omega_coriolis)
+            reference = Reference(
+                reference.t, reference.q, reference.p, np.gradient(rp, rt, axis=0)
+            )
+    base = build(
+        t,
+        gyro,
+        accel,
+        reference,
+        noise,
+        keyframe_interval=W * period,
+        scheme=scheme,
+        model=model,
+        reference_sigma=reference_sigma,
+        initial=initial,
+        windows_per_group=windows_per_group,
+        check=check,
+        extrinsics=False,
+        omega_coriolis=omega_coriolis,
+    )
     dtype = base.gyro.dtype
     K0 = base.n_windows
     flat = lambda x: x.reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
@@ -226,43 +269,69 @@ def noise_problem(build, t, gyro, accel, reference, noise, *, window_lengths, sc
     g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
     noise0 = ImuNoise(*(jnp.asarray(x, dtype) for x in _isotropic(noise)))
     cov, jac, cov15 = _compiled(_long_window_bases, True, ("multiples", "scheme", "fast"))(
-        g_c, a_c, flat(base.dt), noise0, multiples, scheme=scheme, fast=False)
+        g_c, a_c, flat(base.dt), noise0, multiples, scheme=scheme, fast=False
+    )
     cov, jac = np.asarray(cov, np.float64), np.asarray(jac, np.float64)
     cov15 = np.asarray(cov15, np.float64)
     s0 = _isotropic(noise)
-    bias_basis = np.stack([s0[2] ** 2 * jac[:, :, :3] @ np.swapaxes(jac[:, :, :3], 1, 2),
-                           s0[3] ** 2 * jac[:, :, 3:] @ np.swapaxes(jac[:, :, 3:], 1, 2)], 1)
+    bias_basis = np.stack(
+        [
+            s0[2] ** 2 * jac[:, :, :3] @ np.swapaxes(jac[:, :, :3], 1, 2),
+            s0[3] ** 2 * jac[:, :, 3:] @ np.swapaxes(jac[:, :, 3:], 1, 2),
+        ],
+        1,
+    )
     kept0 = base.kept
     t_start = np.asarray(base.t_start, np.float64).reshape(-1)[:K0]
     t_end = np.asarray(base.t_end, np.float64).reshape(-1)[:K0]
     kept_parts, start_parts = [], []
     for m in multiples:
         K = K0 // m
-        kept_parts.append(kept0[:K * m].reshape(K, m).all(1))
-        start_parts.append(t_start[:K * m:m])
+        kept_parts.append(kept0[: K * m].reshape(K, m).all(1))
+        start_parts.append(t_start[: K * m : m])
     kept, start = np.concatenate(kept_parts), np.concatenate(start_parts)
     sig = np.asarray(reference_sigma, np.float64)
     # the reference's errors at both ends, independent, through the residual's exact
     # linearisation: a tilt error δθ_i also turns gravity, g Δt δθ in r_v (g Δt² δθ / 2 in
     # r_p), which outgrows 2σ_v² beyond a fraction of a second
-    Jr, F = (np.asarray(x, np.float64) for x in _compiled(
-        _model_jacobians, True, ("multiples",))(init, base, multiples=multiples))
+    Jr, F = (
+        np.asarray(x, np.float64)
+        for x in _compiled(_model_jacobians, True, ("multiples",))(init, base, multiples=multiples)
+    )
     F = F[:K0]
-    ref_basis = np.stack([sig[j] ** 2 * np.einsum("kaei,kbei->kab", Jr[..., 3 * j:3 * j + 3],
-                                                  Jr[..., 3 * j:3 * j + 3])
-                          for j in range(3)], 1)
+    ref_basis = np.stack(
+        [
+            sig[j] ** 2
+            * np.einsum("kaei,kbei->kab", Jr[..., 3 * j : 3 * j + 3], Jr[..., 3 * j : 3 * j + 3])
+            for j in range(3)
+        ],
+        1,
+    )
     for k, m in enumerate(multiples):
         if not kept[_length_slice(multiples, K0, k)].any():
-            raise CalibrationError(f"no window of {m * W * period:g} s lies between the "
-                                   "reference's gaps: pass shorter window_lengths")
-    return NoiseProblem(base=base, multiples=multiples,
-                        window_lengths=tuple(m * W * period for m in multiples), kept=kept,
-                        start=start, span=float(t_end[-1] - t_start[0]), cov_basis=cov,
-                        bias_basis=bias_basis, reference_basis=ref_basis, noise=noise,
-                        reference_sigma=sig, rate_hz=1.0 / period, reference_velocity=velocity,
-                        window_cov15=cov15, window_bias_jacobian=F,
-                        window_reference_jacobian=Jr[:K0],
-                        filter=state_space(cov15, F, Jr[:K0], np.where(sig > 0, sig, 1.0)))
+            raise CalibrationError(
+                f"no window of {m * W * period:g} s lies between the "
+                "reference's gaps: pass shorter window_lengths"
+            )
+    return NoiseProblem(
+        base=base,
+        multiples=multiples,
+        window_lengths=tuple(m * W * period for m in multiples),
+        kept=kept,
+        start=start,
+        span=float(t_end[-1] - t_start[0]),
+        cov_basis=cov,
+        bias_basis=bias_basis,
+        reference_basis=ref_basis,
+        noise=noise,
+        reference_sigma=sig,
+        rate_hz=1.0 / period,
+        reference_velocity=velocity,
+        window_cov15=cov15,
+        window_bias_jacobian=F,
+        window_reference_jacobian=Jr[:K0],
+        filter=state_space(cov15, F, Jr[:K0], np.where(sig > 0, sig, 1.0)),
+    )
 
 
 def _length_slice(multiples, K0, k):
@@ -283,8 +352,9 @@ def _all_residuals(calib, problem: CalibrationProblem, multiples, d_i=None, d_j=
     gyro_c, accel_c = calib.apply(flat(problem.gyro), flat(problem.accel))
     pim = _preintegrate_mean(gyro_c, accel_c, flat(problem.dt), problem.scheme)
     t_key = jnp.concatenate([flat(problem.t_start), flat(problem.t_end)[-1:]])
-    q, p, v = _interp(t_key + calib.time_offset, problem.ref_t, problem.ref_q, problem.ref_p,
-                      problem.ref_v)
+    q, p, v = _interp(
+        t_key + calib.time_offset, problem.ref_t, problem.ref_q, problem.ref_p, problem.ref_v
+    )
     deltas = (pim.delta_q, pim.delta_p, pim.delta_v, pim.delta_t)
     out = []
     for m in multiples:
@@ -298,14 +368,25 @@ def _all_residuals(calib, problem: CalibrationProblem, multiples, d_i=None, d_j=
             d = tuple(x[:, 0] for x in d)
         dq, dp, dv, dt = d
         zero = jnp.zeros_like(dv)
-        win = dataclasses.replace(pim, delta_t=dt, delta_q=dq, delta_v=dv, delta_p=dp,
-                                  transition=pim.transition[:K], cov15=pim.cov15[:K],
-                                  cov=pim.cov[:K], bias_hat=ImuBias(zero, zero))
+        win = dataclasses.replace(
+            pim,
+            delta_t=dt,
+            delta_q=dq,
+            delta_v=dv,
+            delta_p=dp,
+            transition=pim.transition[:K],
+            cov15=pim.cov15[:K],
+            cov=pim.cov[:K],
+            bias_hat=ImuBias(zero, zero),
+        )
         i, j = slice(0, K * m, m), slice(m, K * m + 1, m)
         state_i = _perturbed(q[i], p[i], v[i], d_i)
         state_j = _perturbed(q[j], p[j], v[j], d_j)
-        out.append(residual(state_i, state_j, win, gravity=calib.gravity,
-                            omega_coriolis=problem.omega_coriolis)[..., :9])
+        out.append(
+            residual(
+                state_i, state_j, win, gravity=calib.gravity, omega_coriolis=problem.omega_coriolis
+            )[..., :9]
+        )
     return jnp.concatenate(out)
 
 
@@ -313,8 +394,13 @@ def _perturbed(q, p, v, d):
     zero = jnp.zeros_like(p)
     if d is None:
         return NavState(q, p, v, zero, zero)
-    return NavState(so3.quat_mul(q, so3.exp(jnp.broadcast_to(d[:3], p.shape))), p + d[3:6],
-                    v + d[6:9], zero, zero)
+    return NavState(
+        so3.quat_mul(q, so3.exp(jnp.broadcast_to(d[:3], p.shape))),
+        p + d[3:6],
+        v + d[6:9],
+        zero,
+        zero,
+    )
 
 
 def _model_jacobians(calib, problem, multiples):
@@ -323,6 +409,7 @@ def _model_jacobians(calib, problem, multiples):
     (``δb = b_true - b̂``: ``-∂r/∂b̂``, through the residual as computed; the midpoint
     scheme's analytic transition is its first-order approximation). One forward-mode pass,
     24 tangents (one compilation)."""
+
     def f(x):
         d, db = x[:18].reshape(2, 9), x[18:]
         c = dataclasses.replace(calib, b_g=calib.b_g - db[:3], b_a=calib.b_a - db[3:])
@@ -335,6 +422,7 @@ def _model_jacobians(calib, problem, multiples):
 def _residuals_and_jacobian(z, init_vec, problem, multiples, layout, scale):
     """Scaled residuals ``(K_all, 9)`` and their Jacobian ``(K_all, 9, n)`` in the calibration's
     normalised coordinates ``z`` (forward mode: ``n`` ≤ 20 tangents)."""
+
     def res(zc):
         calib, _ = _unpack(zc, init_vec, problem.velocities, layout)
         r = _all_residuals(calib, problem, multiples) / scale

@@ -8,10 +8,12 @@ import numpy as np
 from jaximu.calibration._noise_problem import DENSITIES, _isotropic
 from jaximu.geometry.noise import ImuNoise
 
-_UNITS = {"gyroscope_noise_density": ("rad/s/√Hz", "rad/s"),
-          "accelerometer_noise_density": ("m/s²/√Hz", "m/s²"),
-          "gyroscope_random_walk": ("rad/s²/√Hz", "rad/s"),
-          "accelerometer_random_walk": ("m/s³/√Hz", "m/s²")}
+_UNITS = {
+    "gyroscope_noise_density": ("rad/s/√Hz", "rad/s"),
+    "accelerometer_noise_density": ("m/s²/√Hz", "m/s²"),
+    "gyroscope_random_walk": ("rad/s²/√Hz", "rad/s"),
+    "accelerometer_random_walk": ("m/s³/√Hz", "m/s²"),
+}
 
 
 def _allan_values(allan):
@@ -25,8 +27,10 @@ def _allan_values(allan):
         gyro, accel = allan
         vals = [gyro.white, accel.white, gyro.random_walk, accel.random_walk]
     except (TypeError, ValueError, AttributeError):
-        raise ValueError("allan must be None, an ImuNoise or (gyro, accel) NoiseFit of "
-                         f"jaximu.allan.fit_noise, got {type(allan).__name__}") from None
+        raise ValueError(
+            "allan must be None, an ImuNoise or (gyro, accel) NoiseFit of "
+            f"jaximu.allan.fit_noise, got {type(allan).__name__}"
+        ) from None
     out = []
     for v in vals:
         v = np.asarray(v, np.float64)
@@ -43,33 +47,44 @@ def noise_table(result, allan=None) -> str:
     the fitted density at the recording's rate (white: ``σ/√dt`` per sample; random walk:
     ``σ·√dt`` per bias step; :meth:`ImuNoise.sample_std`); then the reference's σ."""
     if getattr(result, "noise", None) is None:
-        raise ValueError("result holds no noise fit: calibrate a problem built with "
-                         "calibration_problem(..., window_lengths=...) and estimate densities")
+        raise ValueError(
+            "result holds no noise fit: calibrate a problem built with "
+            "calibration_problem(..., window_lengths=...) and estimate densities"
+        )
     dt = 1.0 / result.rate_hz
     fitted, std = _isotropic(result.noise), _isotropic(result.noise_std)
     given, al = _isotropic(result.noise_given), _allan_values(allan)
-    discrete = [float(np.sqrt(np.mean(np.asarray(x, np.float64) ** 2)))
-                for x in ImuNoise(*fitted).sample_std(dt, np.float32)]
+    discrete = [
+        float(np.sqrt(np.mean(np.asarray(x, np.float64) ** 2)))
+        for x in ImuNoise(*fitted).sample_std(dt, np.float32)
+    ]
     fmt = lambda x: "—" if not np.isfinite(x) else f"{x:.4g}"  # noqa: E731
-    by_length = ", ".join(f"{x:g} s: {c:.3f}" for x, c in
-                          zip(result.window_lengths, result.chi2_by_length))
-    lines = [f"noise densities by likelihood: {result.n_windows} consecutive windows of "
-             f"{result.window_lengths[0]:g} s; χ²/dof = {result.reduced_chi2:.3f} at the "
-             "estimate (whitened innovations)",
-             f"each window alone, mean squared whitened residual per length: {by_length}",
-             f"{'':28s} {'unit (Kalibr)':13s} {'fitted ± 1σ':>22s} {'given':>10s} "
-             f"{'Allan':>10s}   discrete std at {result.rate_hz:.4g} Hz"]
+    by_length = ", ".join(
+        f"{x:g} s: {c:.3f}" for x, c in zip(result.window_lengths, result.chi2_by_length)
+    )
+    lines = [
+        f"noise densities by likelihood: {result.n_windows} consecutive windows of "
+        f"{result.window_lengths[0]:g} s; χ²/dof = {result.reduced_chi2:.3f} at the "
+        "estimate (whitened innovations)",
+        f"each window alone, mean squared whitened residual per length: {by_length}",
+        f"{'':28s} {'unit (Kalibr)':13s} {'fitted ± 1σ':>22s} {'given':>10s} "
+        f"{'Allan':>10s}   discrete std at {result.rate_hz:.4g} Hz",
+    ]
     for i, name in enumerate(DENSITIES):
         unit, dunit = _UNITS[name]
-        est = (f"{fitted[i]:.4g} ± {std[i]:.2g}" if name in result.free
-               else f"{fitted[i]:.4g} (fixed)")
-        lines.append(f"{name:28s} {unit:13s} {est:>22s} {fmt(given[i]):>10s} {fmt(al[i]):>10s}"
-                     f"   {discrete[i]:.4g} {dunit}" + (" per sample" if i < 2 else
-                                                        " per bias step"))
-    for j, (name, unit) in enumerate((("reference σ_θ", "rad"), ("reference σ_p", "m"),
-                                      ("reference σ_v", "m/s"))):
+        est = (
+            f"{fitted[i]:.4g} ± {std[i]:.2g}" if name in result.free else f"{fitted[i]:.4g} (fixed)"
+        )
+        lines.append(
+            f"{name:28s} {unit:13s} {est:>22s} {fmt(given[i]):>10s} {fmt(al[i]):>10s}"
+            f"   {discrete[i]:.4g} {dunit}" + (" per sample" if i < 2 else " per bias step")
+        )
+    for j, (name, unit) in enumerate(
+        (("reference σ_θ", "rad"), ("reference σ_p", "m"), ("reference σ_v", "m/s"))
+    ):
         s, e = result.reference_sigma[j], result.reference_sigma_std[j]
         est = f"{s:.4g} ± {e:.2g}" if "reference_sigma" in result.free else f"{s:.4g} (fixed)"
-        lines.append(f"{name:28s} {unit:13s} {est:>22s} "
-                     f"{fmt(result.reference_sigma_given[j]):>10s}")
+        lines.append(
+            f"{name:28s} {unit:13s} {est:>22s} {fmt(result.reference_sigma_given[j]):>10s}"
+        )
     return "\n".join(lines)

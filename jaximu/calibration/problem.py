@@ -87,7 +87,7 @@ from jaximu.calibration._checks import (
 )
 from jaximu.calibration._fit import (
     _residuals_jacobian_compiled,  # noqa: F401  (tests)
-    )
+)
 from jaximu.calibration._model import (
     _SIZES,
     FIELDS,
@@ -142,12 +142,19 @@ def _check_initial(initial):
         if x.shape != shape:
             raise ValueError(f"initial.{name} must have shape {shape}, got {x.shape}")
         val.check_finite(f"initial.{name}", x)
-    _tolerances.check_unit_norm("initial.q_BS", np.asarray(initial.q_BS, np.float64), np.float64,
-                        tol=_tolerances.ROUNDED_QUATERNION, fix="normalise it: q / |q|",
-                        what="must be a unit quaternion [w, x, y, z]")
+    _tolerances.check_unit_norm(
+        "initial.q_BS",
+        np.asarray(initial.q_BS, np.float64),
+        np.float64,
+        tol=_tolerances.ROUNDED_QUATERNION,
+        fix="normalise it: q / |q|",
+        what="must be a unit quaternion [w, x, y, z]",
+    )
     if float(np.asarray(initial.gravity)) < 0:
-        raise ValueError(f"initial.gravity is a magnitude [m/s²] and must be ≥ 0, got "
-                         f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])")
+        raise ValueError(
+            f"initial.gravity is a magnitude [m/s²] and must be ≥ 0, got "
+            f"{float(np.asarray(initial.gravity)):g} (g_W = [0, 0, -g])"
+        )
 
 
 def _sqrt_information(cov, dtype) -> np.ndarray:
@@ -156,11 +163,15 @@ def _sqrt_information(cov, dtype) -> np.ndarray:
     (:func:`jaximu.geometry._tolerances.check_definite`) is refused, naming the window and its axes:
     its whitened residual would be the rounding divided by zero."""
     _tolerances.check_definite(
-        "the residuals' covariance", cov, dtype, axes=_tolerances.ERROR_AXES[:9],
+        "the residuals' covariance",
+        cov,
+        dtype,
+        axes=_tolerances.ERROR_AXES[:9],
         what="the residuals are whitened by its inverse Cholesky factor",
         fix="noise (its white-noise densities) and reference_sigma leave some residual "
-            "without variance; give noise positive densities (its datasheet's or an Allan "
-            "fit's) or reference_sigma positive values")
+        "without variance; give noise positive densities (its datasheet's or an Allan "
+        "fit's) or reference_sigma positive values",
+    )
     return np.linalg.inv(np.linalg.cholesky(cov))
 
 
@@ -183,13 +194,24 @@ def _velocities_from_positions(p, t, good):
     return v
 
 
-def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *,
-                        keyframe_interval: float | None = None, scheme: str = "euler",
-                        model: str = "preintegration", reference_sigma=(1e-3, 1e-3, 1e-2),
-                        initial: ImuCalibration | None = None, windows_per_group: int = 64,
-                        check: bool = True, extrinsics: bool = False,
-                        omega_coriolis=None, window_lengths=None
-                        ) -> CalibrationProblem | NoiseProblem:
+def calibration_problem(
+    t,
+    gyro,
+    accel,
+    reference: Reference,
+    noise: ImuNoise,
+    *,
+    keyframe_interval: float | None = None,
+    scheme: str = "euler",
+    model: str = "preintegration",
+    reference_sigma=(1e-3, 1e-3, 1e-2),
+    initial: ImuCalibration | None = None,
+    windows_per_group: int = 64,
+    check: bool = True,
+    extrinsics: bool = False,
+    omega_coriolis=None,
+    window_lengths=None,
+) -> CalibrationProblem | NoiseProblem:
     """Cut the IMU stream into keyframe windows and pair them with the reference.
 
     Args:
@@ -255,14 +277,28 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     """
     if window_lengths is not None:
         if keyframe_interval is not None:
-            raise InputError("keyframe_interval and window_lengths both given: with "
-                             "window_lengths the keyframes are the shortest length's",
-                             [Fix("keyframe_interval", "leave keyframe_interval out")])
-        return noise_problem(calibration_problem, t, gyro, accel, reference, noise,
-                             window_lengths=window_lengths, scheme=scheme, model=model,
-                             reference_sigma=reference_sigma, initial=initial,
-                             windows_per_group=windows_per_group, check=check,
-                             extrinsics=extrinsics, omega_coriolis=omega_coriolis)
+            raise InputError(
+                "keyframe_interval and window_lengths both given: with "
+                "window_lengths the keyframes are the shortest length's",
+                [Fix("keyframe_interval", "leave keyframe_interval out")],
+            )
+        return noise_problem(
+            calibration_problem,
+            t,
+            gyro,
+            accel,
+            reference,
+            noise,
+            window_lengths=window_lengths,
+            scheme=scheme,
+            model=model,
+            reference_sigma=reference_sigma,
+            initial=initial,
+            windows_per_group=windows_per_group,
+            check=check,
+            extrinsics=extrinsics,
+            omega_coriolis=omega_coriolis,
+        )
     keyframe_interval = 0.5 if keyframe_interval is None else keyframe_interval
     if scheme not in ("euler", "midpoint"):
         raise ValueError(f"unknown scheme {scheme!r}; choose 'euler' or 'midpoint'")
@@ -272,11 +308,14 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     windows_per_group = val.check_int("windows_per_group", windows_per_group, 1)
     sig = np.asarray(reference_sigma, np.float64) if np.ndim(reference_sigma) == 1 else None
     if sig is None or sig.shape != (3,) or not np.all(np.isfinite(sig) & (sig >= 0)):
-        raise ValueError("reference_sigma must be three non-negative numbers (σ_θ [rad], σ_p [m], "
-                         f"σ_v [m/s]), got {reference_sigma!r}")
+        raise ValueError(
+            "reference_sigma must be three non-negative numbers (σ_θ [rad], σ_p [m], "
+            f"σ_v [m/s]), got {reference_sigma!r}"
+        )
     if not isinstance(reference, Reference):
-        raise ValueError(f"reference must be a jaximu.calibration.Reference, got "
-                         f"{type(reference).__name__}")
+        raise ValueError(
+            f"reference must be a jaximu.calibration.Reference, got {type(reference).__name__}"
+        )
     check = val.check_bool("check", check)
     extrinsics = val.check_bool("extrinsics", extrinsics)
     _check_initial(initial)
@@ -284,11 +323,15 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     t = val.as_numbers("t", t)
     gyro_np, accel_np = val.as_numbers("gyro", gyro, None), val.as_numbers("accel", accel, None)
     if t.ndim != 1 or gyro_np.shape != (len(t), 3) or accel_np.shape != (len(t), 3):
-        raise ValueError(f"t, gyro, accel must have shapes (N,), (N, 3), (N, 3); got "
-                         f"{t.shape}, {gyro_np.shape}, {accel_np.shape}")
+        raise ValueError(
+            f"t, gyro, accel must have shapes (N,), (N, 3), (N, 3); got "
+            f"{t.shape}, {gyro_np.shape}, {accel_np.shape}"
+        )
     if len(t) < 3:
-        raise ValueError(f"t, gyro, accel hold {len(t)} samples; a calibration needs at least "
-                         "two keyframe windows of samples")
+        raise ValueError(
+            f"t, gyro, accel hold {len(t)} samples; a calibration needs at least "
+            "two keyframe windows of samples"
+        )
     val.check_finite("t", t)
     if np.any(np.diff(t) <= 0):
         i = int(np.argmax(np.diff(t) <= 0))
@@ -300,8 +343,10 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     if omega_coriolis is not None:
         omega_coriolis = world.check_omega(omega_coriolis, dtype)
         if omega_coriolis.ndim != 1:
-            raise ValueError(f"omega_coriolis must be one (3,) world rate for a calibration "
-                             f"problem (one recording), got shape {omega_coriolis.shape}")
+            raise ValueError(
+                f"omega_coriolis must be one (3,) world rate for a calibration "
+                f"problem (one recording), got shape {omega_coriolis.shape}"
+            )
     rt, rq, rp = (val.as_numbers(f"reference.{n}", getattr(reference, n)) for n in "tqp")
     M = len(rt) if rt.ndim else 0
     if rt.ndim != 1 or rq.shape != (M, 4) or rp.shape != (M, 3) or M < 2:
@@ -312,11 +357,15 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
     for name, x in (("reference.q", rq), ("reference.p", rp)):
         val.check_finite(name, x)
-    _tolerances.check_unit_norm("reference.q", rq, np.float64, tol=_tolerances.ROUNDED_QUATERNION,
-                        what="is not unit ([w, x, y, z] quaternions)",
-                        where=lambda i: f" at row {i[0]}",
-                        fix="pass unit quaternions (a normalised copy is used within this "
-                            "tolerance)")
+    _tolerances.check_unit_norm(
+        "reference.q",
+        rq,
+        np.float64,
+        tol=_tolerances.ROUNDED_QUATERNION,
+        what="is not unit ([w, x, y, z] quaternions)",
+        where=lambda i: f" at row {i[0]}",
+        fix="pass unit quaternions (a normalised copy is used within this tolerance)",
+    )
     rq = rq / np.linalg.norm(rq, axis=-1, keepdims=True)
     has_v = reference.v is not None
     rv = val.as_numbers("reference.v", reference.v) if has_v else np.zeros_like(rp)
@@ -329,10 +378,12 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     period = float(np.median(np.diff(t)))
     W = int(round(keyframe_interval / period))
     if W < 1:
-        raise InputError(f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
-                         f"interval ({period:.3g} s): keyframes are whole samples apart "
-                         "(typically 0.1–1 s)",
-                         [Fix("keyframe_interval", phrase=f"{{}} ≥ {period:.3g}")])
+        raise InputError(
+            f"keyframe_interval = {keyframe_interval:g} s is shorter than one sample "
+            f"interval ({period:.3g} s): keyframes are whole samples apart "
+            "(typically 0.1–1 s)",
+            [Fix("keyframe_interval", phrase=f"{{}} ≥ {period:.3g}")],
+        )
     inside = np.nonzero((t + td0 >= rt[0]) & (t + td0 <= rt[-1]))[0]
     if len(inside) < W + 2:
         raise ValueError("the IMU and the reference overlap by less than one keyframe interval")
@@ -350,14 +401,16 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         for end in (k, k + 1):
             if inside[end]:
                 gap_windows[gap_of[end]] = gap_windows.get(gap_of[end], 0) + 1
-    skipped = tuple((float(rt[i]), float(rt[i + 1] - rt[i]), n)
-                    for i, n in sorted(gap_windows.items()))
+    skipped = tuple(
+        (float(rt[i]), float(rt[i + 1] - rt[i]), n) for i, n in sorted(gap_windows.items())
+    )
     if not kept.any():
         raise CalibrationError(
             f"every one of the {K} keyframe windows has a keyframe inside a reference gap "
             f"(an interval longer than {max_gap:.4g} s, {GAP_FACTOR:g} × the reference's median "
             f"interval), and the reference is not interpolated across gaps: "
-            f"{_gap_list(skipped)}. Calibrate on a stretch the reference covers")
+            f"{_gap_list(skipped)}. Calibrate on a stretch the reference covers"
+        )
     # Each window holds the W + 1 samples from keyframe to keyframe and the W intervals
     # between them (the midpoint rule uses both ends; Euler leaves the last one unused).
     sl = idx[:-1, None] + np.arange(W + 1)  # (K, W + 1)
@@ -366,15 +419,24 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     # Keyframe velocities where the reference has none: central differences of positions.
     t0 = t[idx[0]]  # common time origin: keeps float32 times (and absolute stamps) precise
-    qk, pk, vk = (np.asarray(x, np.float64) for x in _once(_interp)(
-        jnp.asarray(t[idx] - t0 + td0), jnp.asarray(rt - t0), jnp.asarray(rq),
-        jnp.asarray(rp), jnp.asarray(rv)))
+    qk, pk, vk = (
+        np.asarray(x, np.float64)
+        for x in _once(_interp)(
+            jnp.asarray(t[idx] - t0 + td0),
+            jnp.asarray(rt - t0),
+            jnp.asarray(rq),
+            jnp.asarray(rp),
+            jnp.asarray(rv),
+        )
+    )
     if not has_v:
         vk = _velocities_from_positions(pk, t[idx], ~inside)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
-    g_c, a_c = (np.asarray(x) for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype),
-                                                      jnp.asarray(win_accel, dtype)))
+    g_c, a_c = (
+        np.asarray(x)
+        for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype), jnp.asarray(win_accel, dtype))
+    )
     # Run once per problem, so its compile time is what the user waits for: the plain scan
     # (it compiles in a fraction of the time of the side-by-side chunks "auto" picks for a few
     # dozen windows; the inputs are checked above). Small problems compile it at the quick
@@ -383,8 +445,14 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     zero3 = jnp.zeros(3, dtype)
     quick = K * W <= QUICK_COMPILE_SAMPLES
     pim = _compiled(_preintegrate_sequential, quick, ("scheme", "fast"))(
-        jnp.asarray(g_c, dtype), jnp.asarray(a_c, dtype), jnp.asarray(win_dt, dtype),
-        ImuBias(zero3, zero3), noise, scheme=scheme, fast=not quick)
+        jnp.asarray(g_c, dtype),
+        jnp.asarray(a_c, dtype),
+        jnp.asarray(win_dt, dtype),
+        ImuBias(zero3, zero3),
+        noise,
+        scheme=scheme,
+        fast=not quick,
+    )
     cov = np.asarray(pim.cov, np.float64)
     Dt = win_dt.sum(-1)
     s_th, s_p, s_v = (float(x) for x in reference_sigma)
@@ -394,14 +462,16 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
     extra[:, 6:9] = 2 * s_v**2 if has_v else 0.0
     cov = cov + extra[:, :, None] * np.eye(9)
 
-    diagnostics = dict.fromkeys(("gyro_ratio", "gyro_frame_error", "accel_ratio",
-                                 "accel_frame_error"), np.nan)
+    diagnostics = dict.fromkeys(
+        ("gyro_ratio", "gyro_frame_error", "accel_ratio", "accel_frame_error"), np.nan
+    )
     q_BS0 = None
     if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
-        R_i, phi_ref = (np.asarray(x, np.float64)
-                        for x in _once(_keyframe_rotations)(jnp.asarray(qk)))
+        R_i, phi_ref = (
+            np.asarray(x, np.float64) for x in _once(_keyframe_rotations)(jnp.asarray(qk))
+        )
         phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
@@ -409,21 +479,29 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
         phi_imu, phi_ref, dv_imu, dv_ref = (x[kept] for x in (phi_imu, phi_ref, dv_imu, dv_ref))
         found = {}
         if extrinsics:
-            theta, stat, source = _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref,
-                                                    reference_sigma)
+            theta, stat, source = _initial_rotation(
+                phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma
+            )
             if source == "none":
-                warnings.warn("the motion determines no rotation between the IMU and the "
-                              "reference's body frame (no two independent directions of "
-                              "rotation or of velocity change): q_BS starts at the identity",
-                              RuntimeWarning, stacklevel=2)
+                warnings.warn(
+                    "the motion determines no rotation between the IMU and the "
+                    "reference's body frame (no two independent directions of "
+                    "rotation or of velocity change): q_BS starts at the identity",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
             R0 = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
             q_BS0 = np.asarray(_once(so3.exp)(jnp.asarray(theta)), np.float64)
-            found = {"q_BS0": q_BS0, "q_BS0_angle": float(np.linalg.norm(theta)),
-                     "q_BS0_statistic": stat}
+            found = {
+                "q_BS0": q_BS0,
+                "q_BS0_angle": float(np.linalg.norm(theta)),
+                "q_BS0_statistic": stat,
+            }
             phi_imu, dv_imu = phi_imu @ R0.T, dv_imu @ R0.T  # the checks on the body's axes
         if check:
-            diagnostics = _check_consistency(phi_imu, phi_ref, dv_imu, dv_ref, Dt[kept],
-                                             reference_sigma)
+            diagnostics = _check_consistency(
+                phi_imu, phi_ref, dv_imu, dv_ref, Dt[kept], reference_sigma
+            )
         diagnostics.update(found)
     # after the unit and frame checks, which name a wrong unit or frame (a gyro in deg/s turns
     # windows by whole turns, where the rotation's covariance is singular) more usefully
@@ -439,18 +517,38 @@ def calibration_problem(t, gyro, accel, reference: Reference, noise: ImuNoise, *
 
     as_d = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     return CalibrationProblem(
-        gyro=as_d(grp(win_gyro)), accel=as_d(grp(win_accel)), dt=as_d(grp(win_dt)),
-        t_start=as_d(grp(t[idx[:-1]] - t0)), t_end=as_d(grp(t[idx[1:]] - t0)),
+        gyro=as_d(grp(win_gyro)),
+        accel=as_d(grp(win_accel)),
+        dt=as_d(grp(win_dt)),
+        t_start=as_d(grp(t[idx[:-1]] - t0)),
+        t_end=as_d(grp(t[idx[1:]] - t0)),
         window=grp(np.arange(K)),
         weight=as_d(np.concatenate([kept, np.zeros(pad)]).reshape(G, C)),  # padding: 0
-        sqrt_info=as_d(grp(sqrt_info)), ref_t=as_d(rt - t0), ref_q=as_d(rq), ref_p=as_d(rp),
-        ref_v=as_d(rv), velocities=as_d(vk), scheme=scheme, model=model, has_velocity=has_v,
+        sqrt_info=as_d(grp(sqrt_info)),
+        ref_t=as_d(rt - t0),
+        ref_q=as_d(rq),
+        ref_p=as_d(rp),
+        ref_v=as_d(rv),
+        velocities=as_d(vk),
+        scheme=scheme,
+        model=model,
+        has_velocity=has_v,
         diagnostics={k: as_d(v) for k, v in diagnostics.items()},
-        n_windows=int(K), q_BS0=None if q_BS0 is None else as_d(q_BS0),
+        n_windows=int(K),
+        q_BS0=None if q_BS0 is None else as_d(q_BS0),
         extrinsics=bool(extrinsics),
-        sample_density2=as_d(np.stack([np.broadcast_to(np.asarray(
-            getattr(noise, f"{s}_noise_density"), np.float64) ** 2, (3,))
-            for s in ("gyroscope", "accelerometer")])),
+        sample_density2=as_d(
+            np.stack(
+                [
+                    np.broadcast_to(
+                        np.asarray(getattr(noise, f"{s}_noise_density"), np.float64) ** 2, (3,)
+                    )
+                    for s in ("gyroscope", "accelerometer")
+                ]
+            )
+        ),
         reference_var=as_d(grp(extra)),
         omega_coriolis=omega_coriolis,
-        max_gap=float(max_gap), skipped=skipped)
+        max_gap=float(max_gap),
+        skipped=skipped,
+    )

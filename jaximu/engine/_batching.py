@@ -66,8 +66,10 @@ def _to_leading(axis_size, in_batched, args, specs: Sequence[ArgSpec]):
                 x = jnp.broadcast_to(x[:, None], (axis_size, spec.scalar(args, in_batched)))
             pairs.append((x, b))
         flat.append((pairs, tree))
-    rank = max([x.ndim - int(b) - spec.core
-                for (pairs, _), spec in zip(flat, specs) for x, b in pairs] + [0])
+    rank = max(
+        [x.ndim - int(b) - spec.core for (pairs, _), spec in zip(flat, specs) for x, b in pairs]
+        + [0]
+    )
     out = []
     for (pairs, tree), spec in zip(flat, specs):
         leaves = []
@@ -148,18 +150,21 @@ def leading_axes(fn: Callable, specs: tuple, statics: tuple = ()) -> Callable:
         jaxpr = eqn.params["jaxpr"]
         pruned, _ = pe.dce_jaxpr(jaxpr.jaxpr, list(used_outputs), instantiate=True)
         kept = eqn.params["kept"] or tuple(range(len(used_outputs)))
-        params = dict(eqn.params, jaxpr=ClosedJaxpr(pruned, jaxpr.consts),
-                      kept=tuple(k for k, u in zip(kept, used_outputs) if u))
+        params = dict(
+            eqn.params,
+            jaxpr=ClosedJaxpr(pruned, jaxpr.consts),
+            kept=tuple(k for k, u in zip(kept, used_outputs) if u),
+        )
         outvars = [v for v, u in zip(eqn.outvars, used_outputs) if u]
         return [True] * len(eqn.invars), new_jaxpr_eqn(
-            list(eqn.invars), outvars, prim, params, eqn.effects, eqn.source_info, eqn.ctx)
+            list(eqn.invars), outvars, prim, params, eqn.effects, eqn.source_info, eqn.ctx
+        )
 
     pe.dce_rules[prim] = _dce
 
     def _batch(args, dims, *, in_tree, jaxpr, kept):
         size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
-        leaves = [x if d is None else jnp.moveaxis(x, d, 0)
-                  for x, d in zip(args, dims)]
+        leaves = [x if d is None else jnp.moveaxis(x, d, 0) for x, d in zip(args, dims)]
         flags = [d is not None for d in dims]
         tree_args = jax.tree_util.tree_unflatten(in_tree, leaves)
         tree_flags = jax.tree_util.tree_unflatten(in_tree, flags)

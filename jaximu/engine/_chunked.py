@@ -57,12 +57,13 @@ def chunk_lanes(gyro, accel, dt, C, L, extra):
     pad = C * L - n
     if pad:
         dt = jnp.pad(dt, ((0, 0), (0, pad)))
-        gyro, accel = (jnp.pad(x, ((0, 0), (0, pad), (0, 0)), mode="edge")
-                       for x in (gyro, accel))
+        gyro, accel = (jnp.pad(x, ((0, 0), (0, pad), (0, 0)), mode="edge") for x in (gyro, accel))
     # computed in the program: as a numpy constant (C·(L+1) indices) it is compiled into
     # it, and the compile grew with the sequence (2^25 steps: 3.8 against 1.1 s)
-    idx = (jnp.arange(C, dtype=jnp.int32)[:, None] * L
-           + jnp.arange(L + extra, dtype=jnp.int32)[None, :])
+    idx = (
+        jnp.arange(C, dtype=jnp.int32)[:, None] * L
+        + jnp.arange(L + extra, dtype=jnp.int32)[None, :]
+    )
     lanes = lambda x: x[:, idx].reshape((B * C,) + idx.shape[1:] + x.shape[2:])
     return lanes(gyro), lanes(accel), dt.reshape(B * C, L)
 
@@ -88,8 +89,12 @@ def by_lane(x):
 
 def identity_deltas(B, dtype):
     """The deltas of a chunk of no steps, ``(1, B, ·)``."""
-    return (jnp.zeros((1, B, 4), dtype).at[..., 0].set(1), jnp.zeros((1, B, 3), dtype),
-            jnp.zeros((1, B, 3), dtype), jnp.zeros((1, B), dtype))
+    return (
+        jnp.zeros((1, B, 4), dtype).at[..., 0].set(1),
+        jnp.zeros((1, B, 3), dtype),
+        jnp.zeros((1, B, 3), dtype),
+        jnp.zeros((1, B), dtype),
+    )
 
 
 def total_deltas(deltas):
@@ -98,8 +103,9 @@ def total_deltas(deltas):
     B, dtype = deltas[3].shape[1], deltas[3].dtype
     while deltas[0].shape[0] > 1:
         if deltas[0].shape[0] % 2:  # an identity chunk pads to an even count
-            deltas = tuple(jnp.concatenate([d, e]) for d, e in
-                           zip(deltas, identity_deltas(B, dtype)))
+            deltas = tuple(
+                jnp.concatenate([d, e]) for d, e in zip(deltas, identity_deltas(B, dtype))
+            )
         deltas = compose_deltas(tuple(d[0::2] for d in deltas), tuple(d[1::2] for d in deltas))
     return tuple(d[0] for d in deltas)
 
@@ -162,8 +168,7 @@ def _frame(q):
     return jnp.moveaxis(so3.quat_to_matrix(q), (-2, -1), (0, 1))
 
 
-def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, deltas=None,
-                       g=None):
+def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, deltas=None, g=None):
     """``P_{c+1} = Φ_c P_c Φ_cᵀ + Q_c`` along the chunks: in order (the CPU: one compiled
     kernel, :func:`jaximu.kernels.soa.one_kernel`) or as an associative scan of the pairs (an
     accelerator: ``log2 C`` levels of launches, not ``C``).
@@ -178,14 +183,20 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
     chunk's start ``((q, p, v) (C, B, ·), P blocks (C, 3, 3, B))`` (else ``None``)."""
     moving = deltas is not None
     if on == dispatch.CPU:
+
         def body(carry, xs, g):
             x, P = carry
             leaves, Qc, d = xs
-            Fc, Qc = _in_start_frame(blk.rows_from_leaves(leaves, pattern),
-                                     dict(zip(UPPER, Qc)), _frame(x[0]) if moving else None,
-                                     rotated, pattern)
-            new = blk.symmetrize_diagonal(blk.add_blocks(blk.congruence(
-                dict(zip(UPPER, P)), Fc, SOA), Qc), SOA)
+            Fc, Qc = _in_start_frame(
+                blk.rows_from_leaves(leaves, pattern),
+                dict(zip(UPPER, Qc)),
+                _frame(x[0]) if moving else None,
+                rotated,
+                pattern,
+            )
+            new = blk.symmetrize_diagonal(
+                blk.add_blocks(blk.congruence(dict(zip(UPPER, P)), Fc, SOA), Qc), SOA
+            )
             x1 = apply_deltas(*x, g, d) if moving else x
             return (x1, tuple(new[k] for k in UPPER)), ((x, P) if save_all else None)
 
@@ -195,39 +206,65 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
         # one chunk: no loop (XLA:CPU's kernel emitter aborts on the call whose loop of one
         # trip it removes, its outputs then its parameters)
         call = run if F[0].shape[0] == 1 else lambda *a: _soa.one_kernel(run, *a)
-        (end, P), starts = _soa.replicated(call(*_soa.replicated((
-            start if moving else None, tuple(P0[k] for k in UPPER), tuple(F), tuple(Q),
-            deltas, g))))
+        (end, P), starts = _soa.replicated(
+            call(
+                *_soa.replicated(
+                    (
+                        start if moving else None,
+                        tuple(P0[k] for k in UPPER),
+                        tuple(F),
+                        tuple(Q),
+                        deltas,
+                        g,
+                    )
+                )
+            )
+        )
         if starts is not None:
             starts = (starts[0], dict(zip(UPPER, starts[1])))
         return dict(zip(UPPER, P)), end, starts
     # an accelerator: the chunks' starts by a parallel prefix of their deltas, the pairs
     # (Φ_c, Q_c) in the sequence's coordinates, (I, P0) first, and their parallel prefix
-    before = apply_deltas(*(x[None] for x in start), g, deltas_before(deltas)) if moving \
-        else None
+    before = apply_deltas(*(x[None] for x in start), g, deltas_before(deltas)) if moving else None
     # the scan's axis leads every leaf; the block algebra runs with it last, as a lane axis
     last = lambda x: jnp.moveaxis(x, 0, -1)
     first = lambda x: jnp.moveaxis(x, -1, 0)
-    Fr, Qr = _in_start_frame(blk.rows_from_leaves([last(x) for x in F], pattern),
-                             dict(zip(UPPER, (last(x) for x in Q))),
-                             jnp.swapaxes(_frame(before[0]), -1, -2) if moving else None,
-                             rotated, pattern)
+    Fr, Qr = _in_start_frame(
+        blk.rows_from_leaves([last(x) for x in F], pattern),
+        dict(zip(UPPER, (last(x) for x in Q))),
+        jnp.swapaxes(_frame(before[0]), -1, -2) if moving else None,
+        rotated,
+        pattern,
+    )
     like = Qr[(0, 0)]
-    ident = blk.conform_rows({}, pattern, like.shape[:-1] + (1,), like.shape[2:-1] + (1,),
-                             like.dtype, SOA)
-    elems = (tuple(first(x) for x in blk.rows_leaves(_join(ident, Fr, pattern), pattern)),
-             tuple(first(jnp.concatenate([jnp.broadcast_to(P0[k][..., None],
-                                                           like.shape[:-1] + (1,)), Qr[k]], -1))
-                   for k in UPPER))
+    ident = blk.conform_rows(
+        {}, pattern, like.shape[:-1] + (1,), like.shape[2:-1] + (1,), like.dtype, SOA
+    )
+    elems = (
+        tuple(first(x) for x in blk.rows_leaves(_join(ident, Fr, pattern), pattern)),
+        tuple(
+            first(
+                jnp.concatenate(
+                    [jnp.broadcast_to(P0[k][..., None], like.shape[:-1] + (1,)), Qr[k]], -1
+                )
+            )
+            for k in UPPER
+        ),
+    )
 
     def combine(a, b):
         Fa, Fb = (blk.rows_from_leaves([last(y) for y in x[0]], pattern) for x in (a, b))
-        Fn, Qn = blk.compose_transitions((Fa, {k: last(y) for k, y in zip(UPPER, a[1])}),
-                                         (Fb, {k: last(y) for k, y in zip(UPPER, b[1])}), SOA)
+        Fn, Qn = blk.compose_transitions(
+            (Fa, {k: last(y) for k, y in zip(UPPER, a[1])}),
+            (Fb, {k: last(y) for k, y in zip(UPPER, b[1])}),
+            SOA,
+        )
         sh = Qn[(0, 0)].shape
         Fn = blk.conform_rows(Fn, pattern, sh, sh[2:], like.dtype, SOA)
-        return (tuple(first(x) for x in blk.rows_leaves(Fn, pattern)),
-                tuple(first(blk.sym(Qn[k], SOA) if k[0] == k[1] else Qn[k]) for k in UPPER))
+        return (
+            tuple(first(x) for x in blk.rows_leaves(Fn, pattern)),
+            tuple(first(blk.sym(Qn[k], SOA) if k[0] == k[1] else Qn[k]) for k in UPPER),
+        )
 
     _, P_all = jax.lax.associative_scan(combine, elems)  # P_0 (= P0) ... P_C, (C + 1, ...)
     P = {k: x[-1] for k, x in zip(UPPER, P_all)}
@@ -260,8 +297,26 @@ def _start_indices(C, L, n):
     return jnp.minimum(jnp.arange(C) * L, n) - 1
 
 
-def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobians,
-               omega=None, coriolis="exact", lever=None, save_all=False):
+def covariance(
+    sch,
+    form,
+    q,
+    p,
+    v,
+    b_g,
+    b_a,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    var,
+    jacobians,
+    omega=None,
+    coriolis="exact",
+    lever=None,
+    save_all=False,
+):
     """Mean and covariance of ``B`` sequences in time chunks (module docstring): the final
     ``(q, p, v, P)`` ``(B, ·)`` or, with ``save_all``, those after every step ``(B, n, ·)``
     (``q`` in the attitude form ``form``), and Euler angles' locked flags ``(B,)`` (or
@@ -289,8 +344,9 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
         p_s = v_s = jnp.zeros((B * C, 3), dtype)
         g_s = jnp.zeros(3, dtype)
     else:  # from the true starts: the mean's own pass first
-        mean = _fast.propagate_mean(sch, q, p, v, b_g, b_a, gyro, accel, dt, g, True, omega,
-                                    coriolis, form)
+        mean = _fast.propagate_mean(
+            sch, q, p, v, b_g, b_a, gyro, accel, dt, g, True, omega, coriolis, form
+        )
         idx = _start_indices(C, L, n)
 
         def starts(x, x0):  # (B, n, ·) -> the chunks' starts, lanes (B·C, ·)
@@ -302,9 +358,28 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
         if len(mean) > 3:
             locked = mean[3][:, -1, 0]
     zeros = jnp.zeros((B * C, 15, 15), dtype)
-    out = _fast.propagate_cov(x_s, p_s, v_s, rep(b_g), rep(b_a), zeros, gyro_c, accel_c, dt_c,
-                              g_s, padded_variances, var_c, sch, jacobians, omega_c, coriolis,
-                              lever_c, False, form, transition=pattern)
+    out = _fast.propagate_cov(
+        x_s,
+        p_s,
+        v_s,
+        rep(b_g),
+        rep(b_a),
+        zeros,
+        gyro_c,
+        accel_c,
+        dt_c,
+        g_s,
+        padded_variances,
+        var_c,
+        sch,
+        jacobians,
+        omega_c,
+        coriolis,
+        lever_c,
+        False,
+        form,
+        transition=pattern,
+    )
     soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))
     Q = tuple(soa(x) for x in out[3])  # (C, 3, 3, B)
     F = tuple(soa(x) for x in out[4])
@@ -318,8 +393,9 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     Pb = dict(zip(UPPER, _fast.dense_to_lanes(P0)))
     if world_error:  # the user's body-frame rotation error into the world frame
         Pb = blk.congruence(Pb, {0: {0: _frame(start[0])}}, SOA)
-    P, end, starts = compose_covariance(Pb, F, Q, pattern, rotated, save_all, on, start,
-                                        deltas, g_b)
+    P, end, starts = compose_covariance(
+        Pb, F, Q, pattern, rotated, save_all, on, start, deltas, g_b
+    )
     if not save_all:
         if local:
             xf, pf, vf = lane_forms.from_quat(form, end[0]), end[1], end[2]
@@ -336,11 +412,30 @@ def covariance(sch, form, q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, jacobi
     lanes = lambda x: jnp.moveaxis(x, 0, -1).reshape(x.shape[1:3] + (B * C,))
     P_starts = {k: lanes(x) for k, x in starts[1].items()}
     if world_error:  # the starts' covariances in the body frame, as the kernel keeps them
-        P_starts = blk.congruence(P_starts, {0: {0: lane_math._bt(_frame(by_lane(starts[0][0])))}},
-                                  SOA)
+        P_starts = blk.congruence(
+            P_starts, {0: {0: lane_math._bt(_frame(by_lane(starts[0][0])))}}, SOA
+        )
     P_s = _fast.lanes_to_dense(tuple(P_starts[k] for k in UPPER))
     x_t, p_t, v_t, P_t, *_ = _fast.propagate_cov(
-        x_s, p_s, v_s, rep(b_g), rep(b_a), P_s, gyro_c, accel_c, dt_c, rep(g_b),
-        padded_variances, var_c, sch, jacobians, omega_c, coriolis, lever_c, True, form)
+        x_s,
+        p_s,
+        v_s,
+        rep(b_g),
+        rep(b_a),
+        P_s,
+        gyro_c,
+        accel_c,
+        dt_c,
+        rep(g_b),
+        padded_variances,
+        var_c,
+        sch,
+        jacobians,
+        omega_c,
+        coriolis,
+        lever_c,
+        True,
+        form,
+    )
     seq = lambda x: x.reshape((B, C * L) + x.shape[2:])[:, :n]
     return seq(x_t), seq(p_t), seq(v_t), seq(P_t), locked

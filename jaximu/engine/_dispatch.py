@@ -88,14 +88,35 @@ the exact exponentials only)."""
 
 TABLE = (
     # mean of every scheme in every lane attitude form, a batch of 32 or more
-    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 32, 1,
-        "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
+    Row(
+        "mean",
+        ("euler", "midpoint", "rk4"),
+        LANE_ATTITUDES,
+        None,
+        (False, True),
+        32,
+        1,
+        "soa_mean",
+        rotating=(False, True),
+        lever=None,
+        backends=(CPU,),
+    ),
     # on an accelerator a sequential step costs a launch whatever the lanes: sequences of a
     # batch that leaves lanes free run as time chunks in both dtypes, every state stored too
     # (the chunks run twice, from the composed starts)
-    Row("mean", ("euler", "midpoint", "rk4"), ("quaternion",), None, (False, True), 1,
-        MEAN_CHUNK_STEPS, "soa_mean_chunked", lever=None, backends=(ACCELERATOR,),
-        max_lanes=MEAN_CHUNK_LANES),
+    Row(
+        "mean",
+        ("euler", "midpoint", "rk4"),
+        ("quaternion",),
+        None,
+        (False, True),
+        1,
+        MEAN_CHUNK_STEPS,
+        "soa_mean_chunked",
+        lever=None,
+        backends=(ACCELERATOR,),
+        max_lanes=MEAN_CHUNK_LANES,
+    ),
     # any other batch: one block of few lanes, one compiled kernel (docs/DESIGN.md, "One
     # kernel per block"; XLA's generic scan runs a float64 step as thunks: 13x slower for
     # one trajectory of 1000 samples). On an accelerator the generic kernel's step over all
@@ -103,39 +124,113 @@ TABLE = (
     # sequence stays here: as time chunks (soa_mean_chunked) one float64 trajectory of 10^5
     # samples ran 59 against 32 M samples/s but compiled in 0.8 against 0.23 s, and at 2^25
     # samples both ran 34 M/s (the chunks' gather is memory-bound)
-    Row("mean", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, None, (False, True), 1, 1,
-        "soa_mean", rotating=(False, True), lever=None, backends=(CPU,)),
+    Row(
+        "mean",
+        ("euler", "midpoint", "rk4"),
+        LANE_ATTITUDES,
+        None,
+        (False, True),
+        1,
+        1,
+        "soa_mean",
+        rotating=(False, True),
+        lever=None,
+        backends=(CPU,),
+    ),
     # time chunks side by side as lanes, their transitions and noise composed
     # (jaximu/engine/_chunked.py): on the CPU a few long sequences, whose chunks fill a block of
     # lanes; on an accelerator, where a sequential step is a launch, shorter sequences and
     # batches that leave lanes free too
-    *(Row("covariance", ("euler", "midpoint", "rk4"), attitudes, (jac,), (False, True), 1,
-          COV_CHUNK_STEPS[on], "soa_cov_chunked", rotating=(False, True), lever=(False, True),
-          backends=(on,), max_lanes=COV_CHUNK_LANES[on])
-      for on in (CPU, ACCELERATOR)
-      for attitudes, jac in ((("quaternion", "matrix"), "analytic"),
-                             (LANE_ATTITUDES, "autodiff"))),
+    *(
+        Row(
+            "covariance",
+            ("euler", "midpoint", "rk4"),
+            attitudes,
+            (jac,),
+            (False, True),
+            1,
+            COV_CHUNK_STEPS[on],
+            "soa_cov_chunked",
+            rotating=(False, True),
+            lever=(False, True),
+            backends=(on,),
+            max_lanes=COV_CHUNK_LANES[on],
+        )
+        for on in (CPU, ACCELERATOR)
+        for attitudes, jac in ((("quaternion", "matrix"), "analytic"), (LANE_ATTITUDES, "autodiff"))
+    ),
     # covariance (final or every step), every scheme, closed-form blocks (Scheme.blocks on the
     # SoA layout; the exact-exponential forms have them); on an accelerator too (2.6-8x the
     # generic kernel on an H100)
-    Row("covariance", ("euler", "midpoint", "rk4"), ("quaternion", "matrix"), ("analytic",),
-        (False, True), 1, 1, "soa_cov_analytic", rotating=(False, True), lever=(False, True)),
+    Row(
+        "covariance",
+        ("euler", "midpoint", "rk4"),
+        ("quaternion", "matrix"),
+        ("analytic",),
+        (False, True),
+        1,
+        1,
+        "soa_cov_analytic",
+        rotating=(False, True),
+        lever=(False, True),
+    ),
     # the same with blocks by autodiff of the SoA step, every attitude form
-    Row("covariance", ("euler", "midpoint", "rk4"), LANE_ATTITUDES, ("autodiff",),
-        (False, True), 1, 1, "soa_cov_autodiff", rotating=(False, True), lever=(False, True)),
+    Row(
+        "covariance",
+        ("euler", "midpoint", "rk4"),
+        LANE_ATTITUDES,
+        ("autodiff",),
+        (False, True),
+        1,
+        1,
+        "soa_cov_autodiff",
+        rotating=(False, True),
+        lever=(False, True),
+    ),
     # preintegration, final i→j (min_lanes: see preintegrate_kernel): closed-form blocks or
     # blocks by autodiff of the SoA step (jax.jvp), the same update after them
-    Row("preintegrate", ("euler",), None, ("analytic", "autodiff"), (False,), 1, 1,
-        "soa_preint_euler", lever=(False, True)),
-    Row("preintegrate", ("midpoint",), None, ("analytic", "autodiff"), (False,), 1, 1,
-        "soa_preint_midpoint", lever=(False, True)),
+    Row(
+        "preintegrate",
+        ("euler",),
+        None,
+        ("analytic", "autodiff"),
+        (False,),
+        1,
+        1,
+        "soa_preint_euler",
+        lever=(False, True),
+    ),
+    Row(
+        "preintegrate",
+        ("midpoint",),
+        None,
+        ("analytic", "autodiff"),
+        (False,),
+        1,
+        1,
+        "soa_preint_midpoint",
+        lever=(False, True),
+    ),
 )
 
 GENERIC = "generic"
 
 
-def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lanes=1, steps=1,
-           dtype="float64", fast=True, rotating=False, lever=False, on=None) -> str:
+def kernel(
+    entry,
+    scheme,
+    *,
+    attitude=None,
+    jacobians=None,
+    save_all=False,
+    lanes=1,
+    steps=1,
+    dtype="float64",
+    fast=True,
+    rotating=False,
+    lever=False,
+    on=None,
+) -> str:
     """The kernel that runs ``entry`` for these static options, ``lanes`` batch elements
     and ``steps`` time steps on the backend ``on`` (default :func:`backend`, JAX's default
     backend when the entry is traced); ``rotating``: a world rotation rate
@@ -146,14 +241,20 @@ def kernel(entry, scheme, *, attitude=None, jacobians=None, save_all=False, lane
         return GENERIC
     on = on or backend()
     for row in TABLE:
-        if (row.entry == entry and scheme in row.schemes
-                and (row.attitudes is None or attitude in row.attitudes)
-                and (row.jacobians is None or jacobians in row.jacobians)
-                and save_all in row.save_all and lanes >= row.min_lanes
-                and (row.max_lanes is None or lanes <= row.max_lanes)
-                and steps >= row.min_steps and jnp.dtype(dtype).name in row.dtypes
-                and rotating in row.rotating and (row.lever is None or lever in row.lever)
-                and on in row.backends):
+        if (
+            row.entry == entry
+            and scheme in row.schemes
+            and (row.attitudes is None or attitude in row.attitudes)
+            and (row.jacobians is None or jacobians in row.jacobians)
+            and save_all in row.save_all
+            and lanes >= row.min_lanes
+            and (row.max_lanes is None or lanes <= row.max_lanes)
+            and steps >= row.min_steps
+            and jnp.dtype(dtype).name in row.dtypes
+            and rotating in row.rotating
+            and (row.lever is None or lever in row.lever)
+            and on in row.backends
+        ):
             return row.kernel
     return GENERIC
 
@@ -201,9 +302,9 @@ def preint_method(method, lanes, steps, dtype) -> str:
     return "sequential"
 
 
-def preintegrate_kernel(scheme, *, jacobians, prefixes, method, lanes, fast=True,
-                        lever=False) -> str:
+def preintegrate_kernel(
+    scheme, *, jacobians, prefixes, method, lanes, fast=True, lever=False
+) -> str:
     if prefixes:
         return GENERIC
-    return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast,
-                  lever=lever)
+    return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast, lever=lever)

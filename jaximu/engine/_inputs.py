@@ -32,9 +32,14 @@ def prepare(state, gyro, accel, dt, gravity, scheme, attitude, others=()):
     state = check_state(state, dtype)
     gyro, accel, dt, T = val.check_imu(gyro, accel, dt, dtype, allow_intervals=True)
     g = val.gravity_vector(gravity, dtype)
-    batch = val.batch_shape(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
-                            dt.shape[:-1], g.shape[:-1],
-                            names=("state", "gyro", "accel", "dt", "gravity"))
+    batch = val.batch_shape(
+        state.batch_shape,
+        gyro.shape[:-2],
+        accel.shape[:-2],
+        dt.shape[:-1],
+        g.shape[:-1],
+        names=("state", "gyro", "accel", "dt", "gravity"),
+    )
     return state, gyro, accel, dt, g, batch
 
 
@@ -90,8 +95,10 @@ def flatten_batch(batch, state, gyro, accel, dt, g):
     B = int(np.prod(batch, dtype=np.int64))
     flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
     steps = dt.shape[-1] if dt.ndim else T  # gyro may hold one sample more
-    fields = [flat(getattr(state, n), (k,)) for n, k in
-              (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3))]
+    fields = [
+        flat(getattr(state, n), (k,))
+        for n, k in (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3))
+    ]
     dt = jnp.broadcast_to(dt, (steps,)) if dt.ndim <= 1 else flat(dt, (steps,))
     g = g if g.ndim == 1 else flat(g, (3,))
     k = gyro.shape[-1]
@@ -128,8 +135,13 @@ def sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential):
         return state, gyro, accel
     if not soa:
         gyro, accel = sensor.to_body(pose, gyro, accel, dt, state.b_g, tangential=tangential)
-    state = NavState(state.q, state.p, state.v, sensor.bias_to_body(pose, state.b_g),
-                     sensor.bias_to_body(pose, state.b_a))
+    state = NavState(
+        state.q,
+        state.p,
+        state.v,
+        sensor.bias_to_body(pose, state.b_g),
+        sensor.bias_to_body(pose, state.b_a),
+    )
     return state, gyro, accel
 
 

@@ -112,8 +112,7 @@ class _Acc(NamedTuple):
 
 
 def _combine(earlier: _Acc, later: _Acc) -> _Acc:
-    Q15 = blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(earlier.Q15, later.Phi),
-                                                 later.Q15))
+    Q15 = blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(earlier.Q15, later.Phi), later.Q15))
     Q9 = blk.symmetrize_diagonal(blk.add_blocks(blk.phi_p_phit(earlier.Q9, later.Phi), later.Q9))
     Q9 = {k: Q9[k] for k in earlier.Q9}  # the bias blocks of Q9 stay zero
     return _Acc(blk.phi_compose(later.Phi, earlier.Phi), Q15, Q9)
@@ -131,10 +130,17 @@ def _finish(delta_t, dq, dv, dp, acc: _Acc, bias: ImuBias) -> Preintegrated:
     cov9 = blk.blocks_to_dense(Q9)[..., :9, :9]
     batch = dq.shape[:-1]
     return Preintegrated(
-        delta_t=delta_t, delta_q=so3.quat_normalize(dq), delta_v=dv, delta_p=dp,
-        transition=blk.phi_to_dense(acc.Phi), cov15=blk.blocks_to_dense(acc.Q15), cov=cov9,
-        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, batch + (3,)),
-                         jnp.broadcast_to(bias.b_a, batch + (3,))))
+        delta_t=delta_t,
+        delta_q=so3.quat_normalize(dq),
+        delta_v=dv,
+        delta_p=dp,
+        transition=blk.phi_to_dense(acc.Phi),
+        cov15=blk.blocks_to_dense(acc.Q15),
+        cov=cov9,
+        bias_hat=ImuBias(
+            jnp.broadcast_to(bias.b_g, batch + (3,)), jnp.broadcast_to(bias.b_a, batch + (3,))
+        ),
+    )
 
 
 def _pairs(gyro, accel, dt, scheme):
@@ -153,8 +159,9 @@ def _pairs(gyro, accel, dt, scheme):
     return w[:n], a[:n], w1, a1, h
 
 
-def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, blocks=True,
-                lever=None):
+def _chunk_scan(
+    scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, blocks=True, lever=None
+):
     """``lax.scan`` of the preintegration recursion over the leading (time) axis of ``xs``.
 
     ``xs = (dR, w0, a0, w1, a1, h, mask)``: with ``dR`` None the rotation is carried (the
@@ -174,14 +181,17 @@ def _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, batch, dtype, prefixes, bl
             hk_safe = jnp.where(mk, hk, jnp.ones_like(hk))
         else:
             hk_safe = hk
-        s = step_fn(scheme, dq if dR is None else dR, w0k, a0k, w1k, a1k, hk_safe, b_g, b_a,
-                    noise, lever)
+        s = step_fn(
+            scheme, dq if dR is None else dR, w0k, a0k, w1k, a1k, hk_safe, b_g, b_a, noise, lever
+        )
         step = _Acc(s.F, s.Q15, s.Q9) if blocks else None
         a_k = s.acc
         if mk is not None:
             step = jax.tree_util.tree_map(
                 lambda x_, i_: jnp.where(mk.reshape(mk.shape + (1,) * (x_.ndim - mk.ndim)), x_, i_),
-                step, ident if blocks else None)
+                step,
+                ident if blocks else None,
+            )
             a_k = jnp.where(mk[..., None], a_k, 0.0)
             hk = jnp.where(mk, hk, 0.0)
         hv = hk[..., None]
@@ -211,18 +221,30 @@ class _Dense(NamedTuple):
 
 def _to_dense(t, dv, dp, acc: _Acc) -> _Dense:
     Q9 = {k: acc.Q9.get(k) for k in blk.UPPER}
-    return _Dense(t, dv, dp, blk.phi_to_dense(acc.Phi), blk.blocks_to_dense(acc.Q15),
-                  blk.blocks_to_dense(Q9)[..., :9, :9])
+    return _Dense(
+        t,
+        dv,
+        dp,
+        blk.phi_to_dense(acc.Phi),
+        blk.blocks_to_dense(acc.Q15),
+        blk.blocks_to_dense(Q9)[..., :9, :9],
+    )
 
 
 def _combine_dense(e1: _Dense, e2: _Dense) -> _Dense:
     """``e2`` after ``e1``; all quantities in the same frame ``B_i``, so no rotation."""
+
     def sandwich(F, Q):
         return F @ Q @ jnp.swapaxes(F, -1, -2)
 
-    return _Dense(e1.t + e2.t, e1.dv + e2.dv, e1.dp + e2.dp + e1.dv * e2.t[..., None],
-                  e2.Phi @ e1.Phi, blk.sym(sandwich(e2.Phi, e1.Q15) + e2.Q15),
-                  blk.sym(sandwich(e2.Phi[..., :9, :9], e1.Q9) + e2.Q9))
+    return _Dense(
+        e1.t + e2.t,
+        e1.dv + e2.dv,
+        e1.dp + e2.dp + e1.dv * e2.t[..., None],
+        e2.Phi @ e1.Phi,
+        blk.sym(sandwich(e2.Phi, e1.Q15) + e2.Q15),
+        blk.sym(sandwich(e2.Phi[..., :9, :9], e1.Q9) + e2.Q9),
+    )
 
 
 def _chunk_length(T: int) -> int:
@@ -233,10 +255,17 @@ def _chunk_length(T: int) -> int:
 def _pim_from_dense(dq, d: _Dense, bias):
     batch = dq.shape[:-1]
     return Preintegrated(
-        delta_t=d.t, delta_q=so3.quat_normalize(dq), delta_v=d.dv, delta_p=d.dp,
-        transition=d.Phi, cov15=d.Q15, cov=d.Q9,
-        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, batch + (3,)),
-                         jnp.broadcast_to(bias.b_a, batch + (3,))))
+        delta_t=d.t,
+        delta_q=so3.quat_normalize(dq),
+        delta_v=d.dv,
+        delta_p=d.dp,
+        transition=d.Phi,
+        cov15=d.Q15,
+        cov=d.Q9,
+        bias_hat=ImuBias(
+            jnp.broadcast_to(bias.b_g, batch + (3,)), jnp.broadcast_to(bias.b_a, batch + (3,))
+        ),
+    )
 
 
 def _time_major_batch(x, batch, tail):
@@ -246,8 +275,9 @@ def _time_major_batch(x, batch, tail):
     return jnp.broadcast_to(x, x.shape[:1] + tuple(batch) + tuple(tail))
 
 
-def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever=None,
-                       jacobians="analytic"):
+def _preintegrate_fast(
+    gyro, accel, dt, bias, noise, batch, method, scheme, lever=None, jacobians="analytic"
+):
     T = gyro.shape[-2]
     n = dt.shape[-1] if dt.ndim else T  # dt of length T-1: Euler leaves the last sample unused
     dtype = gyro.dtype
@@ -255,6 +285,7 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     flat = lambda x, tail: jnp.broadcast_to(x, tuple(batch) + tail).reshape((B,) + tail)  # noqa: E731
     pre = preintegration_step(scheme)
     if pre.uses_next_sample:  # samples k and k+1 side by side (as _pairs)
+
         def pair(x):
             x1 = x[..., 1:, :] if n < T else jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], -2)
             return jnp.concatenate([x[..., :n, :], x1], -1)
@@ -277,33 +308,59 @@ def _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, leve
     # a scalar accelerometer density: the same noise on every axis (the kernel's R D Rᵀ = σ² I)
     iso = noise is None or jnp.ndim(noise.accelerometer_noise_density) == 0
     kernel = _fast_preint.KERNELS[pre.name]
-    t, q, dv, dp, Phi, Q15, Q9 = kernel(gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever,
-                                        jacobians, iso)
+    t, q, dv, dp, Phi, Q15, Q9 = kernel(
+        gyro_f, accel_f, dt_f, b_g, b_a, var, C, lever, jacobians, iso
+    )
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     return Preintegrated(
-        delta_t=unflat(t), delta_q=unflat(q), delta_v=unflat(dv), delta_p=unflat(dp),
-        transition=unflat(Phi), cov15=unflat(Q15), cov=unflat(Q9),
-        bias_hat=ImuBias(jnp.broadcast_to(bias.b_g, tuple(batch) + (3,)),
-                         jnp.broadcast_to(bias.b_a, tuple(batch) + (3,))))
+        delta_t=unflat(t),
+        delta_q=unflat(q),
+        delta_v=unflat(dv),
+        delta_p=unflat(dp),
+        transition=unflat(Phi),
+        cov15=unflat(Q15),
+        cov=unflat(Q9),
+        bias_hat=ImuBias(
+            jnp.broadcast_to(bias.b_g, tuple(batch) + (3,)),
+            jnp.broadcast_to(bias.b_a, tuple(batch) + (3,)),
+        ),
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "method", "jacobians", "prefixes", "fast"))
-def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, jacobians,
-                  prefixes, fast=True):
+def _preintegrate(
+    gyro, accel, dt, bias, noise, lever=None, *, scheme, method, jacobians, prefixes, fast=True
+):
     step_fn = _step if jacobians == "analytic" else _step_autodiff
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
-    batch = tuple(jnp.broadcast_shapes(
-        gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1], bias.b_g.shape[:-1],
-        bias.b_a.shape[:-1],
-        *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
-        *(() if lever is None else (lever.shape[:-1],))))
+    batch = tuple(
+        jnp.broadcast_shapes(
+            gyro.shape[:-2],
+            accel.shape[:-2],
+            dt.shape[:-1],
+            bias.b_g.shape[:-1],
+            bias.b_a.shape[:-1],
+            *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
+            *(() if lever is None else (lever.shape[:-1],)),
+        )
+    )
     lanes = int(np.prod(batch, dtype=np.int64))
     method = dispatch.preint_method(method, lanes, gyro.shape[-2], gyro.dtype)
-    if dispatch.preintegrate_kernel(scheme, jacobians=jacobians, prefixes=prefixes,
-                                    method=method, lanes=lanes, fast=fast,
-                                    lever=lever is not None) != dispatch.GENERIC:
-        return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever,
-                                  jacobians)
+    if (
+        dispatch.preintegrate_kernel(
+            scheme,
+            jacobians=jacobians,
+            prefixes=prefixes,
+            method=method,
+            lanes=lanes,
+            fast=fast,
+            lever=lever is not None,
+        )
+        != dispatch.GENERIC
+    ):
+        return _preintegrate_fast(
+            gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians
+        )
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
     b_g, b_a = bias.b_g, bias.b_a
@@ -311,17 +368,29 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
     h = _time_major_batch(h, batch, ())
     w0, a0, w1, a1 = (_time_major_batch(x, batch, (3,)) for x in (w0, a0, w1, a1))
     if method == "sequential":
-        final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, (None, w0, a0, w1, a1, h, None),
-                                 batch, dtype, prefixes, lever=lever)
+        final, out = _chunk_scan(
+            scheme,
+            step_fn,
+            b_g,
+            b_a,
+            noise,
+            (None, w0, a0, w1, a1, h, None),
+            batch,
+            dtype,
+            prefixes,
+            lever=lever,
+        )
         dq, dv, dp, t, acc = out if prefixes else final
         pim = _finish(t, dq, dv, dp, acc, ImuBias(b_g, b_a))
     else:
         # 1. rotations ΔR_ik: an associative scan of the (normalised) increments
         q_id = so3.quat_identity(batch, dtype)
-        incr = step_fn(scheme, jnp.broadcast_to(q_id, (T,) + batch + (4,)), w0, a0, w1, a1, h,
-                       b_g, b_a, None).dq
-        incl = so3.quat_normalize(jax.lax.associative_scan(so3.quat_mul,
-                                                           so3.quat_normalize(incr), axis=0))
+        incr = step_fn(
+            scheme, jnp.broadcast_to(q_id, (T,) + batch + (4,)), w0, a0, w1, a1, h, b_g, b_a, None
+        ).dq
+        incl = so3.quat_normalize(
+            jax.lax.associative_scan(so3.quat_mul, so3.quat_normalize(incr), axis=0)
+        )
         dR = jnp.concatenate([q_id[None], incl[:-1]], axis=0)
         # 2. chunks of L steps side by side, each step already in frame B_i
         L = _chunk_length(T)
@@ -338,21 +407,28 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
         # autodiff step normalises dR ⊗ dq, and a zero dR's NaN reached the reverse-mode
         # gradient through the mask's where
         xs = (chunked(dR, q_id),) + tuple(chunked(x) for x in (w0, a0, w1, a1, h)) + (mask,)
-        final, out = _chunk_scan(scheme, step_fn, b_g, b_a, noise, xs, (C,) + batch, dtype,
-                                 prefixes, lever=lever)
+        final, out = _chunk_scan(
+            scheme, step_fn, b_g, b_a, noise, xs, (C,) + batch, dtype, prefixes, lever=lever
+        )
         # 3. an associative scan across the chunk summaries (dense: few, cheap to compile)
         _, dv, dp, t, acc = final
         chunk_prefix = jax.lax.associative_scan(_combine_dense, _to_dense(t, dv, dp, acc), axis=0)
         if prefixes:
-            first = _to_dense(jnp.zeros_like(t[:1]), jnp.zeros_like(dv[:1]),
-                              jnp.zeros_like(dp[:1]), _identity_acc((1,) + batch, dtype))
-            excl = jax.tree_util.tree_map(lambda a_, b_: jnp.concatenate([a_, b_[:-1]], 0),
-                                          first, chunk_prefix)
+            first = _to_dense(
+                jnp.zeros_like(t[:1]),
+                jnp.zeros_like(dv[:1]),
+                jnp.zeros_like(dp[:1]),
+                _identity_acc((1,) + batch, dtype),
+            )
+            excl = jax.tree_util.tree_map(
+                lambda a_, b_: jnp.concatenate([a_, b_[:-1]], 0), first, chunk_prefix
+            )
             _, dv_l, dp_l, t_l, acc_l = out  # (L, C, ...)
             inner = _to_dense(t_l, dv_l, dp_l, acc_l)
             whole = _combine_dense(jax.tree_util.tree_map(lambda x: x[None], excl), inner)
             whole = jax.tree_util.tree_map(
-                lambda x: jnp.swapaxes(x, 0, 1).reshape((C * L,) + x.shape[2:])[:T], whole)
+                lambda x: jnp.swapaxes(x, 0, 1).reshape((C * L,) + x.shape[2:])[:T], whole
+            )
             pim = _pim_from_dense(incl, whole, ImuBias(b_g, b_a))
         else:
             last = jax.tree_util.tree_map(lambda x: x[-1], chunk_prefix)
@@ -360,9 +436,12 @@ def _preintegrate(gyro, accel, dt, bias, noise, lever=None, *, scheme, method, j
     if prefixes:  # time first inside the scan -> time before the last axes
         pim = Preintegrated(
             delta_t=jnp.moveaxis(pim.delta_t, 0, -1),
-            delta_q=jnp.moveaxis(pim.delta_q, 0, -2), delta_v=jnp.moveaxis(pim.delta_v, 0, -2),
+            delta_q=jnp.moveaxis(pim.delta_q, 0, -2),
+            delta_v=jnp.moveaxis(pim.delta_v, 0, -2),
             delta_p=jnp.moveaxis(pim.delta_p, 0, -2),
-            transition=jnp.moveaxis(pim.transition, 0, -3), cov15=jnp.moveaxis(pim.cov15, 0, -3),
+            transition=jnp.moveaxis(pim.transition, 0, -3),
+            cov15=jnp.moveaxis(pim.cov15, 0, -3),
             cov=jnp.moveaxis(pim.cov, 0, -3),
-            bias_hat=jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -2), pim.bias_hat))
+            bias_hat=jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -2), pim.bias_hat),
+        )
     return pim

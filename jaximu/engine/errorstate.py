@@ -127,8 +127,7 @@ def compose_transitions(first, then):
     spans composes to the same pair). Dense arrays ``(..., n, n)``: the same composition as
     :func:`jaximu.schemes._blocks.compose_transitions` on the kernels' block layout."""
     (Fa, Qa), (Fb, Qb) = first, then
-    return (small_matmul(Fb, Fa),
-            small_matmul(small_matmul(Fb, Qa), jnp.swapaxes(Fb, -1, -2)) + Qb)
+    return (small_matmul(Fb, Fa), small_matmul(small_matmul(Fb, Qa), jnp.swapaxes(Fb, -1, -2)) + Qb)
 
 
 def transition_products(Phi, axis: int = -3):
@@ -156,14 +155,20 @@ def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
     """
     Phi, Q = jnp.asarray(Phi), jnp.asarray(Q)
     if Phi.ndim < 3 or Phi.shape[-1] != Phi.shape[-2] or Q.shape[-3:] != Phi.shape[-3:]:
-        raise ValueError(f"Phi and Q must have shapes (..., T, n, n) with the same T and n, "
-                         f"got {tuple(Phi.shape)} and {tuple(Q.shape)}")
-    batch = jnp.broadcast_shapes(Phi.shape[:-3], Q.shape[:-3],
-                                 () if P0 is None else jnp.shape(P0)[:-2])
+        raise ValueError(
+            f"Phi and Q must have shapes (..., T, n, n) with the same T and n, "
+            f"got {tuple(Phi.shape)} and {tuple(Q.shape)}"
+        )
+    batch = jnp.broadcast_shapes(
+        Phi.shape[:-3], Q.shape[:-3], () if P0 is None else jnp.shape(P0)[:-2]
+    )
     n = Phi.shape[-1]
     dtype = jnp.result_type(Phi, Q)
-    P = jnp.zeros(batch + (n, n), dtype) if P0 is None else \
-        jnp.broadcast_to(jnp.asarray(P0, dtype), batch + (n, n))
+    P = (
+        jnp.zeros(batch + (n, n), dtype)
+        if P0 is None
+        else jnp.broadcast_to(jnp.asarray(P0, dtype), batch + (n, n))
+    )
 
     def step(P, fq):
         F, Qk = fq
@@ -175,39 +180,111 @@ def accumulate_covariance(Phi, Q, P0=None, *, save_all: bool = False):
     return jnp.moveaxis(every, 0, -3) if save_all else P
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "jacobians", "save_all", "fast",
-                                             "coriolis", "tangential"))
-def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, lever=None,
-                          pose=None, *, scheme, attitude, jacobians, save_all, fast=True,
-                          coriolis="exact", tangential=True):
+@functools.partial(
+    jax.jit,
+    static_argnames=(
+        "scheme",
+        "attitude",
+        "jacobians",
+        "save_all",
+        "fast",
+        "coriolis",
+        "tangential",
+    ),
+)
+def _propagate_covariance(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    omega=None,
+    lever=None,
+    pose=None,
+    *,
+    scheme,
+    attitude,
+    jacobians,
+    save_all,
+    fast=True,
+    coriolis="exact",
+    tangential=True,
+):
     """The covariance's engine. ``pose``: ``None``, or the samples are a sensor's there and
     ``state``'s biases the sensor's (:func:`jaximu.engine._inputs.sensor_engine_inputs`; ``P0``,
     ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
     att = get_attitude(attitude)
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
-        state.batch_shape, P0.shape[:-2], gyro.shape[:-2], accel.shape[:-2], dt.shape[:-1],
-        g.shape[:-1], *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
+        state.batch_shape,
+        P0.shape[:-2],
+        gyro.shape[:-2],
+        accel.shape[:-2],
+        dt.shape[:-1],
+        g.shape[:-1],
+        *(nb(jnp.asarray(x)) for x in jax.tree_util.tree_leaves(noise)),
         *(nb(x) for x in (omega, lever) if x is not None),
-        *(() if pose is None else (nb(pose.q), nb(pose.p))))
+        *(() if pose is None else (nb(pose.q), nb(pose.p))),
+    )
     lanes = int(np.prod(batch, dtype=np.int64))
-    kernel = dispatch.kernel("covariance", scheme, attitude=attitude, jacobians=jacobians,
-                             save_all=save_all, lanes=lanes, steps=n_steps(gyro, dt),
-                             dtype=gyro.dtype, fast=fast, rotating=omega is not None,
-                             lever=lever is not None)
+    kernel = dispatch.kernel(
+        "covariance",
+        scheme,
+        attitude=attitude,
+        jacobians=jacobians,
+        save_all=save_all,
+        lanes=lanes,
+        steps=n_steps(gyro, dt),
+        dtype=gyro.dtype,
+        fast=fast,
+        rotating=omega is not None,
+        lever=lever is not None,
+    )
     soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
     state = unit_start(state, soa, attitude)
     # the time chunks read samples moved into the body frame (a chunk's own ends have no
     # neighbours for the lever arm's rate derivative)
     state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
     if kernel == "soa_cov_chunked":
-        return _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch,
-                                             scheme, jacobians, omega, coriolis, lever,
-                                             save_all, attitude)
+        return _propagate_covariance_chunked(
+            state,
+            P0,
+            gyro,
+            accel,
+            dt,
+            g,
+            noise,
+            batch,
+            scheme,
+            jacobians,
+            omega,
+            coriolis,
+            lever,
+            save_all,
+            attitude,
+        )
     if soa:
-        return _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                          jacobians, omega, coriolis, lever, save_all, attitude,
-                                          pose, tangential)
+        return _propagate_covariance_fast(
+            state,
+            P0,
+            gyro,
+            accel,
+            dt,
+            g,
+            noise,
+            batch,
+            scheme,
+            jacobians,
+            omega,
+            coriolis,
+            lever,
+            save_all,
+            attitude,
+            pose,
+            tangential,
+        )
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)
@@ -219,8 +296,9 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
         w0, a0, w1, a1, h = xs
         qc = noise.discrete_variances(h, x.dtype)
         if jacobians == "analytic":
-            b = blocks_analytic(scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g,
-                                a1 - b_a, h, lever)
+            b = blocks_analytic(
+                scheme, att.to_matrix(x), w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, lever
+            )
         else:
             v_lin = v if omega is None or coriolis != "exact" else world.to_inertial(omega, p, v)
             lin = NavState(att.to_quat(x), p, v_lin, b_g, b_a)
@@ -244,40 +322,86 @@ def _propagate_covariance(state, P0, gyro, accel, dt, g, noise, omega=None, leve
         q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in (q_t, p_t, v_t))
         P_t = jnp.moveaxis(P_t, 0, -3)
         bshape = tuple(batch) + (T, 3)
-        states = NavState(q_t, p_t, v_t, jnp.broadcast_to(b_g[..., None, :], bshape),
-                          jnp.broadcast_to(b_a[..., None, :], bshape))
+        states = NavState(
+            q_t,
+            p_t,
+            v_t,
+            jnp.broadcast_to(b_g[..., None, :], bshape),
+            jnp.broadcast_to(b_a[..., None, :], bshape),
+        )
         return states, P_t, locked
     P_final = blk.blocks_to_dense(Pc)
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
 
 
-def _propagate_covariance_fast(state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians,
-                               omega=None, coriolis="exact", lever=None, save_all=False,
-                               attitude="quaternion", pose=None, tangential=True):
+def _propagate_covariance_fast(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    batch,
+    scheme,
+    jacobians,
+    omega=None,
+    coriolis="exact",
+    lever=None,
+    save_all=False,
+    attitude="quaternion",
+    pose=None,
+    tangential=True,
+):
     """Mean and covariance (final, or after every step with ``save_all``) on the
     :mod:`jaximu.kernels.fast` layout, any scheme with closed-form or autodiff blocks
     (:func:`jaximu.kernels.fast.cov_step_blocks`), the attitude form's state on lanes
     (:data:`jaximu.kernels.lane_forms.LANE_FORMS`); the block-structured update. ``pose``: the samples are
     a sensor's, moved into the body frame in the kernel's time chunks."""
     gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
+        batch, state, gyro, accel, dt, g
+    )
     P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
 
     def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
         return var / (h[..., None] if jnp.ndim(h) else h)
 
     form = lane_forms.lane_form(attitude)
-    x, p, v, P, *locked = _fast.propagate_cov(lane_forms.from_quat(form, q), p, v, b_g, b_a, P0_f,
-                                              gyro_f, accel_f, dt_f, g_f, qc_fn, var,
-                                              get_scheme(scheme), jacobians, omega, coriolis,
-                                              lever, save_all, form, pose, tangential,
-                                              n_samples)
+    x, p, v, P, *locked = _fast.propagate_cov(
+        lane_forms.from_quat(form, q),
+        p,
+        v,
+        b_g,
+        b_a,
+        P0_f,
+        gyro_f,
+        accel_f,
+        dt_f,
+        g_f,
+        qc_fn,
+        var,
+        get_scheme(scheme),
+        jacobians,
+        omega,
+        coriolis,
+        lever,
+        save_all,
+        form,
+        pose,
+        tangential,
+        n_samples,
+    )
     q = lane_forms.to_quat(form, x)
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
-    st = NavState(unflat(q), unflat(p), unflat(v),
-                  jnp.broadcast_to(state.b_g[..., None, :] if save_all else state.b_g, lead + (3,)),
-                  jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)))
+    st = NavState(
+        unflat(q),
+        unflat(p),
+        unflat(v),
+        jnp.broadcast_to(state.b_g[..., None, :] if save_all else state.b_g, lead + (3,)),
+        jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)),
+    )
     # Euler angles: the lanes that reached the pitch singularity (by the last step)
     return st, unflat(P), unflat(locked[0]) if locked else jnp.zeros(batch, bool)
 
@@ -295,18 +419,51 @@ def _lane_inputs(P0, noise, omega, lever, batch, dtype):
     return P0_f, var, omega, lever
 
 
-def _propagate_covariance_chunked(state, P0, gyro, accel, dt, g, noise, batch, scheme,
-                                  jacobians, omega, coriolis, lever, save_all, attitude):
+def _propagate_covariance_chunked(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    batch,
+    scheme,
+    jacobians,
+    omega,
+    coriolis,
+    lever,
+    save_all,
+    attitude,
+):
     """Mean and covariance of a few long sequences in time chunks side by side
     (:mod:`jaximu.engine._chunked`); the samples are the body's already."""
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
-                                                                   dt, g)
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
+        batch, state, gyro, accel, dt, g
+    )
     P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
     form = lane_forms.lane_form(attitude)
-    x, p, v, P, locked = _chunked.covariance(get_scheme(scheme), form, lane_forms.from_quat(form, q),
-                                             p, v, b_g, b_a, P0_f, gyro_f, accel_f, dt_f, g_f,
-                                             var, jacobians, omega, coriolis, lever, save_all)
+    x, p, v, P, locked = _chunked.covariance(
+        get_scheme(scheme),
+        form,
+        lane_forms.from_quat(form, q),
+        p,
+        v,
+        b_g,
+        b_a,
+        P0_f,
+        gyro_f,
+        accel_f,
+        dt_f,
+        g_f,
+        var,
+        jacobians,
+        omega,
+        coriolis,
+        lever,
+        save_all,
+    )
     q = lane_forms.to_quat(form, x)
     lead = tuple(batch) + (q.shape[1:2] if save_all else ())
 
@@ -330,32 +487,64 @@ def _steps_of(args, batched):
     return args[2].shape[-2]  # gyro is argument 2
 
 
-def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact",
-                      tangential=True):
+def routed_covariance(scheme, attitude, jacobians, save_all, coriolis="exact", tangential=True):
     """:func:`_propagate_covariance` whose ``jax.vmap`` lands on the batched kernels;
     arguments ``(state, P0, gyro, accel, dt, g, noise, omega, lever, pose)`` (``omega``,
     ``lever`` and ``pose`` may be ``None``)."""
     return leading_axes(
         _propagate_covariance,
-        (STATE, COVARIANCE, SAMPLES, SAMPLES, ArgSpec(1, _steps_of), VECTOR, NOISE, VECTOR,
-         VECTOR, VECTOR),
-        (("attitude", attitude), ("jacobians", jacobians), ("save_all", save_all),
-         ("scheme", scheme), ("coriolis", coriolis), ("tangential", tangential)))
+        (
+            STATE,
+            COVARIANCE,
+            SAMPLES,
+            SAMPLES,
+            ArgSpec(1, _steps_of),
+            VECTOR,
+            NOISE,
+            VECTOR,
+            VECTOR,
+            VECTOR,
+        ),
+        (
+            ("attitude", attitude),
+            ("jacobians", jacobians),
+            ("save_all", save_all),
+            ("scheme", scheme),
+            ("coriolis", coriolis),
+            ("tangential", tangential),
+        ),
+    )
 
 
-def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity, jacobians,
-                      save_all, body_P_sensor=None, tangential=True, omega_coriolis=None,
-                      coriolis="exact"):
+def _covariance_entry(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    noise,
+    scheme,
+    attitude,
+    gravity,
+    jacobians,
+    save_all,
+    body_P_sensor=None,
+    tangential=True,
+    omega_coriolis=None,
+    coriolis="exact",
+):
 
-    state, gyro, accel, dt, g, batch = prepare(state, gyro, accel, dt, gravity, scheme, attitude,
-                                               (P0,))
+    state, gyro, accel, dt, g, batch = prepare(
+        state, gyro, accel, dt, gravity, scheme, attitude, (P0,)
+    )
     dtype = state.q.dtype
     P0 = _check_cov(P0, dtype)
     noise = check_noise(noise, dtype)
     val.batch_shape(batch, P0.shape[:-2], names=("state and samples", "P0"), noise=noise)
     jac = _resolve_jacobians(jacobians, get_attitude(attitude))
-    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
-                                              omega_coriolis)
+    tangential, omega, pose = _sensor_options(
+        state, gyro, accel, body_P_sensor, tangential, omega_coriolis
+    )
     lever = None
     if pose is not None:  # bias errors in S outside, in B inside (jaximu/geometry/sensor.py)
         T = sensor.bias_transform(pose)
@@ -364,21 +553,38 @@ def _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravi
         lever = sensor.lever_of(pose)
     # the samples move into the body frame inside the engine
     states, P, locked = routed_covariance(scheme, attitude, jac, save_all, coriolis, tangential)(
-        state, P0, gyro, accel, dt, g, noise, omega, lever, pose)
+        state, P0, gyro, accel, dt, g, noise, omega, lever, pose
+    )
     if body_P_sensor is not None:
         states = sensor_biases(states, state, save_all)
         P = sensor.congruence(T[..., None, :, :] if save_all else T, P, inverse=True)
     _report_gimbal_lock(locked, attitude)
     name = "propagate_covariance" if save_all else "propagate_covariance_final"
-    return val.check_output(name, (states, P), "dt or the IMU samples are too large, or dt so "
-                            "small that the noise σ²/dt overflows,")
+    return val.check_output(
+        name,
+        (states, P),
+        "dt or the IMU samples are too large, or dt so small that the noise σ²/dt overflows,",
+    )
 
 
-def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
-                         scheme: str = "euler", *, attitude: str = "quaternion", gravity=9.81,
-                         jacobians: str = "auto", body_P_sensor=None, tangential: bool = True,
-                         omega_coriolis=None, coriolis_exact: bool = True,
-                         coriolis_second_order: bool = False):
+def propagate_covariance(
+    state: NavState,
+    P0,
+    gyro,
+    accel,
+    dt,
+    noise: ImuNoise,
+    scheme: str = "euler",
+    *,
+    attitude: str = "quaternion",
+    gravity=9.81,
+    jacobians: str = "auto",
+    body_P_sensor=None,
+    tangential: bool = True,
+    omega_coriolis=None,
+    coriolis_exact: bool = True,
+    coriolis_second_order: bool = False,
+):
     """Propagate the state and its 15×15 error-state covariance through IMU samples.
 
     ``P⁺ = Φ P Φᵀ + G Q_c Gᵀ`` at every sample, linearised at the state before the step.
@@ -403,17 +609,58 @@ def propagate_covariance(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
         :func:`jaximu.propagate`, and ``batch + (T, 15, 15)`` covariances (entry k after
         sample k), symmetric and positive semi-definite.
     """
-    return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
-                             jacobians, True, body_P_sensor, tangential, omega_coriolis,
-                             coriolis_mode(coriolis_exact, coriolis_second_order))
+    return _covariance_entry(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        noise,
+        scheme,
+        attitude,
+        gravity,
+        jacobians,
+        True,
+        body_P_sensor,
+        tangential,
+        omega_coriolis,
+        coriolis_mode(coriolis_exact, coriolis_second_order),
+    )
 
 
-def propagate_covariance_final(state: NavState, P0, gyro, accel, dt, noise: ImuNoise,
-                               scheme: str = "euler", *, attitude: str = "quaternion",
-                               gravity=9.81, jacobians: str = "auto", body_P_sensor=None,
-                               tangential: bool = True, omega_coriolis=None,
-                               coriolis_exact: bool = True, coriolis_second_order: bool = False):
+def propagate_covariance_final(
+    state: NavState,
+    P0,
+    gyro,
+    accel,
+    dt,
+    noise: ImuNoise,
+    scheme: str = "euler",
+    *,
+    attitude: str = "quaternion",
+    gravity=9.81,
+    jacobians: str = "auto",
+    body_P_sensor=None,
+    tangential: bool = True,
+    omega_coriolis=None,
+    coriolis_exact: bool = True,
+    coriolis_second_order: bool = False,
+):
     """Like :func:`propagate_covariance`, returning only the final state and ``(..., 15, 15)`` covariance."""
-    return _covariance_entry(state, P0, gyro, accel, dt, noise, scheme, attitude, gravity,
-                             jacobians, False, body_P_sensor, tangential, omega_coriolis,
-                             coriolis_mode(coriolis_exact, coriolis_second_order))
+    return _covariance_entry(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        noise,
+        scheme,
+        attitude,
+        gravity,
+        jacobians,
+        False,
+        body_P_sensor,
+        tangential,
+        omega_coriolis,
+        coriolis_mode(coriolis_exact, coriolis_second_order),
+    )

@@ -54,8 +54,9 @@ def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h
     return Phi, G
 
 
-def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g,
-                    lever=None) -> Blocks:
+def blocks_autodiff(
+    scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g, lever=None
+) -> Blocks:
     """The blocks of ``Φ`` by ``jax.jacfwd`` of the step, in the 9 directions that are not
     structural: ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form).
 
@@ -88,10 +89,19 @@ def blocks_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g
     J = jax.jacfwd(rows)(jnp.zeros(9, dtype))  # (..., 9 rows θ p v, 9 cols θ b_g b_a)
 
     def blk_(r, c):
-        return J[..., 3 * r:3 * r + 3, 3 * c:3 * c + 3]
+        return J[..., 3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
 
-    return Blocks(A=blk_(0, 0), B=blk_(0, 1), Cp=blk_(1, 0), Cv=blk_(2, 0), Dp=blk_(1, 1),
-                  Dv=blk_(2, 1), Ep=blk_(1, 2), Ev=blk_(2, 2), dt=h)
+    return Blocks(
+        A=blk_(0, 0),
+        B=blk_(0, 1),
+        Cp=blk_(1, 0),
+        Cv=blk_(2, 0),
+        Dp=blk_(1, 1),
+        Dv=blk_(2, 1),
+        Ep=blk_(1, 2),
+        Ev=blk_(2, 2),
+        dt=h,
+    )
 
 
 def dense_from_blocks(b: Blocks):
@@ -104,15 +114,30 @@ def dense_from_blocks(b: Blocks):
     def f(x):
         return Z if x is None else jnp.broadcast_to(x, batch + (3, 3))
 
-    rows: list[list[Any]] = [[b.B, Z, Z, Z], [b.Dp, b.Ep, Z, Z], [b.Dv, b.Ev, Z, Z], [Z, Z, hI, Z],
-            [Z, Z, Z, hI]]
+    rows: list[list[Any]] = [
+        [b.B, Z, Z, Z],
+        [b.Dp, b.Ep, Z, Z],
+        [b.Dv, b.Ev, Z, Z],
+        [Z, Z, hI, Z],
+        [Z, Z, Z, hI],
+    ]
     G = jnp.concatenate([jnp.concatenate([f(x) for x in r], -1) for r in rows], -2)
     return Phi, G
 
 
-def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_next=None,
-                   scheme: str = "euler", attitude: str = "quaternion", gravity=9.81,
-                   method: str = "autodiff"):
+def step_jacobians(
+    state: NavState,
+    gyro,
+    accel,
+    dt,
+    *,
+    gyro_next=None,
+    accel_next=None,
+    scheme: str = "euler",
+    attitude: str = "quaternion",
+    gravity=9.81,
+    method: str = "autodiff",
+):
     """``Φ`` and ``G`` of one propagation step at ``state``.
 
     Args:
@@ -140,15 +165,23 @@ def step_jacobians(state: NavState, gyro, accel, dt, *, gyro_next=None, accel_ne
     if val.is_concrete(h) and not np.all(np.isfinite(np.asarray(h)) & (np.asarray(h) > 0)):
         raise ValueError(f"dt must be positive and finite, got {np.asarray(h)}")
     g = val.gravity_vector(gravity, dtype)
-    val.batch_shape(state.batch_shape, w0.shape[:-1], a0.shape[:-1], w1.shape[:-1],
-                    a1.shape[:-1], h.shape, g.shape[:-1],
-                    names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"))
+    val.batch_shape(
+        state.batch_shape,
+        w0.shape[:-1],
+        a0.shape[:-1],
+        w1.shape[:-1],
+        a1.shape[:-1],
+        h.shape,
+        g.shape[:-1],
+        names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"),
+    )
     if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
         return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
     if method == "analytic":
         _require_analytic(att)
-        b = blocks_analytic(scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g,
-                            a1 - state.b_a, h)
+        b = blocks_analytic(
+            scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g, a1 - state.b_a, h
+        )
         return dense_from_blocks(b)
     raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
 
@@ -179,8 +212,9 @@ def discrete_process_noise(G, noise: ImuNoise, dt):
     dtype = val.float_dtype(G, dt)
     G = val.to_dtype("G", G, dtype)
     if G.ndim < 2 or G.shape[-2:] != (15, 12):
-        raise ValueError(f"G must have shape (..., 15, 12) (error state by noise), got "
-                         f"{tuple(G.shape)}")
+        raise ValueError(
+            f"G must have shape (..., 15, 12) (error state by noise), got {tuple(G.shape)}"
+        )
     val.check_finite("G", G)
     noise = check_noise(noise, dtype)
     try:

@@ -39,29 +39,73 @@ from jaximu.schemes.integrators import GIMBAL_LOCK_COS, get_attitude, get_scheme
 __all__ = ["propagate", "propagate_final"]
 
 
-def _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega=None,
-                    coriolis="exact", attitude="quaternion", pose=None, tangential=True):
+def _propagate_fast(
+    scheme,
+    state,
+    gyro,
+    accel,
+    dt,
+    g,
+    batch,
+    save_all,
+    omega=None,
+    coriolis="exact",
+    attitude="quaternion",
+    pose=None,
+    tangential=True,
+):
     """The ``soa_mean`` kernel (``pose``: :func:`sensor_engine_inputs`)."""
     gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel, dt, g)
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
+        batch, state, gyro, accel, dt, g
+    )
     if omega is not None:  # a world rate shared, or per batch element
         omega = lane_values(omega, batch)
     form = lane_forms.lane_form(attitude)  # the attitude form's state on lanes, and back after
-    out = _fast.propagate_mean(get_scheme(scheme), lane_forms.from_quat(form, q), p, v, b_g, b_a,
-                               gyro_f, accel_f, dt_f, g_f, save_all, omega, coriolis, form,
-                               pose, tangential, n_samples)
+    out = _fast.propagate_mean(
+        get_scheme(scheme),
+        lane_forms.from_quat(form, q),
+        p,
+        v,
+        b_g,
+        b_a,
+        gyro_f,
+        accel_f,
+        dt_f,
+        g_f,
+        save_all,
+        omega,
+        coriolis,
+        form,
+        pose,
+        tangential,
+        n_samples,
+    )
     unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
     q, p, v = (unflat(x) for x in (lane_forms.to_quat(form, out[0]),) + tuple(out[1:3]))
     # Euler angles: the lanes that reached the pitch singularity (by the last step)
-    locked = unflat(out[3][..., -1, 0] if save_all else out[3][..., 0]) if len(out) > 3 \
+    locked = (
+        unflat(out[3][..., -1, 0] if save_all else out[3][..., 0])
+        if len(out) > 3
         else jnp.zeros(batch, bool)
+    )
     if save_all:
         bshape = q.shape[:-1] + (3,)
-        states = NavState(q, p, v, jnp.broadcast_to(state.b_g[..., None, :], bshape),
-                          jnp.broadcast_to(state.b_a[..., None, :], bshape))
+        states = NavState(
+            q,
+            p,
+            v,
+            jnp.broadcast_to(state.b_g[..., None, :], bshape),
+            jnp.broadcast_to(state.b_a[..., None, :], bshape),
+        )
     else:
-        states = NavState(q, p, v, jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
-                          jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+        states = NavState(
+            q,
+            p,
+            v,
+            jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+            jnp.broadcast_to(state.b_a, tuple(batch) + (3,)),
+        )
     return states, locked
 
 
@@ -88,20 +132,24 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
     C = dispatch.mean_chunks(B, n)
     L = _chunked.chunk_length(n, C)
     gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(batch, state, gyro, accel,
-                                                                   dt, g)
-    gyro_c, accel_c, dt_c = _chunked.chunk_lanes(gyro_f, accel_f, jnp.broadcast_to(dt_f, (B, n)),
-                                                 C, L, int(sch.uses_next_sample))
+    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
+        batch, state, gyro, accel, dt, g
+    )
+    gyro_c, accel_c, dt_c = _chunked.chunk_lanes(
+        gyro_f, accel_f, jnp.broadcast_to(dt_f, (B, n)), C, L, int(sch.uses_next_sample)
+    )
 
     def rep(x):
         return _chunked.repeat_lanes(x, C)
 
     z = jnp.zeros((B * C, 3), dtype)
     q_id = jnp.zeros((B * C, 4), dtype).at[:, 0].set(1)
-    dq, dp, dv = _fast.propagate_mean(sch, q_id, z, z, rep(b_g), rep(b_a), gyro_c, accel_c,
-                                      dt_c, jnp.zeros(3, dtype), False)
-    deltas = tuple(_chunked.by_chunk(x, B, C)
-                   for x in (dq, dp, dv, jnp.sum(dt_c, axis=-1)))  # (C, B, ·)
+    dq, dp, dv = _fast.propagate_mean(
+        sch, q_id, z, z, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c, jnp.zeros(3, dtype), False
+    )
+    deltas = tuple(
+        _chunked.by_chunk(x, B, C) for x in (dq, dp, dv, jnp.sum(dt_c, axis=-1))
+    )  # (C, B, ·)
     g_b = jnp.broadcast_to(g_f, (B, 3))
 
     def unflat(x):
@@ -109,19 +157,29 @@ def _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all=False)
 
     if not save_all:
         qf, pf, vf = _chunked.apply_deltas(q, p, v, g_b, _chunked.total_deltas(deltas))
-        states = NavState(unflat(qf), unflat(pf), unflat(vf),
-                          jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
-                          jnp.broadcast_to(state.b_a, tuple(batch) + (3,)))
+        states = NavState(
+            unflat(qf),
+            unflat(pf),
+            unflat(vf),
+            jnp.broadcast_to(state.b_g, tuple(batch) + (3,)),
+            jnp.broadcast_to(state.b_a, tuple(batch) + (3,)),
+        )
         return states, jnp.zeros(batch, bool)
     # every state: chunk c starts where chunks 0..c-1 end (an exclusive prefix of the deltas)
     starts = _chunked.apply_deltas(q, p, v, g_b, _chunked.deltas_before(deltas))
     q_s, p_s, v_s = (_chunked.by_lane(x) for x in starts)
-    out = _fast.propagate_mean(sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c,
-                               rep(g_b), True)
+    out = _fast.propagate_mean(
+        sch, q_s, p_s, v_s, rep(b_g), rep(b_a), gyro_c, accel_c, dt_c, rep(g_b), True
+    )
     q_t, p_t, v_t = (unflat(x.reshape((B, C * L) + x.shape[2:])[:, :n]) for x in out[:3])
     bshape = q_t.shape[:-1] + (3,)
-    states = NavState(q_t, p_t, v_t, jnp.broadcast_to(state.b_g[..., None, :], bshape),
-                      jnp.broadcast_to(state.b_a[..., None, :], bshape))
+    states = NavState(
+        q_t,
+        p_t,
+        v_t,
+        jnp.broadcast_to(state.b_g[..., None, :], bshape),
+        jnp.broadcast_to(state.b_a[..., None, :], bshape),
+    )
     return states, jnp.zeros(batch, bool)
 
 
@@ -167,8 +225,9 @@ def mean_body(scheme, att, b_g, b_a, g, omega=None, coriolis="exact"):
         if omega is None:
             x, p, v = step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g)
         else:
-            x, p, v = rotating_step(scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g,
-                                    a1 - b_a, h, g, omega, coriolis)
+            x, p, v = rotating_step(
+                scheme, att, x, p, v, w0 - b_g, a0 - b_a, w1 - b_g, a1 - b_a, h, g, omega, coriolis
+            )
         if att.name == "euler_angles":
             # Report the pitch ±90° singularity: from the first step that reaches it the
             # state is NaN, never a silently wrong attitude.
@@ -180,31 +239,72 @@ def mean_body(scheme, att, b_g, b_a, g, omega=None, coriolis="exact"):
     return body
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast",
-                                             "coriolis", "tangential"))
-def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, attitude, save_all,
-               fast=True, coriolis="exact", tangential=True):
+@functools.partial(
+    jax.jit, static_argnames=("scheme", "attitude", "save_all", "fast", "coriolis", "tangential")
+)
+def _propagate(
+    state,
+    gyro,
+    accel,
+    dt,
+    g,
+    omega=None,
+    pose=None,
+    *,
+    scheme,
+    attitude,
+    save_all,
+    fast=True,
+    coriolis="exact",
+    tangential=True,
+):
     """The mean's engine. ``pose``: ``None``, or a checked :class:`jaximu.SensorPose`: the
     samples are the sensor's and ``state``'s biases are in its frame (:mod:`jaximu.sensor`);
     the structure-of-arrays kernel moves the samples into the body frame in its time chunks,
     the others read them moved (:func:`jaximu.sensor.to_body`). The returned states' biases
     are then the body's."""
     att = get_attitude(attitude)
-    batch = jnp.broadcast_shapes(state.batch_shape, gyro.shape[:-2], accel.shape[:-2],
-                                 dt.shape[:-1], g.shape[:-1],
-                                 *(() if omega is None else (omega.shape[:-1],)),
-                                 *(() if pose is None else (pose.q.shape[:-1],
-                                                            pose.p.shape[:-1])))
+    batch = jnp.broadcast_shapes(
+        state.batch_shape,
+        gyro.shape[:-2],
+        accel.shape[:-2],
+        dt.shape[:-1],
+        g.shape[:-1],
+        *(() if omega is None else (omega.shape[:-1],)),
+        *(() if pose is None else (pose.q.shape[:-1], pose.p.shape[:-1])),
+    )
     lanes = int(np.prod(batch, dtype=np.int64))
-    kernel = dispatch.kernel("mean", scheme, attitude=attitude, save_all=save_all, lanes=lanes,
-                             steps=n_steps(gyro, dt), dtype=gyro.dtype, fast=fast,
-                             rotating=omega is not None)
+    kernel = dispatch.kernel(
+        "mean",
+        scheme,
+        attitude=attitude,
+        save_all=save_all,
+        lanes=lanes,
+        steps=n_steps(gyro, dt),
+        dtype=gyro.dtype,
+        fast=fast,
+        rotating=omega is not None,
+    )
     state = unit_start(state, kernel == "soa_mean", attitude)
-    state, gyro, accel = sensor_engine_inputs(kernel == "soa_mean", pose, state, gyro, accel,
-                                              dt, tangential)
+    state, gyro, accel = sensor_engine_inputs(
+        kernel == "soa_mean", pose, state, gyro, accel, dt, tangential
+    )
     if kernel == "soa_mean":
-        return _propagate_fast(scheme, state, gyro, accel, dt, g, batch, save_all, omega,
-                               coriolis, attitude, pose, tangential)
+        return _propagate_fast(
+            scheme,
+            state,
+            gyro,
+            accel,
+            dt,
+            g,
+            batch,
+            save_all,
+            omega,
+            coriolis,
+            attitude,
+            pose,
+            tangential,
+        )
     if kernel == "soa_mean_chunked":
         return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
     state = broadcast_state(state, batch)
@@ -223,8 +323,13 @@ def _propagate(state, gyro, accel, dt, g, omega=None, pose=None, *, scheme, atti
     if save_all:
         q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in out)
         bshape = tuple(batch) + (T, 3)
-        states = NavState(q_t, p_t, v_t, jnp.broadcast_to(state.b_g[..., None, :], bshape),
-                          jnp.broadcast_to(state.b_a[..., None, :], bshape))
+        states = NavState(
+            q_t,
+            p_t,
+            v_t,
+            jnp.broadcast_to(state.b_g[..., None, :], bshape),
+            jnp.broadcast_to(state.b_a[..., None, :], bshape),
+        )
     else:
         states = NavState(att.to_quat(x), p, v, state.b_g, state.b_a)
     return states, locked
@@ -252,9 +357,17 @@ def routed_propagate(scheme, attitude, save_all, coriolis="exact", tangential=Tr
 
     Its arguments: ``(state, gyro, accel, dt, g, omega, pose)``, ``omega`` ``None`` or
     ``(..., 3)``, ``pose`` ``None`` or a :class:`jaximu.SensorPose`."""
-    return leading_axes(_propagate, (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR, VECTOR),
-                        (("attitude", attitude), ("save_all", save_all), ("scheme", scheme),
-                         ("coriolis", coriolis), ("tangential", tangential)))
+    return leading_axes(
+        _propagate,
+        (STATE, SAMPLES, SAMPLES, STEPS, VECTOR, VECTOR, VECTOR),
+        (
+            ("attitude", attitude),
+            ("save_all", save_all),
+            ("scheme", scheme),
+            ("coriolis", coriolis),
+            ("tangential", tangential),
+        ),
+    )
 
 
 def _report_gimbal_lock(locked, attitude):
@@ -303,90 +416,152 @@ def _sensor_options(state, gyro, accel, body_P_sensor, tangential, omega_corioli
         val.batch_shape(batch, omega.shape[:-1], names=("state and samples", "omega_coriolis"))
     pose = None
     if body_P_sensor is not None:
-        pose = sensor.check_pose(body_P_sensor, dtype, batch=batch,
-                                 batch_name="state and samples")
+        pose = sensor.check_pose(body_P_sensor, dtype, batch=batch, batch_name="state and samples")
     return tangential, omega, pose
 
 
 def sensor_biases(states, state, per_step):
     """``states`` with the (constant) biases of ``state`` (the sensor-frame ones) again."""
+
     def put(b, like):
         return jnp.broadcast_to(b[..., None, :] if per_step else b, like.shape)
 
-    return NavState(states.q, states.p, states.v, put(state.b_g, states.b_g),
-                    put(state.b_a, states.b_a))
+    return NavState(
+        states.q, states.p, states.v, put(state.b_g, states.b_g), put(state.b_a, states.b_a)
+    )
 
 
-def _entry(fn_name, save_all, state, gyro, accel, dt, scheme, attitude, gravity, body_P_sensor,
-           tangential, omega_coriolis, coriolis):
+def _entry(
+    fn_name,
+    save_all,
+    state,
+    gyro,
+    accel,
+    dt,
+    scheme,
+    attitude,
+    gravity,
+    body_P_sensor,
+    tangential,
+    omega_coriolis,
+    coriolis,
+):
     state, gyro, accel, dt, g, _ = prepare(state, gyro, accel, dt, gravity, scheme, attitude)
-    tangential, omega, pose = _sensor_options(state, gyro, accel, body_P_sensor, tangential,
-                                              omega_coriolis)
+    tangential, omega, pose = _sensor_options(
+        state, gyro, accel, body_P_sensor, tangential, omega_coriolis
+    )
     # the samples move into the body frame inside the engine (in the kernel's time chunks)
     out, locked = routed_propagate(scheme, attitude, save_all, coriolis, tangential)(
-        state, gyro, accel, dt, g, omega, pose)
+        state, gyro, accel, dt, g, omega, pose
+    )
     if body_P_sensor is not None:
         out = sensor_biases(out, state, save_all)
     _report_gimbal_lock(locked, attitude)
     return _finite_output(fn_name, out)
 
 
-def propagate(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
-              attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
-              tangential: bool = True, omega_coriolis=None, coriolis_exact: bool = True,
-              coriolis_second_order: bool = False) -> NavState:
+def propagate(
+    state: NavState,
+    gyro,
+    accel,
+    dt,
+    scheme: str = "euler",
+    *,
+    attitude: str = "quaternion",
+    gravity=9.81,
+    body_P_sensor=None,
+    tangential: bool = True,
+    omega_coriolis=None,
+    coriolis_exact: bool = True,
+    coriolis_second_order: bool = False,
+) -> NavState:
     """Propagate the navigation state through IMU samples, returning every state.
 
-    Args:
-        state: initial :class:`NavState` at ``t_0`` (fields ``(..., 4)`` / ``(..., 3)``);
-            ``q`` must be a unit quaternion (checked on eager calls, an error beyond the
-            tolerance, never silently normalised); the step starts from ``q / |q|``.
-        gyro: ``(..., T, 3)`` raw body rate ``w_m`` [rad/s]; sample k is held over ``dt[k]``.
-        accel: ``(..., T, 3)`` raw specific force ``a_m`` [m/s²] (level and still: ``[0, 0, +g]``).
-        dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample. Or
-            ``(..., T-1)``: the samples are then the ends of the intervals, and step k uses
-            samples k and k+1 (Euler: sample k) over ``dt[k]``.
-        scheme: ``"euler"`` (zero-order hold on sample k), ``"midpoint"`` (VINS-Mono: samples
-            k and k+1 averaged) or ``"rk4"`` (samples interpolated linearly); see
-            :mod:`jaximu.integrators`. At the last step midpoint and RK4 have no sample
-            k+1 and hold sample T-1 (a zero-order hold, like Euler's).
-        attitude: orientation update form: ``"quaternion"`` (exact exponential),
-            ``"quaternion_first_order"``, ``"matrix"`` or ``"euler_angles"`` (its pitch
-            ±90° singularity is reported: states become NaN from that step, and an eager
-            call raises ``ValueError``).
-        gravity: magnitude ``g`` (``g_W = [0, 0, -g]``, default 9.81) or a ``(..., 3)`` vector.
-{sensor}
-    Returns:
-        :class:`NavState` whose fields have shape ``batch + (n, ·)`` with ``n`` the number of
-        steps (``dt``'s length): entry k is the state at ``t_k + dt_k``, after step k (time
-        first for an unbatched call). Biases
-        are held constant (the mean of their random walk).
+        Args:
+            state: initial :class:`NavState` at ``t_0`` (fields ``(..., 4)`` / ``(..., 3)``);
+                ``q`` must be a unit quaternion (checked on eager calls, an error beyond the
+                tolerance, never silently normalised); the step starts from ``q / |q|``.
+            gyro: ``(..., T, 3)`` raw body rate ``w_m`` [rad/s]; sample k is held over ``dt[k]``.
+            accel: ``(..., T, 3)`` raw specific force ``a_m`` [m/s²] (level and still: ``[0, 0, +g]``).
+            dt: ``(..., T)`` or scalar step lengths [s], each ``> 0``; may vary per sample. Or
+                ``(..., T-1)``: the samples are then the ends of the intervals, and step k uses
+                samples k and k+1 (Euler: sample k) over ``dt[k]``.
+            scheme: ``"euler"`` (zero-order hold on sample k), ``"midpoint"`` (VINS-Mono: samples
+                k and k+1 averaged) or ``"rk4"`` (samples interpolated linearly); see
+                :mod:`jaximu.integrators`. At the last step midpoint and RK4 have no sample
+                k+1 and hold sample T-1 (a zero-order hold, like Euler's).
+            attitude: orientation update form: ``"quaternion"`` (exact exponential),
+                ``"quaternion_first_order"``, ``"matrix"`` or ``"euler_angles"`` (its pitch
+                ±90° singularity is reported: states become NaN from that step, and an eager
+                call raises ``ValueError``).
+            gravity: magnitude ``g`` (``g_W = [0, 0, -g]``, default 9.81) or a ``(..., 3)`` vector.
+    {sensor}
+        Returns:
+            :class:`NavState` whose fields have shape ``batch + (n, ·)`` with ``n`` the number of
+            steps (``dt``'s length): entry k is the state at ``t_k + dt_k``, after step k (time
+            first for an unbatched call). Biases
+            are held constant (the mean of their random walk).
 
-    Raises:
-        ValueError: on mismatched shapes, a wrong last-axis size, ``dt ≤ 0`` or non-finite,
-            non-finite samples, an unknown scheme or attitude form, or a non-unit ``q`` (of
-            the state or of ``body_P_sensor``); on
-            a value the computation dtype cannot hold (``dt = 1e300`` in float32) and on a
-            non-finite result (finite inputs too large for the dtype: the state overflows).
-            Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
+        Raises:
+            ValueError: on mismatched shapes, a wrong last-axis size, ``dt ≤ 0`` or non-finite,
+                non-finite samples, an unknown scheme or attitude form, or a non-unit ``q`` (of
+                the state or of ``body_P_sensor``); on
+                a value the computation dtype cannot hold (``dt = 1e300`` in float32) and on a
+                non-finite result (finite inputs too large for the dtype: the state overflows).
+                Value checks run only on concrete inputs (not inside a caller's ``jit``/``vmap``).
     """
-    return _entry("propagate", True, state, gyro, accel, dt, scheme, attitude, gravity,
-                  body_P_sensor, tangential, omega_coriolis,
-                  coriolis_mode(coriolis_exact, coriolis_second_order))
+    return _entry(
+        "propagate",
+        True,
+        state,
+        gyro,
+        accel,
+        dt,
+        scheme,
+        attitude,
+        gravity,
+        body_P_sensor,
+        tangential,
+        omega_coriolis,
+        coriolis_mode(coriolis_exact, coriolis_second_order),
+    )
 
 
-def propagate_final(state: NavState, gyro, accel, dt, scheme: str = "euler", *,
-                    attitude: str = "quaternion", gravity=9.81, body_P_sensor=None,
-                    tangential: bool = True, omega_coriolis=None, coriolis_exact: bool = True,
-                    coriolis_second_order: bool = False) -> NavState:
+def propagate_final(
+    state: NavState,
+    gyro,
+    accel,
+    dt,
+    scheme: str = "euler",
+    *,
+    attitude: str = "quaternion",
+    gravity=9.81,
+    body_P_sensor=None,
+    tangential: bool = True,
+    omega_coriolis=None,
+    coriolis_exact: bool = True,
+    coriolis_second_order: bool = False,
+) -> NavState:
     """Like :func:`propagate` but returns only the final state, without storing the trajectory.
 
     Returns:
         :class:`NavState` with fields of shape ``batch + (·)`` at ``t_0 + Σ dt``.
     """
-    return _entry("propagate_final", False, state, gyro, accel, dt, scheme, attitude, gravity,
-                  body_P_sensor, tangential, omega_coriolis,
-                  coriolis_mode(coriolis_exact, coriolis_second_order))
+    return _entry(
+        "propagate_final",
+        False,
+        state,
+        gyro,
+        accel,
+        dt,
+        scheme,
+        attitude,
+        gravity,
+        body_P_sensor,
+        tangential,
+        omega_coriolis,
+        coriolis_mode(coriolis_exact, coriolis_second_order),
+    )
 
 
 propagate.__doc__ = (propagate.__doc__ or "").replace("{sensor}", SENSOR_ARGS_DOC)

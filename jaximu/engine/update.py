@@ -33,9 +33,13 @@ def _check_innovation(S, dtype):
     """``S = H P Hᵀ + R`` must be positive definite to the dtype's precision (its Cholesky
     factor is the update's; :func:`jaximu.geometry._tolerances.check_definite`), on eager calls."""
     _tolerances.check_definite(
-        "the innovation covariance S = H P Hᵀ + R", S, dtype, what="the gain K = P Hᵀ S⁻¹",
+        "the innovation covariance S = H P Hᵀ + R",
+        S,
+        dtype,
+        what="the gain K = P Hᵀ S⁻¹",
         fix="R must be positive definite (a measurement noise variance σ² > 0 on every row), "
-            "or P positive in the measured directions")
+        "or P positive in the measured directions",
+    )
 
 
 def ekf_update(state: NavState, P, residual, H, R):
@@ -80,21 +84,30 @@ def ekf_update(state: NavState, P, residual, H, R):
     dtype = val.float_dtype(state, P, residual, H, R)  # every field of the state counts
     state = check_state(state, dtype)
     P = _check_cov(P, dtype, "P")
-    residual, H, R = (val.to_dtype(n, x, dtype) for n, x in
-                      (("residual", residual), ("H", H), ("R", R)))
+    residual, H, R = (
+        val.to_dtype(n, x, dtype) for n, x in (("residual", residual), ("H", H), ("R", R))
+    )
     if H.ndim < 2 or H.shape[-1] != 15:
         raise ValueError(f"H must have shape (..., m, 15), got {tuple(H.shape)}")
     m = H.shape[-2]
     if m < 1:
         raise ValueError("H has no rows (m = 0): a measurement needs at least one")
     if residual.ndim < 1 or residual.shape[-1:] != (m,):
-        raise ValueError(f"residual must have shape (..., {m}) to match H {tuple(H.shape)}, got "
-                         f"{tuple(residual.shape)}")
+        raise ValueError(
+            f"residual must have shape (..., {m}) to match H {tuple(H.shape)}, got "
+            f"{tuple(residual.shape)}"
+        )
     R = _check_cov(R, dtype, "R", m)
     val.check_finite("residual", residual)
     val.check_finite("H", H)
-    val.batch_shape(state.batch_shape, P.shape[:-2], residual.shape[:-1], H.shape[:-2],
-                    R.shape[:-2], names=("state", "P", "residual", "H", "R"))
+    val.batch_shape(
+        state.batch_shape,
+        P.shape[:-2],
+        residual.shape[:-1],
+        H.shape[:-2],
+        R.shape[:-2],
+        names=("state", "P", "residual", "H", "R"),
+    )
     out = _ekf_update(state, P, residual, H, R)
     return val.check_output("ekf_update", out, "the inputs are too large")
 
@@ -103,12 +116,15 @@ def _ekf_update(state, P, residual, H, R):
     """The update on dense arrays: :func:`jaximu.schemes._blocks.kalman_update` (the one home of
     the Joseph form) on ``P``'s blocks and ``H``'s column blocks. Only ``P``'s upper blocks
     are read: :func:`ekf_update` has checked it symmetric to rounding."""
-    batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2],
-                                 R.shape[:-2])
-    out = blk.kalman_update(blk.dense_to_blocks(P),
-                            [H[..., :, 3 * k:3 * k + 3] for k in range(5)], R,
-                            residual[..., None], blk.ARRAYS,
-                            check=lambda S: _check_innovation(S, S.dtype))
+    batch = jnp.broadcast_shapes(P.shape[:-2], residual.shape[:-1], H.shape[:-2], R.shape[:-2])
+    out = blk.kalman_update(
+        blk.dense_to_blocks(P),
+        [H[..., :, 3 * k : 3 * k + 3] for k in range(5)],
+        R,
+        residual[..., None],
+        blk.ARRAYS,
+        check=lambda S: _check_innovation(S, S.dtype),
+    )
     dx = jnp.concatenate([jnp.broadcast_to(d, batch + (3, 1)) for d in out.dx], -2)[..., 0]
     P_new = blk.blocks_to_dense(out.P, batch=batch)
     return boxplus(state, dx), P_new, jnp.broadcast_to(out.nis[..., 0, 0], batch)

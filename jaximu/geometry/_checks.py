@@ -50,8 +50,10 @@ def check_real(name: str, x):
     """Refuse a complex ``x`` naming it: a cast to float would drop its imaginary part (numpy
     and JAX only warn)."""
     if not isinstance(x, jax.core.Tracer) and kind_of(x) == "c":
-        raise ValueError(f"{name} must be real, got a complex value (its imaginary part would "
-                         f"be dropped); pass {name}.real if that is what you mean")
+        raise ValueError(
+            f"{name} must be real, got a complex value (its imaginary part would "
+            f"be dropped); pass {name}.real if that is what you mean"
+        )
 
 
 def _cast(x, dtype, name: str | None = None):
@@ -63,8 +65,9 @@ def _cast(x, dtype, name: str | None = None):
         if kind_of(x) == "b":  # True is not a 1 s step nor a 1 rad/s rate
             raise ValueError(f"{name} must be an array of numbers, got booleans; pass floats")
     try:
-        if name is not None and (isinstance(x, (str, bytes)) or getattr(
-                getattr(x, "dtype", None), "kind", "f") in "USOV"):
+        if name is not None and (
+            isinstance(x, (str, bytes)) or getattr(getattr(x, "dtype", None), "kind", "f") in "USOV"
+        ):
             raise TypeError("not numbers")  # "0.01" is text, not a step: never parsed for you
         with np.errstate(over="ignore"):
             return jnp.asarray(x, dtype)
@@ -73,8 +76,9 @@ def _cast(x, dtype, name: str | None = None):
             raise
         shown = repr(x)
         shown = shown if len(shown) <= 60 else shown[:57] + "..."
-        raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} "
-                         f"{shown}") from None
+        raise ValueError(
+            f"{name} must be an array of numbers, got {type(x).__name__} {shown}"
+        ) from None
 
 
 def to_dtype(name: str, x, dtype):
@@ -137,6 +141,7 @@ def float_dtype(*xs):
     :class:`jaximu.NavState`, ``ImuBias``: dataclasses) count by their fields; ``None``
     counts for nothing; Python scalars and lists of them are weak (``dt=0.005`` keeps float32
     samples float32)."""
+
     def numeric(x):  # text, None, ragged lists: left to to_dtype, which names the argument
         if isinstance(x, (int, float)) and not isinstance(x, bool):
             return x  # weakly typed, as in JAX
@@ -222,8 +227,10 @@ def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
             where = _first_bad(bad) if arr.ndim else ""
             msg = f"dt must be positive and finite; dt{where} = {arr[i]}"
             if ok_in.all():
-                msg += (f", which is {cast[i]} in the computation dtype {cast.dtype.name} (out of "
-                        "its range); rescale it or pass float64 inputs (with jax_enable_x64)")
+                msg += (
+                    f", which is {cast[i]} in the computation dtype {cast.dtype.name} (out of "
+                    "its range); rescale it or pass float64 inputs (with jax_enable_x64)"
+                )
             raise ValueError(msg)
     return _time_whole(gyro, 2), _time_whole(accel, 2), _time_whole(dt, 1), T
 
@@ -240,11 +247,11 @@ def _time_whole(x, n_minor):
     if mesh is None or mesh.empty or spec is None or x.ndim == 0:
         return x
     spec = tuple(spec) + (None,) * (x.ndim - len(spec))
-    if all(s is None for s in spec[x.ndim - n_minor:]):
+    if all(s is None for s in spec[x.ndim - n_minor :]):
         return x
     P = jax.sharding.PartitionSpec
     with jax.sharding.use_abstract_mesh(mesh):
-        return jax.sharding.reshard(x, P(*spec[:x.ndim - n_minor], *(None,) * n_minor))
+        return jax.sharding.reshard(x, P(*spec[: x.ndim - n_minor], *(None,) * n_minor))
 
 
 def gravity_vector(gravity, dtype):
@@ -258,9 +265,12 @@ def gravity_vector(gravity, dtype):
             v = float(np.asarray(gravity))
             raise InputError(
                 f"gravity = {v:g} is a magnitude, so it must be ≥ 0 (g_W = [0, 0, -g] in the "
-                "z-up world)", [Fix("gravity", -v)], sep=": ",
+                "z-up world)",
+                [Fix("gravity", -v)],
+                sep=": ",
                 api_note=f", or the vector gravity=[0, 0, {-v:g}] if your world's z axis "
-                         "points down")
+                "points down",
+            )
         g = jnp.stack([jnp.zeros_like(g), jnp.zeros_like(g), -g])
     elif g.shape[-1] != 3:
         raise ValueError(
@@ -277,8 +287,11 @@ def noise_batches(noise):
     :func:`batch_shape`."""
     if noise is None:
         return []
-    return [(f"noise.{f.name}", getattr(noise, f.name).shape[:-1])
-            for f in dataclasses.fields(noise) if jnp.ndim(getattr(noise, f.name))]
+    return [
+        (f"noise.{f.name}", getattr(noise, f.name).shape[:-1])
+        for f in dataclasses.fields(noise)
+        if jnp.ndim(getattr(noise, f.name))
+    ]
 
 
 def check_key(name: str, key):
@@ -288,16 +301,20 @@ def check_key(name: str, key):
     d = getattr(key, "dtype", None)
     if d is not None and jnp.issubdtype(d, jax.dtypes.prng_key):
         if jnp.ndim(key):
-            raise ValueError(f"{name} must be one jax.random key, got an array of "
-                             f"{jnp.shape(key)} keys; pass one (jax.vmap over the keys for "
-                             "several)")
+            raise ValueError(
+                f"{name} must be one jax.random key, got an array of "
+                f"{jnp.shape(key)} keys; pass one (jax.vmap over the keys for "
+                "several)"
+            )
         return key
     if d is not None and d == jnp.uint32 and jnp.ndim(key) == 1:
         return key
     shown = repr(key)
     shown = shown if len(shown) <= 40 else shown[:37] + "..."
-    raise ValueError(f"{name} must be a jax.random key (e.g. jax.random.key(0)), got "
-                     f"{type(key).__name__} {shown}")
+    raise ValueError(
+        f"{name} must be a jax.random key (e.g. jax.random.key(0)), got "
+        f"{type(key).__name__} {shown}"
+    )
 
 
 def check_unbatched_noise(noise, what: str):
@@ -305,8 +322,10 @@ def check_unbatched_noise(noise, what: str):
     density: ``what`` (a Monte Carlo study, ...) takes one noise model, scalars or ``(3,)``."""
     for name, shape in noise_batches(noise):
         if shape:
-            raise ValueError(f"{name} must be a scalar or (3,) for {what} (one noise model), "
-                             f"got shape {tuple(shape) + (3,)}")
+            raise ValueError(
+                f"{name} must be a scalar or (3,) for {what} (one noise model), "
+                f"got shape {tuple(shape) + (3,)}"
+            )
 
 
 def check_batch_shape(batch_shape, name: str = "batch_shape"):
@@ -314,17 +333,20 @@ def check_batch_shape(batch_shape, name: str = "batch_shape"):
     ``(n,)`` in words (a bare int is not a shape; no command has such an option, so no
     :class:`jaximu.errors.Fix`)."""
     if isinstance(batch_shape, (int, np.integer)) and not isinstance(batch_shape, bool):
-        raise ValueError(f"{name} must be a tuple of ints, got the int {batch_shape}; "
-                         f"pass {name}=({int(batch_shape)},)")
+        raise ValueError(
+            f"{name} must be a tuple of ints, got the int {batch_shape}; "
+            f"pass {name}=({int(batch_shape)},)"
+        )
     try:
         dims = tuple(batch_shape)
     except TypeError:
-        raise ValueError(f"{name} must be a tuple of non-negative ints, got "
-                         f"{type(batch_shape).__name__} {batch_shape!r}") from None
+        raise ValueError(
+            f"{name} must be a tuple of non-negative ints, got "
+            f"{type(batch_shape).__name__} {batch_shape!r}"
+        ) from None
     for d in dims:
         if isinstance(d, (bool, np.bool_)) or not isinstance(d, (int, np.integer)) or d < 0:
-            raise ValueError(f"{name} must be a tuple of non-negative ints, got "
-                             f"{batch_shape!r}")
+            raise ValueError(f"{name} must be a tuple of non-negative ints, got {batch_shape!r}")
     return tuple(int(d) for d in dims)
 
 
@@ -340,10 +362,14 @@ def batch_shape(*shapes, names=None, noise=None):
     try:
         return jnp.broadcast_shapes(*shapes)
     except ValueError:
-        listed = [str(tuple(s)) for s in shapes] if names is None else \
-            [f"{n} {tuple(s)}" for n, s in zip(names, shapes)]
+        listed = (
+            [str(tuple(s)) for s in shapes]
+            if names is None
+            else [f"{n} {tuple(s)}" for n, s in zip(names, shapes)]
+        )
         raise ValueError(
-            "batch shapes of the inputs do not broadcast: " + ", ".join(listed)
+            "batch shapes of the inputs do not broadcast: "
+            + ", ".join(listed)
             + ("; give them equal leading axes or axes of size 1" if names else "")
         ) from None
 
@@ -363,8 +389,13 @@ def _number(name, x):
 def check_int(name: str, x, minimum: int, what: str | None = None) -> int:
     """``x`` as an ``int`` if it is a whole number ≥ ``minimum`` (``1e4`` is fine, ``1.5``
     and ``True`` are not); else a ``ValueError`` naming ``name``."""
-    what = what or ("a positive integer" if minimum == 1 else
-                    "a non-negative integer" if minimum == 0 else f"an integer ≥ {minimum}")
+    what = what or (
+        "a positive integer"
+        if minimum == 1
+        else "a non-negative integer"
+        if minimum == 0
+        else f"an integer ≥ {minimum}"
+    )
     try:
         v = _number(name, x)
     except ValueError:
@@ -388,14 +419,26 @@ def check_fraction(name: str, x) -> float:
     v = _number(name, x)
     if not (0.0 < v < 1.0):
         if 1.0 < v < 100.0:
-            raise InputError(f"{name} must be in (0, 1), got {x!r}", [Fix(name, v / 100)],
-                             lead=f"for {v:g}% pass")
+            raise InputError(
+                f"{name} must be in (0, 1), got {x!r}",
+                [Fix(name, v / 100)],
+                lead=f"for {v:g}% pass",
+            )
         raise ValueError(f"{name} must be in (0, 1), got {x!r}")
     return v
 
 
-_WORDS = {"true": True, "yes": True, "on": True, "1": True,
-          "false": False, "no": False, "off": False, "0": False, "none": False}
+_WORDS = {
+    "true": True,
+    "yes": True,
+    "on": True,
+    "1": True,
+    "false": False,
+    "no": False,
+    "off": False,
+    "0": False,
+    "none": False,
+}
 
 
 def check_bool(name: str, x) -> bool:
@@ -423,13 +466,16 @@ def compute_dtype(name: str, dtype):
     try:
         d = jnp.dtype(dtype)
     except TypeError:
-        raise ValueError(f"{name} must be a floating dtype (float32 or float64), got {dtype!r}") \
-            from None
+        raise ValueError(
+            f"{name} must be a floating dtype (float32 or float64), got {dtype!r}"
+        ) from None
     if not jnp.issubdtype(d, jnp.floating) or d.itemsize < 4:
         raise ValueError(f"{name} must be a floating dtype (float32 or float64), got {d.name}")
     if d == jnp.float64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
-        raise ValueError(f"{name}=float64 needs 64-bit JAX: call "
-                         "jax.config.update('jax_enable_x64', True) first, or pass float32")
+        raise ValueError(
+            f"{name}=float64 needs 64-bit JAX: call "
+            "jax.config.update('jax_enable_x64', True) first, or pass float32"
+        )
     return d
 
 
@@ -439,9 +485,11 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
     complex one (:func:`check_real`). The callers work on the host, so a JAX tracer (the
     function called inside ``jit``/``vmap``/``grad``) is refused naming ``name`` too."""
     if isinstance(x, jax.core.Tracer):
-        raise ValueError(f"{name} must be concrete numbers, got a traced value: this function "
-                         "prepares its inputs on the host with numpy, so call it outside "
-                         "jax.jit, jax.vmap and jax.grad")
+        raise ValueError(
+            f"{name} must be concrete numbers, got a traced value: this function "
+            "prepares its inputs on the host with numpy, so call it outside "
+            "jax.jit, jax.vmap and jax.grad"
+        )
     check_real(name, x)
     kind = getattr(getattr(x, "dtype", None), "kind", "f")
     try:
@@ -451,15 +499,19 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
     except (TypeError, ValueError):
         shown = repr(x)
         shown = shown if len(shown) <= 60 else shown[:57] + "..."
-        raise ValueError(f"{name} must be an array of numbers, got {type(x).__name__} "
-                         f"{shown}") from None
+        raise ValueError(
+            f"{name} must be an array of numbers, got {type(x).__name__} {shown}"
+        ) from None
 
 
 def check_array(name: str, x, shape: tuple) -> np.ndarray:
     """A concrete numpy array of exactly ``shape``, finite; named in the error."""
     arr = as_numbers(name, x, None)
     if arr.shape != tuple(shape) or arr.dtype.kind not in "fiu":
-        raise ValueError(f"{name} must have shape {tuple(shape)}, got {arr.shape}"
-                         if arr.shape != tuple(shape) else f"{name} must be numeric, got {arr.dtype}")
+        raise ValueError(
+            f"{name} must have shape {tuple(shape)}, got {arr.shape}"
+            if arr.shape != tuple(shape)
+            else f"{name} must be numeric, got {arr.dtype}"
+        )
     check_finite(name, arr)
     return arr

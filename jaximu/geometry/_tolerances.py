@@ -22,8 +22,23 @@ the 15-dimensional error state), the rounding of a covariance ``A Aᵀ`` compute
 dtype."""
 
 
-ERROR_AXES = ("dθx", "dθy", "dθz", "dpx", "dpy", "dpz", "dvx", "dvy", "dvz",
-              "db_gx", "db_gy", "db_gz", "db_ax", "db_ay", "db_az")
+ERROR_AXES = (
+    "dθx",
+    "dθy",
+    "dθz",
+    "dpx",
+    "dpy",
+    "dpz",
+    "dvx",
+    "dvy",
+    "dvz",
+    "db_gx",
+    "db_gy",
+    "db_gz",
+    "db_ax",
+    "db_ay",
+    "db_az",
+)
 """Names of the 15 error-state axes ``[dθ, dp, dv, db_g, db_a]`` (in messages)."""
 
 
@@ -42,9 +57,17 @@ def unit_tolerance(dtype) -> float:
     return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-5
 
 
-def check_unit_norm(name: str, x, dtype, *, tol: float | None = None,
-                    fix: str = "normalise it first (jaximu.so3.quat_normalize)",
-                    what: str = "is not a unit quaternion", where=None, error=ValueError):
+def check_unit_norm(
+    name: str,
+    x,
+    dtype,
+    *,
+    tol: float | None = None,
+    fix: str = "normalise it first (jaximu.so3.quat_normalize)",
+    what: str = "is not a unit quaternion",
+    where=None,
+    error=ValueError,
+):
     """On concrete ``x``: every vector along the last axis has norm 1 within ``tol``
     (default :func:`unit_tolerance` of ``dtype``; data rounded by a file or a person have
     their own, passed by the caller); else ``error`` (a ``ValueError``) saying ``name``
@@ -58,10 +81,11 @@ def check_unit_norm(name: str, x, dtype, *, tol: float | None = None,
     bad = ~(err <= tol)
     if bad.any():
         i = tuple(np.argwhere(bad)[0]) if bad.ndim else ()
-        at = where(i) if where is not None else \
-            (f" at batch index {_index(i)}" if bad.ndim else "")
-        raise error(f"{name} {what}{at}: its norm is {norm[i]:.9g} (| |q| - 1 | = "
-                    f"{err[i]:.3g} > {tol:g}); {fix}")
+        at = where(i) if where is not None else (f" at batch index {_index(i)}" if bad.ndim else "")
+        raise error(
+            f"{name} {what}{at}: its norm is {norm[i]:.9g} (| |q| - 1 | = "
+            f"{err[i]:.3g} > {tol:g}); {fix}"
+        )
 
 
 ROUNDED_QUATERNION = 1e-3
@@ -103,7 +127,8 @@ def check_covariance(name: str, P, dtype, *, fix: str = ""):
             f"{name} is not symmetric: {name}{_index(i)} = {arr[i]:.6g} but "
             f"{name}{_index(j)} = {arr[j]:.6g}, a difference of {asym[i]:.2g} of its largest "
             f"entry {s:.3g} (beyond the rounding allowance {tol:.2g}, {ROUNDING} ε of "
-            f"{np.dtype(dtype).name}); set both, e.g. {name} = ({name} + {name}ᵀ) / 2{tail}")
+            f"{np.dtype(dtype).name}); set both, e.g. {name} = ({name} + {name}ᵀ) / 2{tail}"
+        )
     diag = np.diagonal(rel, axis1=-2, axis2=-1)
     if diag.min() < -tol:
         i = np.unravel_index(int(np.argmin(diag)), diag.shape)
@@ -112,7 +137,8 @@ def check_covariance(name: str, P, dtype, *, fix: str = ""):
             f"{name} is not positive semi-definite: the variance "
             f"{name}{_index(i + (i[-1],))} = {arr[i + (i[-1],)]:.3g} is negative ({-diag[i]:.2g} "
             f"of its largest entry {s:.3g}, beyond the rounding allowance {tol:.2g}); "
-            f"variances are σ² ≥ 0{tail}")
+            f"variances are σ² ≥ 0{tail}"
+        )
     lam = np.linalg.eigvalsh(0.5 * (rel + np.swapaxes(rel, -1, -2)))[..., 0]
     if lam.min() < -tol:
         b = np.unravel_index(int(np.argmin(lam)), lam.shape) if nb else ()
@@ -122,7 +148,8 @@ def check_covariance(name: str, P, dtype, *, fix: str = ""):
             f": its smallest eigenvalue is "
             f"{lam[b] * s:.3g}, {-lam[b]:.2g} of its largest entry {s:.3g} (beyond the "
             f"rounding allowance {tol:.2g}): the cross terms exceed what the variances "
-            f"allow{tail}")
+            f"allow{tail}"
+        )
 
 
 def check_variances(name: str, P, dtype, *, fix: str = ""):
@@ -138,7 +165,8 @@ def check_variances(name: str, P, dtype, *, fix: str = ""):
         i = tuple(np.argwhere(neg)[0])
         raise ValueError(
             f"{name}{_index(i + (i[-1],))} = {arr[i + (i[-1],)]:.3g} is a negative variance "
-            f"({int(neg.sum())} in all): variances are σ² ≥ 0" + (f"; {fix}" if fix else ""))
+            f"({int(neg.sum())} in all): variances are σ² ≥ 0" + (f"; {fix}" if fix else "")
+        )
 
 
 def definiteness(P, dtype):
@@ -192,7 +220,8 @@ def check_definite(name: str, P, dtype, *, fix: str, axes=None, what: str = ""):
         k = int(zero[b])
         raise ValueError(
             f"{name} is singular{at}: its variance {_index(b + (k, k))} ({label(k)}) is "
-            f"{arr[b + (k, k)]:.3g}, not positive, so it cannot be inverted{why}; {fix}")
+            f"{arr[b + (k, k)]:.3g}, not positive, so it cannot be inverted{why}; {fix}"
+        )
     d = np.sqrt(np.diagonal(arr[b], axis1=-2, axis2=-1))
     w, v = np.linalg.eigh(arr[b] / d[:, None] / d[None, :])
     v = np.abs(v[:, 0])
@@ -201,4 +230,5 @@ def check_definite(name: str, P, dtype, *, fix: str, axes=None, what: str = ""):
         f"{name} is singular to {np.dtype(dtype).name} precision{at}: the smallest eigenvalue "
         f"of its correlation matrix is {lam[b]:.3g} (≤ {rounding_tolerance(dtype):.2g}, "
         f"{ROUNDING} ε), so {dep} are linearly dependent and it cannot be inverted{why}; "
-        f"{fix}")
+        f"{fix}"
+    )

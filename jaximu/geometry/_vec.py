@@ -51,8 +51,9 @@ class V3(NamedTuple):
         return self.x * o.x + self.y * o.y + self.z * o.z
 
     def cross(self, o):
-        return V3(self.y * o.z - self.z * o.y, self.z * o.x - self.x * o.z,
-                  self.x * o.y - self.y * o.x)
+        return V3(
+            self.y * o.z - self.z * o.y, self.z * o.x - self.x * o.z, self.x * o.y - self.y * o.x
+        )
 
 
 def matvec(M, x):
@@ -70,5 +71,4 @@ def matmul(A, B):
 
 def matvec_v3(M, x: V3) -> V3:
     """``M x`` for ``(..., 3, 3)`` ``M`` (or ``(3, 3)``, shared) and a :class:`V3`."""
-    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z
-                for i in range(3)))
+    return V3(*(M[..., i, 0] * x.x + M[..., i, 1] * x.y + M[..., i, 2] * x.z for i in range(3)))

@@ -115,8 +115,12 @@ class ImuNoise:
         return self.variances(dt.dtype) / dt[..., None]
 
 
-_FIELDS = ("gyroscope_noise_density", "accelerometer_noise_density",
-           "gyroscope_random_walk", "accelerometer_random_walk")
+_FIELDS = (
+    "gyroscope_noise_density",
+    "accelerometer_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_random_walk",
+)
 
 
 def _dt_array(dt, dtype):
@@ -137,9 +141,11 @@ def _dt_array(dt, dtype):
     try:
         _check_dt(arr)
     except ValueError:  # positive in the input, 0 in the computation dtype (1e-300 in float32)
-        raise ValueError(f"dt must be positive and finite in the computation dtype "
-                         f"{jnp.dtype(dtype).name}; dt = {np.asarray(dt).min()} is 0 in it; "
-                         "pass float64 (with jax_enable_x64) or a larger dt") from None
+        raise ValueError(
+            f"dt must be positive and finite in the computation dtype "
+            f"{jnp.dtype(dtype).name}; dt = {np.asarray(dt).min()} is 0 in it; "
+            "pass float64 (with jax_enable_x64) or a larger dt"
+        ) from None
     return arr
 
 
@@ -150,10 +156,13 @@ def _check_dt(dt):
     arr = np.asarray(dt)
     bad = ~(np.isfinite(arr) & (arr > 0))
     if bad.any():
-        where = ("[" + ", ".join(str(int(i)) for i in np.argwhere(bad)[0]) + "]") if arr.ndim else ""
+        where = (
+            ("[" + ", ".join(str(int(i)) for i in np.argwhere(bad)[0]) + "]") if arr.ndim else ""
+        )
         value = arr[tuple(np.argwhere(bad)[0])] if arr.ndim else arr
-        raise ValueError(f"dt must be positive and finite; dt{where} = {value} (the noise "
-                         "variances are σ²/dt)")
+        raise ValueError(
+            f"dt must be positive and finite; dt{where} = {value} (the noise variances are σ²/dt)"
+        )
 
 
 def check_noise(noise, dtype):
@@ -161,11 +170,17 @@ def check_noise(noise, dtype):
     if not isinstance(noise, ImuNoise):
         raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
     fields = {}
-    for name in ("gyroscope_noise_density", "accelerometer_noise_density",
-                 "gyroscope_random_walk", "accelerometer_random_walk"):
+    for name in (
+        "gyroscope_noise_density",
+        "accelerometer_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_random_walk",
+    ):
         x = val.to_dtype(f"noise.{name}", getattr(noise, name), dtype)
         if x.ndim > 0 and x.shape[-1] != 3:
-            raise ValueError(f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}")
+            raise ValueError(
+                f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}"
+            )
         val.check_finite(f"noise.{name}", x)
         if val.is_concrete(x) and np.any(np.asarray(x) < 0):
             raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")

@@ -58,8 +58,14 @@ from jaximu.geometry import _tolerances, so3
 from jaximu.geometry._vec import V3, matvec, matvec_v3
 from jaximu.geometry.noise import ImuNoise
 
-__all__ = ["SensorPose", "check_pose", "to_body", "lever_arm_acceleration",
-           "centripetal_jacobian", "angular_acceleration"]
+__all__ = [
+    "SensorPose",
+    "check_pose",
+    "to_body",
+    "lever_arm_acceleration",
+    "centripetal_jacobian",
+    "angular_acceleration",
+]
 
 NAME = "body_P_sensor"
 
@@ -96,8 +102,9 @@ class SensorPose:
         orthonormal with determinant +1 (to 1e-6): it is checked, never re-orthonormalised."""
         T = _numbers(f"{NAME} (T_BS)", T_BS)
         if T.shape != (4, 4):
-            raise ValueError(f"{NAME} must be a (4, 4) homogeneous transform T_BS, got shape "
-                             f"{T.shape}")
+            raise ValueError(
+                f"{NAME} must be a (4, 4) homogeneous transform T_BS, got shape {T.shape}"
+            )
         if not np.all(np.isfinite(T)):
             raise ValueError(f"{NAME} contains non-finite values")
         if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
@@ -112,11 +119,16 @@ class SensorPose:
         if R.shape != (3, 3):
             raise ValueError(f"{NAME}: R_BS must have shape (3, 3), got {R.shape}")
         err = np.max(np.abs(R.T @ R - np.eye(3)))  # as a unit quaternion's norm in float64
-        if not np.isfinite(err) or err > _tolerances.unit_tolerance(np.float64) or np.linalg.det(R) < 0:
+        if (
+            not np.isfinite(err)
+            or err > _tolerances.unit_tolerance(np.float64)
+            or np.linalg.det(R) < 0
+        ):
             raise ValueError(
                 f"{NAME}: R_BS is not a rotation matrix (max |RᵀR - I| = {err:.3g}, det = "
                 f"{np.linalg.det(R):.6g}); pass an orthonormal matrix with determinant +1 "
-                "(re-orthonormalise it, e.g. with scipy's Rotation.from_matrix)")
+                "(re-orthonormalise it, e.g. with scipy's Rotation.from_matrix)"
+            )
         p = _numbers(f"{NAME}: the lever arm p_BS", p_BS)
         if p.shape != (3,):
             raise ValueError(f"{NAME}: the lever arm p_BS must have shape (3,) [m], got {p.shape}")
@@ -129,29 +141,44 @@ def _numbers(name, x) -> np.ndarray:
     return val.as_numbers(name, x)
 
 
-def check_pose(pose, dtype, name: str = NAME, batch=None, batch_name: str = "the samples"
-               ) -> SensorPose:
+def check_pose(
+    pose, dtype, name: str = NAME, batch=None, batch_name: str = "the samples"
+) -> SensorPose:
     """Type, shapes, finiteness and unit ``q`` of a :class:`SensorPose` (``ValueError``
     naming ``body_P_sensor``); returns it as ``dtype`` arrays, never normalised. With
     ``batch``, the pose's batch shape must broadcast with it (``batch_name`` says whose)."""
     if not isinstance(pose, SensorPose):
-        raise ValueError(f"{name} must be a jaximu.SensorPose(q, p) (q_BS [w, x, y, z], p_BS "
-                         f"[m]) or None, got {type(pose).__name__}")
+        raise ValueError(
+            f"{name} must be a jaximu.SensorPose(q, p) (q_BS [w, x, y, z], p_BS "
+            f"[m]) or None, got {type(pose).__name__}"
+        )
     q = val.to_dtype(f"{name}.q", pose.q, dtype)
     p = val.to_dtype(f"{name}.p", pose.p, dtype)
     if q.ndim < 1 or q.shape[-1] != 4:
-        raise ValueError(f"{name}.q must be the quaternion q_BS of shape (..., 4) "
-                         f"[w, x, y, z], got shape {tuple(q.shape)}")
+        raise ValueError(
+            f"{name}.q must be the quaternion q_BS of shape (..., 4) "
+            f"[w, x, y, z], got shape {tuple(q.shape)}"
+        )
     if p.ndim < 1 or p.shape[-1] != 3:
-        raise ValueError(f"{name}.p must be the lever arm p_BS of shape (..., 3) [m], got "
-                         f"shape {tuple(p.shape)}")
-    val.batch_shape(q.shape[:-1], p.shape[:-1], *(() if batch is None else (batch,)),
-                    names=(f"{name}.q", f"{name}.p") + (() if batch is None else (batch_name,)))
+        raise ValueError(
+            f"{name}.p must be the lever arm p_BS of shape (..., 3) [m], got shape {tuple(p.shape)}"
+        )
+    val.batch_shape(
+        q.shape[:-1],
+        p.shape[:-1],
+        *(() if batch is None else (batch,)),
+        names=(f"{name}.q", f"{name}.p") + (() if batch is None else (batch_name,)),
+    )
     val.check_finite(f"{name}.q", q)
     val.check_finite(f"{name}.p", p)
-    _tolerances.check_unit_norm(f"{name}.q", q, dtype, fix="normalise it first "
-                        "(jaximu.so3.quat_normalize), or build the pose with "
-                        "SensorPose.from_rotation(R_BS, p_BS)")
+    _tolerances.check_unit_norm(
+        f"{name}.q",
+        q,
+        dtype,
+        fix="normalise it first "
+        "(jaximu.so3.quat_normalize), or build the pose with "
+        "SensorPose.from_rotation(R_BS, p_BS)",
+    )
     return SensorPose(q, p)
 
 
@@ -173,7 +200,7 @@ def _angular_acceleration(omega: V3, dt) -> V3:
     if T < 2:
         return V3(*(jnp.zeros_like(c) for c in omega))
     dt = jnp.asarray(dt, omega.x.dtype)
-    h = jnp.broadcast_to(dt, (T - 1,)) if dt.ndim == 0 else dt[..., :T - 1]
+    h = jnp.broadcast_to(dt, (T - 1,)) if dt.ndim == 0 else dt[..., : T - 1]
 
     def one(x):
         d = jnp.diff(x, axis=-1) / h  # (..., T-1) forward differences
@@ -203,22 +230,27 @@ def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool, halo: int
     one once more: it gets the derivative of the last). The derivative ``α`` is
     :func:`angular_acceleration`'s: central inside, one-sided at the first and last sample.
     """
+
     def samples(w, a, hw, k):
         n = k.shape[0]
         gyro_b = matvec_v3(R, V3(*w))  # (n + 3, Bc)
-        own = lambda x: V3(*(c[halo:halo + n] for c in x))  # noqa: E731
+        own = lambda x: V3(*(c[halo : halo + n] for c in x))  # noqa: E731
         alpha = None
         if tangential and n_samples > 1:
             h = hw[:, None] if hw.ndim == 1 else hw
             d = V3(*((c[1:] - c[:-1]) / h for c in gyro_b))  # slopes, (n + 2, Bc)
-            at = lambda j: V3(*(c[j:j + n] for c in d))  # noqa: E731 (interval k - halo + j)
+            at = lambda j: V3(*(c[j : j + n] for c in d))  # noqa: E731 (interval k - halo + j)
             before, after, held = at(halo - 1), at(halo), at(halo - 2)
-            mid = V3(*(_central(b, f, h[halo - 1:halo - 1 + n], h[halo:halo + n])
-                       for b, f in zip(before, after)))
+            mid = V3(
+                *(
+                    _central(b, f, h[halo - 1 : halo - 1 + n], h[halo : halo + n])
+                    for b, f in zip(before, after)
+                )
+            )
             kk = k[:, None]
             pick = lambda c0, cb, ch, cm: jnp.where(  # noqa: E731
-                kk == 0, c0, jnp.where(kk == n_samples - 1, cb,
-                                       jnp.where(kk >= n_samples, ch, cm)))
+                kk == 0, c0, jnp.where(kk == n_samples - 1, cb, jnp.where(kk >= n_samples, ch, cm))
+            )
             alpha = V3(*(pick(*c) for c in zip(after, before, held, mid)))
         gyro_b = own(gyro_b)
         return tuple(gyro_b), tuple(_body_specific_force(R, own(V3(*a)), gyro_b - b_g, alpha, r))
@@ -229,8 +261,9 @@ def chunk_to_body(R, b_g: V3, r: V3, n_samples: int, tangential: bool, halo: int
 def lever_arm_acceleration(omega, alpha, r):
     """``α × r + ω × (ω × r)``: the acceleration of a point at ``r`` on a rigid body relative
     to its origin (body frame, ``(..., 3)``); ``alpha=None`` drops the tangential term."""
-    return _lever_arm_acceleration(V3.of(omega), None if alpha is None else V3.of(alpha),
-                                   V3.of(r)).stack()
+    return _lever_arm_acceleration(
+        V3.of(omega), None if alpha is None else V3.of(alpha), V3.of(r)
+    ).stack()
 
 
 def _lever_arm_acceleration(omega: V3, alpha, r: V3) -> V3:
@@ -246,8 +279,9 @@ def moved_specific_force(accel, omega_hat, omega, r):
     the rate ``omega_hat`` (``(..., 3)``), as it would be at the rate ``omega`` instead. The
     autodiff Jacobians perturb the rate (bias or noise) and read this; it equals ``accel`` at
     ``omega = omega_hat``."""
-    return (accel + lever_arm_acceleration(omega_hat, None, r)
-            - lever_arm_acceleration(omega, None, r))
+    return (
+        accel + lever_arm_acceleration(omega_hat, None, r) - lever_arm_acceleration(omega, None, r)
+    )
 
 
 def centripetal_jacobian(omega, r, ops):

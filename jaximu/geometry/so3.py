@@ -81,7 +81,7 @@ def _arg(fn: str, name: str, x, tail: tuple):
     if not jnp.issubdtype(x.dtype, jnp.inexact):
         x = x.astype(jnp.result_type(float))
     n = len(tail)
-    if x.ndim < n or tuple(x.shape[x.ndim - n:]) != tuple(tail):
+    if x.ndim < n or tuple(x.shape[x.ndim - n :]) != tuple(tail):
         want = ", ".join(str(d) for d in tail)
         raise ValueError(f"so3.{fn}: {name} must have shape (..., {want}), got {tuple(x.shape)}")
     return x
@@ -90,10 +90,12 @@ def _arg(fn: str, name: str, x, tail: tuple):
 def _batches(fn: str, a: str, x, na: int, b: str, y, nb: int):
     """The batch shapes of two arguments broadcast; else a ``ValueError`` naming both."""
     try:
-        jnp.broadcast_shapes(x.shape[:x.ndim - na], y.shape[:y.ndim - nb])
+        jnp.broadcast_shapes(x.shape[: x.ndim - na], y.shape[: y.ndim - nb])
     except ValueError:
-        raise ValueError(f"so3.{fn}: the batch shapes of {a} {tuple(x.shape)} and {b} "
-                         f"{tuple(y.shape)} do not broadcast") from None
+        raise ValueError(
+            f"so3.{fn}: the batch shapes of {a} {tuple(x.shape)} and {b} "
+            f"{tuple(y.shape)} do not broadcast"
+        ) from None
 
 
 def skew(v):
@@ -132,8 +134,10 @@ def quat_mul(p, q):
     p = _arg("quat_mul", "p", p, (4,))
     q = _arg("quat_mul", "q", q, (4,))
     _batches("quat_mul", "p", p, 1, "q", q, 1)
-    return jnp.stack(quat_mul_components(tuple(p[..., i] for i in range(4)),
-                                         tuple(q[..., i] for i in range(4))), axis=-1)
+    return jnp.stack(
+        quat_mul_components(tuple(p[..., i] for i in range(4)), tuple(q[..., i] for i in range(4))),
+        axis=-1,
+    )
 
 
 def quat_mul_components(p, q):
@@ -143,10 +147,12 @@ def quat_mul_components(p, q):
     (:mod:`jaximu.kernels.lane_math`)."""
     pw, px, py, pz = p
     qw, qx, qy, qz = q
-    return (pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw)
+    return (
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    )
 
 
 def quat_conj(q):

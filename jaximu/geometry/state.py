@@ -85,8 +85,11 @@ class NavState:
     def batch_shape(self) -> tuple[int, ...]:
         """Broadcast shape of the leading axes of all fields."""
         return jnp.broadcast_shapes(
-            self.q.shape[:-1], self.p.shape[:-1], self.v.shape[:-1],
-            self.b_g.shape[:-1], self.b_a.shape[:-1],
+            self.q.shape[:-1],
+            self.p.shape[:-1],
+            self.v.shape[:-1],
+            self.b_g.shape[:-1],
+            self.b_a.shape[:-1],
         )
 
     def replace(self, **changes) -> NavState:
@@ -133,8 +136,9 @@ def _broadcast(*shapes):
     try:
         return jnp.broadcast_shapes(*shapes)
     except ValueError:
-        raise ValueError("batch shapes do not broadcast: "
-                         + ", ".join(str(tuple(s)) for s in shapes)) from None
+        raise ValueError(
+            "batch shapes do not broadcast: " + ", ".join(str(tuple(s)) for s in shapes)
+        ) from None
 
 
 def boxplus(state: NavState, delta: jax.Array) -> NavState:

@@ -41,10 +41,10 @@ from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, STANDARD_GRAVITY, Dat
 from jaximu.io.asl import read_euroc, read_tumvi
 from jaximu.io.containers import GroundTruth, ImuData
 from jaximu.io.evaluation import (
-                                  TrajectoryErrors,
-                                  gravity_alignment,
-                                  initial_state,
-                                  trajectory_errors,
+    TrajectoryErrors,
+    gravity_alignment,
+    initial_state,
+    trajectory_errors,
 )
 from jaximu.io.rosbag import read_rosbag
 from jaximu.io.tables import from_arrays, read_csv, read_npz
@@ -52,8 +52,25 @@ from jaximu.io.validation import validate_imu
 from jaximu.io.writers import read_states, read_tum, write_states, write_tum
 
 __all__ = [
-    "DataError", "GroundTruth", "ImuData", "validate_imu", "read_euroc", "read_tumvi",
-    "read_csv", "from_arrays", "read_npz", "read_rosbag", "write_tum", "read_tum",
-    "write_states", "read_states", "STANDARD_GRAVITY", "gravity_alignment", "initial_state",
-    "TrajectoryErrors", "trajectory_errors", "CLOCK_TOLERANCE", "GAP_FACTOR",
+    "DataError",
+    "GroundTruth",
+    "ImuData",
+    "validate_imu",
+    "read_euroc",
+    "read_tumvi",
+    "read_csv",
+    "from_arrays",
+    "read_npz",
+    "read_rosbag",
+    "write_tum",
+    "read_tum",
+    "write_states",
+    "read_states",
+    "STANDARD_GRAVITY",
+    "gravity_alignment",
+    "initial_state",
+    "TrajectoryErrors",
+    "trajectory_errors",
+    "CLOCK_TOLERANCE",
+    "GAP_FACTOR",
 ]

@@ -39,6 +39,8 @@ def in_gap(t_ref, t, max_gap=None):
     limit = max_gap if max_gap is not None else GAP_FACTOR * float(np.median(d))
     k = np.clip(np.searchsorted(t_ref, t, side="right") - 1, 0, len(t_ref) - 2)
     return (d[k] > limit) & (t > t_ref[k]) & (t < t_ref[k + 1]), k, limit
+
+
 CLOCK_TOLERANCE = 1e-5  # [s] stamps this close count as the same instant
 
 
@@ -56,8 +58,9 @@ def _seconds(name, x, *, positive=False, allow_inf=False) -> float:
     try:
         v = float(x)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of seconds, got {type(x).__name__} "
-                         f"{x!r}") from None
+        raise ValueError(
+            f"{name} must be a number of seconds, got {type(x).__name__} {x!r}"
+        ) from None
     if math.isnan(v) or (math.isinf(v) and not allow_inf) or (positive and not v > 0):
         kind = "a positive" if positive else "a finite"
         raise ValueError(f"{name} must be {kind} number of seconds, got {x!r}")

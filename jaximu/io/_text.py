@@ -90,12 +90,15 @@ def _read_delimited(path, delimiter=None, comment="#"):
 def _column(header, spec, path):
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         if spec < 0:
-            raise ValueError(f"column indices count from 0 (the first column); got {spec}: "
-                             "name the column by its index from the left or its header name")
+            raise ValueError(
+                f"column indices count from 0 (the first column); got {spec}: "
+                "name the column by its index from the left or its header name"
+            )
         return int(spec)
     if not isinstance(spec, str):
-        raise ValueError(f"a column is an index (int ≥ 0) or a header name, got "
-                         f"{type(spec).__name__} {spec!r}")
+        raise ValueError(
+            f"a column is an index (int ≥ 0) or a header name, got {type(spec).__name__} {spec!r}"
+        )
     if header is None:
         raise DataError(f"{path} has no header line: give columns by index, not {spec!r}")
     norm = lambda s: s.split("[")[0].strip().lower()  # noqa: E731  "w_RS_S_x [rad s^-1]"
@@ -115,11 +118,17 @@ def _to_ns(text, unit_ns, label):
     except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
         raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
     if unit_ns == 1 and exact != ns:
-        raise DataError(f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
-                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
+        raise DataError(
+            f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
+            [Fix("time_unit", phrase="check the time unit ({})")],
+            lead="",
+        )
     if abs(ns) > np.iinfo(np.int64).max:
-        raise DataError(f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
-                        [Fix("time_unit", phrase="check the time unit ({})")], lead="")
+        raise DataError(
+            f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
+            [Fix("time_unit", phrase="check the time unit ({})")],
+            lead="",
+        )
     return ns
 
 
@@ -130,8 +139,9 @@ def _parse(rows, lines, time_col, value_cols, time_unit, path):
     values = np.empty((len(rows), len(value_cols)), np.float64)
     for r, (fields, k) in enumerate(zip(rows, lines)):
         if len(fields) < width:
-            raise DataError(f"{path}, line {k}: expected at least {width} columns, "
-                            f"got {len(fields)}")
+            raise DataError(
+                f"{path}, line {k}: expected at least {width} columns, got {len(fields)}"
+            )
         stamps[r] = _to_ns(fields[time_col], unit_ns, f"{path}, line {k}")
         try:
             values[r] = [_float(fields[c]) for c in value_cols]
@@ -147,8 +157,10 @@ def _parse_tum(rows, lines, path):
     reordered to Hamilton ``[w, x, y, z]``. Every row must have exactly 8 values."""
     for fields, k in zip(rows, lines):
         if len(fields) != 8:
-            raise DataError(f"{path}, line {k}: a TUM pose has 8 values (t tx ty tz qx qy qz "
-                            f"qw), got {len(fields)}")
+            raise DataError(
+                f"{path}, line {k}: a TUM pose has 8 values (t tx ty tz qx qy qz "
+                f"qw), got {len(fields)}"
+            )
     stamps, values = _parse(rows, lines, 0, range(1, 8), "s", path)
     return stamps, values[:, [0, 1, 2, 6, 3, 4, 5]]
 

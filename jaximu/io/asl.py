@@ -11,8 +11,10 @@ from jaximu.io._text import _check_unit, _parse, _parse_tum, _read_delimited, _r
 from jaximu.io.containers import ImuData
 from jaximu.io.validation import make
 
-_GT_DIRS = {"euroc": ("state_groundtruth_estimate0", "mocap0", "vicon0", "leica0"),
-            "tumvi": ("mocap0", "state_groundtruth_estimate0")}
+_GT_DIRS = {
+    "euroc": ("state_groundtruth_estimate0", "mocap0", "vicon0", "leica0"),
+    "tumvi": ("mocap0", "state_groundtruth_estimate0"),
+}
 _FLAT_GT = ("groundtruth.csv", "groundtruth_pose.txt")  # full state first, then pose only
 _NAMES = {"euroc": "EuRoC", "tumvi": "TUM-VI"}
 
@@ -27,7 +29,8 @@ def _not_a_sequence(path, prefer):
     return DataError(
         f"{path} is not a {_NAMES[prefer]} sequence folder: expected mav0/imu0/data.csv "
         f"(ASL layout, ground truth in {gt}), or imu.csv with groundtruth.csv (flat, full "
-        f"state) or with groundtruth_pose.txt (flat, pose only); found none of them")
+        f"state) or with groundtruth_pose.txt (flat, pose only); found none of them"
+    )
 
 
 def _asl_paths(path, groundtruth, prefer):
@@ -75,8 +78,9 @@ def _read_groundtruth(path):
         return stamps, values, lines, 7, label
     cols = len(rows[0]) - 1
     if cols < 7:
-        raise DataError(f"{path}, line {lines[0]}: expected p (3) and q (4) after the "
-                        f"stamp, got {cols} values")
+        raise DataError(
+            f"{path}, line {lines[0]}: expected p (3) and q (4) after the stamp, got {cols} values"
+        )
     stamps, values = _parse(rows, lines, 0, range(1, cols + 1), "ns", path)
     return stamps, values, lines, cols, label
 
@@ -89,13 +93,21 @@ def _read_asl(path, groundtruth, prefer, options, gyro_unit="rad/s", accel_unit=
     stamps, values = _parse(rows, lines, 0, range(1, 7), "ns", imu_path)
     gt = None if gt_path is None else _read_groundtruth(gt_path)
     source = str(imu_path) + (f" + {gt_path}" if gt_path else "")
-    return make(stamps, values[:, 0:3] * w_scale, values[:, 3:6] * a_scale, lines=lines,
-                ground_truth=gt, source=source, **options)
+    return make(
+        stamps,
+        values[:, 0:3] * w_scale,
+        values[:, 3:6] * a_scale,
+        lines=lines,
+        ground_truth=gt,
+        source=source,
+        **options,
+    )
 
 
 @with_repair_doc
-def read_euroc(path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2",
-               **options) -> ImuData:
+def read_euroc(
+    path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2", **options
+) -> ImuData:
     """Read a EuRoC MAV sequence, in any of three layouts:
 
     * ASL (the dataset's own): ``mav0/imu0/data.csv``, ground truth in
@@ -136,8 +148,9 @@ def read_euroc(path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: 
     return _read_asl(path, groundtruth, "euroc", options, gyro_unit, accel_unit)
 
 
-def read_tumvi(path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2",
-               **options) -> ImuData:
+def read_tumvi(
+    path, *, groundtruth=True, gyro_unit: str = "rad/s", accel_unit: str = "m/s^2", **options
+) -> ImuData:
     """Read a TUM-VI sequence (ASL layout: ``mav0/imu0/data.csv``, motion capture in
     ``mav0/mocap0/data.csv``: pose only, 120 Hz with dropouts; the IMU's intervals vary; or
     a flat folder as :func:`read_euroc` reads).

@@ -12,8 +12,9 @@ from jaximu.io._common import CLOCK_TOLERANCE, GAP_FACTOR, DataError, _max_gap, 
 
 def _qmul(a, b):
     aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return np.concatenate([aw * bw - np.sum(av * bv, -1, keepdims=True),
-                           aw * bv + bw * av + np.cross(av, bv)], -1)
+    return np.concatenate(
+        [aw * bw - np.sum(av * bv, -1, keepdims=True), aw * bv + bw * av + np.cross(av, bv)], -1
+    )
 
 
 def _slerp(q0, q1, alpha):
@@ -58,11 +59,14 @@ class GroundTruth:
         for name, width in (("q", 4), ("p", 3), ("v", 3), ("b_g", 3), ("b_a", 3)):
             x = getattr(self, name)
             if x is not None and np.shape(x) != (M, width):
-                raise ValueError(f"GroundTruth.{name} must have shape ({M}, {width}) (one row "
-                                 f"per time in t), got {np.shape(x)}")
+                raise ValueError(
+                    f"GroundTruth.{name} must have shape ({M}, {width}) (one row "
+                    f"per time in t), got {np.shape(x)}"
+                )
         if M < 2:
-            raise DataError(f"the ground truth has {M} row(s); at least 2 are needed to "
-                            "interpolate it")
+            raise DataError(
+                f"the ground truth has {M} row(s); at least 2 are needed to interpolate it"
+            )
 
     def __len__(self):
         return len(self.t)
@@ -90,7 +94,8 @@ class GroundTruth:
         if t.min() < self.t[0] - CLOCK_TOLERANCE or t.max() > self.t[-1] + CLOCK_TOLERANCE:
             raise DataError(
                 f"ground truth covers [{self.t[0]:.6f}, {self.t[-1]:.6f}] s, asked for "
-                f"[{t.min():.6f}, {t.max():.6f}] s")
+                f"[{t.min():.6f}, {t.max():.6f}] s"
+            )
         t = np.clip(t, self.t[0], self.t[-1])
         gaps = np.diff(self.t)
         across, k, limit = in_gap(self.t, t, max_gap)
@@ -98,7 +103,8 @@ class GroundTruth:
             i = int(np.argmax(across))
             raise DataError(
                 f"ground truth has a {gaps[k[i]]:.3f} s gap at t = {self.t[k[i]]:.3f} s; "
-                f"t = {t[i]:.3f} s falls inside it (max_gap = {limit:.4f} s)")
+                f"t = {t[i]:.3f} s falls inside it (max_gap = {limit:.4f} s)"
+            )
         q = _slerp(self.q[k], self.q[k + 1], (t - self.t[k]) / gaps[k])
         p = np.stack([np.interp(t, self.t, self.p[:, j]) for j in range(3)], axis=1)
         v = None
@@ -166,30 +172,42 @@ class ImuData:
             n = len(self)
             if idx.dtype == bool:
                 if idx.shape != (n,):
-                    raise ValueError(f"index: a boolean mask must have shape ({n},) (one entry "
-                                     f"per sample), got {idx.shape}")
+                    raise ValueError(
+                        f"index: a boolean mask must have shape ({n},) (one entry "
+                        f"per sample), got {idx.shape}"
+                    )
             elif idx.dtype.kind not in "iu" and idx.size:
-                raise ValueError(f"index must be a slice, integer indices or a boolean mask, "
-                                 f"got {idx.dtype.name} {index!r}"[:200])
+                raise ValueError(
+                    f"index must be a slice, integer indices or a boolean mask, "
+                    f"got {idx.dtype.name} {index!r}"[:200]
+                )
             elif idx.size and (idx.min() < -n or idx.max() >= n):
-                raise ValueError(f"index holds {int(idx.min() if idx.min() < -n else idx.max())}"
-                                 f", outside the {n} samples")
+                raise ValueError(
+                    f"index holds {int(idx.min() if idx.min() < -n else idx.max())}"
+                    f", outside the {n} samples"
+                )
             else:
                 index = idx.astype(np.intp)
-        return dataclasses.replace(self, stamps_ns=self.stamps_ns[index], t=self.t[index],
-                                   gyro=self.gyro[index], accel=self.accel[index])
+        return dataclasses.replace(
+            self,
+            stamps_ns=self.stamps_ns[index],
+            t=self.t[index],
+            gyro=self.gyro[index],
+            accel=self.accel[index],
+        )
 
     def window(self, start: float = 0.0, duration: float | None = None) -> ImuData:
         """Samples with ``start ≤ t ≤ start + duration`` [s since ``t0_ns``]
         (``duration``: ``> 0``; ``None``: to the end)."""
         start = _seconds("start", start)
-        end = np.inf if duration is None else start + _seconds("duration", duration,
-                                                                positive=True)
+        end = np.inf if duration is None else start + _seconds("duration", duration, positive=True)
         keep = (self.t >= start - 1e-12) & (self.t <= end + 1e-12)
         if keep.sum() < 2:
             shown = "the end" if end == np.inf else f"{end:.6g} s"
-            raise DataError(f"the window [{start:.6g} s, {shown}] holds fewer than 2 samples "
-                            f"(the recording spans [{self.t[0]:.3f}, {self.t[-1]:.3f}] s)")
+            raise DataError(
+                f"the window [{start:.6g} s, {shown}] holds fewer than 2 samples "
+                f"(the recording spans [{self.t[0]:.3f}, {self.t[-1]:.3f}] s)"
+            )
         return self.select(np.flatnonzero(keep))
 
     def gaps(self, max_gap: float | None = None) -> np.ndarray:
@@ -210,10 +228,13 @@ class ImuData:
             if hi - lo < min_samples:
                 dropped.append((int(lo), int(hi)))
                 continue
-            note = (f"split at {len(cuts)} gap(s): this piece is rows {lo}–{hi - 1} "
-                    f"(t = {self.t[lo]:.3f}–{self.t[hi - 1]:.3f} s)")
+            note = (
+                f"split at {len(cuts)} gap(s): this piece is rows {lo}–{hi - 1} "
+                f"(t = {self.t[lo]:.3f}–{self.t[hi - 1]:.3f} s)"
+            )
             if dropped:
                 note += f"; pieces shorter than {min_samples} samples dropped: rows {dropped}"
-            pieces.append(dataclasses.replace(self.select(slice(lo, hi)),
-                                              repairs=self.repairs + (note,)))
+            pieces.append(
+                dataclasses.replace(self.select(slice(lo, hi)), repairs=self.repairs + (note,))
+            )
         return pieces

@@ -24,16 +24,24 @@ def gravity_alignment(accel_mean) -> np.ndarray:
     """
     f = np.asarray(accel_mean, np.float64)
     if f.shape != (3,) or not np.all(np.isfinite(f)) or not np.any(f):
-        raise ValueError(f"accel_mean must be a finite, non-zero (3,) specific force [m/s²], got "
-                         f"{np.array2string(f, precision=4)}")
+        raise ValueError(
+            f"accel_mean must be a finite, non-zero (3,) specific force [m/s²], got "
+            f"{np.array2string(f, precision=4)}"
+        )
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
-    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    cr, sr, cp, sp = (
+        math.cos(roll / 2),
+        math.sin(roll / 2),
+        math.cos(pitch / 2),
+        math.sin(pitch / 2),
+    )
     return np.array([cp * cr, cp * sr, sp * cr, -sp * sr])
 
 
-def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_seconds: float = 1.0,
-                  bias=None):
+def initial_state(
+    data: ImuData, *, from_groundtruth: bool = False, still_seconds: float = 1.0, bias=None
+):
     """A starting :class:`jaximu.NavState` (numpy float64) for a recording, and how it was made.
 
     Args:
@@ -52,8 +60,10 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     still_seconds = _seconds("still_seconds", still_seconds, positive=True)
     b = np.zeros(6) if bias is None else val.as_numbers("bias", bias)
     if b.shape != (6,) or not np.all(np.isfinite(b)):
-        raise ValueError(f"bias must be six finite numbers [b_g (rad/s), b_a (m/s²)], got "
-                         f"shape {b.shape}" + ("" if b.shape != (6,) else " with NaN or inf"))
+        raise ValueError(
+            f"bias must be six finite numbers [b_g (rad/s), b_a (m/s²)], got "
+            f"shape {b.shape}" + ("" if b.shape != (6,) else " with NaN or inf")
+        )
     t0 = data.t[:1]
     if from_groundtruth:
         gt = data.ground_truth
@@ -67,8 +77,11 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
             b = np.r_[gt.b_g[k], gt.b_a[k]]
             how += " (pose, velocity, biases)"
         else:
-            how += (" (pose, velocity" + (")" if gt.v is not None else " from differentiated "
-                    "positions)") + (f"; biases {'given' if bias is not None else 'zero'}"))
+            how += (
+                " (pose, velocity"
+                + (")" if gt.v is not None else " from differentiated positions)")
+                + (f"; biases {'given' if bias is not None else 'zero'}")
+            )
         return NavState(q[0], p[0], v[0], b[:3], b[3:]), how
     still = data.t <= data.t[0] + still_seconds
     if still.sum() < 2:
@@ -77,14 +90,20 @@ def initial_state(data: ImuData, *, from_groundtruth: bool = False, still_second
     spread = float(np.linalg.norm(data.gyro[still] - data.gyro[still].mean(0), axis=1).max())
     span = f"{still_seconds:g} s"
     if data.t[-1] < data.t[0] + still_seconds:
-        span = (f"{data.duration:.3g} s (the whole recording: it is shorter than "
-                f"still_seconds = {still_seconds:g} s)")
-    how = (f"initial attitude from gravity alignment of the first {span} "
-           f"(|f| = {np.linalg.norm(f):.3f} m/s², yaw set to 0); position and velocity zero; "
-           f"biases {'given' if bias is not None else 'zero'}")
+        span = (
+            f"{data.duration:.3g} s (the whole recording: it is shorter than "
+            f"still_seconds = {still_seconds:g} s)"
+        )
+    how = (
+        f"initial attitude from gravity alignment of the first {span} "
+        f"(|f| = {np.linalg.norm(f):.3f} m/s², yaw set to 0); position and velocity zero; "
+        f"biases {'given' if bias is not None else 'zero'}"
+    )
     if spread > 0.1:
-        how += (f". WARNING: the gyro varies by up to {spread:.2f} rad/s in that interval: the "
-                "IMU does not look still, so the alignment may be off")
+        how += (
+            f". WARNING: the gyro varies by up to {spread:.2f} rad/s in that interval: the "
+            "IMU does not look still, so the alignment may be off"
+        )
     q = gravity_alignment(f)
     return NavState(q, np.zeros(3), np.zeros(3), b[:3], b[3:]), how
 
@@ -99,6 +118,7 @@ class TrajectoryErrors:
         velocity: ``(K, 3)`` ``v̂ - v`` [m/s] or ``None``; sigma: ``(K, 15)`` standard
             deviations of the estimate (interpolated), or ``None``.
     """
+
     t: np.ndarray
     position: np.ndarray
     rotation: np.ndarray
@@ -111,8 +131,11 @@ class TrajectoryErrors:
         ref = self.t[0] if t_start is None else t_start
         i = int(np.argmin(np.abs(self.t - ref - seconds)))
         vel = float(np.linalg.norm(self.velocity[i])) if self.velocity is not None else math.nan
-        return (float(np.linalg.norm(self.position[i])), vel,
-                math.degrees(float(np.linalg.norm(self.rotation[i]))))
+        return (
+            float(np.linalg.norm(self.position[i])),
+            vel,
+            math.degrees(float(np.linalg.norm(self.rotation[i]))),
+        )
 
 
 def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> TrajectoryErrors:
@@ -133,19 +156,25 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
     T = len(q)
     t = _check_times(t, T)
     if T < 2:
-        raise ValueError(f"states hold {T} state(s); at least 2 are needed to compare a "
-                         "trajectory")
+        raise ValueError(f"states hold {T} state(s); at least 2 are needed to compare a trajectory")
     back = np.flatnonzero(np.diff(t) <= 0)
     if len(back):
         i = int(back[0])
-        raise ValueError(f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
-                         f"t[{i}] = {t[i]:.9g} s; pass the states in time order")
+        raise ValueError(
+            f"t must be increasing: t[{i + 1}] = {t[i + 1]:.9g} s follows "
+            f"t[{i}] = {t[i]:.9g} s; pass the states in time order"
+        )
     # the readers' tolerance: rounding passes, a scaled q does not
-    _tolerances.check_unit_norm("states.q", q, np.float64, tol=QUATERNION_NORM_TOLERANCE,
-                        where=lambda i: f" at row {i[0]}",
-                        fix="trajectory_errors does not normalise it for you; pass unit "
-                            "quaternions (q / |q|) if the norm is only rounding, else check "
-                            "where states.q came from")
+    _tolerances.check_unit_norm(
+        "states.q",
+        q,
+        np.float64,
+        tol=QUATERNION_NORM_TOLERANCE,
+        where=lambda i: f" at row {i[0]}",
+        fix="trajectory_errors does not normalise it for you; pass unit "
+        "quaternions (q / |q|) if the norm is only rounding, else check "
+        "where states.q came from",
+    )
     v = val.as_numbers("states.v", states.v)
     if v.shape != (T, 3):
         raise ValueError(f"states.v must have shape ({T}, 3), got {v.shape}")
@@ -170,5 +199,6 @@ def trajectory_errors(t, states, ground_truth: GroundTruth, cov=None) -> Traject
     if cov is not None:
         var = np.diagonal(cov, axis1=1, axis2=2)
         sigma = _sigma(np.stack([np.interp(tk, t, var[:, j]) for j in range(15)], 1))
-    return TrajectoryErrors(t=tk, position=p_hat - gt.p[inside], rotation=rot, velocity=vel,
-                            sigma=sigma)
+    return TrajectoryErrors(
+        t=tk, position=p_hat - gt.p[inside], rotation=rot, velocity=vel, sigma=sigma
+    )

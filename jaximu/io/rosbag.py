@@ -14,8 +14,15 @@ from jaximu.io.validation import make
 
 
 @with_repair_doc
-def read_rosbag(path, topic: str | None = None, *, stamp: str = "header",
-                gyro_unit: str = "rad/s", accel_unit: str = "m/s^2", **options) -> ImuData:
+def read_rosbag(
+    path,
+    topic: str | None = None,
+    *,
+    stamp: str = "header",
+    gyro_unit: str = "rad/s",
+    accel_unit: str = "m/s^2",
+    **options,
+) -> ImuData:
     """Read ``sensor_msgs/Imu`` messages from a ROS 1 bag or a ROS 2 bag folder/file.
 
     Needs ``rosbags`` (``pip install "jaximu[rosbag]"``). No ROS installation is needed.
@@ -34,7 +41,7 @@ def read_rosbag(path, topic: str | None = None, *, stamp: str = "header",
     try:
         from rosbags.highlevel import AnyReader  # noqa: PLC0415
     except ImportError:
-        raise ImportError("reading ROS bags needs rosbags: pip install \"jaximu[rosbag]\"") from None
+        raise ImportError('reading ROS bags needs rosbags: pip install "jaximu[rosbag]"') from None
     if stamp not in ("header", "log"):
         raise ValueError(f"unknown stamp {stamp!r}; choose 'header' or 'log'")
     w_scale = _check_unit("gyro_unit", gyro_unit, _GYRO_UNITS)
@@ -52,8 +59,10 @@ def read_rosbag(path, topic: str | None = None, *, stamp: str = "header",
         imu_topics = sorted({c.topic for c in reader.connections if c.msgtype == imu_type})
         if topic is None:
             if len(imu_topics) != 1:
-                raise DataError(f"{path}: {len(imu_topics)} {imu_type} topics {imu_topics}; "
-                                "name one with topic=")
+                raise DataError(
+                    f"{path}: {len(imu_topics)} {imu_type} topics {imu_topics}; "
+                    "name one with topic="
+                )
             topic = imu_topics[0]
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:
@@ -73,11 +82,18 @@ def read_rosbag(path, topic: str | None = None, *, stamp: str = "header",
                 gyro.append((w.x, w.y, w.z))
                 accel.append((a.x, a.y, a.z))
         except Exception as e:  # a corrupt message or chunk: rosbags' own error types
-            raise DataError(f"{path}: message row {len(stamps)} on {topic!r} could not be read "
-                            f"({type(e).__name__}: {e})") from None
+            raise DataError(
+                f"{path}: message row {len(stamps)} on {topic!r} could not be read "
+                f"({type(e).__name__}: {e})"
+            ) from None
     finally:
         reader.close()
     if not stamps:
         raise DataError(f"{path}: topic {topic!r} holds no messages")
-    return make(np.asarray(stamps, np.int64), np.asarray(gyro, np.float64) * w_scale,
-                 np.asarray(accel, np.float64) * a_scale, source=f"{path}:{topic}", **options)
+    return make(
+        np.asarray(stamps, np.int64),
+        np.asarray(gyro, np.float64) * w_scale,
+        np.asarray(accel, np.float64) * a_scale,
+        source=f"{path}:{topic}",
+        **options,
+    )

@@ -25,9 +25,19 @@ from jaximu.io.validation import make
 
 
 @with_repair_doc
-def read_csv(path, *, time=0, gyro=(1, 2, 3), accel=(4, 5, 6), time_unit: str | None = None,
-             gyro_unit: str = "rad/s", accel_unit: str = "m/s^2", delimiter: str | None = None,
-             comment: str = "#", **options) -> ImuData:
+def read_csv(
+    path,
+    *,
+    time=0,
+    gyro=(1, 2, 3),
+    accel=(4, 5, 6),
+    time_unit: str | None = None,
+    gyro_unit: str = "rad/s",
+    accel_unit: str = "m/s^2",
+    delimiter: str | None = None,
+    comment: str = "#",
+    **options,
+) -> ImuData:
     """Read IMU samples from a delimited text file.
 
     Args:
@@ -56,18 +66,36 @@ def read_csv(path, *, time=0, gyro=(1, 2, 3), accel=(4, 5, 6), time_unit: str | 
     if time_unit is None:
         time_unit = stated or "s"
     elif stated is not None and stated != time_unit:
-        raise DataError(f"{path}: the header states the time column in [{stated}] "
-                        f"({header[cols[0]].strip()!r}) but time_unit={time_unit!r} was given",
-                        [Fix("time_unit", stated)], api_note=" (or leave it out)")
+        raise DataError(
+            f"{path}: the header states the time column in [{stated}] "
+            f"({header[cols[0]].strip()!r}) but time_unit={time_unit!r} was given",
+            [Fix("time_unit", stated)],
+            api_note=" (or leave it out)",
+        )
     stamps, values = _parse(rows, lines, cols[0], cols[1:], time_unit, path)
-    return make(stamps, values[:, 0:3] * w_scale, values[:, 3:6] * a_scale, lines=lines,
-                 source=str(path), **options)
+    return make(
+        stamps,
+        values[:, 0:3] * w_scale,
+        values[:, 3:6] * a_scale,
+        lines=lines,
+        source=str(path),
+        **options,
+    )
 
 
 @with_repair_doc
-def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s",
-                accel_unit: str = "m/s^2", ground_truth: GroundTruth | None = None,
-                source: str = "arrays", **options) -> ImuData:
+def from_arrays(
+    t,
+    gyro,
+    accel,
+    *,
+    time_unit: str = "s",
+    gyro_unit: str = "rad/s",
+    accel_unit: str = "m/s^2",
+    ground_truth: GroundTruth | None = None,
+    source: str = "arrays",
+    **options,
+) -> ImuData:
     """An :class:`ImuData` from NumPy arrays (copied; the caller's arrays are not changed).
 
     Args:
@@ -82,13 +110,16 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
     t = val.as_numbers("t", t, None)  # as_numbers refuses complex arrays too
     gyro, accel = val.as_numbers("gyro", gyro), val.as_numbers("accel", accel)
     if t.dtype.kind not in "iuf":
-        raise ValueError(f"t must be an array of real numbers (times in {time_unit}), got "
-                         f"{t.dtype.name}")
+        raise ValueError(
+            f"t must be an array of real numbers (times in {time_unit}), got {t.dtype.name}"
+        )
     if t.ndim != 1:
         raise DataError(f"t must have shape (N,), got {t.shape}")
     if gyro.shape != (len(t), 3) or accel.shape != (len(t), 3):
-        raise DataError(f"gyro and accel must have shape (N, 3) with N = {len(t)}, got "
-                        f"{gyro.shape} and {accel.shape}")
+        raise DataError(
+            f"gyro and accel must have shape (N, 3) with N = {len(t)}, got "
+            f"{gyro.shape} and {accel.shape}"
+        )
     limit = np.iinfo(np.int64).max // unit_ns  # int64 nanoseconds reach ±292 years
     labels = _labels(len(t))
     if np.issubdtype(t.dtype, np.integer):
@@ -99,8 +130,10 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
             raise DataError(f"non-finite times at {_rows(labels, np.flatnonzero(bad))}")
         bad = np.abs(t.astype(np.float64)) > limit
     if bad.any():
-        raise DataError(f"times beyond ±{limit:.3g} {time_unit} (int64 nanoseconds) at "
-                        f"{_rows(labels, np.flatnonzero(bad))}; check time_unit")
+        raise DataError(
+            f"times beyond ±{limit:.3g} {time_unit} (int64 nanoseconds) at "
+            f"{_rows(labels, np.flatnonzero(bad))}; check time_unit"
+        )
     if np.issubdtype(t.dtype, np.integer):
         stamps = t.astype(np.int64) * unit_ns
     else:
@@ -109,7 +142,8 @@ def from_arrays(t, gyro, accel, *, time_unit: str = "s", gyro_unit: str = "rad/s
     if ground_truth is not None:
         shift = (int(stamps[0]) - data.t0_ns) * 1e-9
         data = dataclasses.replace(
-            data, ground_truth=dataclasses.replace(ground_truth, t=ground_truth.t + shift))
+            data, ground_truth=dataclasses.replace(ground_truth, t=ground_truth.t + shift)
+        )
     return data
 
 
@@ -129,6 +163,8 @@ def read_npz(path, *, t="t", gyro="gyro", accel="accel", **kwargs) -> ImuData:
         if isinstance(e, DataError):
             raise
         # numpy's own text advises allow_pickle / pickle.load(): unsafe, and not the fix
-        raise DataError(f"{path} is not a NumPy .npz file (an archive of arrays written by "
-                        "np.savez); check the file, or its format") from None
+        raise DataError(
+            f"{path} is not a NumPy .npz file (an archive of arrays written by "
+            "np.savez); check the file, or its format"
+        ) from None
     return from_arrays(*arrays, source=str(path), **kwargs)

@@ -23,10 +23,19 @@ from jaximu.io._common import (
 from jaximu.io.containers import GroundTruth, ImuData
 
 
-def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
-                 drop_duplicates: bool = False, drop_nonfinite: bool = False,
-                 max_gap: float | None = None, allow_gaps: bool = False,
-                 check_units: bool = True):
+def validate_imu(
+    stamps_ns,
+    gyro,
+    accel,
+    *,
+    lines=None,
+    sort: bool = False,
+    drop_duplicates: bool = False,
+    drop_nonfinite: bool = False,
+    max_gap: float | None = None,
+    allow_gaps: bool = False,
+    check_units: bool = True,
+):
     """Check a recording and apply the requested repairs.
 
     Args:
@@ -58,8 +67,10 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     accel = val.as_numbers("accel", accel)
     n = len(stamps_ns)
     if gyro.shape != (n, 3) or accel.shape != (n, 3):
-        raise DataError(f"gyro and accel must have shape (N, 3) with N = {n} stamps; got "
-                        f"{gyro.shape} and {accel.shape}")
+        raise DataError(
+            f"gyro and accel must have shape (N, 3) with N = {n} stamps; got "
+            f"{gyro.shape} and {accel.shape}"
+        )
     labels = _labels(n, lines)
     repairs: list[str] = []
     idx = np.arange(n)
@@ -68,36 +79,51 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     if bad.any():
         rows = np.flatnonzero(bad)
         if not drop_nonfinite:
-            raise DataError(f"{len(rows)} sample(s) with NaN or inf values at "
-                            f"{_rows(labels, rows)}", [Fix("drop_nonfinite", True)],
-                            api_note=" to drop them")
-        repairs.append(f"dropped {len(rows)} sample(s) with NaN/inf values: {_rows(labels, rows, 20)}")
+            raise DataError(
+                f"{len(rows)} sample(s) with NaN or inf values at {_rows(labels, rows)}",
+                [Fix("drop_nonfinite", True)],
+                api_note=" to drop them",
+            )
+        repairs.append(
+            f"dropped {len(rows)} sample(s) with NaN/inf values: {_rows(labels, rows, 20)}"
+        )
         idx = idx[~bad]
 
     back = np.flatnonzero(np.diff(stamps_ns[idx]) < 0) + 1
     if len(back):
         if not sort:
             i = idx[back]
-            raise DataError(f"timestamps go backwards at {len(back)} place(s): "
-                            f"{_rows(labels, i)} (earlier than the row before)",
-                            [Fix("sort", True)], api_note=" to sort by time")
+            raise DataError(
+                f"timestamps go backwards at {len(back)} place(s): "
+                f"{_rows(labels, i)} (earlier than the row before)",
+                [Fix("sort", True)],
+                api_note=" to sort by time",
+            )
         order = np.argsort(stamps_ns[idx], kind="stable")
         moved = int(np.sum(order != np.arange(len(order))))
-        repairs.append(f"sorted by time: {moved} sample(s) moved (first out of order at "
-                       f"{labels[idx[back[0]]]})")
+        repairs.append(
+            f"sorted by time: {moved} sample(s) moved (first out of order at "
+            f"{labels[idx[back[0]]]})"
+        )
         idx = idx[order]
 
     dup = np.flatnonzero(np.diff(stamps_ns[idx]) == 0) + 1
     if len(dup):
         if not drop_duplicates:
-            raise DataError(f"{len(dup)} duplicate timestamp(s) at {_rows(labels, idx[dup])} "
-                            "(same stamp as the row before)", [Fix("drop_duplicates", True)],
-                            api_note=" to keep the first of each")
+            raise DataError(
+                f"{len(dup)} duplicate timestamp(s) at {_rows(labels, idx[dup])} "
+                "(same stamp as the row before)",
+                [Fix("drop_duplicates", True)],
+                api_note=" to keep the first of each",
+            )
         same = np.all(gyro[idx[dup]] == gyro[idx[dup - 1]], axis=1) & np.all(
-            accel[idx[dup]] == accel[idx[dup - 1]], axis=1)
-        repairs.append(f"dropped {len(dup)} sample(s) with a duplicate timestamp "
-                       f"({int(same.sum())} identical to the kept one): "
-                       f"{_rows(labels, idx[dup], 20)}")
+            accel[idx[dup]] == accel[idx[dup - 1]], axis=1
+        )
+        repairs.append(
+            f"dropped {len(dup)} sample(s) with a duplicate timestamp "
+            f"({int(same.sum())} identical to the kept one): "
+            f"{_rows(labels, idx[dup], 20)}"
+        )
         idx = np.delete(idx, dup)
 
     if len(idx) < 2:
@@ -105,18 +131,22 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
     dt = np.diff(stamps_ns[idx]) * 1e-9
     med = float(np.median(dt))
     if check_units and not _DT_RANGE[0] <= med <= _DT_RANGE[1]:
-        raise DataError(f"median sampling interval {med:.3g} s ({1 / med:.3g} Hz) is implausible "
-                        "for an IMU", [Fix("time_unit", phrase="check the time unit ({})")],
-                        lead="")
+        raise DataError(
+            f"median sampling interval {med:.3g} s ({1 / med:.3g} Hz) is implausible for an IMU",
+            [Fix("time_unit", phrase="check the time unit ({})")],
+            lead="",
+        )
     limit = max_gap if max_gap is not None else GAP_FACTOR * med
     gaps = np.flatnonzero(dt > limit)
     if len(gaps):
         where = ", ".join(f"{dt[g]:.4g} s after {labels[idx[g]]}" for g in gaps[:5])
         more = f", … ({len(gaps)} in all)" if len(gaps) > 5 else ""
         if not allow_gaps:
-            raise DataError(f"{len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}",
-                            [Fix("allow_gaps", True), Fix("max_gap", phrase="a larger")],
-                            api_note=" (allow_gaps keeps them: then split_at_gaps())")
+            raise DataError(
+                f"{len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}",
+                [Fix("allow_gaps", True), Fix("max_gap", phrase="a larger")],
+                api_note=" (allow_gaps keeps them: then split_at_gaps())",
+            )
         repairs.append(f"kept {len(gaps)} gap(s) longer than {limit:.4g} s: {where}{more}")
 
     if check_units:
@@ -128,16 +158,20 @@ def validate_imu(stamps_ns, gyro, accel, *, lines=None, sort: bool = False,
             raise DataError(
                 f"gyro magnitudes up to {wn.max():.4g} (median {np.median(wn):.3g}) at "
                 f"{labels[idx[worst]]} are implausible in rad/s (±2000 °/s = 34.9 rad/s): is the "
-                "gyro in deg/s?", [Fix("gyro_unit", "deg/s"), Fix("check_units", False)],
-                sep=" ")
+                "gyro in deg/s?",
+                [Fix("gyro_unit", "deg/s"), Fix("check_units", False)],
+                sep=" ",
+            )
         am = float(np.median(an))
         if not _ACCEL_MEDIAN_RANGE[0] <= am <= _ACCEL_MEDIAN_RANGE[1]:
             in_g = am < _ACCEL_MEDIAN_RANGE[0]
             hint = "is the accelerometer in g?" if in_g else "check the accelerometer unit;"
-            raise DataError(f"median accelerometer magnitude {am:.4g} is implausible in m/s² "
-                            f"(gravity alone reads 9.81): {hint}",
-                            ([Fix("accel_unit", "g")] if in_g else []) + [Fix("check_units", False)],
-                            sep=" ")
+            raise DataError(
+                f"median accelerometer magnitude {am:.4g} is implausible in m/s² "
+                f"(gravity alone reads 9.81): {hint}",
+                ([Fix("accel_unit", "g")] if in_g else []) + [Fix("check_units", False)],
+                sep=" ",
+            )
     return idx, tuple(repairs)
 
 
@@ -152,11 +186,16 @@ def _validate_groundtruth(stamps_ns, values, lines, label):
         raise DataError(f"{label}: timestamps not increasing at {_rows(labels, nonincr)}")
     qn = np.abs(np.linalg.norm(values[:, 3:7], axis=1) - 1)
     off = np.flatnonzero(~(qn <= QUATERNION_NORM_TOLERANCE))
-    _tolerances.check_unit_norm(f"{label}: the quaternion", values[:, 3:7], np.float64,
-                        tol=QUATERNION_NORM_TOLERANCE, error=DataError,
-                        what="is not a [w, x, y, z] unit quaternion",
-                        where=lambda i: f" at {_rows(labels, off)}",
-                        fix="check the column order (p, then q as w, x, y, z)")
+    _tolerances.check_unit_norm(
+        f"{label}: the quaternion",
+        values[:, 3:7],
+        np.float64,
+        tol=QUATERNION_NORM_TOLERANCE,
+        error=DataError,
+        what="is not a [w, x, y, z] unit quaternion",
+        where=lambda i: f" at {_rows(labels, off)}",
+        fix="check the column order (p, then q as w, x, y, z)",
+    )
 
 
 def make(stamps_ns, gyro, accel, *, lines=None, ground_truth=None, source="", **options):
@@ -169,21 +208,37 @@ def make(stamps_ns, gyro, accel, *, lines=None, ground_truth=None, source="", **
         gt_ns, gt_values, gt_lines, cols = ground_truth[:4]
         label = ground_truth[4] if len(ground_truth) > 4 else "ground truth"
         if len(gt_ns) < 2:
-            raise DataError(f"{label}: the ground truth has {len(gt_ns)} row(s); at least 2 "
-                            "are needed to interpolate it")
+            raise DataError(
+                f"{label}: the ground truth has {len(gt_ns)} row(s); at least 2 "
+                "are needed to interpolate it"
+            )
         _validate_groundtruth(gt_ns, gt_values, gt_lines, label)
         t_gt = (gt_ns - t0) * 1e-9
-        get = lambda i: gt_values[:, i:i + 3].copy() if gt_values.shape[1] >= i + 3 else None  # noqa: E731
-        gt = GroundTruth(t=t_gt, p=gt_values[:, 0:3].copy(), q=gt_values[:, 3:7].copy(),
-                         v=get(7) if cols >= 10 else None, b_g=get(10) if cols >= 13 else None,
-                         b_a=get(13) if cols >= 16 else None)
+        get = lambda i: gt_values[:, i : i + 3].copy() if gt_values.shape[1] >= i + 3 else None  # noqa: E731
+        gt = GroundTruth(
+            t=t_gt,
+            p=gt_values[:, 0:3].copy(),
+            q=gt_values[:, 3:7].copy(),
+            v=get(7) if cols >= 10 else None,
+            b_g=get(10) if cols >= 13 else None,
+            b_a=get(13) if cols >= 16 else None,
+        )
     t = (stamps - t0) * 1e-9
     close = np.flatnonzero(np.diff(t) <= 0)
     if len(close):  # only past ~10^8 s: float64 seconds then resolve ~15 ns
-        raise DataError(f"stamps {stamps[close[0]]} and "
-                        f"{stamps[close[0] + 1]} ns are distinct but equal in float64 seconds "
-                        f"since the first stamp (the recording spans {t[-1]:.3g} s); check the "
-                        "time unit")
-    return ImuData(stamps_ns=stamps, t=t,
-                   gyro=np.array(gyro, np.float64)[idx], accel=np.array(accel, np.float64)[idx],
-                   t0_ns=t0, ground_truth=gt, source=source, repairs=repairs)
+        raise DataError(
+            f"stamps {stamps[close[0]]} and "
+            f"{stamps[close[0] + 1]} ns are distinct but equal in float64 seconds "
+            f"since the first stamp (the recording spans {t[-1]:.3g} s); check the "
+            "time unit"
+        )
+    return ImuData(
+        stamps_ns=stamps,
+        t=t,
+        gyro=np.array(gyro, np.float64)[idx],
+        accel=np.array(accel, np.float64)[idx],
+        t0_ns=t0,
+        ground_truth=gt,
+        source=source,
+        repairs=repairs,
+    )

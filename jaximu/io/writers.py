@@ -24,10 +24,15 @@ def _check_t0_ns(t0_ns) -> int:
     if isinstance(t0_ns, np.ndarray) and t0_ns.ndim == 0 and t0_ns.dtype.kind in "iu":
         t0_ns = t0_ns[()]  # a 0-d integer array (np.load(...)["t0_ns"])
     if isinstance(t0_ns, (bool, np.bool_)) or not isinstance(t0_ns, (int, np.integer)):
-        hint = ("; pass an int such as data.t0_ns" if not isinstance(t0_ns, (float, np.floating))
-                else ": a float cannot hold epoch nanoseconds exactly; pass data.t0_ns")
-        raise ValueError(f"t0_ns must be an integer number of nanoseconds, got "
-                         f"{type(t0_ns).__name__} {t0_ns!r}{hint}")
+        hint = (
+            "; pass an int such as data.t0_ns"
+            if not isinstance(t0_ns, (float, np.floating))
+            else ": a float cannot hold epoch nanoseconds exactly; pass data.t0_ns"
+        )
+        raise ValueError(
+            f"t0_ns must be an integer number of nanoseconds, got "
+            f"{type(t0_ns).__name__} {t0_ns!r}{hint}"
+        )
     t0 = int(t0_ns)
     if abs(t0) > _INT64_MAX:
         raise ValueError(f"t0_ns = {t0} is beyond int64 nanoseconds")
@@ -55,7 +60,8 @@ def _stamps(t, t0_ns):
         i = int(np.argmax(bad))
         raise ValueError(
             f"t[{i}] = {float(t[i]):.6g} s is beyond int64 nanoseconds (with t0_ns = {t0}): "
-            "t is seconds since t0_ns; pass data.t, not stamps_ns")
+            "t is seconds since t0_ns; pass data.t, not stamps_ns"
+        )
     return t0 + ns.astype(np.int64)
 
 
@@ -64,11 +70,17 @@ def _check_cov(cov, T, name="cov") -> np.ndarray:
     largest entry of each matrix); returns it as float64."""
     cov = val.as_numbers(name, cov)
     if cov.shape != (T, 15, 15):
-        raise ValueError(f"{name} must have shape ({T}, 15, 15) (one 15×15 covariance per "
-                         f"state), got {cov.shape}")
+        raise ValueError(
+            f"{name} must have shape ({T}, 15, 15) (one 15×15 covariance per "
+            f"state), got {cov.shape}"
+        )
     val.check_finite(name, cov)
-    _tolerances.check_variances(name, cov, _COV_DTYPE, fix="pass the covariance the propagation "
-                        "returned, not a difference of covariances")
+    _tolerances.check_variances(
+        name,
+        cov,
+        _COV_DTYPE,
+        fix="pass the covariance the propagation returned, not a difference of covariances",
+    )
     return cov
 
 
@@ -89,8 +101,9 @@ def _pose_arrays(states):
     q = val.as_numbers("states.q", states.q)
     p = val.as_numbers("states.p", states.p)
     if q.ndim != 2 or p.ndim != 2 or q.shape[1] != 4 or p.shape[1] != 3 or len(q) != len(p):
-        raise ValueError(f"states must hold one trajectory: q (T, 4), p (T, 3); got "
-                         f"{q.shape}, {p.shape}")
+        raise ValueError(
+            f"states must hold one trajectory: q (T, 4), p (T, 3); got {q.shape}, {p.shape}"
+        )
     val.check_finite("states.q", q)
     val.check_finite("states.p", p)
     return q, p
@@ -115,8 +128,10 @@ def write_tum(path, t, states, *, t0_ns: int = 0) -> None:
     with open(path, "w") as f:
         f.write("# timestamp tx ty tz qx qy qz qw (jaximu: W z-up, q of R_WB)\n")
         for s, pk, qk in zip(stamps, p, q):
-            f.write(f"{_seconds_text(s)} {pk[0]:.9f} {pk[1]:.9f} {pk[2]:.9f} "
-                    f"{qk[1]:.9f} {qk[2]:.9f} {qk[3]:.9f} {qk[0]:.9f}\n")
+            f.write(
+                f"{_seconds_text(s)} {pk[0]:.9f} {pk[1]:.9f} {pk[2]:.9f} "
+                f"{qk[1]:.9f} {qk[2]:.9f} {qk[3]:.9f} {qk[0]:.9f}\n"
+            )
 
 
 def read_tum(path):
@@ -131,8 +146,13 @@ def read_tum(path):
     return stamps, values[:, 0:3], values[:, 3:7]
 
 
-_STATE_FIELDS = (("q", ("w", "x", "y", "z")), ("p", "xyz"), ("v", "xyz"), ("b_g", "xyz"),
-                 ("b_a", "xyz"))
+_STATE_FIELDS = (
+    ("q", ("w", "x", "y", "z")),
+    ("p", "xyz"),
+    ("v", "xyz"),
+    ("b_g", "xyz"),
+    ("b_a", "xyz"),
+)
 _ERROR_NAMES = [f"{b}_{c}" for b in ("theta", "p", "v", "b_g", "b_a") for c in "xyz"]
 
 
@@ -152,12 +172,15 @@ def write_states(path, t, states, cov=None, *, t0_ns: int = 0, full_covariance: 
     """
     path = pathlib.Path(path)
     full_covariance = val.check_bool("full_covariance", full_covariance)
-    arrays = {name: val.as_numbers(f"states.{name}", getattr(states, name))
-              for name, _ in _STATE_FIELDS}
+    arrays = {
+        name: val.as_numbers(f"states.{name}", getattr(states, name)) for name, _ in _STATE_FIELDS
+    }
     T = len(arrays["q"]) if arrays["q"].ndim else 0
     if np.ndim(t) != 1 or len(t) != T or any(a.ndim != 2 or len(a) != T for a in arrays.values()):
-        raise ValueError(f"t (T,) and states with (T, ·) fields expected; got t {np.shape(t)}, "
-                         + ", ".join(f"{k} {a.shape}" for k, a in arrays.items()))
+        raise ValueError(
+            f"t (T,) and states with (T, ·) fields expected; got t {np.shape(t)}, "
+            + ", ".join(f"{k} {a.shape}" for k, a in arrays.items())
+        )
     for name, a in arrays.items():
         val.check_finite(f"states.{name}", a)
     t = _check_times(t, T)

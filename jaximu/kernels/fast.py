@@ -49,13 +49,25 @@ def _leave_world(q, p, v, h, g: V3, omega: V3, coriolis, form: LaneForm = QUATER
         dth, Q, dp, dv = world.leave_inertial_terms(omega.stack(), h, g.stack())
         p, v = world.leave_inertial_v3(omega, Q, V3.of(dp), V3.of(dv), V3(*p), V3(*v))
         return form.rotate_left(q, dth), tuple(p), tuple(v)
-    dth, dp, dv = world.coriolis_increments_v3(omega, V3(*p), V3(*v), h,
-                                               coriolis == "second_order")
+    dth, dp, dv = world.coriolis_increments_v3(omega, V3(*p), V3(*v), h, coriolis == "second_order")
     return form.rotate_left(q, dth.stack()), tuple(V3(*p) + dp), tuple(V3(*v) + dv)
 
 
-def rotating_mean_step(scheme, q, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3, omega: V3,
-                       coriolis, form: LaneForm = QUATERNION):
+def rotating_mean_step(
+    scheme,
+    q,
+    p: V3,
+    v: V3,
+    omega0,
+    f0,
+    omega1,
+    f1,
+    h,
+    g: V3,
+    omega: V3,
+    coriolis,
+    form: LaneForm = QUATERNION,
+):
     """:func:`jaximu.propagate.rotating_step` on lanes: the still-world step in the inertial
     frame of the step's start (``coriolis="exact"``) or followed by GTSAM ≤ 4.2's increments
     (:mod:`jaximu.world` holds both)."""
@@ -80,8 +92,9 @@ def _sensor_samples(pose_q, pose_p, b_g, n_samples, tangential):
     components (:func:`jaximu.sensor.chunk_to_body`)."""
     if pose_q is None:
         return None
-    return sensor.chunk_to_body(so3.quat_to_matrix(pose_q), V3(*b_g), V3(*_components(pose_p)),
-                                n_samples, tangential, HALO)
+    return sensor.chunk_to_body(
+        so3.quat_to_matrix(pose_q), V3(*b_g), V3(*_components(pose_p)), n_samples, tangential, HALO
+    )
 
 
 QUATERNION_FORMS = ("quaternion", "quaternion_first_order")
@@ -95,9 +108,25 @@ def _unit_start(form, q):
     return _quat_normalize(x) if form.name in QUATERNION_FORMS else x
 
 
-def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omega=None,
-                   coriolis="exact", form: LaneForm = QUATERNION, pose=None, tangential=True,
-                   n_samples=None):
+def propagate_mean(
+    scheme,
+    q,
+    p,
+    v,
+    b_g,
+    b_a,
+    gyro,
+    accel,
+    dt,
+    g,
+    save_all,
+    omega=None,
+    coriolis="exact",
+    form: LaneForm = QUATERNION,
+    pose=None,
+    tangential=True,
+    n_samples=None,
+):
     """Flat batch: q ``(B, form.size)`` (the attitude form's state, :data:`LANE_FORMS`: a
     quaternion ``(B, 4)``, a matrix ``(B, 9)`` row-major, Euler angles ``(B, 3)``),
     p/v/b_g/b_a ``(B, 3)``, gyro/accel
@@ -123,8 +152,12 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
     shared_pose = tuple(x is None or x.ndim == 1 for x in (pose_q, pose_p))
 
     def block(q, p, v, b_g, b_a, gyro, accel, dt, g, omega, pose_q, pose_p):
-        consts = (_components(b_g), _components(b_a), _components(g),
-                  _components(omega) if rotating else ())
+        consts = (
+            _components(b_g),
+            _components(b_a),
+            _components(g),
+            _components(omega) if rotating else (),
+        )
         carry = (_unit_start(form, q), _components(p), _components(v))
         if euler:  # and the locked flag of each lane
             carry = carry + ((jnp.zeros(q.shape[:1], bool),),)
@@ -135,26 +168,62 @@ def propagate_mean(scheme, q, p, v, b_g, b_a, gyro, accel, dt, g, save_all, omeg
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
             q, p, v = c[:3]
             if rotating:
-                q, p, v = rotating_mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                             h, gv, V3(*consts[3]), coriolis, form)
+                q, p, v = rotating_mean_step(
+                    scheme,
+                    q,
+                    V3(*p),
+                    V3(*v),
+                    omega0,
+                    f0,
+                    omega1,
+                    f1,
+                    h,
+                    gv,
+                    V3(*consts[3]),
+                    coriolis,
+                    form,
+                )
             else:
-                q, p, v = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv,
-                                    form=form)
+                q, p, v = mean_step(
+                    scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, gv, form=form
+                )
             return _lock(c[3][0], q, p, v) if euler else (q, p, v)
 
         save = (lambda c: tuple(_stack_last(x) for x in c)) if save_all else None
-        carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts, save,
-                                   next_sample=scheme.uses_next_sample,
-                                   samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples,
-                                                           tangential))
+        carry, bufs = _time_chunks(
+            step,
+            carry,
+            gyro,
+            accel,
+            dt,
+            consts,
+            save,
+            next_sample=scheme.uses_next_sample,
+            samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples, tangential),
+        )
         if save_all:
             return bufs
         return tuple(_stack_last(x) for x in carry)
 
     # dt, g, omega and a pose shared by all lanes are read whole by every block
-    return run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, gyro, accel, dt,
-                       g, omega, pose_q, pose_p,
-                       whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + shared_pose)
+    return run_blocked(
+        block,
+        B,
+        block_lanes(gyro.dtype),
+        q,
+        p,
+        v,
+        b_g,
+        b_a,
+        gyro,
+        accel,
+        dt,
+        g,
+        omega,
+        pose_q,
+        pose_p,
+        whole=(False,) * 7 + (shared_dt, shared_g, shared_w) + shared_pose,
+    )
 
 
 def dense_to_lanes(P):
@@ -168,13 +237,27 @@ def lanes_to_dense(Pb):
     :func:`jaximu.schemes._blocks.blocks_to_dense` assembled in the lane layout (the lower
     blocks by :func:`jaximu.schemes._blocks.block`), the batch axis moved first at the end."""
     d = dict(zip(UPPER, Pb))
-    D = jnp.concatenate([jnp.concatenate([block(d, i, j, SOA) for j in range(5)], 1)
-                         for i in range(5)], 0)
+    D = jnp.concatenate(
+        [jnp.concatenate([block(d, i, j, SOA) for j in range(5)], 1) for i in range(5)], 0
+    )
     return jnp.moveaxis(D, -1, 0)
 
 
-def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
-                    world_error=False, form: LaneForm = QUATERNION):
+def blocks_autodiff(
+    scheme,
+    q,
+    p,
+    v,
+    omega0,
+    f0,
+    omega1,
+    f1,
+    h,
+    g,
+    lever=None,
+    world_error=False,
+    form: LaneForm = QUATERNION,
+):
     """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
 
     ``jax.jvp`` of :func:`jaximu.kernels.lane_forms.mean_step` in the 9 non-structural directions, in
@@ -206,18 +289,23 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
     q1, p1, v1 = step(q, omega0, omega1, f0, f1)
     d_theta = jvp_directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
     if lever is None:
-        d_bg = jvp_directions(lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1),
-                              (minus_e, minus_e))
+        d_bg = jvp_directions(
+            lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1), (minus_e, minus_e)
+        )
     else:  # direction j moves f by the column K e_j: component i is K[i, j] per lane
+
         def k_cols(omega):
             K = jnp.broadcast_to(sensor.centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
             return V3(K[0], K[1], K[2])
 
-        d_bg = jvp_directions(lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
-                              (omega0, omega1, f0, f1),
-                              (minus_e, minus_e, k_cols(omega0), k_cols(omega1)))
-    d_ba = jvp_directions(lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1),
-                          (minus_e, minus_e))
+        d_bg = jvp_directions(
+            lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
+            (omega0, omega1, f0, f1),
+            (minus_e, minus_e, k_cols(omega0), k_cols(omega1)),
+        )
+    d_ba = jvp_directions(
+        lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1), (minus_e, minus_e)
+    )
 
     def block(rows):
         return direction_block(rows, dtype)
@@ -226,15 +314,38 @@ def blocks_autodiff(scheme, q, p, v, omega0, f0, omega1, f1, h, g, lever=None,
         return form.rows(tq1, q1, world_error)
 
     (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
-    b = Blocks(A="I" if world_error else block(rot(tq_t)), B=block(rot(tq_g)),
-               Cp=block(tp_t), Cv=block(tv_t), Dp=block(tp_g), Dv=block(tv_g), Ep=block(tp_a),
-               Ev=block(tv_a), dt=h)
+    b = Blocks(
+        A="I" if world_error else block(rot(tq_t)),
+        B=block(rot(tq_g)),
+        Cp=block(tp_t),
+        Cv=block(tv_t),
+        Dp=block(tp_g),
+        Dv=block(tv_g),
+        Ep=block(tp_a),
+        Ev=block(tv_a),
+        dt=h,
+    )
     return (q1, p1, v1), b
 
 
-def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, omega=None,
-                    coriolis="exact", lever=None, world_error=False,
-                    form: LaneForm = QUATERNION, transition=False):
+def cov_step_blocks(
+    scheme,
+    jacobians,
+    carry,
+    omega0,
+    f0,
+    omega1,
+    f1,
+    h,
+    g,
+    qc,
+    omega=None,
+    coriolis="exact",
+    lever=None,
+    world_error=False,
+    form: LaneForm = QUATERNION,
+    transition=False,
+):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
     of the step (:func:`blocks_autodiff`), and the block update of
@@ -253,18 +364,23 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
     if jacobians == "analytic":
         phi_end = scheme.points(omega0, f0, omega1, f1, h)[1]
         half = half_angle_jr(phi_end.dot(phi_end))  # one half angle for the mean and Φ
-        q1, p1, v1 = mean_step(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g,
-                               half[:2], form)
+        q1, p1, v1 = mean_step(
+            scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g, half[:2], form
+        )
         R = form.matrix(q, q[0].dtype)
-        b = scheme.blocks(R, omega0, f0, omega1, f1, h, SOA, end=exp_jr(phi_end, half),
-                          lever=lever)
+        b = scheme.blocks(R, omega0, f0, omega1, f1, h, SOA, end=exp_jr(phi_end, half), lever=lever)
         if world_error:  # Φ' = T⁺ Φ Tᵀ, T = blockdiag(R, I, I, I, I): A' = R⁺ A Rᵀ = I
             Rt = _bt(R)
-            b = b._replace(A="I", B=_bmm(form.matrix(q1, q[0].dtype), b.B),
-                           Cv=_bmm(b.Cv, Rt), Cp=None if b.Cp is None else _bmm(b.Cp, Rt))
+            b = b._replace(
+                A="I",
+                B=_bmm(form.matrix(q1, q[0].dtype), b.B),
+                Cv=_bmm(b.Cv, Rt),
+                Cp=None if b.Cp is None else _bmm(b.Cp, Rt),
+            )
     else:
-        (q1, p1, v1), b = blocks_autodiff(scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1,
-                                          h, g, lever, world_error, form)
+        (q1, p1, v1), b = blocks_autodiff(
+            scheme, q, V3(*p), V3(*v), omega0, f0, omega1, f1, h, g, lever, world_error, form
+        )
     qc4 = (qc[0:3], qc[3:6], qc[6:9], qc[9:12])
     s = scheme.p_over_v(h)
     rows = None
@@ -275,8 +391,9 @@ def cov_step_blocks(scheme, jacobians, carry, omega0, f0, omega1, f1, h, g, qc, 
         new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, s)
     else:
         pre, post = world.error_maps(omega.stack(), h, coriolis, SOA)
-        new = world.covariance_step(dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis,
-                                    SOA, s, maps=(pre, post))
+        new = world.covariance_step(
+            dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis, SOA, s, maps=(pre, post)
+        )
         if transition:
             rows = _blocks.rows_product(post, rows, SOA)
             rows = rows if pre is None else _blocks.rows_product(rows, pre, SOA)
@@ -302,8 +419,11 @@ def transition_pattern(rotating, world_error):
     if rotating:
         pv = {j: "X" for j in range(5)}
         return {0: {0: "X", 3: "X"}, 1: dict(pv), 2: dict(pv)}
-    return {0: {0: "I" if world_error else "X", 3: "X"},
-            1: {0: "X", 1: "I", 2: "s", 3: "X", 4: "X"}, 2: {0: "X", 2: "I", 3: "X", 4: "X"}}
+    return {
+        0: {0: "I" if world_error else "X", 3: "X"},
+        1: {0: "X", 1: "I", 2: "s", 3: "X", 4: "X"},
+        2: {0: "X", 2: "I", 3: "X", 4: "X"},
+    }
 
 
 def world_error_blocks(Pb, q, inverse=False):
@@ -320,10 +440,31 @@ def world_error_blocks(Pb, q, inverse=False):
     return tuple(new[k] for k in UPPER)
 
 
-def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, scheme,
-                  jacobians, omega=None, coriolis="exact", lever=None, save_all=False,
-                  form: LaneForm = QUATERNION, pose=None, tangential=True, n_samples=None,
-                  transition=None):
+def propagate_cov(
+    q,
+    p,
+    v,
+    b_g,
+    b_a,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    qc_fn,
+    qc_params,
+    scheme,
+    jacobians,
+    omega=None,
+    coriolis="exact",
+    lever=None,
+    save_all=False,
+    form: LaneForm = QUATERNION,
+    pose=None,
+    tangential=True,
+    n_samples=None,
+    transition=None,
+):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
     after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
     discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
@@ -358,11 +499,15 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
     # the pose's rotation and lever arm are each shared or per lane (a vmap over lever arms)
     shared_pose = tuple(x is None or x.ndim == 1 for x in (pose_q, pose_p))
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever, pose_q,
-              pose_p):
-        consts = (_components(b_g), _components(b_a), _components(g), qc_params,
-                  (_components(omega) if rotating else None),
-                  (None if lever is None else _components(lever)))
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever, pose_q, pose_p):
+        consts = (
+            _components(b_g),
+            _components(b_a),
+            _components(g),
+            qc_params,
+            (_components(omega) if rotating else None),
+            (None if lever is None else _components(lever)),
+        )
         carry = (_unit_start(form, q), _components(p), _components(v), dense_to_lanes(P0))
         if world_error:
             carry = carry[:3] + (world_error_blocks(carry[3], carry[0]),)
@@ -373,8 +518,10 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             block_shape, scalar_shape = (3, 3, q.shape[0]), (q.shape[0],)
 
             def conform(rows):
-                return _blocks.rows_leaves(_blocks.conform_rows(
-                    rows, transition, block_shape, scalar_shape, dtype, SOA), transition)
+                return _blocks.rows_leaves(
+                    _blocks.conform_rows(rows, transition, block_shape, scalar_shape, dtype, SOA),
+                    transition,
+                )
 
             carry = carry + (tuple(conform({})),)
 
@@ -395,10 +542,24 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
             # the step's inputs in memory: read through the scan's dynamic slice inside the
             # 3-D block fusions they stop LLVM from vectorising them
             omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
-            out = cov_step_blocks(scheme, jacobians, c[:4], omega0, f0, omega1, f1, h, V3(*gv),
-                                  qc, None if wv is None else V3(*wv), coriolis,
-                                  None if rv is None else V3(*rv), world_error, form,
-                                  with_transition)
+            out = cov_step_blocks(
+                scheme,
+                jacobians,
+                c[:4],
+                omega0,
+                f0,
+                omega1,
+                f1,
+                h,
+                V3(*gv),
+                qc,
+                None if wv is None else V3(*wv),
+                coriolis,
+                None if rv is None else V3(*rv),
+                world_error,
+                form,
+                with_transition,
+            )
             if not euler:
                 return out
             # the covariance follows the NaN state from the next step's blocks, as the
@@ -410,32 +571,60 @@ def propagate_cov(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_fn, qc_params, s
         # row): the dense matrices are assembled once, after the kernel (assembling them at
         # every step inside it ran 0.65 M samples/s against 0.83, float32, 1024 × 200)
         def save(c):
-            return ((_stack_last(c[0]), _stack_last(c[1]), _stack_last(c[2]))
-                    + tuple(jnp.moveaxis(X, -1, 0).reshape(-1, 9) for X in c[3]))
+            return (_stack_last(c[0]), _stack_last(c[1]), _stack_last(c[2])) + tuple(
+                jnp.moveaxis(X, -1, 0).reshape(-1, 9) for X in c[3]
+            )
 
-        carry, bufs = _time_chunks(step, carry, gyro, accel, dt, consts,
-                                   save if save_all else None,
-                                   next_sample=scheme.uses_next_sample,
-                                   samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples,
-                                                           tangential))
+        carry, bufs = _time_chunks(
+            step,
+            carry,
+            gyro,
+            accel,
+            dt,
+            consts,
+            save if save_all else None,
+            next_sample=scheme.uses_next_sample,
+            samples=_sensor_samples(pose_q, pose_p, consts[0], n_samples, tangential),
+        )
         q, p, v, Pb = carry[:4]
         locked = (carry[4][0],) if euler else ()  # (Bc,): by the last step
         if save_all:
             return tuple(bufs) + locked
         if transition is not None:  # lanes first, as run_blocked joins them
-            return ((_stack_last(q), _stack_last(p), _stack_last(v),
-                     tuple(jnp.moveaxis(X, -1, 0) for X in Pb),
-                     tuple(jnp.moveaxis(X, -1, 0) for X in carry[-1])) + locked)
+            return (
+                _stack_last(q),
+                _stack_last(p),
+                _stack_last(v),
+                tuple(jnp.moveaxis(X, -1, 0) for X in Pb),
+                tuple(jnp.moveaxis(X, -1, 0) for X in carry[-1]),
+            ) + locked
         if world_error:
             Pb = world_error_blocks(Pb, q, inverse=True)
         return (_stack_last(q), _stack_last(p), _stack_last(v), lanes_to_dense(Pb)) + locked
 
     # values shared by all lanes (and a missing lever arm) are read whole by every block
-    out = run_blocked(block, B, block_lanes(gyro.dtype), q, p, v, b_g, b_a, P0, gyro, accel,
-                      dt, g, qc_params, omega, lever, pose_q, pose_p,
-                      whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r)
-                      + shared_pose)
+    out = run_blocked(
+        block,
+        B,
+        block_lanes(gyro.dtype),
+        q,
+        p,
+        v,
+        b_g,
+        b_a,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        qc_params,
+        omega,
+        lever,
+        pose_q,
+        pose_p,
+        whole=(False,) * 8 + (shared_dt, shared_g, shared_n, shared_w, shared_r) + shared_pose,
+    )
     if not save_all or transition is not None:
         return out
-    blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3:3 + len(UPPER)])}
-    return (out[0], out[1], out[2], _blocks.blocks_to_dense(blocks)) + tuple(out[3 + len(UPPER):])
+    blocks = {k: X.reshape(X.shape[:2] + (3, 3)) for k, X in zip(UPPER, out[3 : 3 + len(UPPER)])}
+    return (out[0], out[1], out[2], _blocks.blocks_to_dense(blocks)) + tuple(out[3 + len(UPPER) :])

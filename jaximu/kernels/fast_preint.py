@@ -59,7 +59,8 @@ def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
     pad = C * L - T
     if pad:
         padw = lambda x, **kw: jnp.pad(  # noqa: E731
-            x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2), **kw)
+            x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2), **kw
+        )
         gyro, accel, dt = padw(gyro), padw(accel), padw(dt)
         edge = None if edge is None else padw(edge, mode="edge")
     if edge is not None:
@@ -69,8 +70,9 @@ def _as_chunks(C, gyro, accel, dt, per_sequence, edge=None):
     return (lanes(gyro), lanes(accel), lanes(dt), tuple(rep)), bool(pad)
 
 
-def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
-                          jacobians="analytic", isotropic_accel=False):
+def preintegrate_midpoint(
+    gyro, accel, dt, b_g, b_a, var, C=1, lever=None, jacobians="analytic", isotropic_accel=False
+):
     """As :func:`preintegrate_euler` for VINS-Mono's midpoint; gyro, accel ``(B, T, 6)``:
     samples k and k+1 side by side. Returns the generic code's outputs. ``isotropic_accel``
     is not used: the end sample's rotation comes from VINS-Mono's unnormalised quaternion,
@@ -88,15 +90,18 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
         omega = 0.5 * (gyro[..., 0:3] + gyro[..., 3:6]) - (b_g if b_g.ndim == 1 else b_g[:, None])
         hT = jnp.broadcast_to(dt, (B, T))
         incr = jnp.concatenate([jnp.ones_like(hT)[..., None], 0.5 * hT[..., None] * omega], -1)
-        incl = so3.quat_normalize(jax.lax.associative_scan(
-            so3.quat_mul, so3.quat_normalize(incr), axis=1))
+        incl = so3.quat_normalize(
+            jax.lax.associative_scan(so3.quat_mul, so3.quat_normalize(incr), axis=1)
+        )
         q_last = incl[:, -1]
-        dR = jnp.concatenate([jnp.broadcast_to(so3.quat_identity((), dtype), (B, 1, 4)),
-                              incl[:, :-1]], 1)
+        dR = jnp.concatenate(
+            [jnp.broadcast_to(so3.quat_identity((), dtype), (B, 1, 4)), incl[:, :-1]], 1
+        )
         # the rotation rides along with the specific force (B, T, 10); padded steps sit at
         # a unit rotation (autodiff normalises through it)
         (gyro, accel, dt, (b_g, b_a, var, lever)), guard = _as_chunks(
-            C, gyro, accel, hT, (b_g, b_a, var, lever), edge=dR)
+            C, gyro, accel, hT, (b_g, b_a, var, lever), edge=dR
+        )
 
     def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]
@@ -108,11 +113,13 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
             w1 = tuple(w[3 + i] - bg[i] for i in range(3))
             a0 = tuple(a[i] - ba[i] for i in range(3))
             a1 = tuple(a[3 + i] - ba[i] for i in range(3))
-            return mid_step(c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r,
-                            jacobians)
+            return mid_step(
+                c, w0, a0, w1, a1, h, s, a[6:10] if C > 1 else None, guard, r, jacobians
+            )
 
         q, dv, dp, t, Phi, P, d3, d4, S = _time_chunks(
-            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt, None, None)[0]
+            st, _zero_carry_mid(Bc, dtype), gyro, accel, dt, None, None
+        )[0]
         bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
         A, Bg, Cp, Cv, Dp, Dv, Ep, Ev = (bm(X) for X in Phi)
         phi = Blocks(A=A, B=Bg, Cp=Cp, Cv=Cv, Dp=Dp, Dv=Dv, Ep=Ep, Ev=Ev, dt=t)
@@ -123,8 +130,15 @@ def preintegrate_midpoint(gyro, accel, dt, b_g, b_a, var, C=1, lever=None,
         out = jax.tree_util.tree_map(lambda x: x.reshape((B, C) + x.shape[1:]), out)
         out = _reduce_chunks(out, C, rotate=False)
         out["q"] = q_last
-    return (out["t"], so3.quat_normalize(out["q"]), out["dv"], out["dp"], out["Phi"], out["Q15"],
-            out["Q9"])
+    return (
+        out["t"],
+        so3.quat_normalize(out["q"]),
+        out["dv"],
+        out["dp"],
+        out["Phi"],
+        out["Q15"],
+        out["Q9"],
+    )
 
 
 # ----------------------------------------------------------------------------- driver
@@ -135,8 +149,19 @@ def _run_blocked(block, gyro, accel, dt, b_g, b_a, var, lever):
     over the lanes: a ``dt`` ``(T,)``, biases ``(3,)``, variances ``(12,)`` or a lever arm
     ``(3,)`` (or ``None``) shared by all lanes are read whole by every block."""
     shared = (dt.ndim == 1,) + tuple(x is None or x.ndim == 1 for x in (b_g, b_a, var, lever))
-    return run_blocked(block, gyro.shape[0], block_lanes(gyro.dtype), gyro, accel, dt, b_g, b_a,
-                       var, lever, whole=(False, False) + shared)
+    return run_blocked(
+        block,
+        gyro.shape[0],
+        block_lanes(gyro.dtype),
+        gyro,
+        accel,
+        dt,
+        b_g,
+        b_a,
+        var,
+        lever,
+        whole=(False, False) + shared,
+    )
 
 
 def num_chunks(B, T, method, dtype):
@@ -157,8 +182,9 @@ def num_chunks(B, T, method, dtype):
     return C
 
 
-def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians="analytic",
-                       isotropic_accel=False):
+def preintegrate_euler(
+    gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians="analytic", isotropic_accel=False
+):
     """Flat batch: gyro, accel ``(B, T, 3)``; dt ``(T,)`` or ``(B, T)``; b_g, b_a ``(3,)`` or
     ``(B, 3)``; var ``(12,)`` or ``(B, 12)`` (σ² per axis); ``C`` time chunks per sequence;
     ``lever``: ``None``, ``(3,)`` or ``(B, 3)``, the lever arm of samples moved from a sensor;
@@ -172,7 +198,8 @@ def preintegrate_euler(gyro, accel, dt, b_g, b_a, var, C, lever=None, jacobians=
     guard = False
     if C > 1:
         (gyro, accel, dt, (b_g, b_a, var, lever)), guard = _as_chunks(
-            C, gyro, accel, jnp.broadcast_to(dt, (B, T)), (b_g, b_a, var, lever))
+            C, gyro, accel, jnp.broadcast_to(dt, (B, T)), (b_g, b_a, var, lever)
+        )
 
     def block(gyro, accel, dt, b_g, b_a, var, lever):
         Bc = gyro.shape[0]

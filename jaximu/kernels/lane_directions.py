@@ -20,8 +20,9 @@ from jaximu.kernels.lane_math import _E3
 def lane_directions(cols, dtype, lanes):
     """``cols`` (3 directions × 3 components, a numpy array) as a 3-tuple of ``(3, *lanes)``
     components: direction j's component i is ``cols[j, i]`` on every lane."""
-    return tuple(jnp.broadcast_to(jnp.asarray(cols[:, i], dtype)[:, None], (3,) + lanes)
-                 for i in range(3))
+    return tuple(
+        jnp.broadcast_to(jnp.asarray(cols[:, i], dtype)[:, None], (3,) + lanes) for i in range(3)
+    )
 
 
 def rotation_tangents(q, world=False):
@@ -30,8 +31,12 @@ def rotation_tangents(q, world=False):
     dtype, lanes = q[0].dtype, q[0].shape
     E = np.eye(3)
     # Python floats (weakly typed): the tangents keep the lanes' dtype
-    half = [quat_mul_components(tuple(0.5 * float(x) for x in (0.0, *E[j])), q) if world
-            else quat_mul_components(q, tuple(0.5 * float(x) for x in (0.0, *E[j]))) for j in range(3)]
+    half = [
+        quat_mul_components(tuple(0.5 * float(x) for x in (0.0, *E[j])), q)
+        if world
+        else quat_mul_components(q, tuple(0.5 * float(x) for x in (0.0, *E[j])))
+        for j in range(3)
+    ]
     onehot = lane_directions(E, dtype, lanes)  # onehot[j][d] = δ_jd on every lane
     return tuple(sum(onehot[j] * half[j][c][None] for j in range(3)) for c in range(4))
 

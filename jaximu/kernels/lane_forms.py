@@ -63,8 +63,9 @@ def _lanes_matrix(x, dtype):
 
 def _mat_mul_lanes(X, Y):
     """``X Y`` of two matrices given as 9 lanes each (or ``(3, 3, …)`` blocks), 9 lanes."""
-    return tuple(sum(X[3 * i + m] * Y[3 * m + j] for m in range(3))
-                 for i in range(3) for j in range(3))
+    return tuple(
+        sum(X[3 * i + m] * Y[3 * m + j] for m in range(3)) for i in range(3) for j in range(3)
+    )
 
 
 def _matrix_advance(R, phi: V3, half=None):
@@ -75,8 +76,7 @@ def _matrix_advance(R, phi: V3, half=None):
 
 
 def _matrix_rotate(R, f):
-    return tuple(R[3 * i] * f[0] + R[3 * i + 1] * f[1] + R[3 * i + 2] * f[2]
-                 for i in range(3))
+    return tuple(R[3 * i] * f[0] + R[3 * i + 1] * f[1] + R[3 * i + 2] * f[2] for i in range(3))
 
 
 def _matrix_rotate_left(R, dth):
@@ -90,8 +90,13 @@ def _matrix_tangents(R, world=False):
     ``δθ``: ``R [e_j]x`` (``[e_j]x R``), 9 lanes of ``(3, *lanes)``."""
     dtype, lanes = R[0].dtype, R[0].shape
     # [e_j]x (_S3[j]) as 9 lanes of (3 directions, *lanes)
-    S = tuple(jnp.broadcast_to(jnp.asarray(_S3[:, n // 3, n % 3], dtype).reshape(
-        (3,) + (1,) * len(lanes)), (3,) + lanes) for n in range(9))
+    S = tuple(
+        jnp.broadcast_to(
+            jnp.asarray(_S3[:, n // 3, n % 3], dtype).reshape((3,) + (1,) * len(lanes)),
+            (3,) + lanes,
+        )
+        for n in range(9)
+    )
     Rd = tuple(x[None] for x in R)
     return _mat_mul_lanes(S, Rd) if world else _mat_mul_lanes(Rd, S)
 
@@ -122,9 +127,17 @@ def _euler_matrix(chi, trig=None):
     """``R(χ)`` of ZYX angles ``χ = (roll, pitch, yaw)`` as 9 lanes
     (:func:`jaximu.so3.euler_zyx_to_matrix`)."""
     (sr, cr), (sp, cp), (sy, cy) = _euler_trig(chi) if trig is None else trig
-    return (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
-            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
-            -sp, cp * sr, cp * cr)
+    return (
+        cy * cp,
+        cy * sp * sr - sy * cr,
+        cy * sp * cr + sy * sr,
+        sy * cp,
+        sy * sp * sr + cy * cr,
+        sy * sp * cr - cy * sr,
+        -sp,
+        cp * sr,
+        cp * cr,
+    )
 
 
 def _euler_rate(chi, w, trig=None):
@@ -132,8 +145,11 @@ def _euler_rate(chi, w, trig=None):
     singular at pitch ±π/2, which the kernels report)."""
     (sr, cr), (sp, cp) = (_euler_trig(chi) if trig is None else trig)[:2]
     tp = sp / cp
-    return V3(w[0] + (sr * tp) * w[1] + (cr * tp) * w[2], cr * w[1] + (-sr) * w[2],
-              (sr / cp) * w[1] + (cr / cp) * w[2])
+    return V3(
+        w[0] + (sr * tp) * w[1] + (cr * tp) * w[2],
+        cr * w[1] + (-sr) * w[2],
+        (sr / cp) * w[1] + (cr / cp) * w[2],
+    )
 
 
 def _euler_advance(chi, phi: V3, half=None):
@@ -184,6 +200,7 @@ def _euler_rows(tchi1, chi1, world=False):
 def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
     """The ``"euler_angles"`` form's RK4 on lanes: :func:`jaximu.schemes.integrators.rk4_euler_angles`
     with the angles' rates and matrix from the half angle's polynomials (:func:`_euler_trig`)."""
+
     def deriv(c, w, f):
         trig = _euler_trig(c)
         return _euler_rate(c, w, trig), V3(*_matrix_rotate(_euler_matrix(c, trig), f)) + g
@@ -194,6 +211,7 @@ def rk4_euler_angles(chi, p: V3, v: V3, omega0, f0, omega1, f1, h, g: V3):
 
 class LaneForm(NamedTuple):
     """An attitude form (:class:`jaximu.integrators.Attitude`) on SoA lanes."""
+
     name: str
     size: int  # lanes of its state
     advance: Callable  # (x, φ: V3, half=None) -> x ⊞ φ
@@ -204,24 +222,43 @@ class LaneForm(NamedTuple):
     rotate_left: Callable  # (x, dθ (…, 3)) -> Exp(dθ) R(x), the form's state
 
 
-_QUAT: dict[str, Any] = dict(size=4, rotate=_quat_rotate, matrix=quat_matrix,
-                             tangents=rotation_tangents, rows=rotation_rows,
-                             rotate_left=_quat_rotate_left)
+_QUAT: dict[str, Any] = dict(
+    size=4,
+    rotate=_quat_rotate,
+    matrix=quat_matrix,
+    tangents=rotation_tangents,
+    rows=rotation_rows,
+    rotate_left=_quat_rotate_left,
+)
 
 
 LANE_FORMS = {
     "quaternion": LaneForm("quaternion", advance=_quat_advance, **_QUAT),
-    "quaternion_first_order": LaneForm("quaternion_first_order", advance=_quat_first_order,
-                                       **_QUAT),
-    "matrix": LaneForm("matrix", 9, _matrix_advance, _matrix_rotate, _lanes_matrix,
-                       _matrix_tangents, _matrix_rows, _matrix_rotate_left),
+    "quaternion_first_order": LaneForm(
+        "quaternion_first_order", advance=_quat_first_order, **_QUAT
+    ),
+    "matrix": LaneForm(
+        "matrix",
+        9,
+        _matrix_advance,
+        _matrix_rotate,
+        _lanes_matrix,
+        _matrix_tangents,
+        _matrix_rows,
+        _matrix_rotate_left,
+    ),
     # no closed-form Jacobian (autodiff blocks only), the pitch singularity reported by the
     # kernels (jaximu.kernels.fast.propagate_mean, propagate_cov)
     "euler_angles": LaneForm(
-        "euler_angles", 3, _euler_advance,
+        "euler_angles",
+        3,
+        _euler_advance,
         lambda chi, f: _matrix_rotate(_euler_matrix(chi), f),
-        lambda chi, dtype: _lanes_matrix(_euler_matrix(chi), dtype), _euler_tangents,
-        _euler_rows, _euler_rotate_left),
+        lambda chi, dtype: _lanes_matrix(_euler_matrix(chi), dtype),
+        _euler_tangents,
+        _euler_rows,
+        _euler_rotate_left,
+    ),
 }
 """The attitude forms the structure-of-arrays kernels run, each as its own lanes."""
 
@@ -252,8 +289,20 @@ def _rotate_stage(form, x, f):
     return V3(*_materialise(form.rotate(x, f)))
 
 
-def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
-              form: LaneForm = LANE_FORMS["quaternion"]):
+def mean_step(
+    scheme,
+    q,
+    p,
+    v,
+    omega0,
+    f0,
+    omega1,
+    f1,
+    h,
+    g,
+    end_half=None,
+    form: LaneForm = LANE_FORMS["quaternion"],
+):
     """One step of ``scheme`` (a :class:`jaximu.integrators.Scheme`) on SoA lanes in the
     attitude form ``form`` (:data:`LANE_FORMS`; default the exact quaternion exponential):
     :func:`jaximu.integrators.step` in this layout.
@@ -271,6 +320,7 @@ def mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, end_half=None,
         return rk4_euler_angles(q, p, v, omega0, f0, omega1, f1, h, g)
     pts, phi_end = scheme.points(omega0, f0, omega1, f1, h)
     q_end = form.advance(q, phi_end, end_half)
-    p1, v1 = stage_sum(pts, q, q_end, form.advance,
-                       lambda x, f: _rotate_stage(form, x, f), p, v, h, g)
+    p1, v1 = stage_sum(
+        pts, q, q_end, form.advance, lambda x, f: _rotate_stage(form, x, f), p, v, h, g
+    )
     return q_end, tuple(p1), tuple(v1)

@@ -112,7 +112,7 @@ def _quat_renormalize(q):
     :func:`_quat_normalize`."""
     r = 1.5 - 0.5 * (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if jnp.size(r) > 1:
-        r, = _materialise([r])
+        (r,) = _materialise([r])
     return tuple(x * r for x in q)
 
 
@@ -140,8 +140,11 @@ def quat_matrix(q, dtype):
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
     w, u = q[0], q[1:]
     u3 = _rows(u, dtype)
-    return (I3 + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
-            + _lane(2.0 * w) * _skew3(u, dtype))
+    return (
+        I3
+        + 2.0 * (_outer(u3, u3) - _lane(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * I3)
+        + _lane(2.0 * w) * _skew3(u, dtype)
+    )
 
 
 # ----------------------------------------------------------------------------- 3x3 blocks
@@ -157,7 +160,7 @@ def _bmm(X, Y):
     blocks, or the ``m``-row blocks of a measurement): one vectorised loop."""
     out = X[:, 0:1] * Y[0:1, :]
     for i in range(1, X.shape[1]):
-        out = out + X[:, i:i + 1] * Y[i:i + 1, :]
+        out = out + X[:, i : i + 1] * Y[i : i + 1, :]
     return out
 
 
@@ -165,8 +168,10 @@ def _rows(rows, dtype):
     """``m`` rows, each ``(B,)`` or ``(n, B)``, -> ``(m, B)`` or ``(m, n, B)`` by broadcasting
     against one-hot columns (no concatenate)."""
     E = np.eye(len(rows))
-    terms = [jnp.asarray(E[:, i], dtype).reshape((-1,) + (1,) * r.ndim) * r[None]
-             for i, r in enumerate(rows)]
+    terms = [
+        jnp.asarray(E[:, i], dtype).reshape((-1,) + (1,) * r.ndim) * r[None]
+        for i, r in enumerate(rows)
+    ]
     out = terms[0]
     for x in terms[1:]:
         out = out + x
@@ -202,7 +207,7 @@ def _tri_solve(L, X, trans=False):
     order = range(m - 1, -1, -1) if trans else range(m)
     for i in order:
         y = X[i]
-        for k in (range(i + 1, m) if trans else range(i)):
+        for k in range(i + 1, m) if trans else range(i):
             y = y - (L[k][i] if trans else L[i][k])[None] * Y[k]
         Y[i] = y * L[i][i][None]
     return _rows(Y, X.dtype)
@@ -245,8 +250,9 @@ def _materialise(tree):
     big = [x for x in arrays if jnp.ndim(x)]
     pred = big[0].ravel()[0] == big[0].ravel()[0]  # any runtime value: branches agree
     staged = iter(_stage(pred, lambda a: [x * 1 for x in a], arrays))
-    return jax.tree_util.tree_unflatten(treedef, [x if m else next(staged)
-                                                  for x, m in zip(leaves, marks)])
+    return jax.tree_util.tree_unflatten(
+        treedef, [x if m else next(staged) for x, m in zip(leaves, marks)]
+    )
 
 
 def _diag3(s3, dtype):
@@ -261,6 +267,7 @@ def half_angle_jr(t2):
     """``(cos(θ/2), sin(θ/2)/θ, (θ - sin θ)/θ³)`` for per-lane ``θ² = t2``: polynomials in
     θ² (the range-reduced half angle only when some lane needs it); finite values and
     derivatives at θ = 0 (double ``where``)."""
+
     def small(t2):
         c, k = _half_small(t2)
         return c, k, _jr_b_small(t2)
@@ -269,8 +276,9 @@ def half_angle_jr(t2):
         c, k = _half_any(t2)
         sm = t2 < _THR
         # sin θ / θ = 2 k c, so (θ - sin θ)/θ³ = (1 - 2kc)/θ²
-        b = jnp.where(sm, _jr_b_small(jnp.where(sm, t2, 0.0)),
-                      (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
+        b = jnp.where(
+            sm, _jr_b_small(jnp.where(sm, t2, 0.0)), (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2)
+        )
         return c, k, b
 
     return _cond(_any_big(t2), big, small, t2)

@@ -50,16 +50,20 @@ def _initial(run, c):
     x0 = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + x.shape), c["x0"])
     start = boxplus(x0.replace(b_g=jnp.zeros_like(x0.b_g), b_a=jnp.zeros_like(x0.b_a)), eps)
     comps = lambda x: tuple(x[:, i] for i in range(x.shape[1]))  # noqa: E731
-    return (comps(start.q), V3(*comps(start.p)), V3(*comps(start.v)), -V3(*comps(start.b_g)),
-            -V3(*comps(start.b_a)))
+    return (
+        comps(start.q),
+        V3(*comps(start.p)),
+        V3(*comps(start.v)),
+        -V3(*comps(start.b_g)),
+        -V3(*comps(start.b_a)),
+    )
 
 
 def _draw(run, j, k, c):
     """The step's 12 normals, materialised: white noise of sample ``j`` (streams 0-2) and the
     bias walk of step ``k`` (streams 3-5), hashed together. (Materialised: XLA:CPU would
     otherwise recompute the hash in every fusion that reads one of its outputs.)"""
-    return _rng.normals_at(c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype,
-                           stage=_materialise)
+    return _rng.normals_at(c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype, stage=_materialise)
 
 
 def _sample(n, w, a, sd, dbg, dba):
@@ -73,8 +77,10 @@ def _sample(n, w, a, sd, dbg, dba):
 
 def _walk(n, sw, dbg, dba):
     """Bias errors after a walk step (``n``: its 6 normals; ``sw``: their 6 std)."""
-    return (V3(*(dbg[i] + sw[i] * n[i] for i in range(3))),
-            V3(*(dba[i] + sw[3 + i] * n[3 + i] for i in range(3))))
+    return (
+        V3(*(dbg[i] + sw[i] * n[i] for i in range(3))),
+        V3(*(dba[i] + sw[3 + i] * n[3 + i] for i in range(3))),
+    )
 
 
 def _errors(carry, ref):
@@ -107,7 +113,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     carry = dict(q=q, p=p, v=v, dbg=dbg, dba=dba)
     if nxt:
         w0, a0 = (tuple(x[i] for i in range(3)) for x in (c["w0"], c["a0"]))
-        n0 = _rng.normals(c["keys"][_WHITE:_WHITE + 3], run, _u32(0), 3, dtype)
+        n0 = _rng.normals(c["keys"][_WHITE : _WHITE + 3], run, _u32(0), 3, dtype)
         carry["s"] = _sample(n0, w0, a0, tuple(c["sd0"][i] for i in range(6)), dbg, dba)
     if filt:
         carry["P"] = dense_to_lanes(jnp.broadcast_to(c["P0"], (B, 15, 15)))
@@ -118,8 +124,10 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         # a materialised copy: a dynamic slice of the scan inputs inside the lane fusions
         # stops LLVM from vectorising them (as in the SoA covariance kernels); one row, one copy
         row = _materialise(row)
-        w, a, sd, sw, qc = (tuple(row[i] for i in range(lo, hi)) for lo, hi in (
-            (0, 3), (3, 6), (6, 12), (12, 18), (19, row.shape[0])))
+        w, a, sd, sw, qc = (
+            tuple(row[i] for i in range(lo, hi))
+            for lo, hi in ((0, 3), (3, 6), (6, 12), (12, 18), (19, row.shape[0]))
+        )
         h = row[18]
         out = dict(carry)
         dbg, dba = carry["dbg"], carry["dba"]
@@ -136,20 +144,31 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
             dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
         out["dbg"], out["dba"] = dbg1, dba1
         if not filt:
-            q1, p1, v1 = mean_step(sch, carry["q"], carry["p"], carry["v"], omega0, f0, omega1,
-                                   f1, h, g)
+            q1, p1, v1 = mean_step(
+                sch, carry["q"], carry["p"], carry["v"], omega0, f0, omega1, f1, h, g
+            )
         else:
             q1, p1, v1, out["P"] = cov_step_blocks(
-                sch, "analytic", (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]),
-                omega0, f0, omega1, f1, h, g, qc)
+                sch,
+                "analytic",
+                (carry["q"], tuple(carry["p"]), tuple(carry["v"]), carry["P"]),
+                omega0,
+                f0,
+                omega1,
+                f1,
+                h,
+                g,
+                qc,
+            )
         out["q"], out["p"], out["v"] = tuple(q1), V3(*p1), V3(*v1)
         return out, None
 
     T = c["dt"].shape[0]
     qc_all = c["qc"] if filt else jnp.zeros((T, 0), dtype)
     # the per-step inputs as one (T, 19 [+ 12]) table: ω, f, white std, walk std, h [, Q_c]
-    table = jnp.concatenate([c["w_in"], c["a_in"], c["sd_in"], c["sw"], c["dt"][:, None],
-                             qc_all], 1)
+    table = jnp.concatenate(
+        [c["w_in"], c["a_in"], c["sd_in"], c["sw"], c["dt"][:, None], qc_all], 1
+    )
     xs_all = (jnp.arange(T, dtype=jnp.uint32), table)
 
     def update(carry, i):
@@ -157,20 +176,31 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         :func:`jaximu.schemes._blocks.kalman_update` (the mathematics of
         :func:`jaximu.errorstate.ekf_update`) on the covariance blocks."""
         ref_p = c["ref"][1][i]
-        nu = _rng.normals(c["keys"][_MEAS:_MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]
+        nu = _rng.normals(c["keys"][_MEAS : _MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]
         res = [ref_p[j] - carry["p"][j] + nu[j] * c["meas_sd"][j] for j in range(3)]  # z - p̂
-        up = kalman_update(dict(zip(UPPER, carry["P"])), _POSITION_H,
-                           SOA.from_arrays(c["meas_R"]), _rows([r[None] for r in res], dtype),
-                           SOA)
+        up = kalman_update(
+            dict(zip(UPPER, carry["P"])),
+            _POSITION_H,
+            SOA.from_arrays(c["meas_R"]),
+            _rows([r[None] for r in res], dtype),
+            SOA,
+        )
         dx = jnp.concatenate([d[:, 0] for d in up.dx], 0).T  # (B, 15)
         st = lambda t: jnp.stack(t, -1)  # noqa: E731
-        est = NavState(st(carry["q"]), st(carry["p"]), st(carry["v"]), -st(carry["dbg"]),
-                       -st(carry["dba"]))
+        est = NavState(
+            st(carry["q"]), st(carry["p"]), st(carry["v"]), -st(carry["dbg"]), -st(carry["dba"])
+        )
         est = boxplus(est, dx)
         comps = lambda x: tuple(x[:, j] for j in range(x.shape[1]))  # noqa: E731
-        out = dict(carry, q=comps(est.q), p=V3(*comps(est.p)), v=V3(*comps(est.v)),
-                   dbg=-V3(*comps(est.b_g)), dba=-V3(*comps(est.b_a)),
-                   P=tuple(up.P[k] for k in UPPER))
+        out = dict(
+            carry,
+            q=comps(est.q),
+            p=V3(*comps(est.p)),
+            v=V3(*comps(est.v)),
+            dbg=-V3(*comps(est.b_g)),
+            dba=-V3(*comps(est.b_a)),
+            P=tuple(up.P[k] for k in UPPER),
+        )
         if nxt:  # the carried sample is corrected with the new bias estimate
             omega, f = carry["s"]
             out["s"] = (omega + (out["dbg"] - carry["dbg"]), f + (out["dba"] - carry["dba"]))
@@ -191,8 +221,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         return carry, _lane_stats(e, wt, Pb=carry["P"], nis=nis)
 
     def segment(carry, i):
-        xs = jax.tree_util.tree_map(
-            lambda x: jax.lax.dynamic_slice_in_dim(x, i * L, L, 0), xs_all)
+        xs = jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, i * L, L, 0), xs_all)
         carry = jax.lax.scan(step, carry, xs)[0]
         return record(carry, i, True)
 
@@ -201,7 +230,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         carry, out = jax.lax.scan(segment, carry, jnp.arange(n_seg))
         outs.append(out)
     if rem:
-        xs = jax.tree_util.tree_map(lambda x: x[n_seg * L:], xs_all)
+        xs = jax.tree_util.tree_map(lambda x: x[n_seg * L :], xs_all)
         carry = jax.lax.scan(step, carry, xs)[0]
         out = record(carry, jnp.asarray(n_seg), False)[1]
         outs.append(jax.tree_util.tree_map(lambda x: x[None], out))
@@ -221,7 +250,7 @@ def _lane_stats(e, wt, W=None, Pb=None, nis=None):
         y = e @ W.T
         return mean, d.T @ d, jnp.sum(y * y, -1)
     eT = e.T
-    y = whiten(dict(zip(UPPER, Pb)), [eT[3 * i:3 * i + 3, None] for i in range(5)], SOA)
+    y = whiten(dict(zip(UPPER, Pb)), [eT[3 * i : 3 * i + 3, None] for i in range(5)], SOA)
     nees = sum(jnp.sum(b * b, (0, 1)) for b in y)
     P_sum = blocks_to_dense({k: jnp.sum(b * wt, -1) for k, b in zip(UPPER, Pb)})
     return mean, d.T @ d, nees, P_sum, nis
@@ -245,8 +274,8 @@ def _measured(run, c):
     T = c["dt"].shape[0]
     ks = jnp.arange(T + 1, dtype=jnp.uint32)
     dtype = c["dt"].dtype
-    n = jnp.stack(_rng.normals(c["keys"][_WHITE:_WHITE + 3], run[0], ks, 3, dtype), -1)
-    m = jnp.stack(_rng.normals(c["keys"][_WALK:_WALK + 3], run[0], ks[:T], 3, dtype), -1)
+    n = jnp.stack(_rng.normals(c["keys"][_WHITE : _WHITE + 3], run[0], ks, 3, dtype), -1)
+    m = jnp.stack(_rng.normals(c["keys"][_WALK : _WALK + 3], run[0], ks[:T], 3, dtype), -1)
     db = jnp.concatenate([jnp.zeros((1, 6), dtype), jnp.cumsum(m * c["sw"], 0)])  # (T+1, 6)
     b = c["b0"] + db  # true biases during each sample
     noisy = n * c["sd"]

@@ -40,11 +40,13 @@ def _sym(X):
     """``(X + Xᵀ)/2`` of a ``(3, 3, B)`` block: :func:`jaximu.schemes._blocks.sym` on lanes."""
     return sym(X, SOA)
 
+
 # ----------------------------------------------------------------------------- one step
 
 
 def _lane_scalars(big):
     """Stage 1 (per lane): the mean update and the scalars of the step."""
+
     def f(q, dv, dp, t, omega, fsp, h):
         u = _quat_rotate(q, fsp)
         phi = tuple(h * w for w in omega)
@@ -52,8 +54,11 @@ def _lane_scalars(big):
         if big:
             c, k = _half_any(t2)
             sm = t2 < _THR
-            b = jnp.where(sm, _jr_b_small(jnp.where(sm, t2, 0.0)),
-                          (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2))
+            b = jnp.where(
+                sm,
+                _jr_b_small(jnp.where(sm, t2, 0.0)),
+                (1.0 - 2.0 * k * c) / jnp.where(sm, 1.0, t2),
+            )
         else:
             c, k = _half_small(t2)
             b = _jr_b_small(t2)
@@ -70,8 +75,11 @@ def _rot_jl(q, phi, t2, k, b):
     dtype = q[0].dtype
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
     phi3 = _rows(phi, dtype)
-    Jl = (I3 + _lane(2.0 * (k * k)) * _skew3(phi, dtype)
-          + _lane(b) * (_outer(phi3, phi3) - _lane(t2) * I3))
+    Jl = (
+        I3
+        + _lane(2.0 * (k * k)) * _skew3(phi, dtype)
+        + _lane(b) * (_outer(phi3, phi3) - _lane(t2) * I3)
+    )
     return quat_matrix(q, dtype), Jl
 
 
@@ -92,8 +100,20 @@ def _autodiff_blocks(q, dv, dp, omega, fsp, h, lever):
     ``Dp = h/2 Dk``), as in the closed forms; the exact Euler step makes the two equal to
     rounding."""
     w, f, zero = V3(*omega), V3(*fsp), V3(0.0, 0.0, 0.0)
-    _, b = blocks_autodiff(get_scheme("euler"), q, V3(*dp), V3(*dv), w, f, w, f, h, zero,
-                           None if lever is None else V3(*lever), world_error=True)
+    _, b = blocks_autodiff(
+        get_scheme("euler"),
+        q,
+        V3(*dp),
+        V3(*dv),
+        w,
+        f,
+        w,
+        f,
+        h,
+        zero,
+        None if lever is None else V3(*lever),
+        world_error=True,
+    )
     return b.Ev, b.B, b.Cv, (None if lever is None else b.Dv)
 
 
@@ -108,8 +128,7 @@ def _noise_blocks(Bk, Ev, sg, sa):
 # blocks of the 15×15 covariance that are carried (the others: (3,3), (4,4) diagonal; (3,4)
 # and (0,4) zero: Cov(δθ, δb_a) starts at zero and stays there, as neither the rotation
 # rows of F nor the gyro noise reach b_a, and neither the bias rows nor their noise reach θ)
-P15_KEYS = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 3),
-            (2, 4))
+P15_KEYS = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 3), (2, 4))
 
 
 P9_KEYS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -134,8 +153,7 @@ def _cov15_a(P, d3, d4, Bk, Cv, Ev):
 def _cov15_b(M10, M14, M20, M24, M00, Cv, Ev):
     """``K_i = M_i0 Cvᵀ + M_i4 Evᵀ`` for the rows θ, p, v (``M_04 = P_04 = 0``)."""
     Cvt, Evt = _bt(Cv), _bt(Ev)
-    return (_bmm(M00, Cvt), _bmm(M10, Cvt) + _bmm(M14, Evt),
-            _bmm(M20, Cvt) + _bmm(M24, Evt))
+    return (_bmm(M00, Cvt), _bmm(M10, Cvt) + _bmm(M14, Evt), _bmm(M20, Cvt) + _bmm(M24, Evt))
 
 
 def _cov9_a(S, Cv):
@@ -155,8 +173,7 @@ def _lever_rk(R, omega, lever):
     return _bmm(R, sensor.centripetal_jacobian(V3(*omega), V3(*lever), SOA))
 
 
-def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
-         isotropic_accel=False):
+def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic", isotropic_accel=False):
     """One Euler step in the rotated coordinates. ``s``: 12-tuple of ``σ²`` per axis
     (scalars or ``(B,)``); ``guard``: padded steps (``h = 0``) are exact identities.
     ``lever`` (a 3-tuple, or ``None``): samples moved from a sensor at that lever arm; the
@@ -170,8 +187,8 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
     q, dv, dp, t, (Bacc, Dp, Dv, Ep, Ev_acc), P, d3, d4, S = carry
     t2 = sum((h * w) * (h * w) for w in omega)
     (q1, dv1, dp1, t1), lane = _cond(
-        _any_big(t2), _lane_scalars(True), _lane_scalars(False),
-        q, dv, dp, t, omega, fsp, h)
+        _any_big(t2), _lane_scalars(True), _lane_scalars(False), q, dv, dp, t, omega, fsp, h
+    )
     u, phi, t2, k, b = lane
     ok = jnp.all(jnp.isfinite(h))  # a runtime predicate for the stage conds
     hd = jnp.where(h > 0, h, jnp.ones_like(h)) if guard else h
@@ -185,8 +202,9 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
         if lever is not None:
             Dk = _stage(ok, lambda R, h: _lever_rk(R, omega, lever) * _lane(h), R, h)
     else:
-        Ev, Bk, Cv, Dk = _stage(ok, lambda *a: _autodiff_blocks(*a, lever), q, dv, dp, omega,
-                                fsp, h)
+        Ev, Bk, Cv, Dk = _stage(
+            ok, lambda *a: _autodiff_blocks(*a, lever), q, dv, dp, omega, fsp, h
+        )
     if isotropic_accel:  # var[3] = σ_a²/h: Qv = h² var[3] I
         Qth = _stage(ok, _noise_blocks, Bk, None, var[0:3], None)
         Qv = jnp.asarray(_E3, Bk.dtype)[:, :, None] * _lane(h * h * var[3])
@@ -201,8 +219,13 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
 
     # transition (Φ' = F' Φ'): Cv Φ'_θbg is the only product
     X = _bmm(Cv, Bacc) if Dk is None else _bmm(Cv, Bacc) + Dk
-    Phi1 = (Bacc + Bk, (Dp + hb * Dv) + half * X, Dv + X, (Ep + hb * Ev_acc) + half * Ev,
-            Ev_acc + Ev)
+    Phi1 = (
+        Bacc + Bk,
+        (Dp + hb * Dv) + half * X,
+        Dv + X,
+        (Ep + hb * Ev_acc) + half * Ev,
+        Ev_acc + Ev,
+    )
 
     # 15×15 covariance
     Pd = dict(zip(P15_KEYS, P))
@@ -219,8 +242,9 @@ def step(carry, omega, fsp, h, s, guard, lever=None, jacobians="analytic",
     M22 = Pd[2, 2] + N2
     M23 = Pd[2, 3] + N3
     M24 = Pd[2, 4] + N4
-    M10, M11, M12, M13, M14 = _stage(ok, lambda *a: tuple(x * 1 for x in a),
-                                     M10, M11, M12, M13, M14)
+    M10, M11, M12, M13, M14 = _stage(
+        ok, lambda *a: tuple(x * 1 for x in a), M10, M11, M12, M13, M14
+    )
     K0, K1, K2 = _stage(ok, _cov15_b, M10, M14, M20, M24, M00, Cv, Ev)
     if Dk is not None:  # and the v columns M_i3 Dkᵀ
         Dkt = _bt(Dk)
@@ -273,5 +297,4 @@ def _zero_carry(Bc, dtype):
     Z = jnp.zeros((3, 3, Bc), dtype)
     z3 = jnp.zeros((3, Bc), dtype)
     q = (jnp.ones((Bc,), dtype), z, z, z)
-    return (q, (z, z, z), (z, z, z), z, (Z,) * 5, (Z,) * len(P15_KEYS), z3, z3,
-            (Z,) * len(P9_KEYS))
+    return (q, (z, z, z), (z, z, z), z, (Z,) * 5, (Z,) * len(P15_KEYS), z3, z3, (Z,) * len(P9_KEYS))

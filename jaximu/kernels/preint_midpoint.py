@@ -37,6 +37,7 @@ def _sym(X):
     """``(X + Xᵀ)/2`` of a ``(3, 3, B)`` block: :func:`jaximu.schemes._blocks.sym` on lanes."""
     return sym(X, SOA)
 
+
 # ----------------------------------------------------------------------------- VINS midpoint
 #
 # VINS-Mono's midPointIntegration in the original error coordinates (its first-order F is not
@@ -47,8 +48,9 @@ def _sym(X):
 
 def _mid_lane(q, dv, dp, t, omega, f0, f1, h):
     """Stage 1 (per lane): the mean update, VINS-Mono's unnormalised ``q ⊗ [1, ω̄h/2]``."""
-    dq = (jnp.ones_like(h) if jnp.ndim(h) else jnp.ones_like(q[0]),) + tuple(0.5 * h * w
-                                                                           for w in omega)
+    dq = (jnp.ones_like(h) if jnp.ndim(h) else jnp.ones_like(q[0]),) + tuple(
+        0.5 * h * w for w in omega
+    )
     q1u = quat_mul_components(q, dq)
     u0, u1 = _quat_rotate(q, f0), _quat_rotate(q1u, f1)
     acc = tuple(0.5 * (u0[i] + u1[i]) for i in range(3))
@@ -94,8 +96,9 @@ def _mid_autodiff(q, omega, f0, f1, h):
 
     (q1, _, _, _), q1u = _mid_lane(q, z3, z3, zero, omega, f0, f1, h)
     tq_t, tv_t = jvp_directions(lambda q: mean(q, omega), (q,), (rotation_tangents(q),))
-    tq_w, tv_w = jvp_directions(lambda w: mean(q, w), (omega,),
-                                (lane_directions(np.eye(3), dtype, lanes),))
+    tq_w, tv_w = jvp_directions(
+        lambda w: mean(q, w), (omega,), (lane_directions(np.eye(3), dtype, lanes),)
+    )
 
     def block(rows):
         return direction_block(rows, dtype)
@@ -152,22 +155,27 @@ def _mid_cov_a(P, d3, d4, A, B, Cv, Dv, Ev, h):
     (``P_04 = 0``: ``M`` has no block 4 in row θ)."""
     P = dict(zip(P15_KEYS, P))
     I3 = jnp.asarray(_E3, A.dtype)[:, :, None]
-    M0 = (_bmm(A, P[0, 0]) + _b_times(B, _bt(P[0, 3]), h),
-          _bmm(A, P[0, 1]) + _b_times(B, _bt(P[1, 3]), h),
-          _bmm(A, P[0, 2]) + _b_times(B, _bt(P[2, 3]), h),
-          _bmm(A, P[0, 3]) + _b_times(B, I3 * d3[None], h))
-    N = (_bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])),
-         _bmm(Cv, P[0, 1]) + _bmm(Dv, _bt(P[1, 3])) + _bmm(Ev, _bt(P[1, 4])),
-         _bmm(Cv, P[0, 2]) + _bmm(Dv, _bt(P[2, 3])) + _bmm(Ev, _bt(P[2, 4])),
-         _bmm(Cv, P[0, 3]) + Dv * d3[None],
-         Ev * d4[None])
+    M0 = (
+        _bmm(A, P[0, 0]) + _b_times(B, _bt(P[0, 3]), h),
+        _bmm(A, P[0, 1]) + _b_times(B, _bt(P[1, 3]), h),
+        _bmm(A, P[0, 2]) + _b_times(B, _bt(P[2, 3]), h),
+        _bmm(A, P[0, 3]) + _b_times(B, I3 * d3[None], h),
+    )
+    N = (
+        _bmm(Cv, P[0, 0]) + _bmm(Dv, _bt(P[0, 3])),
+        _bmm(Cv, P[0, 1]) + _bmm(Dv, _bt(P[1, 3])) + _bmm(Ev, _bt(P[1, 4])),
+        _bmm(Cv, P[0, 2]) + _bmm(Dv, _bt(P[2, 3])) + _bmm(Ev, _bt(P[2, 4])),
+        _bmm(Cv, P[0, 3]) + Dv * d3[None],
+        Ev * d4[None],
+    )
     return M0, N
 
 
 def _mid_cov_b(M0, M1, M2, A, B, Cv, Dv, Ev, h):
     Cvt, Dvt, Evt = _bt(Cv), _bt(Dv), _bt(Ev)
-    K = ((_bmm(M0[0], Cvt) + _bmm(M0[3], Dvt),)
-         + tuple(_bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M1, M2)))
+    K = (_bmm(M0[0], Cvt) + _bmm(M0[3], Dvt),) + tuple(
+        _bmm(M[0], Cvt) + _bmm(M[3], Dvt) + _bmm(M[4], Evt) for M in (M1, M2)
+    )
     return K, _bmm(M0[0], _bt(A)) + _bt(_b_times(B, _bt(M0[3]), h))
 
 
@@ -183,8 +191,9 @@ def _mid_cov9(S, A, Cv, h):
     return M0, N, K, _bmm(M0[0], _bt(A))
 
 
-def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
-             jacobians="analytic"):
+def mid_step(
+    carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None, jacobians="analytic"
+):
     """One VINS-Mono midpoint step; with ``q_given`` the rotation at the step is an input (the
     parallel method's chunks, frame ``B_i``) instead of the carried one. ``lever``: as
     :func:`step`. ``jacobians``: VINS-Mono's linearisation (``"analytic"``,
@@ -206,30 +215,44 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
         A, B, Cv, Dr, R0, R1 = _stage(ok, _mid_autodiff, q, omega, a0, a1, h)
     RK = None
     if lever is not None:
-        RK = _stage(ok, lambda R0, R1: (_lever_rk(R0, w0, lever), _lever_rk(R1, w1, lever)),
-                    R0, R1)
-    Dv, Ev, Qtt, Qv, Qtv = _stage(ok, _mid_blocks2, A, B, Cv, Dr, R0, R1, h, var[0:3],
-                                  var[3:6], RK)
+        RK = _stage(ok, lambda R0, R1: (_lever_rk(R0, w0, lever), _lever_rk(R1, w1, lever)), R0, R1)
+    Dv, Ev, Qtt, Qv, Qtv = _stage(ok, _mid_blocks2, A, B, Cv, Dr, R0, R1, h, var[0:3], var[3:6], RK)
     dtype = q[0].dtype
     hb = _lane(h)
     half = 0.5 * hb
 
     # transition Φ ← F Φ (F.Cp = h/2 F.Cv, F.Dp = h/2 F.Dv, F.Ep = h/2 F.Ev)
-    XA, XB, AA, AB = _stage(ok, lambda A, Cv, Ac, Bc: (_bmm(Cv, Ac), _bmm(Cv, Bc), _bmm(A, Ac),
-                                                        _bmm(A, Bc)), A, Cv, Ac, Bc)
+    XA, XB, AA, AB = _stage(
+        ok,
+        lambda A, Cv, Ac, Bc: (_bmm(Cv, Ac), _bmm(Cv, Bc), _bmm(A, Ac), _bmm(A, Bc)),
+        A,
+        Cv,
+        Ac,
+        Bc,
+    )
     I3 = jnp.asarray(_E3, dtype)[:, :, None]
-    Phi1 = (AA, AB + (-hb * I3 if B is None else B), (half * XA + Cpc) + hb * Cvc, XA + Cvc,
-            ((half * XB + Dpc) + hb * Dvc) + half * Dv, (XB + Dvc) + Dv,
-            (Epc + hb * Evc) + half * Ev, Evc + Ev)
+    Phi1 = (
+        AA,
+        AB + (-hb * I3 if B is None else B),
+        (half * XA + Cpc) + hb * Cvc,
+        XA + Cvc,
+        ((half * XB + Dpc) + hb * Dvc) + half * Dv,
+        (XB + Dvc) + Dv,
+        (Epc + hb * Evc) + half * Ev,
+        Evc + Ev,
+    )
 
     # 15×15 covariance
     Pd = dict(zip(P15_KEYS, P))
     M0, N = _stage(ok, _mid_cov_a, P, d3, d4, A, B, Cv, Dv, Ev, h)
-    M1 = tuple((Pd[1, j] if j >= 1 else _bt(Pd[0, 1])) + hb * (
-        Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + half * N[j] for j in range(5))
+    M1 = tuple(
+        (Pd[1, j] if j >= 1 else _bt(Pd[0, 1]))
+        + hb * (Pd[2, j] if j >= 2 else _bt(Pd[j, 2]))
+        + half * N[j]
+        for j in range(5)
+    )
     M2 = tuple((Pd[2, j] if j >= 2 else _bt(Pd[j, 2])) + N[j] for j in range(5))
-    M1, M2 = _stage(ok, lambda a, b: (tuple(x * 1 for x in a), tuple(x * 1 for x in b)),
-                    M1, M2)
+    M1, M2 = _stage(ok, lambda a, b: (tuple(x * 1 for x in a), tuple(x * 1 for x in b)), M1, M2)
     (K0, K1, K2), C00 = _stage(ok, _mid_cov_b, M0, M1, M2, A, B, Cv, Dv, Ev, h)
     new = {
         (0, 0): _sym(C00 + Qtt),
@@ -238,9 +261,11 @@ def mid_step(carry, w0, a0, w1, a1, h, s, q_given=None, guard=False, lever=None,
         (0, 3): M0[3],
         (1, 1): _sym(((M1[1] + hb * M1[2]) + half * K1) + (half * half) * Qv),
         (1, 2): (M1[2] + K1) + half * Qv,
-        (1, 3): M1[3], (1, 4): M1[4],
+        (1, 3): M1[3],
+        (1, 4): M1[4],
         (2, 2): _sym((M2[2] + K2) + Qv),
-        (2, 3): M2[3], (2, 4): M2[4],
+        (2, 3): M2[3],
+        (2, 4): M2[4],
     }
     h2 = h * h
     d3n = d3 + _diag_row(tuple(h2 * x for x in var[6:9]), dtype)[0]

@@ -35,8 +35,15 @@ def summary(q, dv, dp, t, phi: Blocks, P, d3, d4, S):
     P15[3, 3] = bm(d3)[:, None, :] * eye
     P15[4, 4] = bm(d4)[:, None, :] * eye
     P9 = {k: bm(X) for k, X in zip(P9_KEYS, S)}
-    return dict(q=last(q), dv=last(dv), dp=last(dp), t=t, Phi=blk.phi_to_dense(phi),
-                Q15=blk.blocks_to_dense(P15), Q9=blk.blocks_to_dense(P9, n=3))
+    return dict(
+        q=last(q),
+        dv=last(dv),
+        dp=last(dp),
+        t=t,
+        Phi=blk.phi_to_dense(phi),
+        Q15=blk.blocks_to_dense(P15),
+        Q9=blk.blocks_to_dense(P9, n=3),
+    )
 
 
 def _to_summary(c):
@@ -45,8 +52,17 @@ def _to_summary(c):
     q, dv, dp, t, (Bg, Dp, Dv, Ep, Ev), P, d3, d4, S = c
     bm = lambda X: jnp.moveaxis(X, -1, 0)  # noqa: E731
     I = jnp.broadcast_to(jnp.eye(3, dtype=t.dtype), t.shape + (3, 3))
-    phi = Blocks(A=I, B=bm(Bg), Cp=-skew(jnp.stack(dp, -1)), Cv=-skew(jnp.stack(dv, -1)),
-                 Dp=bm(Dp), Dv=bm(Dv), Ep=bm(Ep), Ev=bm(Ev), dt=t)
+    phi = Blocks(
+        A=I,
+        B=bm(Bg),
+        Cp=-skew(jnp.stack(dp, -1)),
+        Cv=-skew(jnp.stack(dv, -1)),
+        Dp=bm(Dp),
+        Dv=bm(Dv),
+        Ep=bm(Ep),
+        Ev=bm(Ev),
+        dt=t,
+    )
     return summary(q, dv, dp, t, phi, P, d3, d4, S)
 
 
@@ -54,7 +70,7 @@ def _frame(R, n, k):
     """``blockdiag(R × k, I)`` of size n (``R`` on the first k 3-blocks)."""
     eye = jnp.broadcast_to(jnp.eye(n, dtype=R.dtype), R.shape[:-2] + (n, n))
     for i in range(k):
-        eye = eye.at[..., 3 * i:3 * i + 3, 3 * i:3 * i + 3].set(R)
+        eye = eye.at[..., 3 * i : 3 * i + 3, 3 * i : 3 * i + 3].set(R)
     return eye
 
 
@@ -70,15 +86,26 @@ def _combine(a, b, rotate=True):
         T9 = T[..., :9, :9]
         Fb = T @ b["Phi"] @ blk.t(T)
         Qb15, Qb9 = T @ b["Q15"] @ blk.t(T), T9 @ b["Q9"] @ blk.t(T9)
-        q, dp, dv, t = compose_deltas(deltas(a), deltas(b),
-                                      lambda x: jnp.einsum("...ij,...j->...i", R, x))
+        q, dp, dv, t = compose_deltas(
+            deltas(a), deltas(b), lambda x: jnp.einsum("...ij,...j->...i", R, x)
+        )
     else:  # the same frame: the sums of compose_deltas without a rotation
         Fb, Qb15, Qb9, q = b["Phi"], b["Q15"], b["Q9"], a["q"]
-        dv, dp, t = (a["dv"] + b["dv"], (a["dp"] + a["dv"] * b["t"][..., None]) + b["dp"],
-                     a["t"] + b["t"])
+        dv, dp, t = (
+            a["dv"] + b["dv"],
+            (a["dp"] + a["dv"] * b["t"][..., None]) + b["dp"],
+            a["t"] + b["t"],
+        )
     F9 = Fb[..., :9, :9]
-    return dict(q=q, dv=dv, dp=dp, t=t, Phi=Fb @ a["Phi"],
-                Q15=blk.sym(Fb @ a["Q15"] @ blk.t(Fb) + Qb15), Q9=blk.sym(F9 @ a["Q9"] @ blk.t(F9) + Qb9))
+    return dict(
+        q=q,
+        dv=dv,
+        dp=dp,
+        t=t,
+        Phi=Fb @ a["Phi"],
+        Q15=blk.sym(Fb @ a["Q15"] @ blk.t(Fb) + Qb15),
+        Q9=blk.sym(F9 @ a["Q9"] @ blk.t(F9) + Qb9),
+    )
 
 
 def _identity_summary(like):
@@ -92,7 +119,8 @@ def _fold(s, axis, rotate=True):
     """Sequential composition along ``axis`` (a ``lax.scan``; the other axes are lanes)."""
     first = jax.tree_util.tree_map(lambda x: jnp.take(x, 0, axis=axis), s)
     rest = jax.tree_util.tree_map(
-        lambda x: jnp.moveaxis(jax.lax.slice_in_dim(x, 1, x.shape[axis], axis=axis), axis, 0), s)
+        lambda x: jnp.moveaxis(jax.lax.slice_in_dim(x, 1, x.shape[axis], axis=axis), axis, 0), s
+    )
     return jax.lax.scan(lambda c, x: (_combine(c, x, rotate), None), first, rest)[0]
 
 
@@ -102,7 +130,7 @@ def _reduce_chunks(s, C, rotate=True):
     C2 = int(np.ceil(np.sqrt(C)))
     C1 = -(-C // C2)
     if C1 * C2 > C:
-        ident = _identity_summary(jax.tree_util.tree_map(lambda x: x[:, :C1 * C2 - C], s))
+        ident = _identity_summary(jax.tree_util.tree_map(lambda x: x[:, : C1 * C2 - C], s))
         s = jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], 1), s, ident)
     s = jax.tree_util.tree_map(lambda x: x.reshape(x.shape[:1] + (C1, C2) + x.shape[2:]), s)
     s = _fold(s, 2, rotate) if C2 > 1 else jax.tree_util.tree_map(lambda x: x[:, :, 0], s)
@@ -115,5 +143,12 @@ def _finish(s):
     Rt = blk.t(quat_to_matrix(s["q"]))
     T = _frame(Rt, 15, 1)
     T9 = T[..., :9, :9]
-    return (s["t"], quat_normalize(s["q"]), s["dv"], s["dp"], T @ s["Phi"],
-            blk.sym(T @ s["Q15"] @ blk.t(T)), blk.sym(T9 @ s["Q9"] @ blk.t(T9)))
+    return (
+        s["t"],
+        quat_normalize(s["q"]),
+        s["dv"],
+        s["dp"],
+        T @ s["Phi"],
+        blk.sym(T @ s["Q15"] @ blk.t(T)),
+        blk.sym(T9 @ s["Q9"] @ blk.t(T9)),
+    )

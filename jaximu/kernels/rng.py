@@ -106,16 +106,21 @@ def stream_keys(key, n_streams: int):
     (new-style or raw ``uint32[2]``): ``threefry(key, (0x4A4D4331, j))`` ("JMC1", stream j)."""
     data = key
     try:
-        if jnp.issubdtype(jnp.asarray(key).dtype if not hasattr(key, "dtype") else key.dtype,
-                          jax.dtypes.prng_key):
+        if jnp.issubdtype(
+            jnp.asarray(key).dtype if not hasattr(key, "dtype") else key.dtype, jax.dtypes.prng_key
+        ):
             data = jax.random.key_data(key)
         data = jnp.asarray(data, jnp.uint32).reshape(-1)
     except (TypeError, ValueError):
-        raise ValueError("key must be a threefry jax.random key (e.g. jax.random.key(0)), got "
-                         f"{type(key).__name__} {key!r:.40}") from None
+        raise ValueError(
+            "key must be a threefry jax.random key (e.g. jax.random.key(0)), got "
+            f"{type(key).__name__} {key!r:.40}"
+        ) from None
     if data.shape != (2,):
-        raise ValueError("key must be a threefry jax.random key (two uint32 words), got key "
-                         f"data of shape {data.shape}")
+        raise ValueError(
+            "key must be a threefry jax.random key (two uint32 words), got key "
+            f"data of shape {data.shape}"
+        )
     return _stream_words(data, int(n_streams))
 
 

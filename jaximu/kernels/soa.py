@@ -117,9 +117,14 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False, 
             return main
         size = x.shape[axis]
         at = lambda i: jax.lax.dynamic_slice_in_dim(  # noqa: E731
-            x, jnp.clip(i, 0, size - 1), 1, axis=axis)
-        return jnp.concatenate([at(t0 - HALO + j) for j in range(HALO)] + [main]
-                               + [at(t0 + n + j) for j in range(after)], axis=axis)
+            x, jnp.clip(i, 0, size - 1), 1, axis=axis
+        )
+        return jnp.concatenate(
+            [at(t0 - HALO + j) for j in range(HALO)]
+            + [main]
+            + [at(t0 + n + j) for j in range(after)],
+            axis=axis,
+        )
 
     def comps(x, t0, L):
         c = window(x, t0, L + int(next_sample), 1, 1)
@@ -134,8 +139,10 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False, 
             hw = hw if dt.ndim == 1 else jnp.transpose(hw)  # (n + 2, Bc)
             w, a = _materialise(tuple(tuple(x) for x in samples(w, a, hw, t0 + jnp.arange(n))))
         if next_sample:
-            return (tuple(c[:L] for c in w) + tuple(c[1:] for c in w),
-                    tuple(c[:L] for c in a) + tuple(c[1:] for c in a))
+            return (
+                tuple(c[:L] for c in w) + tuple(c[1:] for c in w),
+                tuple(c[:L] for c in a) + tuple(c[1:] for c in a),
+            )
         return w, a
 
     def hs(t0, L):
@@ -151,8 +158,9 @@ def _time_chunks(step, carry, gyro, accel, dt, consts, save, next_sample=False, 
             t, w, a, h = xs
             c = step(c, w, a, h, consts)
             if save is not None:
-                bufs = tuple(jax.lax.dynamic_update_index_in_dim(b, y, t, 1)
-                             for b, y in zip(bufs, save(c)))
+                bufs = tuple(
+                    jax.lax.dynamic_update_index_in_dim(b, y, t, 1) for b, y in zip(bufs, save(c))
+                )
             return (c, bufs), None
 
         xs = (t0 + jnp.arange(L),) + both(t0, L) + (hs(t0, L),)
@@ -175,13 +183,17 @@ def _mesh_axes(args):
     (inside a ``shard_map``) — or ``(None, ())``."""
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty:
-        typed = (getattr(jax.typeof(x).sharding, "mesh", None)
-                 for x in jax.tree_util.tree_leaves(args))
+        typed = (
+            getattr(jax.typeof(x).sharding, "mesh", None) for x in jax.tree_util.tree_leaves(args)
+        )
         mesh = next((m for m in typed if m is not None and not m.empty), mesh)
     if mesh.empty:
         return None, ()
-    axes = tuple(a for a, kind in zip(mesh.axis_names, mesh.axis_types)
-                 if kind != jax.sharding.AxisType.Manual)
+    axes = tuple(
+        a
+        for a, kind in zip(mesh.axis_names, mesh.axis_types)
+        if kind != jax.sharding.AxisType.Manual
+    )
     return mesh, axes
 
 
@@ -211,7 +223,8 @@ def block_lanes(dtype):
 # Primitives XLA:CPU's whole-computation emitter compiles. It does not take the library
 # fusions XLA makes of dots (XNNPACK/YNNPACK), nor custom calls (LAPACK), scatters, sorts or
 # collectives: a block that uses anything outside this list runs as a plain call.
-_ONE_KERNEL_PRIMITIVES = frozenset("""
+_ONE_KERNEL_PRIMITIVES = frozenset(
+    """
     abs acos acosh add add_any and asin asinh atan atan2 atanh bitcast_convert_type
     broadcast_in_dim cbrt ceil clamp closed_call concatenate cond convert_element_type copy
     copy_p cos cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr div
@@ -222,7 +235,8 @@ _ONE_KERNEL_PRIMITIVES = frozenset("""
     reshape round rsqrt scan select_n shift_left shift_right_arithmetic
     shift_right_logical sign sin sinh slice sqrt square squeeze stack stop_gradient sub
     tan tanh threefry2x32 transpose while xor
-""".split())
+""".split()
+)
 
 
 def _kernel_safe(jaxpr) -> bool:
@@ -248,8 +262,11 @@ def one_kernel(fn, *args):
     uses an operation that emitter lacks (:data:`_ONE_KERNEL_PRIMITIVES`), and every
     backend but the CPU, get the plain call."""
     call = jax.jit(fn)
-    if not ONE_KERNEL_ENABLED or jax.default_backend() != "cpu" or not _kernel_safe(
-            call.trace(*args).jaxpr.jaxpr):
+    if (
+        not ONE_KERNEL_ENABLED
+        or jax.default_backend() != "cpu"
+        or not _kernel_safe(call.trace(*args).jaxpr.jaxpr)
+    ):
         return call(*args)
     # The arguments pass a barrier: an argument XLA can fold to a constant (samples a user
     # closed over, say) would otherwise be sunk into the loop inside the kernel as a large
@@ -300,22 +317,26 @@ def run_blocked(block_fn, B, lanes, *args, whole=()):
     # Sharding in types (an Explicit mesh): the layout is written into the arguments' types
     # with reshard, and the results are gathered back to replicated ones, the types the code
     # around the kernels is written for (one copy of the results between the devices).
-    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
-                   for a in axes)
+    explicit = any(
+        mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit for a in axes
+    )
 
     def put(tree, spec):
         if explicit:
             return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, spec), tree)
-        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, spec),
-                                      tree)
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, spec), tree)
 
     with jax.sharding.use_abstract_mesh(mesh):  # the kernels' own arrays on it too
         if B % n:  # not split: the kernel runs whole, on replicated inputs
             lane_args, shared = put((lane_args, shared), P())
             return _run_blocks(block_fn, B, lanes, lane_args, shared, whole)
-        local = jax.shard_map(lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole),
-                              in_specs=(P(axes), P()), out_specs=P(axes),
-                              axis_names=set(axes), check_vma=False)
+        local = jax.shard_map(
+            lambda a, s: _run_blocks(block_fn, B // n, lanes, a, s, whole),
+            in_specs=(P(axes), P()),
+            out_specs=P(axes),
+            axis_names=set(axes),
+            check_vma=False,
+        )
         if not explicit:
             return local(lane_args, shared)
         out = local(put(lane_args, P(axes)), put(shared, P()))
@@ -331,8 +352,9 @@ def replicated(tree):
     if not axes:
         return tree
     spec = jax.sharding.PartitionSpec()
-    explicit = any(mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit
-                   for a in axes)
+    explicit = any(
+        mesh.axis_types[mesh.axis_names.index(a)] == jax.sharding.AxisType.Explicit for a in axes
+    )
     with jax.sharding.use_abstract_mesh(mesh):
         if explicit:
             return jax.tree_util.tree_map(lambda x: jax.sharding.reshard(x, spec), tree)

@@ -11,19 +11,34 @@ integrated open loop from the first true attitude (:func:`evaluate_sequence`).
 from jaximu.learning.checkpoint import load, pretrained, save
 from jaximu.learning.data import Sequence, load_sequence, split
 from jaximu.learning.evaluation import (
-                                        Metrics,
-                                        SequenceReport,
-                                        attitude_covariance,
-                                        evaluate_sequence,
-                                        integrate_attitude,
-                                        orientation_errors,
+    Metrics,
+    SequenceReport,
+    attitude_covariance,
+    evaluate_sequence,
+    integrate_attitude,
+    orientation_errors,
 )
 from jaximu.learning.model import CausalConv, Corrected, Denoiser, ModelConfig
 from jaximu.learning.training import TrainConfig, TrainResult, train
 
 __all__ = [
-    "Denoiser", "ModelConfig", "Corrected", "CausalConv", "Sequence", "load_sequence", "split",
-    "TrainConfig", "TrainResult", "train", "evaluate_sequence", "integrate_attitude",
-    "orientation_errors", "attitude_covariance", "Metrics", "SequenceReport", "save", "load",
+    "Denoiser",
+    "ModelConfig",
+    "Corrected",
+    "CausalConv",
+    "Sequence",
+    "load_sequence",
+    "split",
+    "TrainConfig",
+    "TrainResult",
+    "train",
+    "evaluate_sequence",
+    "integrate_attitude",
+    "orientation_errors",
+    "attitude_covariance",
+    "Metrics",
+    "SequenceReport",
+    "save",
+    "load",
     "pretrained",
 ]

@@ -51,28 +51,36 @@ def load(path) -> Denoiser:
     path = pathlib.Path(path)
     meta_path, weights = path / "model.json", path / "weights.eqx"
     if not path.is_dir() or not meta_path.is_file() or not weights.is_file():
-        raise DataError(f"{path} is not a jaximu model: expected a folder with model.json and "
-                        "weights.eqx, as `jaximu learn train --out MODEL` writes (or the name "
-                        f"of a shipped model: {', '.join(PRETRAINED)})")
+        raise DataError(
+            f"{path} is not a jaximu model: expected a folder with model.json and "
+            "weights.eqx, as `jaximu learn train --out MODEL` writes (or the name "
+            f"of a shipped model: {', '.join(PRETRAINED)})"
+        )
     try:
         meta = json.loads(meta_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataError(f"{meta_path} is not valid JSON ({e}); the model is damaged") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         found = meta.get("format") if isinstance(meta, dict) else None
-        raise DataError(f"{path} holds a model of format {found!r}; this jaximu reads {FORMAT!r}:"
-                        " retrain it with this version (`jaximu learn train`)")
+        raise DataError(
+            f"{path} holds a model of format {found!r}; this jaximu reads {FORMAT!r}:"
+            " retrain it with this version (`jaximu learn train`)"
+        )
     try:
         config = ModelConfig.from_json(meta["config"])
     except (KeyError, TypeError, ValueError) as e:
-        raise DataError(f"{meta_path}: its settings do not fit this jaximu ({e}); retrain the "
-                        "model with this version") from None
+        raise DataError(
+            f"{meta_path}: its settings do not fit this jaximu ({e}); retrain the "
+            "model with this version"
+        ) from None
     skeleton = Denoiser(config, jax.random.key(0))
     try:
         model = eqx.tree_deserialise_leaves(weights, skeleton)
     except Exception as e:  # equinox raises RuntimeError/ValueError/EOFError on a bad file
-        raise DataError(f"{weights} does not hold this model's weights ({type(e).__name__}: "
-                        f"{e}); the file is damaged or from another model") from None
+        raise DataError(
+            f"{weights} does not hold this model's weights ({type(e).__name__}: "
+            f"{e}); the file is damaged or from another model"
+        ) from None
     return model
 
 

@@ -51,15 +51,24 @@ class Sequence:
         if t.ndim != 1 or len(t) < 2:
             raise ValueError(f"Sequence.t must have shape (N,) with N ≥ 2, got {t.shape}")
         N = len(t)
-        for name, width in (("gyro", 3), ("accel", 3), ("q", 4), ("p", 3), ("v", 3),
-                            ("b_g", 3), ("b_a", 3)):
+        for name, width in (
+            ("gyro", 3),
+            ("accel", 3),
+            ("q", 4),
+            ("p", 3),
+            ("v", 3),
+            ("b_g", 3),
+            ("b_a", 3),
+        ):
             x = getattr(self, name)
             if x is None and name in ("b_g", "b_a"):
                 continue
             x = np.asarray(x, np.float64)
             if x.shape != (N, width):
-                raise ValueError(f"Sequence.{name} must have shape ({N}, {width}) (one row per "
-                                 f"time in t), got {x.shape}")
+                raise ValueError(
+                    f"Sequence.{name} must have shape ({N}, {width}) (one row per "
+                    f"time in t), got {x.shape}"
+                )
             bad = np.flatnonzero(~np.isfinite(x).all(1))
             if len(bad):
                 raise ValueError(f"Sequence.{name} has NaN or inf at rows {bad[:5].tolist()}")
@@ -68,8 +77,10 @@ class Sequence:
             raise ValueError("Sequence.t must increase strictly")
         qn = np.linalg.norm(self.q, axis=1)
         if np.any(np.abs(qn - 1) > 1e-6):
-            raise ValueError(f"Sequence.q must hold unit quaternions [w, x, y, z]; |q| = "
-                             f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them")
+            raise ValueError(
+                f"Sequence.q must hold unit quaternions [w, x, y, z]; |q| = "
+                f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them"
+            )
         object.__setattr__(self, "t", t)
 
     def __len__(self):
@@ -92,8 +103,17 @@ class Sequence:
         """Samples ``start:stop`` as a new sequence (times kept)."""
         s = slice(start, stop)
         opt = lambda x: None if x is None else x[s]  # noqa: E731
-        return Sequence(self.name + suffix, self.t[s], self.gyro[s], self.accel[s], self.q[s],
-                        self.p[s], self.v[s], opt(self.b_g), opt(self.b_a))
+        return Sequence(
+            self.name + suffix,
+            self.t[s],
+            self.gyro[s],
+            self.accel[s],
+            self.q[s],
+            self.p[s],
+            self.v[s],
+            opt(self.b_g),
+            opt(self.b_a),
+        )
 
 
 def _continuous(q):
@@ -121,14 +141,18 @@ def load_sequence(path, *, name: str | None = None) -> Sequence:
     data = read_euroc(path)
     gt = data.ground_truth
     if gt is None:
-        raise DataError(f"{path}: no ground truth found (expected mav0/state_groundtruth_"
-                        "estimate0/data.csv, groundtruth.csv or groundtruth_pose.txt beside "
-                        "the IMU samples); learning and evaluation need it")
+        raise DataError(
+            f"{path}: no ground truth found (expected mav0/state_groundtruth_"
+            "estimate0/data.csv, groundtruth.csv or groundtruth_pose.txt beside "
+            "the IMU samples); learning and evaluation need it"
+        )
     inside = np.flatnonzero((data.t >= gt.t[0]) & (data.t <= gt.t[-1]))
     if len(inside) < 2:
-        raise DataError(f"{path}: the ground truth ({gt.t[0]:.3f} to {gt.t[-1]:.3f} s) does "
-                        f"not cover the IMU samples ({data.t[0]:.3f} to {data.t[-1]:.3f} s); "
-                        "check that both files are of the same recording")
+        raise DataError(
+            f"{path}: the ground truth ({gt.t[0]:.3f} to {gt.t[-1]:.3f} s) does "
+            f"not cover the IMU samples ({data.t[0]:.3f} to {data.t[-1]:.3f} s); "
+            "check that both files are of the same recording"
+        )
     lo, hi = inside[0], inside[-1] + 1
     if np.any(np.diff(inside) != 1):  # cannot happen for a sorted t, kept as a guard
         raise DataError(f"{path}: IMU samples inside the ground truth are not contiguous")
@@ -140,8 +164,16 @@ def load_sequence(path, *, name: str | None = None) -> Sequence:
     for k in ("b_g", "b_a"):
         x = getattr(gt, k)
         b[k] = None if x is None else np.stack([np.interp(t, gt.t, x[:, j]) for j in range(3)], 1)
-    return Sequence(name or path.name, t - t[0], data.gyro[lo:hi].copy(),
-                    data.accel[lo:hi].copy(), _continuous(q), p, v, **b)
+    return Sequence(
+        name or path.name,
+        t - t[0],
+        data.gyro[lo:hi].copy(),
+        data.accel[lo:hi].copy(),
+        _continuous(q),
+        p,
+        v,
+        **b,
+    )
 
 
 def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequence]:
@@ -149,16 +181,20 @@ def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequenc
     split of each training sequence)."""
     k = int(np.searchsorted(seq.t, seq.t[0] + train_seconds))
     if k < 2 or len(seq) - k < 2:
-        raise DataError(f"sequence {seq.name!r} ({seq.seconds:.1f} s) is too short to keep "
-                        f"{train_seconds:g} s for training and some for validation")
+        raise DataError(
+            f"sequence {seq.name!r} ({seq.seconds:.1f} s) is too short to keep "
+            f"{train_seconds:g} s for training and some for validation"
+        )
     return seq.slice(0, k, ""), seq.slice(k, None, "")
 
 
 def check_sequence(name: str, seq) -> Sequence:
     """``seq`` must be a :class:`Sequence` (named ``name`` in the message)."""
     if not isinstance(seq, Sequence):
-        raise ValueError(f"{name} must be a jaximu.learning.Sequence (from load_sequence), got "
-                         f"{type(seq).__name__}")
+        raise ValueError(
+            f"{name} must be a jaximu.learning.Sequence (from load_sequence), got "
+            f"{type(seq).__name__}"
+        )
     return seq
 
 
@@ -166,6 +202,8 @@ def check_rate(seq: Sequence, rate_hz: float, what: str = "the model") -> None:
     """Refuse a sequence sampled at another rate than ``rate_hz``."""
     r = seq.rate_hz
     if abs(r - rate_hz) > RATE_TOLERANCE * rate_hz:
-        raise DataError(f"sequence {seq.name!r} is sampled at {r:.1f} Hz, {what} at "
-                        f"{rate_hz:g} Hz: resample the recording to {rate_hz:g} Hz or train "
-                        "a model at its rate")
+        raise DataError(
+            f"sequence {seq.name!r} is sampled at {r:.1f} Hz, {what} at "
+            f"{rate_hz:g} Hz: resample the recording to {rate_hz:g} Hz or train "
+            "a model at its rate"
+        )

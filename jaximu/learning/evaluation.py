@@ -30,8 +30,16 @@ from jaximu.learning.data import Sequence, check_rate, check_sequence
 from jaximu.learning.losses import rotation_step_blocks
 from jaximu.learning.model import check_model
 
-__all__ = ["integrate_attitude", "orientation_errors", "attitude_covariance", "Metrics",
-           "SequenceReport", "evaluate_sequence", "window_errors", "CHI2_3_3SIGMA"]
+__all__ = [
+    "integrate_attitude",
+    "orientation_errors",
+    "attitude_covariance",
+    "Metrics",
+    "SequenceReport",
+    "evaluate_sequence",
+    "window_errors",
+    "CHI2_3_3SIGMA",
+]
 
 CHI2_3_3SIGMA = 14.156
 """``χ²`` quantile of 3 degrees of freedom at 99.73 % (the 3σ probability of one dimension)."""
@@ -88,7 +96,7 @@ def attitude_covariance(gyro, density, dt, bias_sigma, random_walk, reference_si
     truth's own noise ``2 σ_ref² I`` (at the start and at each compared sample)."""
     W, B = attitude_terms(gyro, density, dt, random_walk)
     eye = jnp.eye(3, dtype=gyro.dtype)
-    return W + bias_sigma ** 2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma ** 2 * eye
+    return W + bias_sigma**2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma**2 * eye
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,8 +145,12 @@ class SequenceReport:
 def _metrics(aoe, aye):
     d = np.degrees
     aoe, aye = np.asarray(aoe, np.float64), np.asarray(aye, np.float64)
-    return Metrics(float(d(aoe.mean())), float(d(np.sqrt(np.mean(aoe ** 2)))),
-                   float(d(aye.mean())), float(d(np.sqrt(np.mean(aye ** 2)))))
+    return Metrics(
+        float(d(aoe.mean())),
+        float(d(np.sqrt(np.mean(aoe**2)))),
+        float(d(aye.mean())),
+        float(d(np.sqrt(np.mean(aye**2)))),
+    )
 
 
 @partial(jax.jit, static_argnames=("with_cov",))
@@ -149,8 +161,14 @@ def _learned_run(model, gyro, accel, q_true, dt, with_cov=True):
     if not with_cov:
         return aoe, aye, None, None
     cfg = model.config
-    S = attitude_covariance(c.gyro, c.gyro_density, dt, model.bias_sigma.astype(gyro.dtype),
-                            cfg.gyro_random_walk, model.reference_sigma.astype(gyro.dtype))
+    S = attitude_covariance(
+        c.gyro,
+        c.gyro_density,
+        dt,
+        model.bias_sigma.astype(gyro.dtype),
+        cfg.gyro_random_walk,
+        model.reference_sigma.astype(gyro.dtype),
+    )
     L = jnp.linalg.cholesky(S)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
     return aoe, aye, jnp.sum(z * z, -1), 3.0 * jnp.sqrt(jnp.trace(S, axis1=-2, axis2=-1))
@@ -192,25 +210,34 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     a, y, e, s3 = _learned_run(model, gyro, accel, q_true, dt)
     metrics["learned"], aoe["learned"] = _metrics(a, y), np.degrees(np.asarray(a))
     e = np.asarray(e, np.float64)
-    return SequenceReport(seq.name, len(seq), seq.seconds, metrics, float(e.mean()),
-                          float(np.mean(e <= CHI2_3_3SIGMA)), np.asarray(seq.t), aoe,
-                          np.degrees(np.asarray(s3)))
+    return SequenceReport(
+        seq.name,
+        len(seq),
+        seq.seconds,
+        metrics,
+        float(e.mean()),
+        float(np.mean(e <= CHI2_3_3SIGMA)),
+        np.asarray(seq.t),
+        aoe,
+        np.degrees(np.asarray(s3)),
+    )
 
 
 @partial(jax.jit, static_argnames=("n",))
 def _window_run(gyro, accel, q, p, v, dt, n):
     W = (gyro.shape[0] - 1) // n
-    cut = lambda x: x[:W * n].reshape((W, n) + x.shape[1:])  # noqa: E731
+    cut = lambda x: x[: W * n].reshape((W, n) + x.shape[1:])  # noqa: E731
     i0 = jnp.arange(W) * n
     z = jnp.zeros((W, 3), gyro.dtype)
     start = NavState(q[i0], p[i0], v[i0], z, z)
     end = propagate_final(start, cut(gyro), cut(accel), cut(dt))
-    return (jnp.linalg.norm(end.v - v[i0 + n], axis=-1),
-            jnp.linalg.norm(end.p - p[i0 + n], axis=-1))
+    return (
+        jnp.linalg.norm(end.v - v[i0 + n], axis=-1),
+        jnp.linalg.norm(end.p - p[i0 + n], axis=-1),
+    )
 
 
-def window_errors(model, seq: Sequence, seconds: float, start: int = 0,
-                  dtype=jnp.float32) -> dict:
+def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jnp.float32) -> dict:
     """Velocity and position errors of dead reckoning over consecutive windows of
     ``seconds`` from the true state (AirIMU's setting), from sample ``start`` on (the network
     sees the samples before as context): ``{variant: (mean |δv| [m/s], mean |δp| [m])}`` for
@@ -225,9 +252,13 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0,
     n = int(round(seconds * seq.rate_hz))
     s = slice(start, None)
     out = {}
-    for name, (g, a) in (("constant_bias", (g0, a0)), ("learned_gyro", (c.gyro, a0)),
-                         ("learned", (c.gyro, c.accel))):
-        dv, dp = _window_run(g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s],
-                             cast(seq.dt)[s], n)
+    for name, (g, a) in (
+        ("constant_bias", (g0, a0)),
+        ("learned_gyro", (c.gyro, a0)),
+        ("learned", (c.gyro, c.accel)),
+    ):
+        dv, dp = _window_run(
+            g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s], cast(seq.dt)[s], n
+        )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out

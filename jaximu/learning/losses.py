@@ -33,8 +33,15 @@ from jaximu.geometry import so3
 from jaximu.geometry.noise import ImuNoise
 from jaximu.schemes.integrators import blocks_analytic
 
-__all__ = ["Windows", "windows", "huber", "increment_loss", "rotation_covariance",
-           "gaussian_nll", "velocity_residuals"]
+__all__ = [
+    "Windows",
+    "windows",
+    "huber",
+    "increment_loss",
+    "rotation_covariance",
+    "gaussian_nll",
+    "velocity_residuals",
+]
 
 
 class Windows(NamedTuple):
@@ -56,7 +63,7 @@ class Windows(NamedTuple):
 def _cut(x, H):
     """``(..., T, c)`` → ``(..., T // H, H, c)`` (a tail shorter than ``H`` is dropped)."""
     W = x.shape[-2] // H
-    return x[..., :W * H, :].reshape(x.shape[:-2] + (W, H, x.shape[-1]))
+    return x[..., : W * H, :].reshape(x.shape[:-2] + (W, H, x.shape[-1]))
 
 
 def rotation_step_blocks(gyro, density, dt, random_walk):
@@ -74,12 +81,15 @@ def rotation_step_blocks(gyro, density, dt, random_walk):
     eye = jnp.eye(3, dtype=dtype)
     zero = jnp.zeros(batch + (3,), dtype)
     b = blocks_analytic("euler", jnp.broadcast_to(eye, batch + (3, 3)), gyro, zero, gyro, zero, h)
-    noise = ImuNoise(density, jnp.zeros((), dtype), jnp.asarray(random_walk, dtype),
-                     jnp.zeros((), dtype))
+    noise = ImuNoise(
+        density, jnp.zeros((), dtype), jnp.asarray(random_walk, dtype), jnp.zeros((), dtype)
+    )
     var = noise.discrete_variances(h, dtype)  # [σ_g², σ_a², σ_bg², σ_ba²] / dt, (..., 12)
     Z = jnp.zeros(batch + (3, 3), dtype)
-    Phi = jnp.concatenate([jnp.concatenate([b.A, b.B], -1),
-                           jnp.concatenate([Z, jnp.broadcast_to(eye, Z.shape)], -1)], -2)
+    Phi = jnp.concatenate(
+        [jnp.concatenate([b.A, b.B], -1), jnp.concatenate([Z, jnp.broadcast_to(eye, Z.shape)], -1)],
+        -2,
+    )
     Q_tt = small_matmul(b.B * var[..., None, 0:3], jnp.swapaxes(b.B, -1, -2))
     walk = (h * h)[..., None, None] * var[..., None, 6:9] * eye  # G_bb = dt I
     Q = jnp.concatenate([jnp.concatenate([Q_tt, Z], -1), jnp.concatenate([Z, walk], -1)], -2)
@@ -101,8 +111,9 @@ def windows(gyro, accel, dt, H: int, density=None, random_walk=0.0) -> Windows:
     if density is not None:
         # the Jacobians at the corrected rates, without their gradient: the likelihood
         # trains the noise, not the corrections
-        F, Qs = rotation_step_blocks(jax.lax.stop_gradient(g), _cut(density, H),
-                                     jnp.asarray(dt, dtype), random_walk)
+        F, Qs = rotation_step_blocks(
+            jax.lax.stop_gradient(g), _cut(density, H), jnp.asarray(dt, dtype), random_walk
+        )
         # the window's transition (the product of its steps') and noise (accumulated from 0)
         Phi = transition_products(F)[..., -1, :, :]
         Q = accumulate_covariance(F, Qs)
@@ -135,7 +146,7 @@ def true_increments(q, H: int, start: int = 0):
     """``(..., W, 4)`` true ``ΔR`` of consecutive windows of ``H`` samples from ``start``,
     from the attitudes ``q`` ``(..., T, 4)``: ``q_{k}⁻¹ q_{k+H}``."""
     n = (q.shape[-2] - 1 - start) // H
-    ends = q[..., start:start + n * H + 1:H, :]
+    ends = q[..., start : start + n * H + 1 : H, :]
     return so3.quat_mul(so3.quat_conj(ends[..., :-1, :]), ends[..., 1:, :])
 
 
@@ -154,9 +165,9 @@ def rotation_covariance(Phi, Q, bias_sigma, reference_sigma):
     """``S = P_θθ + 2 σ_ref² I``: the covariance of the rotation residual of windows with
     transition ``Phi`` and noise ``Q`` (``(..., 6, 6)``), from ``P0 = diag(0, σ_b² I)``."""
     B = Phi[..., 0:3, 3:6]  # ∂δθ_end/∂δb_g
-    P = Q[..., 0:3, 0:3] + bias_sigma ** 2 * small_matmul(B, jnp.swapaxes(B, -1, -2))
+    P = Q[..., 0:3, 0:3] + bias_sigma**2 * small_matmul(B, jnp.swapaxes(B, -1, -2))
     eye = jnp.eye(3, dtype=P.dtype)
-    return P + 2.0 * reference_sigma ** 2 * eye
+    return P + 2.0 * reference_sigma**2 * eye
 
 
 def gaussian_nll(r, S):
@@ -174,9 +185,19 @@ def nees(r, S):
     return jnp.sum(z * z, -1)
 
 
-def increment_loss(corrected, q_true, dt, horizons=(16, 32), *, huber_delta=0.005,
-                   weight=1e6, bias_sigma=None, reference_sigma=None, random_walk=0.0,
-                   skip: int = 0):
+def increment_loss(
+    corrected,
+    q_true,
+    dt,
+    horizons=(16, 32),
+    *,
+    huber_delta=0.005,
+    weight=1e6,
+    bias_sigma=None,
+    reference_sigma=None,
+    random_walk=0.0,
+    skip: int = 0,
+):
     """Brossard's loss over ``horizons`` (each twice the previous) plus the NLL.
 
     Args:
@@ -191,8 +212,14 @@ def increment_loss(corrected, q_true, dt, horizons=(16, 32), *, huber_delta=0.00
     """
     H0 = horizons[0]
     with_noise = bias_sigma is not None
-    w = windows(corrected.gyro, corrected.accel, dt, H0,
-                corrected.gyro_density if with_noise else None, random_walk)
+    w = windows(
+        corrected.gyro,
+        corrected.accel,
+        dt,
+        H0,
+        corrected.gyro_density if with_noise else None,
+        random_walk,
+    )
     loss = jnp.zeros((), corrected.gyro.dtype)
     nll = jnp.zeros((), corrected.gyro.dtype)
     for i, H in enumerate(horizons):
@@ -200,13 +227,14 @@ def increment_loss(corrected, q_true, dt, horizons=(16, 32), *, huber_delta=0.00
             w = compose_pairs(w)
         dq_true = true_increments(q_true, H)
         W = min(dq_true.shape[-2], w.delta_q.shape[-2])
-        s = -(-skip // (2 ** i))  # first windows left out
+        s = -(-skip // (2**i))  # first windows left out
         r = rotation_residual(dq_true[..., s:W, :], w.delta_q[..., s:W, :])
-        loss = loss + weight * huber(r, huber_delta) / 2 ** i
+        loss = loss + weight * huber(r, huber_delta) / 2**i
         if with_noise:
             assert w.Phi is not None and w.Q is not None  # formed when a density is given
-            S = rotation_covariance(w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :], bias_sigma,
-                                    reference_sigma)
+            S = rotation_covariance(
+                w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :], bias_sigma, reference_sigma
+            )
             nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S)
     return loss, nll
 
@@ -222,7 +250,7 @@ def velocity_residuals(gyro, accel, q_true, v_true, dt, H: int, gravity=9.81):
     """
     w = windows(gyro, accel, dt, H)
     W = w.delta_v.shape[-2]
-    q0 = q_true[..., 0:W * H:H, :]
-    v = v_true[..., 0:W * H + 1:H, :]
+    q0 = q_true[..., 0 : W * H : H, :]
+    v = v_true[..., 0 : W * H + 1 : H, :]
     g = jnp.asarray([0.0, 0.0, -gravity], gyro.dtype)
     return so3.quat_rotate(q0, w.delta_v) + g * (H * dt) - (v[..., 1:, :] - v[..., :-1, :])

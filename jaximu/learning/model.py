@@ -70,12 +70,22 @@ class ModelConfig:
     accel_head: bool = False
 
     def __post_init__(self):
-        for name in ("channels", "dilations", "input_mean", "input_std", "gyro_bias",
-                     "accel_bias", "gyro_scale", "accel_scale"):  # JSON gives lists
+        for name in (
+            "channels",
+            "dilations",
+            "input_mean",
+            "input_std",
+            "gyro_bias",
+            "accel_bias",
+            "gyro_scale",
+            "accel_scale",
+        ):  # JSON gives lists
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if len(self.channels) != len(self.dilations):
-            raise ValueError(f"ModelConfig: channels {self.channels} and dilations "
-                             f"{self.dilations} must have the same length (one per layer)")
+            raise ValueError(
+                f"ModelConfig: channels {self.channels} and dilations "
+                f"{self.dilations} must have the same length (one per layer)"
+            )
         if self.kernel < 1 or self.kernel % 2 == 0:
             raise ValueError(f"ModelConfig.kernel must be a positive odd number, got {self.kernel}")
 
@@ -90,16 +100,19 @@ class ModelConfig:
         return 3 + (3 if self.accel_head else 0)
 
     def to_json(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in dataclasses.asdict(self).items()}
+        return {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()
+        }
 
     @classmethod
     def from_json(cls, d: dict) -> ModelConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise ValueError(f"unknown model settings {unknown}: the model was written by "
-                             "another version of jaximu")
+            raise ValueError(
+                f"unknown model settings {unknown}: the model was written by "
+                "another version of jaximu"
+            )
         return cls(**d)
 
 
@@ -129,19 +142,30 @@ class CausalConv(eqx.Module):
         bound = 1.0 / np.sqrt(c_in * kernel)  # PyTorch's default for Conv1d
         kw, kb = jax.random.split(key)
         shape = (kernel, c_in, c_out)
-        self.weight = (jnp.zeros(shape, jnp.float32) if zero else
-                       jax.random.uniform(kw, shape, jnp.float32, -bound, bound))
-        self.bias = (jnp.zeros((c_out,), jnp.float32) if zero else
-                     jax.random.uniform(kb, (c_out,), jnp.float32, -bound, bound))
+        self.weight = (
+            jnp.zeros(shape, jnp.float32)
+            if zero
+            else jax.random.uniform(kw, shape, jnp.float32, -bound, bound)
+        )
+        self.bias = (
+            jnp.zeros((c_out,), jnp.float32)
+            if zero
+            else jax.random.uniform(kb, (c_out,), jnp.float32, -bound, bound)
+        )
         self.dilation = int(dilation)
 
     def __call__(self, x):
         pad = (self.weight.shape[0] - 1) * self.dilation
         if pad:
             x = jnp.concatenate([jnp.repeat(x[:, :1], pad, axis=1), x], axis=1)
-        y = jax.lax.conv_general_dilated(x, self.weight, (1,), "VALID",
-                                         rhs_dilation=(self.dilation,),
-                                         dimension_numbers=("NWC", "WIO", "NWC"))
+        y = jax.lax.conv_general_dilated(
+            x,
+            self.weight,
+            (1,),
+            "VALID",
+            rhs_dilation=(self.dilation,),
+            dimension_numbers=("NWC", "WIO", "NWC"),
+        )
         return y + self.bias
 
 
@@ -165,8 +189,10 @@ class Denoiser(eqx.Module):
     def __init__(self, config: ModelConfig, key):
         keys = jax.random.split(key, len(config.channels) + 1)
         widths = (6,) + tuple(config.channels)
-        self.layers = tuple(CausalConv(widths[i], widths[i + 1], config.kernel, d, keys[i])
-                            for i, d in enumerate(config.dilations))
+        self.layers = tuple(
+            CausalConv(widths[i], widths[i + 1], config.kernel, d, keys[i])
+            for i, d in enumerate(config.dilations)
+        )
         # the last layer starts at zero: the untrained model is the constant-bias baseline
         self.head = CausalConv(widths[-1], config.corrections, 1, 1, keys[-1], zero=True)
         self.noise_head = CausalConv(widths[-1], 3, 1, 1, keys[-1], zero=True)
@@ -178,7 +204,8 @@ class Denoiser(eqx.Module):
     def astype(self, dtype) -> Denoiser:
         """The same model with its weights in ``dtype`` (e.g. float64 for gradient checks)."""
         return jax.tree_util.tree_map(
-            lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, self)
+            lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, self
+        )
 
     @property
     def bias_sigma(self):
@@ -217,8 +244,12 @@ class Denoiser(eqx.Module):
         y, z = self.features(gyro, accel, key)
         y, z = y.astype(dtype), z.astype(dtype)
         C = self.gyro_matrix.astype(dtype)
-        w = gyro + gyro @ C.T - jnp.asarray(cfg.gyro_bias, dtype) \
+        w = (
+            gyro
+            + gyro @ C.T
+            - jnp.asarray(cfg.gyro_bias, dtype)
             + jnp.asarray(cfg.gyro_scale, dtype) * y[..., 0:3]
+        )
         a = accel - jnp.asarray(cfg.accel_bias, dtype)
         if cfg.accel_head:
             a = a + jnp.asarray(cfg.accel_scale, dtype) * y[..., 3:6]
@@ -229,13 +260,17 @@ class Denoiser(eqx.Module):
 def check_model(name: str, model) -> Denoiser:
     """``model`` must be a :class:`Denoiser` (named ``name`` in the message)."""
     if not isinstance(model, Denoiser):
-        raise ValueError(f"{name} must be a jaximu.learning.Denoiser (from train, load or "
-                         f"pretrained), got {type(model).__name__}")
+        raise ValueError(
+            f"{name} must be a jaximu.learning.Denoiser (from train, load or "
+            f"pretrained), got {type(model).__name__}"
+        )
     return model
 
 
 def constant_bias(config: ModelConfig, gyro, accel):
     """The baseline the model starts from: raw samples minus the stored constant biases."""
     dtype = jnp.result_type(gyro, accel)
-    return (gyro - jnp.asarray(config.gyro_bias, dtype),
-            accel - jnp.asarray(config.accel_bias, dtype))
+    return (
+        gyro - jnp.asarray(config.gyro_bias, dtype),
+        accel - jnp.asarray(config.accel_bias, dtype),
+    )

@@ -103,8 +103,9 @@ class TrainConfig:
             raise ValueError("steps and validate_every must be positive")
 
     def to_json(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in dataclasses.asdict(self).items()}
+        return {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()
+        }
 
 
 class TrainResult(NamedTuple):
@@ -164,9 +165,18 @@ def _schedule(cfg: TrainConfig):
         periods.append(p)
         total += p
         p *= 2
-    return optax.sgdr_schedule([dict(init_value=cfg.learning_rate, peak_value=cfg.learning_rate,
-                                     decay_steps=p, warmup_steps=0,
-                                     end_value=cfg.min_learning_rate) for p in periods])
+    return optax.sgdr_schedule(
+        [
+            dict(
+                init_value=cfg.learning_rate,
+                peak_value=cfg.learning_rate,
+                decay_steps=p,
+                warmup_steps=0,
+                end_value=cfg.min_learning_rate,
+            )
+            for p in periods
+        ]
+    )
 
 
 def _decay_mask(model):
@@ -182,13 +192,21 @@ def _loss(model, g, a, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
     parts whose ground truth has velocities, ``n_v`` their number, at least 1)."""
     mcfg = model.config
     c = model(g, a, key=k_drop)
-    rot, nll = increment_loss(c, q, dt, cfg.horizons, bias_sigma=model.bias_sigma,
-                              reference_sigma=model.reference_sigma,
-                              random_walk=mcfg.gyro_random_walk, skip=cfg.skip)
+    rot, nll = increment_loss(
+        c,
+        q,
+        dt,
+        cfg.horizons,
+        bias_sigma=model.bias_sigma,
+        reference_sigma=model.reference_sigma,
+        random_walk=mcfg.gyro_random_walk,
+        skip=cfg.skip,
+    )
     total = rot + cfg.nll_weight * nll
     if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
-        r = velocity_residuals(jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt,
-                               cfg.velocity_horizon)
+        r = velocity_residuals(
+            jax.lax.stop_gradient(c.gyro), c.accel, q, v, dt, cfg.velocity_horizon
+        )
         per_seq = jax.vmap(lambda x: huber(x, cfg.velocity_delta))(r)
         total = total + cfg.velocity_weight * jnp.sum(per_seq * has_v) / n_v
     return total, (rot, nll)
@@ -198,8 +216,24 @@ def _loss(model, g, a, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
 # shape (the static arguments and the model's static config are their cache keys), not once
 # per call of train: a second run with the same settings (another seed, a rerun) starts at once.
 @eqx.filter_jit
-def _step(model, ema, opt_state, key, G, A, Q, V, noise, bias_noise, has_v, n_v, *,
-          cfg: TrainConfig, dt: float, L: int):
+def _step(
+    model,
+    ema,
+    opt_state,
+    key,
+    G,
+    A,
+    Q,
+    V,
+    noise,
+    bias_noise,
+    has_v,
+    n_v,
+    *,
+    cfg: TrainConfig,
+    dt: float,
+    L: int,
+):
     """One AdamW step on pieces of ``L`` samples of the training parts ``(S, N, ·)`` at random
     offsets, with noise added; ``ema``: the exponential average of the weights."""
     S = G.shape[0]
@@ -207,19 +241,19 @@ def _step(model, ema, opt_state, key, G, A, Q, V, noise, bias_noise, has_v, n_v,
     offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
     cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
     x = jnp.concatenate([cut(G, L), cut(A, L)], -1)
-    x = x + noise * jax.random.normal(k_w, x.shape) \
-        + bias_noise * jax.random.normal(k_b, (S, 1, 6))
+    x = x + noise * jax.random.normal(k_w, x.shape) + bias_noise * jax.random.normal(k_b, (S, 1, 6))
     (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
-        model, x[..., :3], x[..., 3:], cut(Q, L + 1), cut(V, L + 1), k_drop, has_v, n_v,
-        cfg, dt)
-    updates, opt_state = _optimizer(cfg, model).update(grads, opt_state,
-                                                       eqx.filter(model, eqx.is_array))
+        model, x[..., :3], x[..., 3:], cut(Q, L + 1), cut(V, L + 1), k_drop, has_v, n_v, cfg, dt
+    )
+    updates, opt_state = _optimizer(cfg, model).update(
+        grads, opt_state, eqx.filter(model, eqx.is_array)
+    )
     model = eqx.apply_updates(model, updates)
     # the validated and kept model is the exponential average of the weights: the
     # whole-sequence error hangs on the learned bias, which single steps jitter
     ema = jax.tree_util.tree_map(
-        lambda e, m: e + (1.0 - cfg.ema) * (m - e) if eqx.is_inexact_array(m) else m,
-        ema, model)
+        lambda e, m: e + (1.0 - cfg.ema) * (m - e) if eqx.is_inexact_array(m) else m, ema, model
+    )
     return model, ema, opt_state, loss, parts
 
 
@@ -237,9 +271,15 @@ def _validate(model, vG, vA, vQ, vM, *, dt: float):
     return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
 
 
-def train(sequences: list[Sequence], config: TrainConfig | None = None,
-          model_config: ModelConfig | None = None, *, seed: int = 0,
-          minutes: float | None = None, log: Callable[[str], None] | None = print) -> TrainResult:
+def train(
+    sequences: list[Sequence],
+    config: TrainConfig | None = None,
+    model_config: ModelConfig | None = None,
+    *,
+    seed: int = 0,
+    minutes: float | None = None,
+    log: Callable[[str], None] | None = print,
+) -> TrainResult:
     """Train a :class:`Denoiser` on ``sequences`` (each split into training and validation).
 
     Args:
@@ -256,8 +296,10 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     cfg = config or TrainConfig()
     say = log or (lambda s: None)
     if isinstance(sequences, Sequence) or not sequences:
-        raise DataError("sequences must be a non-empty list of jaximu.learning.Sequence "
-                        "(load_sequence(folder) for each folder)")
+        raise DataError(
+            "sequences must be a non-empty list of jaximu.learning.Sequence "
+            "(load_sequence(folder) for each folder)"
+        )
     for i, s in enumerate(sequences):
         check_sequence(f"sequences[{i}]", s)
     if not isinstance(cfg, TrainConfig):
@@ -271,41 +313,57 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     g_bias, a_bias = constant_biases(trains)
     mean, std = normalisation(trains)
     base = model_config or ModelConfig()
-    mcfg = dataclasses.replace(base, rate_hz=round(rate, 3), input_mean=mean, input_std=std,
-                               gyro_bias=g_bias, accel_bias=a_bias)
+    mcfg = dataclasses.replace(
+        base,
+        rate_hz=round(rate, 3),
+        input_mean=mean,
+        input_std=std,
+        gyro_bias=g_bias,
+        accel_bias=a_bias,
+    )
     dt = 1.0 / rate
     Hmax = cfg.horizons[-1]
     shortest = min(len(s) for s in trains)
     L = (shortest - cfg.offset - 1) // Hmax * Hmax
     if L < Hmax:
-        raise DataError(f"the shortest training part ({shortest} samples) is shorter than the "
-                        f"longest horizon ({Hmax} samples) plus the offsets ({cfg.offset}): give "
-                        "longer sequences or TrainConfig(horizons=...) with shorter ones")
+        raise DataError(
+            f"the shortest training part ({shortest} samples) is shorter than the "
+            f"longest horizon ({Hmax} samples) plus the offsets ({cfg.offset}): give "
+            "longer sequences or TrainConfig(horizons=...) with shorter ones"
+        )
     G, A, Q, V = _stack(trains, shortest)
     # velocities of ground truth that has them (a pose-only one's are differenced
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
     vG, vA, vQ, vM = _validation_arrays(sequences, vals, mcfg.receptive_field)
-    say(f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
+    say(
+        f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
         f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
-        f"({sum(len(v) for v in vals)} samples: " + ", ".join(
-            f"{v.name} {v.seconds:.1f} s" for v in vals) + ")")
+        f"({sum(len(v) for v in vals)} samples: "
+        + ", ".join(f"{v.name} {v.seconds:.1f} s" for v in vals)
+        + ")"
+    )
 
     key = jax.random.key(seed)
     key, k_init = jax.random.split(key)
     model = Denoiser(mcfg, k_init)
     opt_state = _optimizer(cfg, model).init(eqx.filter(model, eqx.is_array))
     noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
-    bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3,
-                             jnp.float32)
+    bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3, jnp.float32)
     step = functools.partial(_step, cfg=cfg, dt=dt, L=L)
     validate = functools.partial(_validate, dt=dt)
 
-    record: dict[str, Any] = {"seed": seed, "train": cfg.to_json(), "sequences": [s.name for s in sequences],
-              "split": {s.name: {"train_samples": len(t), "validation_samples": len(v)}
-                        for s, t, v in zip(sequences, trains, vals)},
-              "history": []}
+    record: dict[str, Any] = {
+        "seed": seed,
+        "train": cfg.to_json(),
+        "sequences": [s.name for s in sequences],
+        "split": {
+            s.name: {"train_samples": len(t), "validation_samples": len(v)}
+            for s, t, v in zip(sequences, trains, vals)
+        },
+        "history": [],
+    }
     t_start = time.perf_counter()
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
@@ -318,8 +376,10 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
     baseline = np.degrees(np.asarray(validate(model, *vdata)))  # the untrained model: constant bias
     t_val_first = time.perf_counter() - t0
     record["validation_constant_bias_deg"] = [float(x) for x in baseline]
-    say("constant-bias baseline: validation mean AOE " + " ".join(
-        f"{v.name} {x:.2f}°" for v, x in zip(vals, baseline)))
+    say(
+        "constant-bias baseline: validation mean AOE "
+        + " ".join(f"{v.name} {x:.2f}°" for v, x in zip(vals, baseline))
+    )
     best = (np.inf, model, 0)
     run_time = 0.0
     compile_time = t_first + t_val_first
@@ -331,21 +391,32 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
             aoe = np.degrees(np.asarray(validate(ema, *vdata)))
             run_time += time.perf_counter() - t0
             mean_aoe = float(aoe.mean())
-            record["history"].append({"step": i, "loss": float(loss), "huber": float(parts[0]),
-                                      "nll": float(parts[1]),
-                                      "validation_aoe_mean_deg": [float(x) for x in aoe]})
+            record["history"].append(
+                {
+                    "step": i,
+                    "loss": float(loss),
+                    "huber": float(parts[0]),
+                    "nll": float(parts[1]),
+                    "validation_aoe_mean_deg": [float(x) for x in aoe],
+                }
+            )
             mark = ""
             if mean_aoe < best[0]:
                 best, mark = (mean_aoe, ema, i), " *"
-            say(f"step {i:5d}/{cfg.steps}  loss {float(parts[0]):.4g}  nll {float(parts[1]):8.3f}"
-                f"  validation mean AOE {mean_aoe:6.2f}° (" + " ".join(f"{x:.2f}" for x in aoe)
-                + f"){mark}  {time.perf_counter() - t_start:6.0f} s")
+            say(
+                f"step {i:5d}/{cfg.steps}  loss {float(parts[0]):.4g}  nll {float(parts[1]):8.3f}"
+                f"  validation mean AOE {mean_aoe:6.2f}° ("
+                + " ".join(f"{x:.2f}" for x in aoe)
+                + f"){mark}  {time.perf_counter() - t_start:6.0f} s"
+            )
         if i >= cfg.steps:
             break
         if minutes is not None and time.perf_counter() - t_start > 60 * minutes:
             cut_short = True
-            say(f"stopped after {minutes:g} minutes at step {i} (--minutes); the run is not "
-                "reproducible step for step")
+            say(
+                f"stopped after {minutes:g} minutes at step {i} (--minutes); the run is not "
+                "reproducible step for step"
+            )
             break
         key, k = jax.random.split(key)
         t0 = time.perf_counter()
@@ -359,12 +430,22 @@ def train(sequences: list[Sequence], config: TrainConfig | None = None,
         model = _set_bias_sigma(model, sequences, vals, record, say)
     _record_windows(model, sequences, vals, record, say)
     wall = time.perf_counter() - t_start
-    record.update({"best_step": best[2], "validation_aoe_mean_deg": best[0], "steps_run": i,
-                   "cut_short": cut_short, "wall_seconds": wall,
-                   "compile_seconds": compile_time, "first_step_seconds": t_first,
-                   "samples_per_step": int(G.shape[0] * L)})
-    say(f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
-        f"which compile ≈ {compile_time:.1f} s")
+    record.update(
+        {
+            "best_step": best[2],
+            "validation_aoe_mean_deg": best[0],
+            "steps_run": i,
+            "cut_short": cut_short,
+            "wall_seconds": wall,
+            "compile_seconds": compile_time,
+            "first_step_seconds": t_first,
+            "samples_per_step": int(G.shape[0] * L),
+        }
+    )
+    say(
+        f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
+        f"which compile ≈ {compile_time:.1f} s"
+    )
     return TrainResult(model, record)
 
 
@@ -381,9 +462,11 @@ def _record_windows(model, sequences, vals, record, say):
         rows = [x[w] for x in out.values()]
         if rows:
             mean = {k: np.mean([r[k] for r in rows], 0) for k in rows[0]}
-            say(f"validation dead reckoning over {w} windows from the true state, mean |δv| "
-                f"[m/s] / |δp| [m]: " + ", ".join(f"{k} {a:.3f} / {b:.3f}"
-                                                   for k, (a, b) in mean.items()))
+            say(
+                f"validation dead reckoning over {w} windows from the true state, mean |δv| "
+                f"[m/s] / |δp| [m]: "
+                + ", ".join(f"{k} {a:.3f} / {b:.3f}" for k, (a, b) in mean.items())
+            )
 
 
 def _set_bias_sigma(model, sequences, vals, record, say):
@@ -393,10 +476,14 @@ def _set_bias_sigma(model, sequences, vals, record, say):
     sigma = uncertainty.fit_bias_sigma(terms)
     loo = uncertainty.leave_one_out(terms)
     record["uncertainty"] = {
-        "bias_sigma": sigma, "learned_bias_sigma": float(model.bias_sigma),
+        "bias_sigma": sigma,
+        "learned_bias_sigma": float(model.bias_sigma),
         "reference_sigma": float(model.reference_sigma),
-        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)}}
-    say(f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
-        "NEES 3); each sequence's NEES with σ_b set on the others: " + " ".join(
-            f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo)))
+        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
+    }
+    say(
+        f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
+        "NEES 3); each sequence's NEES with σ_b set on the others: "
+        + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
+    )
     return uncertainty.with_bias_sigma(model, sigma)

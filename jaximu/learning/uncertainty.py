@@ -19,8 +19,14 @@ import numpy as np
 
 from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
 
-__all__ = ["NeesTerms", "nees_terms", "average_nees", "fit_bias_sigma", "leave_one_out",
-           "with_bias_sigma"]
+__all__ = [
+    "NeesTerms",
+    "nees_terms",
+    "average_nees",
+    "fit_bias_sigma",
+    "leave_one_out",
+    "with_bias_sigma",
+]
 
 
 class NeesTerms(eqx.Module):
@@ -53,8 +59,11 @@ def nees_terms(model, seq, start: int = 0, dtype=jnp.float32) -> NeesTerms:
 def average_nees(t: NeesTerms, bias_sigma: float) -> float:
     """The average over the samples of ``rᵀ S⁻¹ r``, ``S = W + σ_b² B Bᵀ + 2 σ_ref² I``."""
     r, W, B = (np.asarray(x, np.float64) for x in (t.r, t.W, t.B))
-    S = W + bias_sigma ** 2 * B @ np.swapaxes(B, -1, -2) \
+    S = (
+        W
+        + bias_sigma**2 * B @ np.swapaxes(B, -1, -2)
         + 2.0 * float(t.reference_sigma) ** 2 * np.eye(3)
+    )
     return float(np.mean(np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])))
 
 
@@ -75,7 +84,7 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
     """For each sequence, ``(σ_b fitted on the others, its average NEES with it)``."""
     out = []
     for i, t in enumerate(terms):
-        others = terms[:i] + terms[i + 1:]
+        others = terms[:i] + terms[i + 1 :]
         s = fit_bias_sigma(others) if others else float("nan")
         out.append((s, average_nees(t, s)))
     return out
@@ -83,5 +92,8 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
 
 def with_bias_sigma(model, bias_sigma: float):
     """``model`` with its residual gyro bias set to ``bias_sigma`` [rad/s]."""
-    return eqx.tree_at(lambda m: m.log_bias_sigma, model,
-                       jnp.asarray(np.log(bias_sigma), model.log_bias_sigma.dtype))
+    return eqx.tree_at(
+        lambda m: m.log_bias_sigma,
+        model,
+        jnp.asarray(np.log(bias_sigma), model.log_bias_sigma.dtype),
+    )

@@ -64,7 +64,8 @@ ARRAYS = Layout(
     from_arrays=lambda X: X,
     cholesky=lambda S: jnp.linalg.cholesky(S),
     tri_solve=lambda L, X, trans=False: jax.scipy.linalg.solve_triangular(
-        L, X, lower=True, trans=1 if trans else 0),
+        L, X, lower=True, trans=1 if trans else 0
+    ),
 )
 
 
@@ -117,7 +118,7 @@ def sym(x, ops: Layout = ARRAYS):
 
 def dense_to_blocks(P):
     """The 15 upper 3×3 blocks ``{(i, j): P_ij}`` of a ``(..., 15, 15)`` matrix."""
-    return {(i, j): P[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in UPPER}
+    return {(i, j): P[..., 3 * i : 3 * i + 3, 3 * j : 3 * j + 3] for i, j in UPPER}
 
 
 def blocks_to_dense(Pb, batch=None, dtype=None, n: int = 5):
@@ -133,7 +134,8 @@ def blocks_to_dense(Pb, batch=None, dtype=None, n: int = 5):
         return zero if x is None else jnp.broadcast_to(x, tuple(batch) + (3, 3))
 
     return jnp.concatenate(
-        [jnp.concatenate([get(i, j) for j in range(n)], -1) for i in range(n)], -2)
+        [jnp.concatenate([get(i, j) for j in range(n)], -1) for i in range(n)], -2
+    )
 
 
 def phi_to_dense(b: Blocks):
@@ -158,11 +160,21 @@ def phi_to_dense(b: Blocks):
 
 def phi_from_dense(Phi):
     """Blocks of a dense ``Φ`` that has the structure of the module docstring."""
-    def blk(i, j):
-        return Phi[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3]
 
-    return Blocks(blk(0, 0), blk(0, 3), blk(1, 0), blk(2, 0), blk(1, 3), blk(2, 3), blk(1, 4),
-                  blk(2, 4), Phi[..., 3, 6])
+    def blk(i, j):
+        return Phi[..., 3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
+
+    return Blocks(
+        blk(0, 0),
+        blk(0, 3),
+        blk(1, 0),
+        blk(2, 0),
+        blk(1, 3),
+        blk(2, 3),
+        blk(1, 4),
+        blk(2, 4),
+        Phi[..., 3, 6],
+    )
 
 
 def phi_compose(F: Blocks, P: Blocks) -> Blocks:
@@ -215,24 +227,33 @@ def phi_p_phit(Pb, b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     M = {3: {j: P(3, j) for j in range(5)}, 4: {j: P(4, j) for j in range(5)}}
     M[0] = {j: add(_times(b.A, P(0, j), ops), mm(b.B, P(3, j))) for j in range(5)}
     if p_over_v is None:
-        M[1] = {j: add(P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)),
-                       mm(b.Ep, P(4, j))) for j in range(5)}
-        M[2] = {j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
-                for j in range(5)}
+        M[1] = {
+            j: add(
+                P(1, j), scale(hh, P(2, j)), mm(b.Cp, P(0, j)), mm(b.Dp, P(3, j)), mm(b.Ep, P(4, j))
+            )
+            for j in range(5)
+        }
+        M[2] = {
+            j: add(P(2, j), mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j)))
+            for j in range(5)
+        }
         M[0], M[1], M[2] = ops.barrier((M[0], M[1], M[2]))  # each is read by several products
         Cpt, Dpt, Ept = t(b.Cp), t(b.Dp), t(b.Ep)
 
         def K(Mi):  # the p and v columns' products of row block i
-            return (add(mm(Mi[0], Cpt), mm(Mi[3], Dpt), mm(Mi[4], Ept)),
-                    add(mm(Mi[0], Cvt), mm(Mi[3], Dvt), mm(Mi[4], Evt)))
+            return (
+                add(mm(Mi[0], Cpt), mm(Mi[3], Dpt), mm(Mi[4], Ept)),
+                add(mm(Mi[0], Cvt), mm(Mi[3], Dvt), mm(Mi[4], Evt)),
+            )
     else:
         N = {j: add(mm(b.Cv, P(0, j)), mm(b.Dv, P(3, j)), mm(b.Ev, P(4, j))) for j in range(5)}
         M[0], N = ops.barrier((M[0], N))  # each is read by several products
         M[2] = {j: add(P(2, j), N[j]) for j in range(5)}
         M[1] = {j: add(P(1, j), scale(hh, P(2, j)), scale(p_over_v, N[j])) for j in range(5)}
         M[1], M[2] = ops.barrier((M[1], M[2]))
-        Kv = ops.barrier([add(mm(M[i][0], Cvt), mm(M[i][3], Dvt), mm(M[i][4], Evt))
-                          for i in range(3)])
+        Kv = ops.barrier(
+            [add(mm(M[i][0], Cvt), mm(M[i][3], Dvt), mm(M[i][4], Evt)) for i in range(3)]
+        )
 
         def K(i):
             return scale(p_over_v, Kv[i]), Kv[i]
@@ -295,8 +316,9 @@ def entry_add(*terms, ops: Layout = ARRAYS):
     kept = [x for x in terms if x is not None]
     if len(kept) <= 1:
         return kept[0] if kept else None
-    scalars = [1.0 if isinstance(x, str) else x.s for x in kept
-               if isinstance(x, (str, ScaledIdentity))]
+    scalars = [
+        1.0 if isinstance(x, str) else x.s for x in kept if isinstance(x, (str, ScaledIdentity))
+    ]
     blocks = [x for x in kept if not isinstance(x, (str, ScaledIdentity))]
     s: Any = None
     for x in scalars:
@@ -314,21 +336,27 @@ def transition_rows(b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     Cp, Dp, Ep = b.Cp, b.Dp, b.Ep
     if p_over_v is not None:
         Cp, Dp, Ep = (scale(p_over_v, X, ops) for X in (b.Cv, b.Dv, b.Ev))
-    return {0: {0: b.A, 3: b.B}, 1: {0: Cp, 1: "I", 2: ScaledIdentity(b.dt), 3: Dp, 4: Ep},
-            2: {0: b.Cv, 2: "I", 3: b.Dv, 4: b.Ev}}
+    return {
+        0: {0: b.A, 3: b.B},
+        1: {0: Cp, 1: "I", 2: ScaledIdentity(b.dt), 3: Dp, 4: Ep},
+        2: {0: b.Cv, 2: "I", 3: b.Dv, 4: b.Ev},
+    }
 
 
 def rows_product(F, G, ops: Layout = ARRAYS):
     """``F G`` of two matrices that are the identity but for their block rows ``{i: {j:
     entry}}`` (:func:`transition_rows`, :func:`jaximu.world.error_map_rows`); the product
     in the same form (its rows: those of ``F`` and of ``G``)."""
+
     def g(k, j):
         return G[k].get(j) if k in G else ("I" if k == j else None)
 
     out = {i: dict(G[i]) for i in G if i not in F}
     for i, Fi in F.items():
-        row = {j: entry_add(*(entry_mul(Fik, g(k, j), ops) for k, Fik in Fi.items()), ops=ops)
-               for j in range(5)}
+        row = {
+            j: entry_add(*(entry_mul(Fik, g(k, j), ops) for k, Fik in Fi.items()), ops=ops)
+            for j in range(5)
+        }
         out[i] = {j: x for j, x in row.items() if x is not None}
     return out
 
@@ -337,6 +365,7 @@ def rotate_rows(rows, R, rotated, ops: Layout = ARRAYS):
     """``T M Tᵀ`` for ``M`` given by its block rows and ``T`` block diagonal, ``R`` on the
     blocks in ``rotated`` and the identity elsewhere: each entry becomes ``T_i M_ij T_jᵀ``
     (a multiple of the identity between two rotated blocks stays one)."""
+
     def side(i):
         return R if i in rotated else "I"
 
@@ -356,6 +385,7 @@ def conform_rows(rows, pattern, block_shape, scalar_shape, dtype, ops: Layout = 
     :class:`ScaledIdentity`) or ``"X"`` (a block); missing: zero), blocks broadcast to
     ``block_shape`` and scalars to ``scalar_shape``: the carry of a scan over transitions,
     whose structure must not change from one step to the next."""
+
     def value(i, j):
         if i not in rows:
             return "I" if i == j else None
@@ -377,19 +407,22 @@ def conform_rows(rows, pattern, block_shape, scalar_shape, dtype, ops: Layout = 
             if isinstance(x, (str, ScaledIdentity)) or x is None:
                 s = 0.0 if x is None else (1.0 if isinstance(x, str) else x.s)
                 if kind == "s":
-                    out[i][j] = ScaledIdentity(jnp.broadcast_to(jnp.asarray(s, dtype),
-                                                                scalar_shape))
+                    out[i][j] = ScaledIdentity(
+                        jnp.broadcast_to(jnp.asarray(s, dtype), scalar_shape)
+                    )
                     continue
                 x = ops.scale(s, _eye(len(block_shape), dtype, ops))
             elif kind == "s":
-                raise ValueError(f"block ({i}, {j}) is a full block, the pattern a multiple "
-                                 "of the identity")
+                raise ValueError(
+                    f"block ({i}, {j}) is a full block, the pattern a multiple of the identity"
+                )
             out[i][j] = jnp.broadcast_to(jnp.asarray(x, dtype), block_shape)
     return out
 
 
 def rows_pattern(rows):
     """The form of block rows (:func:`conform_rows`' ``pattern``)."""
+
     def kind(x):
         return "I" if isinstance(x, str) else ("s" if isinstance(x, ScaledIdentity) else "X")
 
@@ -399,17 +432,24 @@ def rows_pattern(rows):
 def rows_leaves(rows, pattern):
     """The arrays of block rows in the form ``pattern`` (:func:`conform_rows`), in a fixed
     order: a block's, or a :class:`ScaledIdentity`'s scalar."""
-    return [rows[i][j].s if kind == "s" else rows[i][j]
-            for i, prow in sorted(pattern.items()) for j, kind in sorted(prow.items())
-            if kind != "I"]
+    return [
+        rows[i][j].s if kind == "s" else rows[i][j]
+        for i, prow in sorted(pattern.items())
+        for j, kind in sorted(prow.items())
+        if kind != "I"
+    ]
 
 
 def rows_from_leaves(leaves, pattern):
     """The inverse of :func:`rows_leaves`."""
     it = iter(leaves)
-    return {i: {j: "I" if kind == "I" else (ScaledIdentity(next(it)) if kind == "s"
-                                            else next(it))
-                for j, kind in sorted(prow.items())} for i, prow in sorted(pattern.items())}
+    return {
+        i: {
+            j: "I" if kind == "I" else (ScaledIdentity(next(it)) if kind == "s" else next(it))
+            for j, kind in sorted(prow.items())
+        }
+        for i, prow in sorted(pattern.items())
+    }
 
 
 def compose_transitions(first, then, ops: Layout = ARRAYS):
@@ -427,6 +467,7 @@ def congruence(Pb, rows, ops: Layout = ARRAYS):
     block, a :class:`ScaledIdentity` a multiple of it), as :func:`jaximu.world.error_map_rows`
     and :func:`transition_rows` give them. Rows of ``M`` that are identity rows cost
     nothing."""
+
     def P(i, j):
         return block(Pb, i, j, ops)
 
@@ -437,8 +478,10 @@ def congruence(Pb, rows, ops: Layout = ARRAYS):
         return entry_mul(X, entry_t(Mjl, ops), ops)
 
     # N = M P (all columns of the changed rows), then N Mᵀ (the changed columns)
-    N = {i: {j: add(*(times(Mik, P(k, j)) for k, Mik in rows[i].items())) for j in range(5)}
-         for i in rows}
+    N = {
+        i: {j: add(*(times(Mik, P(k, j)) for k, Mik in rows[i].items())) for j in range(5)}
+        for i in rows
+    }
     N = ops.barrier(N)  # each block is read by several products
 
     def Nrow(i, j):
@@ -552,6 +595,7 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
         ops: the layout (:data:`ARRAYS`, or :data:`jaximu.kernels.lane_math.SOA`: ``(m, n, B)`` lanes).
         check: ``check(S)`` called before ``S`` is factored (e.g. a definiteness check).
     """
+
     def P(i, j):
         return block(Pb, i, j, ops)
 
@@ -562,8 +606,9 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
     if check is not None:
         check(S)
     F = ops.cholesky(S)
-    Kt = [None if u is None else ops.tri_solve(F, ops.tri_solve(F, t(u, ops)), trans=True)
-          for u in U]  # Kᵢᵀ = S⁻¹ Uᵢᵀ
+    Kt = [
+        None if u is None else ops.tri_solve(F, ops.tri_solve(F, t(u, ops)), trans=True) for u in U
+    ]  # Kᵢᵀ = S⁻¹ Uᵢᵀ
     K = [t(x, ops) for x in Kt]
     white = ops.tri_solve(F, nu)
     nis = mm(t(white, ops), white, ops)
@@ -574,8 +619,9 @@ def kalman_update(Pb, H, R, nu, ops: Layout = ARRAYS, check=None):
         ku = mm(K[i], t(U[j], ops), ops)
         return add(P(i, j), None if ku is None else -ku)
 
-    Z = [add(mm(K[i], R, ops), *(-_times_t(M(i, k), H[k], ops) for k in cols))
-         for i in range(5)]  # K R - M Hᵀ
+    Z = [
+        add(mm(K[i], R, ops), *(-_times_t(M(i, k), H[k], ops) for k in cols)) for i in range(5)
+    ]  # K R - M Hᵀ
     new = {(i, j): add(M(i, j), mm(Z[i], Kt[j], ops)) for i, j in UPPER}
     return KalmanUpdate(dx, symmetrize_diagonal(new, ops), nis)
 
@@ -584,6 +630,7 @@ def whiten(Pb, e, ops: Layout = ARRAYS):
     """``L⁻¹ e`` for ``P = L Lᵀ`` (block Cholesky on the upper blocks ``Pb``; ``e``: the 5
     blocks ``3 × 1`` of an error): ``|L⁻¹ e|² = eᵀ P⁻¹ e``, the NEES. Returns the 5 blocks
     of ``L⁻¹ e``."""
+
     def P(i, j):
         return block(Pb, i, j, ops)
 
@@ -591,14 +638,14 @@ def whiten(Pb, e, ops: Layout = ARRAYS):
     y: list = [None] * 5
     Lo: dict = {}  # Lo[(i, j)] = L_ijᵀ (i > j)
     for j in range(5):
-        F[j] = ops.cholesky(add(P(j, j), *(-mm(t(Lo[(j, k)], ops), Lo[(j, k)], ops)
-                                           for k in range(j))))
+        F[j] = ops.cholesky(
+            add(P(j, j), *(-mm(t(Lo[(j, k)], ops), Lo[(j, k)], ops) for k in range(j)))
+        )
         col = {}
         for i in range(j + 1, 5):  # L_ij = (P_ij - Σ L_ik L_jkᵀ) L_jj⁻ᵀ
             X = add(P(j, i), *(-mm(t(Lo[(j, k)], ops), Lo[(i, k)], ops) for k in range(j)))
             col[(i, j)] = ops.tri_solve(F[j], X)
-        yj = ops.tri_solve(F[j], add(e[j], *(-mm(t(Lo[(j, k)], ops), y[k], ops)
-                                             for k in range(j))))
+        yj = ops.tri_solve(F[j], add(e[j], *(-mm(t(Lo[(j, k)], ops), y[k], ops) for k in range(j))))
         col, y[j] = ops.barrier((col, yj))  # each is read by the later columns
         Lo.update(col)
     return y

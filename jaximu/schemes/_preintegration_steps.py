@@ -113,8 +113,14 @@ def _euler_noise(n, w0, a0, w1, a1):
 
 def _vins_noise(n, w0, a0, w1, a1):
     """VINS-Mono's ``[n_a0, n_g0, n_a1, n_g1, n_ba, n_bg]`` (18)."""
-    return (w0 + n[..., 3:6], a0 + n[..., 0:3], w1 + n[..., 9:12], a1 + n[..., 6:9],
-            n[..., 15:18], n[..., 12:15])
+    return (
+        w0 + n[..., 3:6],
+        a0 + n[..., 0:3],
+        w1 + n[..., 9:12],
+        a1 + n[..., 6:9],
+        n[..., 15:18],
+        n[..., 12:15],
+    )
 
 
 def _vins_variances(v):
@@ -149,13 +155,19 @@ class PreintegrationStep:
 
 PREINTEGRATION_STEPS = {
     # Forster / GTSAM Manifold: the propagation Euler step from the identity, without gravity
-    "euler": PreintegrationStep("euler", False,
-                                lambda dR, w0, a0, w1, a1, h, *r: _euler_step(dR, w0, a0, h, *r),
-                                12, _euler_noise, lambda v: v),
+    "euler": PreintegrationStep(
+        "euler",
+        False,
+        lambda dR, w0, a0, w1, a1, h, *r: _euler_step(dR, w0, a0, h, *r),
+        12,
+        _euler_noise,
+        lambda v: v,
+    ),
     # VINS-Mono's midpoint (first-order quaternion, its F and 18-dim noise), kept exactly so
     # that results agree with VINS-Mono; the propagation midpoint uses the exact exponential
-    "midpoint": PreintegrationStep("midpoint", True, _vins_midpoint_step, 18, _vins_noise,
-                                   _vins_variances),
+    "midpoint": PreintegrationStep(
+        "midpoint", True, _vins_midpoint_step, 18, _vins_noise, _vins_variances
+    ),
 }
 
 
@@ -170,8 +182,10 @@ def _required(scheme) -> PreintegrationStep:
     """:func:`preintegration_step` of a scheme that has one (the entries checked it)."""
     step = preintegration_step(scheme)
     if step is None:
-        raise ValueError(f"scheme {scheme!r} has no preintegration step; use one of "
-                         f"{tuple(PREINTEGRATION_STEPS)}")
+        raise ValueError(
+            f"scheme {scheme!r} has no preintegration step; use one of "
+            f"{tuple(PREINTEGRATION_STEPS)}"
+        )
     return step
 
 
@@ -182,8 +196,7 @@ def _step(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -> _Step:
         var = [jnp.zeros(h.shape + (3,), dtype)] * 4
     else:
         var = jnp.split(noise.discrete_variances(h, dtype), 4, axis=-1)  # σ²/dt each
-    dq, acc, F, Q9, (sbg, sba) = _required(scheme).step(
-        dR, w0, a0, w1, a1, h, b_g, b_a, var, lever)
+    dq, acc, F, Q9, (sbg, sba) = _required(scheme).step(dR, w0, a0, w1, a1, h, b_g, b_a, var, lever)
     eye = jnp.eye(3, dtype=dtype)
     h2 = (h * h)[..., None, None]
     Q15 = dict(Q9)
@@ -211,12 +224,20 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
         s = _step(scheme, dRp, w0n, a0n, w1n, a1n, h, bg, ba, None)
         dq_next = so3.quat_normalize(so3.quat_mul(dRp, s.dq))
         hv = h[..., None]
-        dtheta = so3.log(so3.quat_mul(so3.quat_conj(
-            so3.quat_normalize(so3.quat_mul(dR, nominal.dq))), dq_next))
+        dtheta = so3.log(
+            so3.quat_mul(so3.quat_conj(so3.quat_normalize(so3.quat_mul(dR, nominal.dq))), dq_next)
+        )
         p = delta[..., 3:6] + delta[..., 6:9] * hv + 0.5 * s.acc * hv * hv
         v = delta[..., 6:9] + s.acc * hv
-        return jnp.concatenate([dtheta, p - 0.5 * nominal.acc * hv * hv, v - nominal.acc * hv,
-                                delta[..., 9:15] + jnp.concatenate([nbg, nba], -1) * hv], -1)
+        return jnp.concatenate(
+            [
+                dtheta,
+                p - 0.5 * nominal.acc * hv * hv,
+                v - nominal.acc * hv,
+                delta[..., 9:15] + jnp.concatenate([nbg, nba], -1) * hv,
+            ],
+            -1,
+        )
 
     n_noise = pre.noise_dim
     zero15, zero_n = jnp.zeros(15, dtype), jnp.zeros(n_noise, dtype)
@@ -230,5 +251,5 @@ def _step_autodiff(scheme, dR, w0, a0, w1, a1, h, b_g, b_a, noise, lever=None) -
     Q15 = blk.dense_to_blocks((G * s[..., None, :]) @ jnp.swapaxes(G, -1, -2))
     G9 = G[..., :9, :walk]
     Q9d = (G9 * s[..., None, :walk]) @ jnp.swapaxes(G9, -1, -2)
-    Q9 = {(i, j): Q9d[..., 3 * i:3 * i + 3, 3 * j:3 * j + 3] for i, j in _UPPER9}
+    Q9 = {(i, j): Q9d[..., 3 * i : 3 * i + 3, 3 * j : 3 * j + 3] for i, j in _UPPER9}
     return _Step(nominal.dq, nominal.acc, blk.phi_from_dense(Phi), Q15=Q15, Q9=Q9)

@@ -51,8 +51,17 @@ from jaximu.geometry.state import NavState
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes._blocks import Blocks, add
 
-__all__ = ["SCHEMES", "ATTITUDES", "ORDER", "Attitude", "Scheme", "get_attitude", "get_scheme",
-           "step", "nav_step"]
+__all__ = [
+    "SCHEMES",
+    "ATTITUDES",
+    "ORDER",
+    "Attitude",
+    "Scheme",
+    "get_attitude",
+    "get_scheme",
+    "step",
+    "nav_step",
+]
 
 SCHEMES = ("euler", "midpoint", "rk4")
 ATTITUDES = ("quaternion", "quaternion_first_order", "matrix", "euler_angles")
@@ -238,17 +247,30 @@ class Scheme:
             if J_s is not None:
                 D = -ops.matmul(ops.matmul(R_s, ops.skew(pt.f)), times_dphi(J_s, pt.tau))
             if lever is not None:  # f_s moves by +K_s δb_g (the rate falls by δb_g)
-                K_s = (K0 if pt.tau == 0.0 else K1 if pt.tau == 1.0
-                       else (1.0 - pt.tau) * K0 + pt.tau * K1)
+                K_s = (
+                    K0
+                    if pt.tau == 0.0
+                    else K1
+                    if pt.tau == 1.0
+                    else (1.0 - pt.tau) * K0 + pt.tau * K1
+                )
                 D = add(D, ops.matmul(R_s, K_s))
             if D is not None:
                 Dv.append(ops.scale(pt.wv, D))
                 Dp.append(ops.scale(pt.wp, D))
         sum_v = functools.reduce(lambda a, b: a + b, uv)
         sum_p = functools.reduce(lambda a, b: a + b, up)
-        return Blocks(A=ops.transpose(E_end), B=times_dphi(J_end, 1.0),
-                      Cp=-ops.matmul(ops.skew(sum_p), R0), Cv=-ops.matmul(ops.skew(sum_v), R0),
-                      Dp=add(*Dp), Dv=add(*Dv), Ep=add(*Ep), Ev=add(*Ev), dt=h)
+        return Blocks(
+            A=ops.transpose(E_end),
+            B=times_dphi(J_end, 1.0),
+            Cp=-ops.matmul(ops.skew(sum_p), R0),
+            Cv=-ops.matmul(ops.skew(sum_v), R0),
+            Dp=add(*Dp),
+            Dv=add(*Dv),
+            Ep=add(*Ep),
+            Ev=add(*Ev),
+            dt=h,
+        )
 
 
 class Euler(Scheme):
@@ -281,15 +303,20 @@ class RK4(Scheme):
         """``Ω(τ) = τ ω0 + τ²/(2h)(ω1 - ω0) + τ³/(12h) ω0 × ω1`` at ``τ = alpha h`` (exact
         Ω₁ + Ω₂ for a rate linear from ω0 to ω1 over ``h``), written without dividing by
         ``h`` so that a zero step is an exact identity with finite derivatives."""
-        return ((alpha * h) * omega0 + (alpha * alpha * 0.5 * h) * (omega1 - omega0)
-                + (alpha**3 / 12 * h * h) * omega0.cross(omega1))
+        return (
+            (alpha * h) * omega0
+            + (alpha * alpha * 0.5 * h) * (omega1 - omega0)
+            + (alpha**3 / 12 * h * h) * omega0.cross(omega1)
+        )
 
     def points(self, omega0, f0, omega1, f1, h):
         phi_half = self.magnus(omega0, omega1, 0.5, h)
         phi_end = self.magnus(omega0, omega1, 1.0, h)
-        return [Point(None, 0.0, f0, h / 6, h * h / 6),
-                Point(phi_half, 0.5, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
-                Point(END, 1.0, f1, h / 6, 0.0 * h)], phi_end
+        return [
+            Point(None, 0.0, f0, h / 6, h * h / 6),
+            Point(phi_half, 0.5, 0.5 * (f0 + f1), 4 * h / 6, 2 * h * h / 6),
+            Point(END, 1.0, f1, h / 6, 0.0 * h),
+        ], phi_end
 
     def p_over_v(self, h):
         return None  # Simpson weights: wp/wv is h, h/2 and 0 along the stages
@@ -337,8 +364,10 @@ def _rk4_euler_angles(chi, p, v, omega0, f0, omega1, f1, h, g):
 
     def deriv(c, w, f):
         cs = c.stack()
-        return (matvec_v3(so3.euler_rate_matrix(cs), w),
-                matvec_v3(so3.euler_zyx_to_matrix(cs), f) + g)
+        return (
+            matvec_v3(so3.euler_rate_matrix(cs), w),
+            matvec_v3(so3.euler_zyx_to_matrix(cs), f) + g,
+        )
 
     out = rk4_euler_angles(deriv, *(V3.of(x) for x in (chi, p, v, omega0, f0, omega1, f1)), h)
     return tuple(x.stack() for x in out)
@@ -363,12 +392,19 @@ def step(scheme, attitude: Attitude, x, p, v, omega0, f0, omega1, f1, h, g):
     """
     if scheme == "rk4" and attitude.name == "euler_angles":
         return _rk4_euler_angles(x, p, v, omega0, f0, omega1, f1, h, g)
-    pts, phi_end = get_scheme(scheme).points(V3.of(omega0), V3.of(f0), V3.of(omega1),
-                                             V3.of(f1), h)
+    pts, phi_end = get_scheme(scheme).points(V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1), h)
     x_end = attitude.advance(x, phi_end.stack())
-    p1, v1 = stage_sum(pts, x, x_end, lambda x, phi: attitude.advance(x, phi.stack()),
-                       lambda x, f: V3.of(attitude.rotate(x, f.stack())), V3.of(p), V3.of(v),
-                       h, V3.of(g))
+    p1, v1 = stage_sum(
+        pts,
+        x,
+        x_end,
+        lambda x, phi: attitude.advance(x, phi.stack()),
+        lambda x, f: V3.of(attitude.rotate(x, f.stack())),
+        V3.of(p),
+        V3.of(v),
+        h,
+        V3.of(g),
+    )
     return x_end, p1.stack(), v1.stack()
 
 
@@ -404,8 +440,12 @@ def compose_deltas(a, b, rotate=None):
     qa, pa, va, ta = a
     qb, pb, vb, tb = b
     rot = rotate or (lambda x: so3.quat_rotate(qa, x))
-    return (so3.quat_normalize(so3.quat_mul(qa, qb)), pa + va * tb[..., None] + rot(pb),
-            va + rot(vb), ta + tb)
+    return (
+        so3.quat_normalize(so3.quat_mul(qa, qb)),
+        pa + va * tb[..., None] + rot(pb),
+        va + rot(vb),
+        ta + tb,
+    )
 
 
 def apply_deltas(q, p, v, g, deltas):
@@ -415,8 +455,11 @@ def apply_deltas(q, p, v, g, deltas):
     Quaternions ``(..., 4)``, vectors ``(..., 3)``, ``Δt`` ``(...)``."""
     dq, dp, dv, t = deltas
     t = t[..., None]
-    return (so3.quat_mul(q, dq), p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
-            v + g * t + so3.quat_rotate(q, dv))
+    return (
+        so3.quat_mul(q, dq),
+        p + v * t + 0.5 * g * t * t + so3.quat_rotate(q, dp),
+        v + g * t + so3.quat_rotate(q, dv),
+    )
 
 
 def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, noise=None):
@@ -437,8 +480,19 @@ def nav_step(scheme, attitude: Attitude, state: NavState, w0, a0, w1, a1, h, g, 
         n_g, n_a = noise[..., 0:3], noise[..., 3:6]
     omega0, omega1 = w0 - b_g - n_g, w1 - b_g - n_g
     f0, f1 = a0 - b_a - n_a, a1 - b_a - n_a
-    x, p, v = step(scheme, attitude, attitude.from_quat(state.q), state.p, state.v,
-                   omega0, f0, omega1, f1, h, g)
+    x, p, v = step(
+        scheme,
+        attitude,
+        attitude.from_quat(state.q),
+        state.p,
+        state.v,
+        omega0,
+        f0,
+        omega1,
+        f1,
+        h,
+        g,
+    )
     if noise is not None:
         b_g = b_g + h[..., None] * noise[..., 6:9]
         b_a = b_a + h[..., None] * noise[..., 9:12]
@@ -456,5 +510,13 @@ def blocks_analytic(scheme, R0, omega0, f0, omega1, f1, h, lever=None) -> Blocks
         lever: optional ``(..., 3)`` lever arm of samples moved to the body
             (:meth:`jaximu.integrators.Scheme.blocks`).
     """
-    return get_scheme(scheme).blocks(R0, V3.of(omega0), V3.of(f0), V3.of(omega1), V3.of(f1),
-                                     h, blk.ARRAYS, lever=None if lever is None else V3.of(lever))
+    return get_scheme(scheme).blocks(
+        R0,
+        V3.of(omega0),
+        V3.of(f0),
+        V3.of(omega1),
+        V3.of(f1),
+        h,
+        blk.ARRAYS,
+        lever=None if lever is None else V3.of(lever),
+    )

@@ -45,8 +45,17 @@ from jaximu.geometry import so3
 from jaximu.geometry._vec import V3, matmul, matvec, matvec_v3
 from jaximu.schemes import _blocks as blk
 
-__all__ = ["EARTH_RATE", "earth_rate", "coriolis_increments", "check_omega", "gamma2",
-           "to_inertial", "leave_inertial", "enter_inertial", "gravity_excess"]
+__all__ = [
+    "EARTH_RATE",
+    "earth_rate",
+    "coriolis_increments",
+    "check_omega",
+    "gamma2",
+    "to_inertial",
+    "leave_inertial",
+    "enter_inertial",
+    "gravity_excess",
+]
 
 EARTH_RATE = 7.292115e-5
 """Earth's sidereal rotation rate [rad/s] (WGS-84)."""
@@ -68,8 +77,10 @@ def earth_rate(latitude_deg, dtype=None):
         bad = ~np.isfinite(lat) | (np.abs(lat) > 90)
         if bad.any():
             where = val._first_bad(bad) if lat.ndim else ""
-            raise ValueError(f"latitude_deg must be in [-90, 90] degrees and finite, got "
-                             f"latitude_deg{where} = {lat[tuple(np.argwhere(bad)[0])]:g}")
+            raise ValueError(
+                f"latitude_deg must be in [-90, 90] degrees and finite, got "
+                f"latitude_deg{where} = {lat[tuple(np.argwhere(bad)[0])]:g}"
+            )
     phi = jnp.deg2rad(latitude_deg)
     return EARTH_RATE * jnp.stack([jnp.zeros_like(phi), jnp.cos(phi), jnp.sin(phi)], -1)
 
@@ -78,8 +89,10 @@ def check_omega(omega, dtype, name="omega_coriolis"):
     """``omega_coriolis`` as a finite ``(..., 3)`` ``dtype`` array (``ValueError`` naming it)."""
     w = val.to_dtype(name, omega, dtype)
     if w.ndim < 1 or w.shape[-1] != 3:
-        raise ValueError(f"{name} must be the world's rotation rate, a (3,) vector in rad/s "
-                         f"(e.g. jaximu.earth_rate(latitude_deg)), got shape {tuple(w.shape)}")
+        raise ValueError(
+            f"{name} must be the world's rotation rate, a (3,) vector in rad/s "
+            f"(e.g. jaximu.earth_rate(latitude_deg)), got shape {tuple(w.shape)}"
+        )
     val.check_finite(name, w)
     return w
 
@@ -96,8 +109,7 @@ def gamma2(phi):
     small = theta_sq < 1e-2
     safe = jnp.where(small, jnp.ones_like(theta_sq), theta_sq)
     t2 = theta_sq
-    e = jnp.where(small, 1 / 24 - t2 / 720 + t2 * t2 / 40320 - t2 ** 3 / 3628800,
-                  (0.5 - a) / safe)
+    e = jnp.where(small, 1 / 24 - t2 / 720 + t2 * t2 / 40320 - t2**3 / 3628800, (0.5 - a) / safe)
     K = so3.skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
     return 0.5 * eye + b[..., None, None] * K + e[..., None, None] * so3._skew_sq(phi)
@@ -187,8 +199,10 @@ def error_map_rows(omega, dt, coriolis):
     cross = -(h * h) * W
     if coriolis == "second_order":
         W2 = so3._skew_sq(omega)
-        return None, {1: {1: eye - 0.5 * h * h * W2, 2: cross},
-                      2: {1: -h * W2, 2: eye - 2.0 * h * W}}
+        return None, {
+            1: {1: eye - 0.5 * h * h * W2, 2: cross},
+            2: {1: -h * W2, 2: eye - 2.0 * h * W},
+        }
     return None, {1: {1: "I", 2: cross}, 2: {2: eye - 2.0 * h * W}}
 
 
@@ -197,9 +211,15 @@ def error_maps(omega, h, coriolis, ops=blk.ARRAYS):
     ``omega`` ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``)."""
     pre, post = error_map_rows(omega, h, coriolis)
     if ops is not blk.ARRAYS:
-        pre, post = (None if m is None else {i: {k: (x if isinstance(x, str) else
-                                                     ops.from_arrays(x)) for k, x in r.items()}
-                                             for i, r in m.items()} for m in (pre, post))
+        pre, post = (
+            None
+            if m is None
+            else {
+                i: {k: (x if isinstance(x, str) else ops.from_arrays(x)) for k, x in r.items()}
+                for i, r in m.items()
+            }
+            for m in (pre, post)
+        )
     return pre, post
 
 
@@ -235,8 +255,9 @@ def coriolis_increments(omega, p, v, dt, second_order: bool = False):
         ``(dθ, dp, dv)`` in W, each ``(..., 3)``: ``dθ = -ω Δt`` (the attitude becomes
         ``Exp(dθ) R``), ``dp = -Δt² ω×v [- ½Δt² ω×(ω×p)]``, ``dv = -2Δt ω×v [- Δt ω×(ω×p)]``.
     """
-    dth, dp, dv = coriolis_increments_v3(V3.of(omega), V3.of(p), V3.of(v), jnp.asarray(dt),
-                                         second_order)
+    dth, dp, dv = coriolis_increments_v3(
+        V3.of(omega), V3.of(p), V3.of(v), jnp.asarray(dt), second_order
+    )
     dp, dv = dp.stack(), dv.stack()
     dth = dth.stack()
     return jnp.broadcast_to(dth, jnp.broadcast_shapes(dth.shape, dp.shape)), dp, dv

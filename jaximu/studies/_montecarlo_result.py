@@ -46,6 +46,7 @@ class MonteCarloResult(NamedTuple):
         nis_bounds: filter study: ``(2,)`` its interval (dof ``m N``), else ``None``.
         settings: the options that produced the result (a dict; JSON-serialisable).
     """
+
     times: np.ndarray
     mean_error: np.ndarray
     error_cov: np.ndarray
@@ -82,16 +83,25 @@ class MonteCarloResult(NamedTuple):
         suffix is refused (numpy would silently write ``path + ".npz"``)."""
         p = _result_path(path)
         if p.suffix.lower() != ".npz":
-            raise InputError(f"path {str(p)!r} must end in .npz (numpy would write "
-                             f"{str(p) + '.npz'!r} instead)", [Fix("path", str(p) + ".npz")])
+            raise InputError(
+                f"path {str(p)!r} must end in .npz (numpy would write {str(p) + '.npz'!r} instead)",
+                [Fix("path", str(p) + ".npz")],
+            )
         if p.is_dir():
             raise ValueError(f"path {str(p)!r} is a folder; name an .npz file in it")
         if not p.parent.is_dir():
             raise ValueError(f"path {str(p)!r}: the folder {str(p.parent)!r} does not exist")
-        arrays: dict[str, Any] = {k: np.asarray(v) for k, v in self._asdict().items()
-                  if v is not None and k not in ("settings", "n_runs", "confidence")}
-        meta = dict(settings=self.settings or {}, n_runs=self.n_runs, confidence=self.confidence,
-                    format=_FORMAT)
+        arrays: dict[str, Any] = {
+            k: np.asarray(v)
+            for k, v in self._asdict().items()
+            if v is not None and k not in ("settings", "n_runs", "confidence")
+        }
+        meta = dict(
+            settings=self.settings or {},
+            n_runs=self.n_runs,
+            confidence=self.confidence,
+            format=_FORMAT,
+        )
         arrays["__meta__"] = np.asarray(json.dumps(meta))
         np.savez(p, **arrays)
 
@@ -99,16 +109,25 @@ class MonteCarloResult(NamedTuple):
 _FORMAT = "jaximu.montecarlo/1"
 
 
-_REQUIRED = ("times", "mean_error", "error_cov", "predicted_cov", "nees_mean", "nees_bounds",
-             "sample_errors", "discretization_error")
+_REQUIRED = (
+    "times",
+    "mean_error",
+    "error_cov",
+    "predicted_cov",
+    "nees_mean",
+    "nees_bounds",
+    "sample_errors",
+    "discretization_error",
+)
 
 
 def _result_path(path) -> pathlib.Path:
     try:
         return pathlib.Path(path)
     except TypeError:
-        raise ValueError(f"path must be a file name (str or os.PathLike), got "
-                         f"{type(path).__name__}") from None
+        raise ValueError(
+            f"path must be a file name (str or os.PathLike), got {type(path).__name__}"
+        ) from None
 
 
 def load_result(path) -> MonteCarloResult:
@@ -121,35 +140,44 @@ def load_result(path) -> MonteCarloResult:
     if p.is_dir():
         raise ValueError(f"path {str(p)!r} is a folder, not a result file (.npz)")
     if not p.is_file():
-        raise FileNotFoundError(f"path {str(p)!r}: no such file (a result written by "
-                                "MonteCarloResult.save)")
-    not_ours = (f"{str(p)!r} is not a jaximu Monte Carlo result (written by "
-                "MonteCarloResult.save)")
+        raise FileNotFoundError(
+            f"path {str(p)!r}: no such file (a result written by MonteCarloResult.save)"
+        )
+    not_ours = f"{str(p)!r} is not a jaximu Monte Carlo result (written by MonteCarloResult.save)"
     if not zipfile.is_zipfile(p):
         raise ValueError(f"{not_ours}: not an .npz archive")
     with np.load(p, allow_pickle=False) as f:
         if "__meta__" not in f.files:
-            raise ValueError(f"{not_ours}: it holds the arrays {sorted(f.files)[:8]} and no "
-                             "format tag")
+            raise ValueError(
+                f"{not_ours}: it holds the arrays {sorted(f.files)[:8]} and no format tag"
+            )
         try:
             meta = json.loads(str(f["__meta__"]))
             fmt = meta.get("format")
         except (ValueError, AttributeError):
             raise ValueError(f"{not_ours}: its __meta__ is not the JSON settings") from None
         if fmt != _FORMAT:
-            raise ValueError(f"{not_ours}: its format tag is {fmt!r}, this version reads "
-                             f"{_FORMAT!r}")
+            raise ValueError(
+                f"{not_ours}: its format tag is {fmt!r}, this version reads {_FORMAT!r}"
+            )
         fields = {k: f[k] for k in f.files if k != "__meta__"}
     missing = [k for k in _REQUIRED if k not in fields]
     absent = [k for k in ("n_runs", "confidence") if k not in meta]
     if missing or absent:
-        raise ValueError(f"{str(p)!r} is a damaged Monte Carlo result: "
-                         f"{', '.join(missing + absent)} missing")
-    stats: dict[str, Any] = {k: fields.get(k) for k in MonteCarloResult._fields
-                             if k not in ("settings", "n_runs", "confidence")}
-    return MonteCarloResult(**stats,
-                            n_runs=int(meta["n_runs"]), confidence=float(meta["confidence"]),
-                            settings=meta.get("settings"))
+        raise ValueError(
+            f"{str(p)!r} is a damaged Monte Carlo result: {', '.join(missing + absent)} missing"
+        )
+    stats: dict[str, Any] = {
+        k: fields.get(k)
+        for k in MonteCarloResult._fields
+        if k not in ("settings", "n_runs", "confidence")
+    }
+    return MonteCarloResult(
+        **stats,
+        n_runs=int(meta["n_runs"]),
+        confidence=float(meta["confidence"]),
+        settings=meta.get("settings"),
+    )
 
 
 def chi2_interval(dof, confidence: float = 0.95):

@@ -30,6 +30,7 @@ class PositionFix(NamedTuple):
     Attributes:
         sigma: standard deviation of each axis [m], a scalar or ``(3,)``, ``> 0``.
     """
+
     sigma: float | tuple = 0.1
 
 
@@ -48,18 +49,37 @@ class _Study(NamedTuple):
     filt: bool
 
 
-def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, record_every,
-             dtype, update_every=None, measurement=None, nees=True):
+def _prepare(
+    trajectory,
+    times,
+    P0,
+    noise,
+    key,
+    *,
+    scheme,
+    gravity,
+    b_g0,
+    b_a0,
+    record_every,
+    dtype,
+    update_every=None,
+    measurement=None,
+    nees=True,
+):
     """Validate the inputs and build the kernel's constants (shared by :func:`monte_carlo`
     and :func:`sample_run`). ``nees``: refuse an open-loop study whose NEES is undefined at
     every recorded time (a single run's errors do not need it)."""
     if not isinstance(trajectory, Trajectory):
-        raise ValueError("trajectory must be a jaximu.simulate.Trajectory (e.g. "
-                         f"jaximu.simulate.circle()), got {type(trajectory).__name__}")
+        raise ValueError(
+            "trajectory must be a jaximu.simulate.Trajectory (e.g. "
+            f"jaximu.simulate.circle()), got {type(trajectory).__name__}"
+        )
     if isinstance(noise, tuple):
         if len(noise) != 2:
-            raise ValueError("noise must be an ImuNoise or a pair (draw, predict) of them, got a "
-                             f"tuple of {len(noise)}")
+            raise ValueError(
+                "noise must be an ImuNoise or a pair (draw, predict) of them, got a "
+                f"tuple of {len(noise)}"
+            )
         draw_noise, model_noise = noise
     else:
         draw_noise = model_noise = noise
@@ -69,34 +89,47 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
         record_every = val.check_int("update_every", update_every, 1)
         measurement = PositionFix() if measurement is None else measurement
         if not isinstance(measurement, PositionFix):
-            raise ValueError("measurement must be a jaximu.montecarlo.PositionFix, got "
-                             f"{type(measurement).__name__}")
+            raise ValueError(
+                "measurement must be a jaximu.montecarlo.PositionFix, got "
+                f"{type(measurement).__name__}"
+            )
         sigma = val.as_numbers("measurement.sigma", measurement.sigma)
         meas_sd = np.broadcast_to(sigma, (3,)) if sigma.ndim == 0 else sigma
         if meas_sd.shape != (3,) or not np.all(np.isfinite(meas_sd) & (meas_sd > 0)):
-            raise ValueError(f"measurement.sigma must be positive and finite, a scalar or (3,), "
-                             f"got {measurement.sigma!r}")
+            raise ValueError(
+                f"measurement.sigma must be positive and finite, a scalar or (3,), "
+                f"got {measurement.sigma!r}"
+            )
     elif measurement is not None:
-        raise InputError("measurement is used only by the filter study, and update_every is "
-                         "None (open loop): it would be ignored",
-                         [Fix("update_every", phrase="{}=N (a measurement every N steps)"),
-                          Fix("measurement", None)])
+        raise InputError(
+            "measurement is used only by the filter study, and update_every is "
+            "None (open loop): it would be ignored",
+            [
+                Fix("update_every", phrase="{}=N (a measurement every N steps)"),
+                Fix("measurement", None),
+            ],
+        )
     val.check_choice("scheme", scheme, SCHEMES)
     dtype = val.compute_dtype("dtype", dtype) if dtype is not None else jnp.result_type(float)
     times = val.as_numbers("times", times)
     if times.ndim != 1 or len(times) < 2:
-        raise ValueError(f"times must be a 1-D array of at least 2 sample times, got shape "
-                         f"{times.shape}")
+        raise ValueError(
+            f"times must be a 1-D array of at least 2 sample times, got shape {times.shape}"
+        )
     val.check_finite("times", times)
     if np.any(np.diff(times) <= 0):
         i = int(np.argmax(np.diff(times) <= 0))
-        raise ValueError(f"times must increase strictly; times[{i + 1}] = {times[i + 1]:g} ≤ "
-                         f"times[{i}] = {times[i]:g}")
+        raise ValueError(
+            f"times must increase strictly; times[{i + 1}] = {times[i + 1]:g} ≤ "
+            f"times[{i}] = {times[i]:g}"
+        )
     if filt and record_every > len(times) - 1:
-        raise InputError(f"update_every = {record_every} is more than the {len(times) - 1} "
-                         "steps of times: no update would happen", [
-                             Fix("update_every", len(times) - 1, "")],
-                         lead="pass at most")
+        raise InputError(
+            f"update_every = {record_every} is more than the {len(times) - 1} "
+            "steps of times: no update would happen",
+            [Fix("update_every", len(times) - 1, "")],
+            lead="pass at most",
+        )
     P0 = val.as_numbers("P0", P0)
     if P0.shape != (15, 15):
         raise ValueError(f"P0 must have shape (15, 15), got {P0.shape}")
@@ -130,12 +163,14 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
     # The reference: noise-free propagation of the exact signals (with the true biases added
     # to the samples and to the state, which cancel), and (open loop) the linearised
     # covariance; the filter study's runs carry their own.
-    clean = _propagate(x0, gyro + b_g0, accel + b_a0, dt, g, scheme=scheme,
-                       attitude="quaternion", save_all=True)[0]
+    clean = _propagate(
+        x0, gyro + b_g0, accel + b_a0, dt, g, scheme=scheme, attitude="quaternion", save_all=True
+    )[0]
     P_rec = W = None
     if not filt:
-        _, P = propagate_covariance(x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt,
-                                    model_noise, scheme)
+        _, P = propagate_covariance(
+            x0, jnp.asarray(P0, dtype), gyro + b_g0, accel + b_a0, dt, model_noise, scheme
+        )
         P_rec = np.asarray(P, np.float64)[rec]
         # NEES = |W e|², W = L⁻¹, P = L Lᵀ, where P is positive definite to the dtype's
         # precision; elsewhere the NEES is undefined (NaN in the result, W = 0 meanwhile)
@@ -144,40 +179,67 @@ def _prepare(trajectory, times, P0, noise, key, *, scheme, gravity, b_g0, b_a0, 
             k = len(rec) - 1
             _tolerances.check_definite(
                 f"the predicted covariance at times[{rec[k] + 1}] = {times[rec[k] + 1]:g} "
-                "(and at every recorded time)", P_rec[k], dtype, axes=_tolerances.ERROR_AXES,
+                "(and at every recorded time)",
+                P_rec[k],
+                dtype,
+                axes=_tolerances.ERROR_AXES,
                 what="the NEES eᵀ P⁻¹ e, undefined at every recorded time",
                 fix="P0 with the noise leaves some error direction without variance for the "
-                    "whole study; give P0 positive variances on every axis (e.g. P0 = "
-                    "diag(σ²), σ > 0), or the noise positive random walks")
+                "whole study; give P0 positive variances on every axis (e.g. P0 = "
+                "diag(σ²), σ > 0), or the noise positive random walks",
+            )
         W = np.zeros_like(P_rec)
         W[defined] = np.linalg.inv(np.linalg.cholesky(P_rec[defined]))
         W = jnp.asarray(W, dtype)
     truth_rec = jax.tree_util.tree_map(lambda x: x[rec_j + 1], truth)
     clean_rec = jax.tree_util.tree_map(lambda x: x[rec_j], clean)
-    disc = np.asarray(boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)),
-                      np.float64)
+    disc = np.asarray(
+        boxminus(clean_rec, truth_rec.replace(b_g=clean_rec.b_g, b_a=clean_rec.b_a)), np.float64
+    )
 
     # per-sample white-noise std (sample j held over dt_j; the last sample over dt_{T-1}) and
     # per-step bias-walk std, in float64 then rounded once
-    sg, sa, sbg, sba = (np.broadcast_to(np.asarray(x, np.float64), (3,)) if np.ndim(x) == 0
-                        else np.asarray(x, np.float64) for x in (
-                            draw_noise.gyroscope_noise_density,
-                            draw_noise.accelerometer_noise_density,
-                            draw_noise.gyroscope_random_walk,
-                            draw_noise.accelerometer_random_walk))
+    sg, sa, sbg, sba = (
+        np.broadcast_to(np.asarray(x, np.float64), (3,))
+        if np.ndim(x) == 0
+        else np.asarray(x, np.float64)
+        for x in (
+            draw_noise.gyroscope_noise_density,
+            draw_noise.accelerometer_noise_density,
+            draw_noise.gyroscope_random_walk,
+            draw_noise.accelerometer_random_walk,
+        )
+    )
     dt_s = np.r_[dt64, dt64[-1]]
     sd = np.concatenate([sg, sa])[None] / np.sqrt(dt_s)[:, None]  # (T+1, 6)
     sw = np.concatenate([sbg, sba])[None] * np.sqrt(dt64)[:, None]  # (T, 6)
     nxt = SCHEME_OBJECTS[scheme].uses_next_sample
     sl = slice(1, None) if nxt else slice(0, T)  # the sample each step draws
-    consts = dict(keys=keys, L0=jnp.asarray(L0, dtype), x0=x0.replace(b_g=b_g0 * 0, b_a=b_a0 * 0),
-                  dt=dt, g=g, w_in=gyro[sl], a_in=accel[sl], sd_in=jnp.asarray(sd[sl], dtype),
-                  w0=gyro[0], a0=accel[0], sd0=jnp.asarray(sd[0], dtype),
-                  sw=jnp.asarray(sw, dtype), ref=(clean_rec.q, clean_rec.p, clean_rec.v),
-                  W=W, gyro=gyro, accel=accel, sd=jnp.asarray(sd, dtype),
-                  b0=jnp.concatenate([b_g0, b_a0]))
+    consts = dict(
+        keys=keys,
+        L0=jnp.asarray(L0, dtype),
+        x0=x0.replace(b_g=b_g0 * 0, b_a=b_a0 * 0),
+        dt=dt,
+        g=g,
+        w_in=gyro[sl],
+        a_in=accel[sl],
+        sd_in=jnp.asarray(sd[sl], dtype),
+        w0=gyro[0],
+        a0=accel[0],
+        sd0=jnp.asarray(sd[0], dtype),
+        sw=jnp.asarray(sw, dtype),
+        ref=(clean_rec.q, clean_rec.p, clean_rec.v),
+        W=W,
+        gyro=gyro,
+        accel=accel,
+        sd=jnp.asarray(sd, dtype),
+        b0=jnp.concatenate([b_g0, b_a0]),
+    )
     if filt:
-        consts.update(qc=model_noise.discrete_variances(dt), P0=jnp.asarray(P0, dtype),
-                      meas_sd=jnp.asarray(meas_sd, dtype),
-                      meas_R=jnp.asarray(np.diag(meas_sd**2), dtype))
+        consts.update(
+            qc=model_noise.discrete_variances(dt),
+            P0=jnp.asarray(P0, dtype),
+            meas_sd=jnp.asarray(meas_sd, dtype),
+            meas_R=jnp.asarray(np.diag(meas_sd**2), dtype),
+        )
     return _Study(consts, scheme, seg, rec, times[rec + 1], P_rec, disc, dtype, filt)

@@ -39,8 +39,13 @@ class _Progress:
             self.last = now
             rate = self.done / max(now - self.t0, 1e-9)
             eta = (self.total - self.done) / max(rate, 1e-9)
-            print(f"\rMonte Carlo: {self.done}/{self.total} runs, {rate:,.0f} runs/s, "
-                  f"ETA {eta:.0f} s", end="", file=sys.stderr, flush=True)
+            print(
+                f"\rMonte Carlo: {self.done}/{self.total} runs, {rate:,.0f} runs/s, "
+                f"ETA {eta:.0f} s",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def close(self):
         if self.bar is not None:
@@ -110,7 +115,7 @@ class _Acc:
         for name in self._PARTS:
             shape = getattr(self, name).shape
             size = int(np.prod(shape))
-            setattr(other, name, flat[i:i + size].reshape(shape))
+            setattr(other, name, flat[i : i + size].reshape(shape))
             i += size
         return other
 

@@ -89,17 +89,23 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         raise ValueError(f"dt must be positive and finite, got {dt}")
     if not np.all(np.isfinite(y)):
         bad = np.argwhere(~np.isfinite(y))[0]
-        raise ValueError(f"y contains non-finite values (NaN or inf), first at sample {bad[0]}"
-                         + ("" if squeeze else f", column {bad[1]}"))
+        raise ValueError(
+            f"y contains non-finite values (NaN or inf), first at sample {bad[0]}"
+            + ("" if squeeze else f", column {bad[1]}")
+        )
     if taus is None:
         if not isinstance(points_per_decade, numbers.Real) or isinstance(points_per_decade, bool):
-            raise ValueError(f"points_per_decade must be a positive number, got "
-                             f"{points_per_decade!r}")
+            raise ValueError(
+                f"points_per_decade must be a positive number, got {points_per_decade!r}"
+            )
         if not points_per_decade > 0:
             raise ValueError(f"points_per_decade must be positive, got {points_per_decade}")
         m_max = max(1, n // 10)
-        ms = np.unique(np.round(np.logspace(0, np.log10(m_max),
-                                            int(np.log10(m_max) * points_per_decade) + 1)).astype(int))
+        ms = np.unique(
+            np.round(
+                np.logspace(0, np.log10(m_max), int(np.log10(m_max) * points_per_decade) + 1)
+            ).astype(int)
+        )
     else:
         taus = _real_array("taus", taus)
         if taus.ndim > 1:
@@ -110,9 +116,11 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         down = np.flatnonzero(np.diff(taus) <= 0)
         if down.size:
             i = int(down[0])
-            raise ValueError(f"taus must be strictly increasing (the output follows their "
-                             f"order), but taus[{i}] = {taus[i]:g} and taus[{i + 1}] = "
-                             f"{taus[i + 1]:g}; pass np.unique(taus)")
+            raise ValueError(
+                f"taus must be strictly increasing (the output follows their "
+                f"order), but taus[{i}] = {taus[i]:g} and taus[{i + 1}] = "
+                f"{taus[i + 1]:g}; pass np.unique(taus)"
+            )
         with np.errstate(over="ignore"):
             ms = np.maximum(1, np.round(taus / dt))
         if np.any(2 * ms >= n):
@@ -123,14 +131,16 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         theta = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0) * dt])
         adev = np.empty((len(ms), y.shape[1]))
         for i, m in enumerate(ms):
-            d = theta[2 * m:] - 2 * theta[m:-m] + theta[:-2 * m]
+            d = theta[2 * m :] - 2 * theta[m:-m] + theta[: -2 * m]
             tau = m * dt
             adev[i] = np.sqrt(np.sum(d * d, axis=0) / (2 * tau * tau * (n + 1 - 2 * m)))
     if not np.all(np.isfinite(adev)):
         i, j = np.argwhere(~np.isfinite(adev))[0]
-        raise ValueError(f"the Allan deviation overflowed float64 at τ = {ms[i] * dt:g}"
-                         + ("" if squeeze else f", column {j}")
-                         + ": y or dt is too large (or dt too small); rescale the samples")
+        raise ValueError(
+            f"the Allan deviation overflowed float64 at τ = {ms[i] * dt:g}"
+            + ("" if squeeze else f", column {j}")
+            + ": y or dt is too large (or dt too small); rescale the samples"
+        )
     taus = ms * dt
     return taus, (adev[:, 0] if squeeze else adev)
 
@@ -170,14 +180,16 @@ def motion_ratio(y, dt: float, window: float = 1.0) -> float:
     if y.ndim not in (1, 2) or len(y) < 1:
         raise ValueError(f"y must have shape (N,) or (N, d), got {y.shape}")
     if not np.all(np.isfinite(y)):
-        raise ValueError(f"y contains non-finite values (NaN or inf), first at sample "
-                         f"{int(np.argwhere(~np.isfinite(y))[0][0])}")
+        raise ValueError(
+            f"y contains non-finite values (NaN or inf), first at sample "
+            f"{int(np.argwhere(~np.isfinite(y))[0][0])}"
+        )
     dt, window = val.check_positive("dt", dt), val.check_positive("window", window)
     m = max(1, round(window / dt))
     n = len(y) // m
     if n < 2:
         return float("nan")
-    means = y[:n * m].reshape(n, m, -1).mean(1)
+    means = y[: n * m].reshape(n, m, -1).mean(1)
     return float(np.max(means.std(0) / np.maximum(y.std(0), 1e-300)))
 
 
@@ -208,13 +220,17 @@ def static_intervals(y, dt: float, segment: float = 10.0, window: float = 1.0) -
     dt, window = val.check_positive("dt", dt), val.check_positive("window", window)
     segment = val.check_positive("segment", segment)
     if segment < 2 * window:
-        raise ValueError(f"segment = {segment:g} s must hold at least two windows of "
-                         f"{window:g} s (motion_ratio compares their means): pass segment ≥ "
-                         f"{2 * window:g}")
+        raise ValueError(
+            f"segment = {segment:g} s must hold at least two windows of "
+            f"{window:g} s (motion_ratio compares their means): pass segment ≥ "
+            f"{2 * window:g}"
+        )
     m = max(1, round(segment / dt))
     bounds = np.r_[np.arange(0, max(len(y) // m, 1)) * m, len(y)]
-    still = [motion_ratio(y[a:b], dt, window) < STATIC_MOTION_RATIO  # NaN: not static
-             for a, b in itertools.pairwise(bounds)]
+    still = [
+        motion_ratio(y[a:b], dt, window) < STATIC_MOTION_RATIO  # NaN: not static
+        for a, b in itertools.pairwise(bounds)
+    ]
     out: list[list[int]] = []
     for k, s in enumerate(still):
         if s and out and out[-1][1] == bounds[k]:
@@ -292,23 +308,28 @@ def fit_noise(taus, adev) -> NoiseFit:
     taus = _real_array("taus", taus)
     adev = _real_array("adev", adev)
     if taus.ndim != 1 or len(taus) < 2:
-        raise ValueError(f"taus must be a 1-D array of at least 2 cluster times, got shape "
-                         f"{taus.shape}")
+        raise ValueError(
+            f"taus must be a 1-D array of at least 2 cluster times, got shape {taus.shape}"
+        )
     if adev.ndim not in (1, 2):
         raise ValueError(f"adev must have shape (n,) or (n, d), got {adev.shape}")
     if adev.shape[0] != len(taus):
         raise ValueError(f"taus and adev have different lengths: {len(taus)} and {adev.shape[0]}")
     if not np.all(np.isfinite(taus) & (taus > 0)):
-        raise ValueError(f"taus must be positive and finite, got {taus[~(np.isfinite(taus) & (taus > 0))][0]} "
-                         f"at index {int(np.argmax(~(np.isfinite(taus) & (taus > 0))))}")
+        raise ValueError(
+            f"taus must be positive and finite, got {taus[~(np.isfinite(taus) & (taus > 0))][0]} "
+            f"at index {int(np.argmax(~(np.isfinite(taus) & (taus > 0))))}"
+        )
     bad = ~np.isfinite(adev)
     if bad.any():
         i = tuple(int(k) for k in np.argwhere(bad)[0])
         raise ValueError(f"adev contains non-finite values (NaN or inf), first at index {list(i)}")
     if np.any(adev <= 0):
         i = tuple(int(k) for k in np.argwhere(adev <= 0)[0])
-        raise ValueError(f"adev must be positive (a constant signal has no noise to fit), got "
-                         f"{adev[i]} at index {list(i)}")
+        raise ValueError(
+            f"adev must be positive (a constant signal has no noise to fit), got "
+            f"{adev[i]} at index {list(i)}"
+        )
     squeeze = adev.ndim == 1
     adev = adev[:, None] if squeeze else adev
     white, walk = [], []
@@ -348,8 +369,10 @@ def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
     """
     del accel  # the accelerometer's unit is judged by the readers (gravity's magnitude)
     if not isinstance(gyro, NoiseFit):
-        raise ValueError(f"gyro must be the NoiseFit of the gyro (from allan.fit_noise), got "
-                         f"{type(gyro).__name__}")
+        raise ValueError(
+            f"gyro must be the NoiseFit of the gyro (from allan.fit_noise), got "
+            f"{type(gyro).__name__}"
+        )
     white = np.atleast_1d(np.asarray(gyro.white, float))
     white = white[white > 0]  # the axes whose density was determined
     if white.size == 0:
@@ -361,4 +384,6 @@ def check_units(gyro: NoiseFit, accel: NoiseFit | None = None):
             f"rad/s (the noisiest MEMS gyros stay below {GYRO_WHITE_MAX:g}; read as deg/s it is "
             f"{np.deg2rad(median):.3g} rad/s/√Hz): is the gyro in deg/s, or the recording not "
             "static?",
-            [Fix("gyro_unit", "deg/s"), Fix("check_units", False)], sep=" ")
+            [Fix("gyro_unit", "deg/s"), Fix("check_units", False)],
+            sep=" ",
+        )

@@ -27,8 +27,13 @@ from jaximu.geometry.state import ImuBias, NavState
 from jaximu.io import CLOCK_TOLERANCE, GroundTruth
 from jaximu.io._common import in_gap
 
-__all__ = ["GroundTruthCoverage", "KeyframeWindows", "groundtruth_coverage",
-           "groundtruth_residuals", "keyframe_windows"]
+__all__ = [
+    "GroundTruthCoverage",
+    "KeyframeWindows",
+    "groundtruth_coverage",
+    "groundtruth_residuals",
+    "keyframe_windows",
+]
 
 
 class KeyframeWindows(NamedTuple):
@@ -43,6 +48,7 @@ class KeyframeWindows(NamedTuple):
         t_i: ``(K,)`` time of each window's first keyframe [s].
         t_j: ``(K,)`` time of each window's last keyframe [s].
     """
+
     sample_index: np.ndarray
     dt: np.ndarray
     t_i: np.ndarray
@@ -57,6 +63,7 @@ class GroundTruthCoverage(NamedTuple):
             :data:`jaximu.io.CLOCK_TOLERANCE`).
         in_gap: ``(K,)`` inside, with a keyframe in one of the ground truth's gaps.
     """
+
     inside: np.ndarray
     in_gap: np.ndarray
 
@@ -87,19 +94,22 @@ def keyframe_windows(t, samples: int) -> KeyframeWindows:
     """
     t = val.as_numbers("t", t)
     if t.ndim != 1 or len(t) < 2:
-        raise ValueError(f"t must be an (N,) array of at least 2 sample times, got shape "
-                         f"{t.shape}")
+        raise ValueError(f"t must be an (N,) array of at least 2 sample times, got shape {t.shape}")
     val.check_finite("t", t)
     down = np.flatnonzero(np.diff(t) <= 0)
     if down.size:
         i = int(down[0])
-        raise ValueError(f"t must be strictly increasing, but t[{i}] = {t[i]:.17g} and "
-                         f"t[{i + 1}] = {t[i + 1]:.17g}")
+        raise ValueError(
+            f"t must be strictly increasing, but t[{i}] = {t[i]:.17g} and "
+            f"t[{i + 1}] = {t[i + 1]:.17g}"
+        )
     n = val.check_int("samples", samples, 1)
     K = (len(t) - 1) // n
     if K < 1:
-        raise ValueError(f"samples = {n} intervals is more than the {len(t) - 1} intervals of "
-                         f"t: pass samples ≤ {len(t) - 1}")
+        raise ValueError(
+            f"samples = {n} intervals is more than the {len(t) - 1} intervals of "
+            f"t: pass samples ≤ {len(t) - 1}"
+        )
     index = np.arange(K)[:, None] * n + np.arange(n + 1)
     return KeyframeWindows(index, np.diff(t)[index[:, :-1]], t[index[:, 0]], t[index[:, -1]])
 
@@ -124,15 +134,18 @@ def groundtruth_coverage(ground_truth, t_i, t_j) -> GroundTruthCoverage:
     gt = _ground_truth(ground_truth)
     t_i, t_j = _times("t_i", t_i), _times("t_j", t_j)
     if t_i.shape != t_j.shape:
-        raise ValueError(f"t_i and t_j must have the same shape (one entry per window), got "
-                         f"{t_i.shape} and {t_j.shape}")
+        raise ValueError(
+            f"t_i and t_j must have the same shape (one entry per window), got "
+            f"{t_i.shape} and {t_j.shape}"
+        )
     inside = (t_i >= gt.t[0] - CLOCK_TOLERANCE) & (t_j <= gt.t[-1] + CLOCK_TOLERANCE)
     gap = inside & (_in_gap(gt, t_i) | _in_gap(gt, t_j))
     return GroundTruthCoverage(inside, gap)
 
 
-def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
-                          omega_coriolis=None) -> np.ndarray:
+def groundtruth_residuals(
+    pim, ground_truth, t_i, t_j, bias, gravity=9.81, *, omega_coriolis=None
+) -> np.ndarray:
     """The residual of each window's measurement between the ground-truth states at its
     keyframes.
 
@@ -161,13 +174,17 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
 
     gt = _ground_truth(ground_truth)
     if gt.v is None:
-        raise ValueError("ground_truth has no velocities: the residual compares them "
-                         "(a pose-only ground truth cannot check a preintegrated measurement)")
+        raise ValueError(
+            "ground_truth has no velocities: the residual compares them "
+            "(a pose-only ground truth cannot check a preintegrated measurement)"
+        )
     checked = groundtruth_coverage(gt, t_i, t_j).checked
     K = len(checked)
     if not isinstance(pim, Preintegrated) or np.shape(pim.delta_t) != (K,):
-        raise ValueError(f"pim must be a Preintegrated of {K} windows (one per t_i), got "
-                         f"{type(pim).__name__} of shape {np.shape(getattr(pim, 'delta_t', ()))}")
+        raise ValueError(
+            f"pim must be a Preintegrated of {K} windows (one per t_i), got "
+            f"{type(pim).__name__} of shape {np.shape(getattr(pim, 'delta_t', ()))}"
+        )
     if not isinstance(bias, ImuBias):
         raise ValueError(f"bias must be an ImuBias, got {type(bias).__name__}")
     out = np.full((K, 15), np.nan)
@@ -178,11 +195,19 @@ def groundtruth_residuals(pim, ground_truth, t_i, t_j, bias, gravity=9.81, *,
     states = []
     for tt in (_times("t_i", t_i)[rows], _times("t_j", t_j)[rows]):
         q, p, v = gt.interpolate(tt)
-        states.append(NavState(jnp.asarray(q, dtype), jnp.asarray(p, dtype),
-                                      jnp.asarray(v, dtype), bias.b_g, bias.b_a))
+        states.append(
+            NavState(
+                jnp.asarray(q, dtype),
+                jnp.asarray(p, dtype),
+                jnp.asarray(v, dtype),
+                bias.b_g,
+                bias.b_a,
+            )
+        )
     sel = jax.tree_util.tree_map(lambda x: x[rows], pim)
-    out[rows] = np.asarray(residual(states[0], states[1], sel, gravity,
-                                           omega_coriolis=omega_coriolis), np.float64)
+    out[rows] = np.asarray(
+        residual(states[0], states[1], sel, gravity, omega_coriolis=omega_coriolis), np.float64
+    )
     return out
 
 

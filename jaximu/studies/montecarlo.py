@@ -60,20 +60,44 @@ from jaximu.studies._montecarlo_setup import PositionFix, _prepare
 from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
 from jaximu.studies.simulate import Trajectory
 
-__all__ = ["MonteCarloResult", "PositionFix", "monte_carlo", "sample_run", "chi2_interval",
-           "load_result"]
+__all__ = [
+    "MonteCarloResult",
+    "PositionFix",
+    "monte_carlo",
+    "sample_run",
+    "chi2_interval",
+    "load_result",
+]
 
 
 # --------------------------------------------------------------------------- the study
 
 
-def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int, key, *,
-                scheme: str = "euler", gravity=9.81, b_g0=None, b_a0=None,
-                record_every: int = 1, chunk_size: int = 2048, n_keep: int = 100,
-                confidence: float = 0.95, progress: bool = False, shard: bool = True,
-                dtype=None, keep_nees: bool = False, nees_hist_times=(-1,),
-                nees_bins=None, update_every: int | None = None,
-                measurement: PositionFix | None = None) -> MonteCarloResult:
+def monte_carlo(
+    trajectory: Trajectory,
+    times,
+    P0,
+    noise: ImuNoise,
+    n_runs: int,
+    key,
+    *,
+    scheme: str = "euler",
+    gravity=9.81,
+    b_g0=None,
+    b_a0=None,
+    record_every: int = 1,
+    chunk_size: int = 2048,
+    n_keep: int = 100,
+    confidence: float = 0.95,
+    progress: bool = False,
+    shard: bool = True,
+    dtype=None,
+    keep_nees: bool = False,
+    nees_hist_times=(-1,),
+    nees_bins=None,
+    update_every: int | None = None,
+    measurement: PositionFix | None = None,
+) -> MonteCarloResult:
     """Monte Carlo covariance study of ``n_runs`` noisy copies of one trajectory.
 
     Args:
@@ -136,8 +160,9 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     """
     n_runs = val.check_int("n_runs", n_runs, 2)
     if n_runs > 2**32:
-        raise ValueError(f"n_runs must be at most 2**32 (run indices are 32-bit counters), got "
-                         f"{n_runs}")
+        raise ValueError(
+            f"n_runs must be at most 2**32 (run indices are 32-bit counters), got {n_runs}"
+        )
     chunk_size = val.check_int("chunk_size", chunk_size, 1)
     n_keep = val.check_int("n_keep", n_keep, 0)
     confidence = val.check_fraction("confidence", confidence)
@@ -146,26 +171,49 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     keep_nees = val.check_bool("keep_nees", keep_nees)
     if update_every is not None and measurement is None:
         measurement = PositionFix()
-    edges = np.linspace(0.0, 90.0, 201) if nees_bins is None else \
-        val.as_numbers("nees_bins", nees_bins)
-    if edges.ndim != 1 or len(edges) < 2 or not np.all(np.isfinite(edges)) \
-            or np.any(np.diff(edges) <= 0):
-        raise ValueError("nees_bins must be a 1-D array of at least 2 finite, strictly "
-                         f"increasing edges, got {nees_bins!r}")
-    st = _prepare(trajectory, times, P0, noise, key, scheme=scheme, gravity=gravity, b_g0=b_g0,
-                  b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
-                  measurement=measurement)
+    edges = (
+        np.linspace(0.0, 90.0, 201) if nees_bins is None else val.as_numbers("nees_bins", nees_bins)
+    )
+    if (
+        edges.ndim != 1
+        or len(edges) < 2
+        or not np.all(np.isfinite(edges))
+        or np.any(np.diff(edges) <= 0)
+    ):
+        raise ValueError(
+            "nees_bins must be a 1-D array of at least 2 finite, strictly "
+            f"increasing edges, got {nees_bins!r}"
+        )
+    st = _prepare(
+        trajectory,
+        times,
+        P0,
+        noise,
+        key,
+        scheme=scheme,
+        gravity=gravity,
+        b_g0=b_g0,
+        b_a0=b_a0,
+        record_every=record_every,
+        dtype=dtype,
+        update_every=update_every,
+        measurement=measurement,
+    )
     K = len(st.rec)
     hist_index = np.atleast_1d(np.asarray(nees_hist_times))
     if hist_index.dtype.kind not in "iu" or np.any((hist_index < -K) | (hist_index >= K)):
-        raise ValueError(f"nees_hist_times must be indices into the {K} recorded times "
-                         f"(-{K} to {K - 1}), got {nees_hist_times!r}")
+        raise ValueError(
+            f"nees_hist_times must be indices into the {K} recorded times "
+            f"(-{K} to {K - 1}), got {nees_hist_times!r}"
+        )
     hist_index = hist_index % K
     n_proc, proc = jax.process_count(), jax.process_index()
     if keep_nees and n_proc > 1:
-        raise ValueError("keep_nees=True needs one process (the per-run NEES stays on the "
-                         f"process that drew the run); pass keep_nees=False under "
-                         f"jax.distributed ({n_proc} processes)")
+        raise ValueError(
+            "keep_nees=True needs one process (the per-run NEES stays on the "
+            f"process that drew the run); pass keep_nees=False under "
+            f"jax.distributed ({n_proc} processes)"
+        )
 
     devices = jax.local_devices() if shard else jax.local_devices()[:1]
     # every process must cut the same chunks: under jax.distributed, balance over the global
@@ -229,21 +277,41 @@ def monte_carlo(trajectory: Trajectory, times, P0, noise: ImuNoise, n_runs: int,
     hist = np.where(undefined[hist_index][:, None], np.nan, acc.hist)
     if nees_all is not None:
         nees_all[:, undefined] = np.nan
-    settings = dict(trajectory=getattr(trajectory, "name", repr(trajectory)), n_runs=n_runs,
-                    scheme=scheme,
-                    record_every=int(record_every), n_steps=len(st.consts["dt"]),
-                    dtype=jnp.dtype(st.dtype).name, confidence=confidence,
-                    key=np.asarray(st.consts["keys"][0]).tolist(),
-                    chunk_size=min(chunk_size, n_runs),
-                    processes=n_proc, update_every=update_every,
-                    measurement_sigma=None if update_every is None or measurement is None else
-                    np.asarray(measurement.sigma, float).tolist())
+    settings = dict(
+        trajectory=getattr(trajectory, "name", repr(trajectory)),
+        n_runs=n_runs,
+        scheme=scheme,
+        record_every=int(record_every),
+        n_steps=len(st.consts["dt"]),
+        dtype=jnp.dtype(st.dtype).name,
+        confidence=confidence,
+        key=np.asarray(st.consts["keys"][0]).tolist(),
+        chunk_size=min(chunk_size, n_runs),
+        processes=n_proc,
+        update_every=update_every,
+        measurement_sigma=None
+        if update_every is None or measurement is None
+        else np.asarray(measurement.sigma, float).tolist(),
+    )
     return MonteCarloResult(
-        times=st.times, mean_error=mean, error_cov=cov, predicted_cov=predicted,
-        nees=nees_all, nees_mean=nees_mean, nees_bounds=np.array([lo, hi]) / n_runs,
-        sample_errors=keep, discretization_error=st.disc, n_runs=n_runs, confidence=confidence,
-        nees_hist=hist, nees_hist_edges=edges, nees_hist_index=hist_index,
-        nis_mean=nis_mean, nis_bounds=nis_bounds, settings=settings)
+        times=st.times,
+        mean_error=mean,
+        error_cov=cov,
+        predicted_cov=predicted,
+        nees=nees_all,
+        nees_mean=nees_mean,
+        nees_bounds=np.array([lo, hi]) / n_runs,
+        sample_errors=keep,
+        discretization_error=st.disc,
+        n_runs=n_runs,
+        confidence=confidence,
+        nees_hist=hist,
+        nees_hist_edges=edges,
+        nees_hist_index=hist_index,
+        nis_mean=nis_mean,
+        nis_bounds=nis_bounds,
+        settings=settings,
+    )
 
 
 def _chunk_runs(n_runs: int, chunk_size: int, slots: int) -> int:
@@ -280,7 +348,7 @@ def _collect(item, chunk, n_runs, acc, nees_all, bar):
     else:
         acc.add_chunk(n_valid, out[0], out[1], nees)
     if nees_all is not None:
-        nees_all[i * chunk:i * chunk + n_valid] = nees.T
+        nees_all[i * chunk : i * chunk + n_valid] = nees.T
     bar.update(n_valid)
 
 
@@ -294,8 +362,15 @@ def _lane_errors(study, run):
     n = run.shape[0]
     if n == 1:
         run = jnp.concatenate([run, run])
-    e = _chunk(run, jnp.ones(run.shape[0], study.dtype), study.consts, scheme=study.scheme,
-               seg=study.seg, mode="errors", filt=study.filt)
+    e = _chunk(
+        run,
+        jnp.ones(run.shape[0], study.dtype),
+        study.consts,
+        scheme=study.scheme,
+        seg=study.seg,
+        mode="errors",
+        filt=study.filt,
+    )
     return e[:, :n]
 
 
@@ -315,6 +390,7 @@ class Run(NamedTuple):
         start: the estimator's initial state ``x̂_0`` (:class:`NavState`, biases included).
         b_g, b_a: ``(T+1, 3)`` the true biases during each sample.
     """
+
     errors: np.ndarray
     times: np.ndarray
     gyro: np.ndarray
@@ -324,22 +400,55 @@ class Run(NamedTuple):
     b_a: np.ndarray
 
 
-def sample_run(trajectory: Trajectory, times, P0, noise: ImuNoise, key, i: int, *,
-               scheme: str = "euler", gravity=9.81, b_g0=None, b_a0=None,
-               record_every: int = 1, dtype=None, update_every=None,
-               measurement: PositionFix | None = None) -> Run:
+def sample_run(
+    trajectory: Trajectory,
+    times,
+    P0,
+    noise: ImuNoise,
+    key,
+    i: int,
+    *,
+    scheme: str = "euler",
+    gravity=9.81,
+    b_g0=None,
+    b_a0=None,
+    record_every: int = 1,
+    dtype=None,
+    update_every=None,
+    measurement: PositionFix | None = None,
+) -> Run:
     """Regenerate run ``i`` of :func:`monte_carlo` (same arguments) alone: its errors, which
     equal the study's (``sample_errors[i]``), and its measured IMU samples, true biases and
     initial estimate, for inspection and plotting. ``i``: an integer in ``[0, 2³²)``."""
     i = val.check_int("i", i, 0)
     if i >= 2**32:
         raise ValueError(f"i must be below 2**32, got {i}")
-    st = _prepare(trajectory, times, P0, noise, key, scheme=scheme, gravity=gravity, b_g0=b_g0,
-                  b_a0=b_a0, record_every=record_every, dtype=dtype, update_every=update_every,
-                  measurement=measurement, nees=False)
+    st = _prepare(
+        trajectory,
+        times,
+        P0,
+        noise,
+        key,
+        scheme=scheme,
+        gravity=gravity,
+        b_g0=b_g0,
+        b_a0=b_a0,
+        record_every=record_every,
+        dtype=dtype,
+        update_every=update_every,
+        measurement=measurement,
+        nees=False,
+    )
     run = jnp.asarray([i], jnp.uint32)
     e = _lane_errors(st, run)[:, 0]
     gyro, accel, b, start = _measured(run, st.consts)
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
-    return Run(f64(e), st.times, f64(gyro), f64(accel), jax.tree_util.tree_map(f64, start),
-               f64(b[:, :3]), f64(b[:, 3:]))
+    return Run(
+        f64(e),
+        st.times,
+        f64(gyro),
+        f64(accel),
+        jax.tree_util.tree_map(f64, start),
+        f64(b[:, :3]),
+        f64(b[:, 3:]),
+    )

@@ -12,15 +12,18 @@ from jaximu.io import trajectory_errors
 
 __all__ = ["plot_trajectory", "plot_monte_carlo", "plot_nees", "plot_allan"]
 
-_BLOCKS = (("attitude error [deg]", 0, np.rad2deg(1.0)), ("position error [m]", 3, 1.0),
-           ("velocity error [m/s]", 6, 1.0))
+_BLOCKS = (
+    ("attitude error [deg]", 0, np.rad2deg(1.0)),
+    ("position error [m]", 3, 1.0),
+    ("velocity error [m/s]", 6, 1.0),
+)
 
 
 def _plt():
     try:
         import matplotlib.pyplot as plt
     except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("plots need matplotlib: pip install \"jaximu[examples]\"") from e
+        raise ImportError('plots need matplotlib: pip install "jaximu[examples]"') from e
     return plt
 
 
@@ -65,15 +68,21 @@ def plot_nees(result, ax=None, title: str | None = None):
     lo, hi = result.nees_bounds
     ax.plot(result.times, result.nees_mean, "k.-", label="average NEES")
     ax.axhline(15, color="g", lw=1, label="expected (15)")
-    ax.axhspan(lo, hi, color="g", alpha=0.15,
-               label=f"{100 * result.confidence:.0f}% interval, N = {result.n_runs}")
+    ax.axhspan(
+        lo,
+        hi,
+        color="g",
+        alpha=0.15,
+        label=f"{100 * result.confidence:.0f}% interval, N = {result.n_runs}",
+    )
     ax.set(xlabel="t [s]", ylabel="NEES", title=title or "Normalised estimation error squared")
     ax.legend(fontsize=8)
     return fig or ax.figure
 
 
-def plot_allan(taus, adev, fit=None, labels=("x", "y", "z"), ax=None, unit="rad/s",
-               title: str | None = None):
+def plot_allan(
+    taus, adev, fit=None, labels=("x", "y", "z"), ax=None, unit="rad/s", title: str | None = None
+):
     """Allan deviation (log-log) per axis, with the fitted white-noise (slope -1/2) and
     random-walk (slope +1/2) lines when ``fit`` (:class:`jaximu.allan.NoiseFit`) is given."""
     plt = _plt()
@@ -83,21 +92,25 @@ def plot_allan(taus, adev, fit=None, labels=("x", "y", "z"), ax=None, unit="rad/
     adev = np.asarray(adev)
     adev = adev[:, None] if adev.ndim == 1 else adev
     for j in range(adev.shape[1]):
-        line, = ax.loglog(taus, adev[:, j], ".-", label=f"σ({labels[j]})")
+        (line,) = ax.loglog(taus, adev[:, j], ".-", label=f"σ({labels[j]})")
         if fit is not None:
             w = np.atleast_1d(fit.white)[j]
             k = np.atleast_1d(fit.random_walk)[j]
             ax.loglog(taus, w / np.sqrt(taus), ":", color=line.get_color(), lw=1)
             ax.loglog(taus, k * np.sqrt(taus / 3), "--", color=line.get_color(), lw=1)
-    ax.set(xlabel="τ [s]", ylabel=f"Allan deviation [{unit}]",
-           title=title or "Allan deviation (dotted: white noise, dashed: random walk)")
+    ax.set(
+        xlabel="τ [s]",
+        ylabel=f"Allan deviation [{unit}]",
+        title=title or "Allan deviation (dotted: white noise, dashed: random walk)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return fig or ax.figure
 
 
-def plot_trajectory(t, states, ground_truth=None, cov=None, *, label: str = "jaximu",
-                    title: str | None = None):
+def plot_trajectory(
+    t, states, ground_truth=None, cov=None, *, label: str = "jaximu", title: str | None = None
+):
     """Trajectory against ground truth, with the errors and their 3σ envelopes.
 
     Top row: top view (x-y, world frame) and height against time. With ground truth, two
@@ -134,8 +147,12 @@ def plot_trajectory(t, states, ground_truth=None, cov=None, *, label: str = "jax
         err = trajectory_errors(t, states, ground_truth, cov)
         te = err.t - t0
         for row, (name, values, i0, scale, unit) in enumerate(
-                (("position error", err.position, 3, 1.0, "m"),
-                 ("orientation error", err.rotation, 0, np.rad2deg(1.0), "deg")), start=1):
+            (
+                ("position error", err.position, 3, 1.0, "m"),
+                ("orientation error", err.rotation, 0, np.rad2deg(1.0), "deg"),
+            ),
+            start=1,
+        ):
             for c, axis in enumerate("xyz"):
                 ax = fig.add_subplot(grid[row, c])
                 ax.plot(te, values[:, c] * scale, "C0.-", ms=2, lw=1, label=f"{label} − truth")

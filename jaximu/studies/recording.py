@@ -33,8 +33,15 @@ from jaximu.schemes.integrators import SCHEMES
 from jaximu.schemes.world import check_omega
 from jaximu.studies.plots import plot_trajectory
 
-__all__ = ["DEMO_SCHEMES", "DEMO_SECONDS", "NOISE_PRESETS", "default_P0", "noise_preset",
-           "propagate_recording", "run_demo"]
+__all__ = [
+    "DEMO_SCHEMES",
+    "DEMO_SECONDS",
+    "NOISE_PRESETS",
+    "default_P0",
+    "noise_preset",
+    "propagate_recording",
+    "run_demo",
+]
 
 #: The schemes the demo runs (and the command offers).
 DEMO_SCHEMES = ("euler", "midpoint", "rk4")
@@ -71,8 +78,15 @@ def _progress(total, desc, enabled, unit="sample"):
     except ImportError:
         return None
     # disable=None: no bar when stderr is not a terminal (logs, CI, subprocess pipes)
-    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, leave=False,
-                disable=None)
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit=unit,
+        unit_scale=True,
+        file=sys.stderr,
+        leave=False,
+        disable=None,
+    )
 
 
 def save_plot(make, path, out=None) -> None:
@@ -86,7 +100,7 @@ def save_plot(make, path, out=None) -> None:
 
         matplotlib.use("Agg")
     except ImportError:
-        print("matplotlib is not installed: no plot (pip install \"jaximu[examples]\")", file=out)
+        print('matplotlib is not installed: no plot (pip install "jaximu[examples]")', file=out)
         return
     import matplotlib.pyplot as plt
 
@@ -96,8 +110,20 @@ def save_plot(make, path, out=None) -> None:
     print(f"plot written to {path}", file=out)
 
 
-def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
-                        chunk=2000, progress=False, body_P_sensor=None, omega_coriolis=None):
+def propagate_recording(
+    data,
+    state0,
+    P0,
+    noise,
+    scheme,
+    dtype,
+    *,
+    gravity=9.81,
+    chunk=2000,
+    progress=False,
+    body_P_sensor=None,
+    omega_coriolis=None,
+):
     """Propagate state and covariance through a whole recording, chunk by chunk (for the
     progress bar), exactly as one call: consecutive chunks share their boundary sample, and
     the intervals ``dt`` are the ends-of-interval form of :func:`jaximu.propagate`.
@@ -141,9 +167,20 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
         check_pose(body_P_sensor, dtype)
     if omega_coriolis is not None:
         check_omega(omega_coriolis, dtype)
-    step = jax.jit(lambda x, P, w, a, h: propagate_covariance(
-        x, P, w, a, h, noise, scheme, gravity=gravity, body_P_sensor=body_P_sensor,
-        omega_coriolis=omega_coriolis))
+    step = jax.jit(
+        lambda x, P, w, a, h: propagate_covariance(
+            x,
+            P,
+            w,
+            a,
+            h,
+            noise,
+            scheme,
+            gravity=gravity,
+            body_P_sensor=body_P_sensor,
+            omega_coriolis=omega_coriolis,
+        )
+    )
     gyro = jnp.asarray(data.gyro, dtype)
     accel = jnp.asarray(data.accel, dtype)
     dt = jnp.asarray(data.dt, dtype)
@@ -154,7 +191,7 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     bar = _progress(n, f"propagate ({scheme})", progress)
     for lo in range(0, n, chunk):
         hi = min(lo + chunk, n)
-        states, covs = step(x, P, gyro[lo:hi + 1], accel[lo:hi + 1], dt[lo:hi])
+        states, covs = step(x, P, gyro[lo : hi + 1], accel[lo : hi + 1], dt[lo:hi])
         x = jax.tree_util.tree_map(lambda a: a[-1], states)
         P = covs[-1]
         parts_x.append(states)
@@ -164,18 +201,28 @@ def propagate_recording(data, state0, P0, noise, scheme, dtype, *, gravity=9.81,
     if bar is not None:
         bar.close()
     parts_x[0] = jax.tree_util.tree_map(lambda a: a[None], parts_x[0])
-    states = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(b, np.float64)
-                                                                for b in a]), *parts_x)
+    states = jax.tree_util.tree_map(
+        lambda *a: np.concatenate([np.asarray(b, np.float64) for b in a]), *parts_x
+    )
     cov = np.concatenate([np.asarray(c, np.float64) for c in parts_P])
-    if not (np.isfinite(cov).all() and all(np.isfinite(np.asarray(f)).all()
-                                           for f in jax.tree_util.tree_leaves(states))):
-        raise ValueError("propagation produced non-finite values (overflow): check the units "
-                         "and the time stamps of the recording")
+    if not (
+        np.isfinite(cov).all()
+        and all(np.isfinite(np.asarray(f)).all() for f in jax.tree_util.tree_leaves(states))
+    ):
+        raise ValueError(
+            "propagation produced non-finite values (overflow): check the units "
+            "and the time stamps of the recording"
+        )
     return data.t, states, cov
 
 
-def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
-             plot: str | None = "jaximu_demo.png", out=None, progress: bool = False) -> dict:
+def run_demo(
+    seconds: float = DEMO_SECONDS,
+    scheme: str = "midpoint",
+    plot: str | None = "jaximu_demo.png",
+    out=None,
+    progress: bool = False,
+) -> dict:
     """Dead reckoning on the bundled EuRoC excerpt (V1_02_medium, 200 Hz) with every scheme,
     from the ground-truth state and biases, against the ground truth.
 
@@ -198,15 +245,22 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
     out = out if out is not None else sys.stdout
     seconds = val.check_positive("seconds", seconds)
     if seconds > DEMO_SECONDS:
-        raise InputError(f"seconds={seconds:g}: the bundled excerpt holds {DEMO_SECONDS:g} s of "
-                         "ground truth", [Fix("seconds", DEMO_SECONDS)])
+        raise InputError(
+            f"seconds={seconds:g}: the bundled excerpt holds {DEMO_SECONDS:g} s of ground truth",
+            [Fix("seconds", DEMO_SECONDS)],
+        )
     val.check_choice("scheme", scheme, DEMO_SCHEMES)
     if plot:  # checked before the work, not after it
         target = pathlib.Path(plot)
         if target.is_dir() or not target.parent.is_dir():
-            raise ValueError(f"plot={str(plot)!r}: " + (
-                "is a folder; name a file in it" if target.is_dir() else
-                f"the folder {target.parent} does not exist"))
+            raise ValueError(
+                f"plot={str(plot)!r}: "
+                + (
+                    "is a folder; name a file in it"
+                    if target.is_dir()
+                    else f"the folder {target.parent} does not exist"
+                )
+            )
     with resources.as_file(resources.files("jaximu") / "data" / "euroc_v1_02_medium") as folder:
         data = io.read_euroc(folder)
     gt = data.ground_truth
@@ -216,19 +270,23 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
     state0, _ = io.initial_state(data, from_groundtruth=True)
     noise = noise_preset("euroc")
     P0 = default_P0(True)
-    print(f"jaximu demo: EuRoC MAV V1_02_medium, {len(data.dt)} samples over "
-          f"{data.duration:.2f} s at 200 Hz ({jnp.dtype(dtype).name}, {jax.default_backend()})",
-          file=out)
-    print("propagating from the ground-truth state with the ground-truth biases; "
-          "no corrections (pure dead reckoning)", file=out)
+    print(
+        f"jaximu demo: EuRoC MAV V1_02_medium, {len(data.dt)} samples over "
+        f"{data.duration:.2f} s at 200 Hz ({jnp.dtype(dtype).name}, {jax.default_backend()})",
+        file=out,
+    )
+    print(
+        "propagating from the ground-truth state with the ground-truth biases; "
+        "no corrections (pure dead reckoning)",
+        file=out,
+    )
     report_at: list[float] = [s for s in _DEMO_REPORT_AT if s <= data.duration + 1e-9]
     if not report_at:  # shorter than the first mark: report at the end
         report_at = [round(float(seconds), 3)]
     table, results = {}, {}
     for sch in DEMO_SCHEMES:
         tic = time.perf_counter()
-        t, states, cov = propagate_recording(data, state0, P0, noise, sch, dtype,
-                                             progress=progress)
+        t, states, cov = propagate_recording(data, state0, P0, noise, sch, dtype, progress=progress)
         results[sch] = (states, cov, time.perf_counter() - tic)
         err = io.trajectory_errors(t, states, gt, cov)
         table[sch] = {s: err.at(s, data.t[0]) for s in report_at}
@@ -239,18 +297,26 @@ def run_demo(seconds: float = DEMO_SECONDS, scheme: str = "midpoint",
         print(f"{sch:<10}{cells}", file=out)
     horizon = report_at[-1]
     pos = table[scheme][horizon][0]
-    print(f"\n{scheme}: position drift {pos:.2f} m after {horizon} s ({pos / horizon:.3f} m per "
-          f"second on average); propagation with covariance took {results[scheme][2]:.2f} s "
-          "including compilation", file=out)
+    print(
+        f"\n{scheme}: position drift {pos:.2f} m after {horizon} s ({pos / horizon:.3f} m per "
+        f"second on average); propagation with covariance took {results[scheme][2]:.2f} s "
+        "including compilation",
+        file=out,
+    )
     if plot:
         states, cov, _ = results[scheme]
 
         def make():
 
             return plot_trajectory(
-                data.t, states, gt, cov, label=f"jaximu {scheme}",
-                title="jaximu: IMU dead reckoning on EuRoC MAV V1_02_medium "
-                      "(real ADIS16448 data)")
+                data.t,
+                states,
+                gt,
+                cov,
+                label=f"jaximu {scheme}",
+                title="jaximu: IMU dead reckoning on EuRoC MAV V1_02_medium (real ADIS16448 data)",
+            )
+
         with contextlib.redirect_stdout(out):
             save_plot(make, plot)
     return table

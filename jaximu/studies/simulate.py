@@ -54,6 +54,7 @@ class Trajectory:
         pose: the pose function (jax-traceable, twice differentiable in ``t``).
         name: a label for plots and reports.
     """
+
     pose: Callable
     name: str = "trajectory"
 
@@ -80,8 +81,9 @@ def _finite(name, x, positive=False, shape=None):
 
 def _check_traj(traj, t):
     if not isinstance(traj, Trajectory):
-        raise ValueError(f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got "
-                         f"{type(traj).__name__}")
+        raise ValueError(
+            f"traj must be a jaximu.simulate.Trajectory (e.g. circle()), got {type(traj).__name__}"
+        )
     t = val.to_dtype("t", t, None)  # text, complex, None, ragged lists: an error naming t
     if t.ndim != 1:
         raise ValueError(f"t must be a 1-D array of times (T,), got shape {tuple(t.shape)}")
@@ -115,8 +117,9 @@ def circle(radius: float = 5.0, speed: float = 2.0, height: float = 1.0) -> Traj
     return Trajectory(pose, f"circle(r={radius}, v={speed})")
 
 
-def figure_eight(a: float = 6.0, b: float = 3.0, period: float = 20.0, height: float = 1.5,
-                 bank: float = 0.25) -> Trajectory:
+def figure_eight(
+    a: float = 6.0, b: float = 3.0, period: float = 20.0, height: float = 1.5, bank: float = 0.25
+) -> Trajectory:
     """Horizontal figure eight ``(a sin wt, b sin 2wt)`` with heading along the velocity and a
     banking roll ``bank·sin(2wt)`` [rad]. ``a``, ``b``, ``height``, ``bank`` finite [m, rad];
     ``period > 0`` [s]."""
@@ -134,13 +137,20 @@ def figure_eight(a: float = 6.0, b: float = 3.0, period: float = 20.0, height: f
     return Trajectory(pose, f"figure_eight(a={a}, b={b}, T={period})")
 
 
-def lissajous(amplitude=(3.0, 2.0, 0.5), frequency=(0.1, 0.15, 0.23),
-              attitude_amplitude=(0.3, 0.2, 0.8), attitude_frequency=(0.21, 0.17, 0.07)) -> Trajectory:
+def lissajous(
+    amplitude=(3.0, 2.0, 0.5),
+    frequency=(0.1, 0.15, 0.23),
+    attitude_amplitude=(0.3, 0.2, 0.8),
+    attitude_frequency=(0.21, 0.17, 0.07),
+) -> Trajectory:
     """3-D Lissajous curve with independently oscillating roll, pitch and yaw [rad, Hz].
     Each argument: three finite numbers (amplitudes [m, rad], frequencies [Hz])."""
-    for name, x in (("amplitude", amplitude), ("frequency", frequency),
-                    ("attitude_amplitude", attitude_amplitude),
-                    ("attitude_frequency", attitude_frequency)):
+    for name, x in (
+        ("amplitude", amplitude),
+        ("frequency", frequency),
+        ("attitude_amplitude", attitude_amplitude),
+        ("attitude_frequency", attitude_frequency),
+    ):
         _finite(name, x, shape=(3,))
     A, f = np.asarray(amplitude, float), np.asarray(frequency, float)
     B, g = np.asarray(attitude_amplitude, float), np.asarray(attitude_frequency, float)
@@ -153,8 +163,9 @@ def lissajous(amplitude=(3.0, 2.0, 0.5), frequency=(0.1, 0.15, 0.23),
     return Trajectory(pose, "lissajous")
 
 
-def helix(radius: float = 3.0, turn_rate: float = 0.4, climb_rate: float = 0.2,
-          wobble: float = 0.2) -> Trajectory:
+def helix(
+    radius: float = 3.0, turn_rate: float = 0.4, climb_rate: float = 0.2, wobble: float = 0.2
+) -> Trajectory:
     """Climbing helix, heading along the track, with roll and pitch wobbling by ``wobble`` rad.
     ``radius > 0`` [m]; ``turn_rate`` [rad/s], ``climb_rate`` [m/s], ``wobble`` finite."""
     _finite("radius", radius, True)
@@ -227,10 +238,17 @@ def waypoints(times, positions, quaternions=None) -> Trajectory:
     else:
         quaternions = _numbers("quaternions", quaternions)
         if quaternions.shape != (len(times), 4):
-            raise ValueError(f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}")
+            raise ValueError(
+                f"quaternions must have shape ({len(times)}, 4), got {quaternions.shape}"
+            )
         val.check_finite("quaternions", quaternions)
-        _tolerances.check_unit_norm("quaternions", quaternions, np.float64,
-                            where=lambda i: f" at row {i[0]}", fix="normalise them first")
+        _tolerances.check_unit_norm(
+            "quaternions",
+            quaternions,
+            np.float64,
+            where=lambda i: f" at row {i[0]}",
+            fix="normalise them first",
+        )
         rotvecs = np.array(so3.log(jnp.asarray(quaternions)), float)  # a writable copy
         for k in range(1, len(rotvecs)):  # unwrap: pick r or r - 2π r̂ closest to the previous
             r = rotvecs[k]
@@ -274,21 +292,29 @@ def _check_poses(traj: Trajectory, t, q, *derived):
         bad = ~np.all(np.isfinite(np.asarray(x)), axis=-1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"traj.pose ({traj.name}) gave non-finite values at t[{i}] = "
-                             f"{tn[i]:g} (in its pose or their derivatives); it must be finite "
-                             "and twice differentiable at every t")
-    _tolerances.check_unit_norm(f"traj.pose ({traj.name})", q, q.dtype, what="gave a non-unit quaternion",
-                        where=lambda i: f" at t[{i[0]}] = {tn[i[0]]:g}",
-                        fix="return a unit q, e.g. normalised with jaximu.so3.quat_normalize "
-                            "inside pose")
+            raise ValueError(
+                f"traj.pose ({traj.name}) gave non-finite values at t[{i}] = "
+                f"{tn[i]:g} (in its pose or their derivatives); it must be finite "
+                "and twice differentiable at every t"
+            )
+    _tolerances.check_unit_norm(
+        f"traj.pose ({traj.name})",
+        q,
+        q.dtype,
+        what="gave a non-unit quaternion",
+        where=lambda i: f" at t[{i[0]}] = {tn[i[0]]:g}",
+        fix="return a unit q, e.g. normalised with jaximu.so3.quat_normalize inside pose",
+    )
 
 
 def _one(name, x, shape_of):
     """``x`` (a checked gravity vector, world rate or sensor pose) of one trajectory: no
     batch axes, which would land beside the time axis of the outputs."""
     if len(shape_of) > 1:
-        raise ValueError(f"{name} must be one {x} for a trajectory's samples, got shape "
-                         f"{tuple(shape_of)}; jax.vmap over ideal_imu for several")
+        raise ValueError(
+            f"{name} must be one {x} for a trajectory's samples, got shape "
+            f"{tuple(shape_of)}; jax.vmap over ideal_imu for several"
+        )
 
 
 def true_states(traj: Trajectory, t) -> NavState:
@@ -368,14 +394,26 @@ class ImuErrors(NamedTuple):
         b_g, b_a: ``(..., T, 3)`` the true biases during each sample (turn-on + random walk).
         b_g_end, b_a_end: ``(..., 3)`` the true biases after the last sample.
     """
+
     b_g: jax.Array
     b_a: jax.Array
     b_g_end: jax.Array
     b_a_end: jax.Array
 
 
-def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
-              gyro_misalignment=None, accel_misalignment=None, batch_shape=()):
+def add_noise(
+    key,
+    gyro,
+    accel,
+    dt,
+    noise: ImuNoise,
+    *,
+    b_g0=0.0,
+    b_a0=0.0,
+    gyro_misalignment=None,
+    accel_misalignment=None,
+    batch_shape=(),
+):
     """Measured samples from true ones: ``w_m = M_g ω + b_g + n_g``, ``a_m = M_a f + b_a + n_a``.
 
     Args:
@@ -403,8 +441,10 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     val.check_vector("gyro", gyro)
     val.check_vector("accel", accel)
     if gyro.shape[-2] != accel.shape[-2]:
-        raise ValueError(f"gyro and accel have different numbers of samples: {gyro.shape[-2]} "
-                         f"and {accel.shape[-2]}")
+        raise ValueError(
+            f"gyro and accel have different numbers of samples: {gyro.shape[-2]} "
+            f"and {accel.shape[-2]}"
+        )
     T = gyro.shape[-2]
     if T == 0:
         raise ValueError("gyro and accel hold no samples (T = 0)")
@@ -413,8 +453,10 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     noise = check_noise(noise, dtype)
     batch_shape = val.check_batch_shape(batch_shape)
     mis = {}
-    for name, M in (("gyro_misalignment", gyro_misalignment),
-                    ("accel_misalignment", accel_misalignment)):
+    for name, M in (
+        ("gyro_misalignment", gyro_misalignment),
+        ("accel_misalignment", accel_misalignment),
+    ):
         if M is None:
             continue
         M = val.to_dtype(name, M, dtype)
@@ -424,8 +466,10 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
         mis[name] = M
     dt = val.to_dtype("dt", dt, dtype)
     if dt.ndim > 1 or (dt.ndim == 1 and dt.shape[0] != T):
-        raise ValueError(f"dt must be a scalar or have shape (T,) = ({T},) (one period per "
-                         f"sample), got {tuple(dt.shape)}")
+        raise ValueError(
+            f"dt must be a scalar or have shape (T,) = ({T},) (one period per "
+            f"sample), got {tuple(dt.shape)}"
+        )
     dt = jnp.broadcast_to(dt, (T,))
     # a density per sample broadcasts with dt's (T,)
     val.batch_shape((T,), names=("dt",), noise=noise)
@@ -434,23 +478,32 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     for name, b in (("b_g0", b_g0), ("b_a0", b_a0)):
         b = val.to_dtype(name, b, dtype)
         if b.ndim and b.shape[-1] != 3:
-            raise ValueError(f"{name} must be a scalar or have shape (..., 3), got "
-                             f"{tuple(b.shape)}")
+            raise ValueError(
+                f"{name} must be a scalar or have shape (..., 3), got {tuple(b.shape)}"
+            )
         val.check_finite(name, b)
         bias0[name] = b[..., None, :] if b.ndim else b
     b_g0, b_a0 = bias0["b_g0"], bias0["b_a0"]
     # the outputs are batch_shape + (T, 3): a batch of the inputs beyond it would share one
     # noise stream (the same noise in every element), so it is refused
-    given = (("gyro", gyro.shape[:-2]), ("accel", accel.shape[:-2]),
-             ("b_g0", b_g0.shape[:-2]), ("b_a0", b_a0.shape[:-2]))
-    full = val.batch_shape(batch_shape, *(s for _, s in given),
-                           names=("batch_shape",) + tuple(n for n, _ in given))
+    given = (
+        ("gyro", gyro.shape[:-2]),
+        ("accel", accel.shape[:-2]),
+        ("b_g0", b_g0.shape[:-2]),
+        ("b_a0", b_a0.shape[:-2]),
+    )
+    full = val.batch_shape(
+        batch_shape, *(s for _, s in given), names=("batch_shape",) + tuple(n for n, _ in given)
+    )
     if tuple(full) != batch_shape:
-        name, shape = next((n, s) for n, s in given
-                           if jnp.broadcast_shapes(batch_shape, s) != batch_shape)
-        raise ValueError(f"{name} has batch axes {tuple(shape)} beyond batch_shape = "
-                         f"{batch_shape}: every element would get the same noise draw; pass "
-                         f"batch_shape={tuple(full)} (one independent stream each)")
+        name, shape = next(
+            (n, s) for n, s in given if jnp.broadcast_shapes(batch_shape, s) != batch_shape
+        )
+        raise ValueError(
+            f"{name} has batch axes {tuple(shape)} beyond batch_shape = "
+            f"{batch_shape}: every element would get the same noise draw; pass "
+            f"batch_shape={tuple(full)} (one independent stream each)"
+        )
     z = jax.random.normal(key, batch_shape + (T, 12), dtype)
     walk_g = jnp.cumsum(z[..., 6:9] * sbg, axis=-2)
     walk_a = jnp.cumsum(z[..., 9:12] * sba, axis=-2)
@@ -464,6 +517,7 @@ def add_noise(key, gyro, accel, dt, noise: ImuNoise, *, b_g0=0.0, b_a0=0.0,
     f = accel if Ma is None else accel + accel @ Ma.T
     gyro_m = w + b_g + z[..., 0:3] * sg
     accel_m = f + b_a + z[..., 3:6] * sa
-    errors = ImuErrors(b_g, b_a, (b_g0 + walk_g[..., -1:, :])[..., 0, :],
-                       (b_a0 + walk_a[..., -1:, :])[..., 0, :])
+    errors = ImuErrors(
+        b_g, b_a, (b_g0 + walk_g[..., -1:, :])[..., 0, :], (b_a0 + walk_a[..., -1:, :])[..., 0, :]
+    )
     return gyro_m, accel_m, errors

@@ -37,24 +37,31 @@ def test_allan_names_a_traced_input_and_a_wrong_fit():
     an AttributeError."""
 
     from jaximu import allan
+
     with pytest.raises(ValueError, match=r"y must be concrete numbers, got a traced value"):
         jax.jit(lambda y: allan.allan_deviation(y, 0.01)[1])(jnp.zeros((20, 3)))
     with pytest.raises(ValueError, match=r"gyro must be the NoiseFit of the gyro"):
         allan.check_units(None)
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    ({"y": Y + 1j}, r"y must be real, got a complex value"),
-    ({"y": Y.astype(str)}, r"y must be an array of numbers"),
-    ({"dt": "0.005"}, r"dt must be a real number of seconds, got str"),
-    ({"dt": 0.005 + 0j}, r"dt must be a real number of seconds, got complex"),
-    ({"taus": [0.1, 0.01]}, r"taus must be strictly increasing .* taus\[0\] = 0\.1 and "
-                            r"taus\[1\] = 0\.01; pass np\.unique\(taus\)"),
-    ({"taus": [0.1, 0.01, 0.1]}, r"taus must be strictly increasing"),
-    ({"taus": [0.01, 0.01]}, r"taus must be strictly increasing"),
-    ({"taus": ["0.1"]}, r"taus must be an array of numbers"),
-    ({"points_per_decade": "10"}, r"points_per_decade must be a positive number"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"y": Y + 1j}, r"y must be real, got a complex value"),
+        ({"y": Y.astype(str)}, r"y must be an array of numbers"),
+        ({"dt": "0.005"}, r"dt must be a real number of seconds, got str"),
+        ({"dt": 0.005 + 0j}, r"dt must be a real number of seconds, got complex"),
+        (
+            {"taus": [0.1, 0.01]},
+            r"taus must be strictly increasing .* taus\[0\] = 0\.1 and "
+            r"taus\[1\] = 0\.01; pass np\.unique\(taus\)",
+        ),
+        ({"taus": [0.1, 0.01, 0.1]}, r"taus must be strictly increasing"),
+        ({"taus": [0.01, 0.01]}, r"taus must be strictly increasing"),
+        ({"taus": ["0.1"]}, r"taus must be an array of numbers"),
+        ({"points_per_decade": "10"}, r"points_per_decade must be a positive number"),
+    ],
+)
 def test_allan_deviation_refuses_what_it_would_alter(kwargs, message):
     with pytest.raises(ValueError, match=message):
         allan.allan_deviation(**{"y": Y, "dt": 0.005, **kwargs})
@@ -73,8 +80,14 @@ def test_fit_noise_flags_densities_it_could_not_determine():
     """A term the data do not show (as in real recordings) is flagged not determined, not
     returned as a density of 0 that reads as a measurement."""
     taus = np.logspace(-2, 1, 10)
-    adev = np.stack([np.sqrt(1e-3**2 / taus), np.sqrt(1e-4**2 * taus / 3),
-                     np.sqrt(1e-3**2 / taus + 1e-4**2 * taus / 3)], axis=1)
+    adev = np.stack(
+        [
+            np.sqrt(1e-3**2 / taus),
+            np.sqrt(1e-4**2 * taus / 3),
+            np.sqrt(1e-3**2 / taus + 1e-4**2 * taus / 3),
+        ],
+        axis=1,
+    )
     fit = allan.fit_noise(taus, adev)
     np.testing.assert_array_equal(fit.white_determined, [True, False, True])
     np.testing.assert_array_equal(fit.random_walk_determined, [False, True, True])
@@ -95,16 +108,21 @@ def test_check_units_judges_only_determined_axes():
     allan.check_units(allan.fit_noise(taus, np.stack([walk_only] * 3, axis=1)))  # nothing to judge
 
 
-@pytest.mark.parametrize("call, message", [
-    (lambda: allan.motion_ratio(np.array([0.0, np.nan, 1.0]), 0.01), r"y contains non-finite"),
-    (lambda: allan.motion_ratio(Y, 0.0), r"dt must be positive and finite"),
-    (lambda: allan.motion_ratio(Y, 0.01, window=-1.0), r"window must be positive and finite"),
-    (lambda: allan.motion_ratio(Y + 1j, 0.01), r"y must be real, got a complex value"),
-    (lambda: allan.motion_ratio(np.zeros((4, 3, 2)), 0.01), r"y must have shape \(N,\) or"),
-    (lambda: allan.static_intervals(Y, 0.01, segment=1.5),
-     r"segment = 1.5 s must hold at least two windows of 1 s .*pass segment ≥ 2"),
-    (lambda: allan.static_intervals(Y, 0.01, segment=0.0), r"segment must be positive"),
-])
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: allan.motion_ratio(np.array([0.0, np.nan, 1.0]), 0.01), r"y contains non-finite"),
+        (lambda: allan.motion_ratio(Y, 0.0), r"dt must be positive and finite"),
+        (lambda: allan.motion_ratio(Y, 0.01, window=-1.0), r"window must be positive and finite"),
+        (lambda: allan.motion_ratio(Y + 1j, 0.01), r"y must be real, got a complex value"),
+        (lambda: allan.motion_ratio(np.zeros((4, 3, 2)), 0.01), r"y must have shape \(N,\) or"),
+        (
+            lambda: allan.static_intervals(Y, 0.01, segment=1.5),
+            r"segment = 1.5 s must hold at least two windows of 1 s .*pass segment ≥ 2",
+        ),
+        (lambda: allan.static_intervals(Y, 0.01, segment=0.0), r"segment must be positive"),
+    ],
+)
 def test_motion_detection_names_bad_input(call, message):
     with pytest.raises(ValueError, match=message):
         call()

@@ -20,11 +20,14 @@ def a_reference(n=401, rate=200.0):
     return t, cal.Reference(t, q, np.zeros((n, 3)), np.zeros((n, 3)))
 
 
-@pytest.mark.parametrize("value,message", [
-    (-0.5, r"keyframe_interval must be positive and finite, got -0\.5"),
-    (np.nan, r"keyframe_interval must be positive and finite, got nan"),
-    (0.001, r"keyframe_interval = 0\.001 s is shorter than one sample interval \(0\.005 s\)"),
-])
+@pytest.mark.parametrize(
+    "value,message",
+    [
+        (-0.5, r"keyframe_interval must be positive and finite, got -0\.5"),
+        (np.nan, r"keyframe_interval must be positive and finite, got nan"),
+        (0.001, r"keyframe_interval = 0\.001 s is shorter than one sample interval \(0\.005 s\)"),
+    ],
+)
 def test_keyframe_interval_domain(value, message):
     t, ref = a_reference()
     gyro = np.zeros((len(t), 3))
@@ -37,6 +40,7 @@ def test_keyframe_interval_domain(value, message):
 def cal_inputs():
     from jaximu import calibration as cal
     from jaximu import simulate as sim
+
     traj, t = sim.circle(), np.arange(60) * 0.01
     gyro, accel = sim.ideal_imu(traj, t)
     s = sim.true_states(traj, t)
@@ -48,8 +52,12 @@ def test_calibrate_refuses_estimate_given_as_a_string():
     """tuple("b_g") is ('b', '_', 'g'): "unknown calibration fields ['b', '_', 'g']"; None
     gave Python's "'NoneType' object is not iterable"."""
     from jaximu import calibration as cal
-    with pytest.raises(ValueError, match=r"estimate must be a tuple of field names, got the "
-                                         r"string 'b_g,b_a'; pass estimate=\('b_g', 'b_a'\)"):
+
+    with pytest.raises(
+        ValueError,
+        match=r"estimate must be a tuple of field names, got the "
+        r"string 'b_g,b_a'; pass estimate=\('b_g', 'b_a'\)",
+    ):
         cal.calibrate(cal.CalibrationProblem(*[None] * 13), estimate="b_g,b_a")
     with pytest.raises(ValueError, match=r"estimate must be a tuple of field names .*NoneType"):
         cal.calibrate(None, estimate=None)
@@ -58,20 +66,26 @@ def test_calibrate_refuses_estimate_given_as_a_string():
 def test_calibration_loss_names_its_arguments(cal_inputs):
     """AttributeError "'NoneType' object has no attribute 'velocities'"."""
     from jaximu import calibration as cal
+
     t, gyro, accel, ref = cal_inputs
-    problem = cal.calibration_problem(t, gyro, accel, ref, jaximu.ImuNoise.euroc(),
-                                      keyframe_interval=0.2, check=False)
+    problem = cal.calibration_problem(
+        t, gyro, accel, ref, jaximu.ImuNoise.euroc(), keyframe_interval=0.2, check=False
+    )
     with pytest.raises(ValueError, match=r"problem must be a CalibrationProblem"):
         cal.calibration_loss(None, cal.ImuCalibration.default())
     with pytest.raises(ValueError, match=r"calib must be an ImuCalibration"):
         cal.calibration_residuals(problem, None)
-    with pytest.raises(ValueError, match=r"velocities must have the shape \(3, 3\) of "
-                                         r"problem\.velocities"):
+    with pytest.raises(
+        ValueError,
+        match=r"velocities must have the shape \(3, 3\) of "
+        r"problem\.velocities",
+    ):
         cal.calibration_loss(problem, cal.ImuCalibration.default(), jnp.zeros((2, 3)))
 
 
 def test_imu_calibration_default_names_its_arguments():
     from jaximu import calibration as cal
+
     with pytest.raises(ValueError, match=r"dtype must be a floating dtype .*'foo'"):
         cal.ImuCalibration.default(dtype="foo")
     with pytest.raises(ValueError, match=r"gravity must be an array of numbers, got str"):
@@ -80,25 +94,37 @@ def test_imu_calibration_default_names_its_arguments():
         cal.ImuCalibration.default(b_g="abc")
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(extrinsics="no"), r"extrinsics must be True or False, got the string 'no'; "
-                            r"pass extrinsics=False"),
-    (dict(check="no"), r"check must be True or False"),
-    (dict(omega_coriolis=np.zeros((2, 3))), r"omega_coriolis must be one \(3,\) world rate"),
-    (dict(noise=jaximu.ImuNoise(np.full((2, 3), 1e-3), 1e-2)),
-     r"noise\.gyroscope_noise_density must be a scalar or \(3,\) for a calibration problem"),
-    (dict(noise=jaximu.ImuNoise(0.0, 0.0), reference_sigma=(0, 0, 0)),
-     r"the residuals' covariance is singular.*give noise positive densities"),
-    (dict(t="abc"), r"t must be an array of numbers, got str"),
-    (dict(reference_t="abc"), r"reference\.t must be an array of numbers, got str"),
-    (dict(reference_t=np.nan), r"reference\.t contains non-finite values .* \[5\]"),
-])
-def test_calibration_problem_names_what_it_took_silently_or_raised_deep(cal_inputs, change,
-                                                                         message):
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            dict(extrinsics="no"),
+            r"extrinsics must be True or False, got the string 'no'; "
+            r"pass extrinsics=False",
+        ),
+        (dict(check="no"), r"check must be True or False"),
+        (dict(omega_coriolis=np.zeros((2, 3))), r"omega_coriolis must be one \(3,\) world rate"),
+        (
+            dict(noise=jaximu.ImuNoise(np.full((2, 3), 1e-3), 1e-2)),
+            r"noise\.gyroscope_noise_density must be a scalar or \(3,\) for a calibration problem",
+        ),
+        (
+            dict(noise=jaximu.ImuNoise(0.0, 0.0), reference_sigma=(0, 0, 0)),
+            r"the residuals' covariance is singular.*give noise positive densities",
+        ),
+        (dict(t="abc"), r"t must be an array of numbers, got str"),
+        (dict(reference_t="abc"), r"reference\.t must be an array of numbers, got str"),
+        (dict(reference_t=np.nan), r"reference\.t contains non-finite values .* \[5\]"),
+    ],
+)
+def test_calibration_problem_names_what_it_took_silently_or_raised_deep(
+    cal_inputs, change, message
+):
     """extrinsics="no" and check="no" counted as True; a (2, 3) world rate was kept; a batched
     density and text reached JAX's/numpy's own errors; zero densities numpy's LinAlgError; a
     NaN reference time passed the order test."""
     from jaximu import calibration as cal
+
     t, gyro, accel, ref = cal_inputs
     kw = dict(noise=jaximu.ImuNoise.euroc(), keyframe_interval=0.2, check=False) | change
     rt = kw.pop("reference_t", ref.t)
@@ -109,15 +135,19 @@ def test_calibration_problem_names_what_it_took_silently_or_raised_deep(cal_inpu
         cal.calibration_problem(kw.pop("t", t), gyro, accel, ref, **kw)
 
 
-@pytest.mark.parametrize("field,value,message", [
-    ("q_BS", [1.0, 0.1, 0.0, 0.0], r"initial\.q_BS must be a unit quaternion"),
-    ("b_g", [0.0, np.nan, 0.0], r"initial\.b_g"),
-    ("gravity", -9.81, r"initial\.gravity is a magnitude"),
-    ("p_BS", [[0.0, 0.0, 0.1]] * 2, r"initial\.p_BS must have shape \(3,\)"),
-])
+@pytest.mark.parametrize(
+    "field,value,message",
+    [
+        ("q_BS", [1.0, 0.1, 0.0, 0.0], r"initial\.q_BS must be a unit quaternion"),
+        ("b_g", [0.0, np.nan, 0.0], r"initial\.b_g"),
+        ("gravity", -9.81, r"initial\.gravity is a magnitude"),
+        ("p_BS", [[0.0, 0.0, 0.1]] * 2, r"initial\.p_BS must have shape \(3,\)"),
+    ],
+)
 @pytest.mark.parametrize("entry", ["calibration_problem", "calibrate"])
-def test_calibration_initial_outside_its_domain_is_named_before_any_work(entry, field, value,
-                                                                        message):
+def test_calibration_initial_outside_its_domain_is_named_before_any_work(
+    entry, field, value, message
+):
     """A non-unit q_BS (the fit would start from a scaled rotation), NaN, a negative gravity
     magnitude or a batched field are refused naming initial.<field>, before anything
     compiles (calibrate is given a placeholder problem: the check comes first)."""
@@ -128,8 +158,9 @@ def test_calibration_initial_outside_its_domain_is_named_before_any_work(entry, 
         if entry == "calibration_problem":
             t = np.arange(10) * 0.01
             ref = cal.Reference(t, np.tile([1.0, 0, 0, 0], (10, 1)), np.zeros((10, 3)))
-            cal.calibration_problem(t, np.zeros((10, 3)), np.zeros((10, 3)), ref,
-                                    ImuNoise.euroc(), initial=bad)
+            cal.calibration_problem(
+                t, np.zeros((10, 3)), np.zeros((10, 3)), ref, ImuNoise.euroc(), initial=bad
+            )
         else:
             cal.calibrate(_placeholder_problem(), bad)
 

@@ -83,8 +83,13 @@ def euroc_copy(tmp_path, gt_rows=None, scale_gyro=1.0, scale_accel=1.0):
         out = [lines[0]]
         for ln in lines[1:]:
             f = ln.split(",")
-            out.append(",".join([f[0]] + [repr(float(x) * scale_gyro) for x in f[1:4]]
-                                + [repr(float(x) * scale_accel) for x in f[4:7]]))
+            out.append(
+                ",".join(
+                    [f[0]]
+                    + [repr(float(x) * scale_gyro) for x in f[1:4]]
+                    + [repr(float(x) * scale_accel) for x in f[4:7]]
+                )
+            )
         imu.write_text("\n".join(out) + "\n")
     return d
 
@@ -107,8 +112,9 @@ def test_demo_longer_than_the_excerpt_is_refused(capsys):
 
 
 def test_demo_plot_into_a_missing_folder_fails_before_the_work(capsys, tmp_path):
-    line, out = error_line(capsys, "demo", "--seconds", "1",
-                               "--plot", tmp_path / "missing" / "demo.png")
+    line, out = error_line(
+        capsys, "demo", "--seconds", "1", "--plot", tmp_path / "missing" / "demo.png"
+    )
     assert "--plot" in line and "does not exist" in line, line
     assert out == ""
 
@@ -185,8 +191,9 @@ def test_cli_one_row_ground_truth_is_one_line(capsys, tmp_path):
 def test_cli_window_before_the_ground_truth_says_where_it_starts(capsys, tmp_path):
     """Said 'the window [0.9949900640000001, inf] s holds fewer than 2 samples'."""
     d = euroc_copy(tmp_path, gt_rows=slice(200, None))
-    line, _ = one_line_error(capsys, "propagate", d, "--init-from-groundtruth",
-                             "--duration", "0.5", "--no-progress")
+    line, _ = one_line_error(
+        capsys, "propagate", d, "--init-from-groundtruth", "--duration", "0.5", "--no-progress"
+    )
     assert "the ground truth starts at 1.000 s" in line and "--start ≥ 1.000" in line, line
     assert "inf" not in line
     line, _ = one_line_error(capsys, "calibrate", d, "--duration", "0.5")
@@ -198,8 +205,9 @@ def test_cli_unit_advice_on_an_asl_folder_can_be_followed(capsys, tmp_path):
     d = euroc_copy(tmp_path, scale_gyro=np.rad2deg(1.0) * 40, scale_accel=1 / 9.80665)
     line, _ = one_line_error(capsys, "preintegrate", d, "--window", "1000")
     assert "--gyro-unit deg/s" in line, line
-    line, out = one_line_error(capsys, "preintegrate", d, "--gyro-unit", "deg/s",
-                               "--accel-unit", "g", "--window", "1000")
+    line, out = one_line_error(
+        capsys, "preintegrate", d, "--gyro-unit", "deg/s", "--accel-unit", "g", "--window", "1000"
+    )
     assert out.startswith("read 1002 samples") and "shorter than one window" in line, (out, line)
     data = io.read_euroc(d, gyro_unit="deg/s", accel_unit="g")
     ref = io.read_euroc(EUROC)
@@ -230,8 +238,12 @@ def test_not_an_npz_file_gives_no_pickle_advice(capsys, tmp_path):
 def test_allan_of_a_constant_signal_names_the_file(capsys, tmp_path):
     """Said 'adev must be positive ... at index [0, 0]' (an internal, not the file)."""
     path = tmp_path / "c.npz"
-    np.savez(path, t=np.arange(2000) * 0.005, gyro=np.zeros((2000, 3)),
-             accel=np.zeros((2000, 3)) + [0, 0, 9.81])
+    np.savez(
+        path,
+        t=np.arange(2000) * 0.005,
+        gyro=np.zeros((2000, 3)),
+        accel=np.zeros((2000, 3)) + [0, 0, 9.81],
+    )
     line, _ = one_line_error(capsys, "allan", path)
     assert f"gyro's x axis is constant in {path}" in line, line
 
@@ -253,23 +265,33 @@ def test_montecarlo_too_short_names_the_flags(capsys):
     assert "times" not in line
 
 
-@pytest.mark.parametrize("value,fragment", [("nan", "--gravity must be"),
-                                            ("-9.81", "--gravity 9.81")])
+@pytest.mark.parametrize(
+    "value,fragment", [("nan", "--gravity must be"), ("-9.81", "--gravity 9.81")]
+)
 def test_propagate_gravity_is_checked_before_the_work(capsys, value, fragment):
     line, out = error_line(capsys, "propagate", DATA / "tumvi_room4", f"--gravity={value}")
     assert fragment in line, line
     assert "overflow" not in line and "gravity=" not in line, line
 
 
-@pytest.mark.parametrize("argv, msg", [
-    (["montecarlo", "--seconds", "0.05", "--rate", "100", "--fix-sigma", "0.1"],
-     r"--fix-sigma is the position fix of the filter study; pass --filter N"),
-    (["montecarlo", "--seconds", "0.05", "--rate", "100", "--filter", "100"],
-     r"--filter 100 is more than the 5 samples .* pass at most --filter 5"),
-    (["montecarlo", "--rate", "0"], r"--rate must be positive"),
-    (["propagate", "no_such_folder", "--earth-rate", "100"],
-     r"--earth-rate is a latitude in degrees, in \[-90, 90\]; got 100"),
-])
+@pytest.mark.parametrize(
+    "argv, msg",
+    [
+        (
+            ["montecarlo", "--seconds", "0.05", "--rate", "100", "--fix-sigma", "0.1"],
+            r"--fix-sigma is the position fix of the filter study; pass --filter N",
+        ),
+        (
+            ["montecarlo", "--seconds", "0.05", "--rate", "100", "--filter", "100"],
+            r"--filter 100 is more than the 5 samples .* pass at most --filter 5",
+        ),
+        (["montecarlo", "--rate", "0"], r"--rate must be positive"),
+        (
+            ["propagate", "no_such_folder", "--earth-rate", "100"],
+            r"--earth-rate is a latitude in degrees, in \[-90, 90\]; got 100",
+        ),
+    ],
+)
 def test_the_command_names_the_flag_before_the_work(argv, msg, capsys):
     # before: --fix-sigma ignored without --filter, an IndexError traceback for --filter >
     # samples, "latitude_deg" (not the flag) after reading the data
@@ -279,13 +301,16 @@ def test_the_command_names_the_flag_before_the_work(argv, msg, capsys):
     assert __import__("re").search(msg, err), err
 
 
-@pytest.mark.parametrize("estimate, fragment", [("", "no field in --estimate"),
-                                                ("foo", "unknown field(s) ['foo'] in --estimate")])
+@pytest.mark.parametrize(
+    "estimate, fragment",
+    [("", "no field in --estimate"), ("foo", "unknown field(s) ['foo'] in --estimate")],
+)
 def test_calibrate_estimate_is_checked_before_the_recording_is_read(capsys, estimate, fragment):
     """An empty --estimate reached the library after the recording was read and the problem
     built ("estimate names no field", no flag); an unknown one was named after reading."""
 
     from jaximu import cli
+
     folder = DATA / "euroc_v1_02_medium"
     code = cli.main(["calibrate", str(folder), "--estimate", estimate])
     out, err = capsys.readouterr()
@@ -319,11 +344,15 @@ def test_the_command_renders_every_fix_the_library_can_raise():
     options = set(re.findall(r"\bFix\(\s*\"(\w+)\"", src))
     assert {"gyro_unit", "accel_unit", "sort", "check_units"} <= options
     app = pathlib.Path(cli.__file__).parent / "app"  # the command: one module per subcommand
-    parser_flags = set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"",
-                                  "\n".join(p.read_text() for p in app.glob("*.py"))))
+    parser_flags = set(
+        re.findall(
+            r"add_argument\(\s*\"(--[\w-]+)\"", "\n".join(p.read_text() for p in app.glob("*.py"))
+        )
+    )
     for option in options - cli.API_ONLY_OPTIONS:
-        flags = [cli.FLAGS.get(option)] + [f for (o, _), f in cli.INVERTED_FLAGS.items()
-                                           if o == option]
+        flags = [cli.FLAGS.get(option)] + [
+            f for (o, _), f in cli.INVERTED_FLAGS.items() if o == option
+        ]
         flags = [f for f in flags if f]
         assert flags and all(f in parser_flags for f in flags), (option, flags)
     assert not hasattr(cli, "_as_flags")
@@ -349,8 +378,9 @@ def test_allan_on_a_moving_recording_notes_motion_and_skips_the_unit_check(capsy
 def test_library_fixes_render_as_flags_in_calibrate(capsys):
     """A keyframe interval below one sample: the library's fix (keyframe_interval ≥ 0.005)
     is shown as the command's flag."""
-    line, _ = error_line(capsys, "calibrate", DATA / "euroc_v1_02_medium",
-                             "--keyframe-interval", "0.001")
+    line, _ = error_line(
+        capsys, "calibrate", DATA / "euroc_v1_02_medium", "--keyframe-interval", "0.001"
+    )
     assert "--keyframe-interval ≥ 0.005" in line, line
 
 
@@ -364,7 +394,9 @@ def test_the_library_fix_for_update_every_renders_as_the_filter_flag():
 
 def test_calibrate_warnings_are_one_line_each(capsys):
     with cli._warnings_as_lines():
-        warnings.warn("calibration residual χ²/dof = 322 > 100: check", RuntimeWarning, stacklevel=1)
+        warnings.warn(
+            "calibration residual χ²/dof = 322 > 100: check", RuntimeWarning, stacklevel=1
+        )
     err = capsys.readouterr().err
     assert err == "warning: calibration residual χ²/dof = 322 > 100: check\n", err
 
@@ -374,11 +406,17 @@ def test_cli_propagate_prints_no_jax_warning_in_float32(tmp_path):
     (the suite runs in float64, so the command runs in a child without x64)."""
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
     env["PYTHONPATH"] = str(REPO)
-    r = subprocess.run([sys.executable, "-m", "jaximu", "propagate", str(tmp_path / "no.csv")],
-                       capture_output=True, text=True, env=env, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "jaximu", "propagate", str(tmp_path / "no.csv")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert r.returncode == 2
-    assert r.stderr.splitlines() == [f"jaximu propagate: error: no such file or directory: "
-                                     f"{tmp_path / 'no.csv'}"], r.stderr
+    assert r.stderr.splitlines() == [
+        f"jaximu propagate: error: no such file or directory: {tmp_path / 'no.csv'}"
+    ], r.stderr
 
 
 # --------------------------------------------------------------------------- compilation cache
@@ -399,8 +437,24 @@ def test_the_command_keeps_its_compilations(tmp_path):
     import sys
 
     env = dict(os.environ, JAXIMU_CACHE_DIR=str(tmp_path / "xla"))
-    res = subprocess.run([sys.executable, "-m", "jaximu", "montecarlo", "--runs", "4",
-                          "--seconds", "0.5", "--rate", "100", "--no-progress"],
-                         capture_output=True, text=True, timeout=300, env=env)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "jaximu",
+            "montecarlo",
+            "--runs",
+            "4",
+            "--seconds",
+            "0.5",
+            "--rate",
+            "100",
+            "--no-progress",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert res.returncode == 0, res.stderr
     assert any((tmp_path / "xla").iterdir()), "nothing was cached"

@@ -46,8 +46,9 @@ STILL_ACCEL = jnp.tile(jnp.array([0.0, 0.0, 9.81]), (T, 1))
 def test_a_float64_state_field_beside_float32_samples_computes_in_float64():
     state = NavState(Q32, np.array([1e6 + 0.123, 0.0, 0.0]), Z32, Z32, Z32)  # p float64
     got = jaximu.propagate_final(state, GYRO, ACCEL, 0.01)
-    want = jaximu.propagate_final(as64(state), GYRO.astype(np.float64),
-                                  ACCEL.astype(np.float64), 0.01)
+    want = jaximu.propagate_final(
+        as64(state), GYRO.astype(np.float64), ACCEL.astype(np.float64), 0.01
+    )
     assert got.p.dtype == jnp.float64
     np.testing.assert_array_equal(got.p, want.p)
     assert abs(float(got.p[0]) - (1e6 + 0.123)) < 1e-3  # the 0.123 m kept
@@ -61,8 +62,9 @@ def test_a_float64_dt_or_covariance_or_bias_promotes_and_a_python_scalar_does_no
     P0 = np.eye(15) * 1e-6  # numpy float64
     _, P = jaximu.propagate_covariance_final(s32, P0, GYRO, ACCEL, 0.01, ImuNoise.euroc())
     assert P.dtype == jnp.float64
-    _, P = jaximu.propagate_covariance_final(s32, P0.astype(F32), GYRO, ACCEL, 0.01,
-                                             ImuNoise.euroc())
+    _, P = jaximu.propagate_covariance_final(
+        s32, P0.astype(F32), GYRO, ACCEL, 0.01, ImuNoise.euroc()
+    )
     assert P.dtype == jnp.float32
     bias = ImuBias(np.full(3, 1 + 1e-9), np.zeros(3))
     pim = jaximu.preintegrate(GYRO, ACCEL, 0.01, bias=bias)
@@ -75,13 +77,18 @@ def test_the_models_constants_take_the_datas_dtype():
     leave a float32 run float32 (a float64 ``earth_rate()`` must not double its cost)."""
     s32 = NavState(Q32, Z32, Z32, Z32, Z32)
     pose = jaximu.SensorPose(np.array([1.0, 0, 0, 0]), np.array([0.1, 0.0, 0.0]))
-    out = jaximu.propagate_final(s32, GYRO, ACCEL, 0.01, gravity=np.array([0.0, 0.0, -9.81]),
-                                 body_P_sensor=pose,
-                                 omega_coriolis=np.asarray(jaximu.earth_rate(48.0), np.float64))
+    out = jaximu.propagate_final(
+        s32,
+        GYRO,
+        ACCEL,
+        0.01,
+        gravity=np.array([0.0, 0.0, -9.81]),
+        body_P_sensor=pose,
+        omega_coriolis=np.asarray(jaximu.earth_rate(48.0), np.float64),
+    )
     assert out.p.dtype == jnp.float32
     noise = ImuNoise(np.full(3, 1e-3), np.full(3, 1e-2), 1e-5, 1e-4)
-    _, P = jaximu.propagate_covariance_final(s32, np.eye(15, dtype=F32), GYRO, ACCEL, 0.01,
-                                             noise)
+    _, P = jaximu.propagate_covariance_final(s32, np.eye(15, dtype=F32), GYRO, ACCEL, 0.01, noise)
     assert P.dtype == jnp.float32
     assert jaximu.preintegrate(GYRO, ACCEL, 0.01, noise=noise).cov.dtype == jnp.float32
 
@@ -141,28 +148,62 @@ def _pim():
 
 
 BOOL_OPTIONS = [
-    ("tangential", lambda v: jaximu.propagate(X0, ZERO_GYRO, STILL_ACCEL, DT, body_P_sensor=POSE,
-                                              tangential=v)),
-    ("tangential", lambda v: jaximu.propagate_covariance(
-        X0, np.eye(15) * 1e-4, ZERO_GYRO, STILL_ACCEL, DT, NOISE, body_P_sensor=POSE,
-        tangential=v)),
-    ("tangential", lambda v: jaximu.preintegrate(ZERO_GYRO, STILL_ACCEL, DT, body_P_sensor=POSE,
-                                                 tangential=v)),
-    ("coriolis_exact", lambda v: jaximu.propagate(X0, ZERO_GYRO, STILL_ACCEL, DT,
-                                                  omega_coriolis=OMEGA, coriolis_exact=v)),
-    ("coriolis_second_order", lambda v: jaximu.propagate_final(
-        X0, ZERO_GYRO, STILL_ACCEL, DT, omega_coriolis=OMEGA, coriolis_exact=False,
-        coriolis_second_order=v)),
-    ("coriolis_exact", lambda v: jaximu.predict(X0, _pim(), omega_coriolis=OMEGA,
-                                                coriolis_exact=v)),
-    ("coriolis_second_order", lambda v: jaximu.residual(X0, X0, _pim(), omega_coriolis=OMEGA,
-                                                        coriolis_second_order=v)),
+    (
+        "tangential",
+        lambda v: jaximu.propagate(
+            X0, ZERO_GYRO, STILL_ACCEL, DT, body_P_sensor=POSE, tangential=v
+        ),
+    ),
+    (
+        "tangential",
+        lambda v: jaximu.propagate_covariance(
+            X0,
+            np.eye(15) * 1e-4,
+            ZERO_GYRO,
+            STILL_ACCEL,
+            DT,
+            NOISE,
+            body_P_sensor=POSE,
+            tangential=v,
+        ),
+    ),
+    (
+        "tangential",
+        lambda v: jaximu.preintegrate(ZERO_GYRO, STILL_ACCEL, DT, body_P_sensor=POSE, tangential=v),
+    ),
+    (
+        "coriolis_exact",
+        lambda v: jaximu.propagate(
+            X0, ZERO_GYRO, STILL_ACCEL, DT, omega_coriolis=OMEGA, coriolis_exact=v
+        ),
+    ),
+    (
+        "coriolis_second_order",
+        lambda v: jaximu.propagate_final(
+            X0,
+            ZERO_GYRO,
+            STILL_ACCEL,
+            DT,
+            omega_coriolis=OMEGA,
+            coriolis_exact=False,
+            coriolis_second_order=v,
+        ),
+    ),
+    (
+        "coriolis_exact",
+        lambda v: jaximu.predict(X0, _pim(), omega_coriolis=OMEGA, coriolis_exact=v),
+    ),
+    (
+        "coriolis_second_order",
+        lambda v: jaximu.residual(X0, X0, _pim(), omega_coriolis=OMEGA, coriolis_second_order=v),
+    ),
 ]
 
 
 @pytest.mark.parametrize("word, value", [("no", False), ("False", False), ("yes", True)])
-@pytest.mark.parametrize("name, call", BOOL_OPTIONS,
-                         ids=[f"{n}-{i}" for i, (n, _) in enumerate(BOOL_OPTIONS)])
+@pytest.mark.parametrize(
+    "name, call", BOOL_OPTIONS, ids=[f"{n}-{i}" for i, (n, _) in enumerate(BOOL_OPTIONS)]
+)
 def test_a_bool_option_given_as_a_word_is_refused_with_its_repair(name, call, word, value):
     # before: the string's truth value decided ("no" is true: the option silently on)
     with pytest.raises(InputError, match=rf"{name} must be True or False") as e:

@@ -30,8 +30,9 @@ def states(n=40, scale=1.0):
 
 
 def gt50():
-    return io.GroundTruth(t=np.arange(50) * 0.01, q=np.tile([1.0, 0, 0, 0], (50, 1)),
-                          p=np.zeros((50, 3)))
+    return io.GroundTruth(
+        t=np.arange(50) * 0.01, q=np.tile([1.0, 0, 0, 0], (50, 1)), p=np.zeros((50, 3))
+    )
 
 
 T40 = np.arange(40) * 0.01
@@ -46,8 +47,11 @@ def test_writers_refuse_stamps_given_as_t(tmp_path, writer):
     """``data.stamps_ns`` passed as ``t`` wrote -9223372036.854775808 for every line."""
     t = np.array([1_400_000_000_000_000_000, 1_400_000_000_005_000_000])
     path = tmp_path / f"x.{writer}"
-    with pytest.raises(ValueError, match=r"t\[0\] = 1\.4e\+18 s is beyond int64 nanoseconds.*"
-                       r"pass data\.t, not stamps_ns"):
+    with pytest.raises(
+        ValueError,
+        match=r"t\[0\] = 1\.4e\+18 s is beyond int64 nanoseconds.*"
+        r"pass data\.t, not stamps_ns",
+    ):
         if writer == "tum":
             io.write_tum(path, t, states(2))
         else:
@@ -57,15 +61,18 @@ def test_writers_refuse_stamps_given_as_t(tmp_path, writer):
 
 def test_writers_refuse_nan_times_and_states(tmp_path):
     with pytest.raises(ValueError, match=r"^t contains non-finite"):
-        io.write_tum(tmp_path / "x.tum", np.array([0.0, np.nan]), states(2),
-                     t0_ns=1_400_000_000_000_000_000)
+        io.write_tum(
+            tmp_path / "x.tum", np.array([0.0, np.nan]), states(2), t0_ns=1_400_000_000_000_000_000
+        )
     s = states(2)
     with pytest.raises(ValueError, match=r"^states\.p contains non-finite"):
-        io.write_states(tmp_path / "x.csv", np.array([0.0, 1.0]),
-                        NavState(s.q, s.p + np.nan, s.v, s.b_g, s.b_a))
+        io.write_states(
+            tmp_path / "x.csv", np.array([0.0, 1.0]), NavState(s.q, s.p + np.nan, s.v, s.b_g, s.b_a)
+        )
     with pytest.raises(ValueError, match=r"^states\.q contains non-finite"):
-        io.write_tum(tmp_path / "x.tum", np.array([0.0, 1.0]),
-                     NavState(s.q * np.nan, s.p, s.v, s.b_g, s.b_a))
+        io.write_tum(
+            tmp_path / "x.tum", np.array([0.0, 1.0]), NavState(s.q * np.nan, s.p, s.v, s.b_g, s.b_a)
+        )
 
 
 @pytest.mark.parametrize("t0", ["123", 1.5, 1.7e18 + 0.5, True, None])
@@ -119,8 +126,11 @@ def test_trajectory_errors_refuses_negative_or_nonfinite_cov():
 
 def test_trajectory_errors_does_not_normalise_q():
     """q = 2·identity gave rotation error 0."""
-    with pytest.raises(ValueError, match=r"states\.q is not a unit quaternion at row 0: its "
-                                         r"norm is 2 .*does not normalise"):
+    with pytest.raises(
+        ValueError,
+        match=r"states\.q is not a unit quaternion at row 0: its "
+        r"norm is 2 .*does not normalise",
+    ):
         io.trajectory_errors(T40, states(scale=2.0), gt50())
     io.trajectory_errors(T40, states(scale=1 + 1.5e-4), gt50())  # rounding, as in EuRoC
 
@@ -141,8 +151,9 @@ def test_ground_truth_with_one_row_is_refused():
     with pytest.raises(io.DataError, match="1 row.*at least 2"):
         io.GroundTruth(t=np.zeros(1), q=np.array([[1.0, 0, 0, 0]]), p=np.zeros((1, 3)))
     with pytest.raises(ValueError, match=r"GroundTruth\.q must have shape \(50, 4\)"):
-        io.GroundTruth(t=np.arange(50) * 0.01, q=np.tile([1.0, 0, 0, 0], (10, 1)),
-                       p=np.zeros((50, 3)))
+        io.GroundTruth(
+            t=np.arange(50) * 0.01, q=np.tile([1.0, 0, 0, 0], (10, 1)), p=np.zeros((50, 3))
+        )
 
 
 def one_row_euroc(tmp_path):
@@ -182,8 +193,9 @@ def test_max_gap_of_the_readers_and_gaps(bad):
 # --------------------------------------------------------------------------- bool options
 
 
-@pytest.mark.parametrize("option", ["sort", "drop_duplicates", "drop_nonfinite", "allow_gaps",
-                                    "check_units"])
+@pytest.mark.parametrize(
+    "option", ["sort", "drop_duplicates", "drop_nonfinite", "allow_gaps", "check_units"]
+)
 @pytest.mark.parametrize("value", ["no", 1, None])
 def test_reader_options_are_bools(option, value):
     """``sort="no"`` sorted the samples."""

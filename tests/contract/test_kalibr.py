@@ -8,9 +8,11 @@ import pytest
 
 from jaximu import kalibr
 
-SENSOR = ("T_BS:\n  cols: 4\n  rows: 4\n  data: [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]\n"
-          "rate_hz: 200\ngyroscope_noise_density: 1.7e-04\ngyroscope_random_walk: 1.9e-05\n"
-          "accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n")
+SENSOR = (
+    "T_BS:\n  cols: 4\n  rows: 4\n  data: [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]\n"
+    "rate_hz: 200\ngyroscope_noise_density: 1.7e-04\ngyroscope_random_walk: 1.9e-05\n"
+    "accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n"
+)
 
 
 def test_sensor_yaml_refuses_a_zero_rate_a_yes_and_files_that_are_not_yaml(tmp_path):

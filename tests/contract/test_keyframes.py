@@ -17,21 +17,40 @@ def truth(velocities=True):
     return io.GroundTruth(t, q, np.zeros((11, 3)), np.zeros((11, 3)) if velocities else None)
 
 
-@pytest.mark.parametrize("call, message", [
-    (lambda: keyframes.keyframe_windows(np.arange(5.0), 5),
-     r"samples = 5 intervals is more than the 4 intervals of t: pass samples ≤ 4"),
-    (lambda: keyframes.keyframe_windows(np.arange(5.0), 0), r"samples must be a positive integer"),
-    (lambda: keyframes.keyframe_windows(np.arange(5.0), True),
-     r"samples must be a positive integer"),
-    (lambda: keyframes.keyframe_windows(np.array([0.0, 1.0, 1.0, 2.0]), 1),
-     r"t must be strictly increasing, but t\[1\] = 1 and t\[2\] = 1"),
-    (lambda: keyframes.keyframe_windows(np.array([0.0, np.nan, 2.0]), 1), r"t contains non-finite"),
-    (lambda: keyframes.keyframe_windows(np.zeros((3, 2)), 1), r"t must be an \(N,\) array"),
-    (lambda: keyframes.groundtruth_coverage(None, [0.0], [1.0]),
-     r"ground_truth must be a jaximu.io.GroundTruth, got NoneType"),
-    (lambda: keyframes.groundtruth_coverage(truth(), [0.0, 1.0], [1.0]),
-     r"t_i and t_j must have the same shape"),
-])
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (
+            lambda: keyframes.keyframe_windows(np.arange(5.0), 5),
+            r"samples = 5 intervals is more than the 4 intervals of t: pass samples ≤ 4",
+        ),
+        (
+            lambda: keyframes.keyframe_windows(np.arange(5.0), 0),
+            r"samples must be a positive integer",
+        ),
+        (
+            lambda: keyframes.keyframe_windows(np.arange(5.0), True),
+            r"samples must be a positive integer",
+        ),
+        (
+            lambda: keyframes.keyframe_windows(np.array([0.0, 1.0, 1.0, 2.0]), 1),
+            r"t must be strictly increasing, but t\[1\] = 1 and t\[2\] = 1",
+        ),
+        (
+            lambda: keyframes.keyframe_windows(np.array([0.0, np.nan, 2.0]), 1),
+            r"t contains non-finite",
+        ),
+        (lambda: keyframes.keyframe_windows(np.zeros((3, 2)), 1), r"t must be an \(N,\) array"),
+        (
+            lambda: keyframes.groundtruth_coverage(None, [0.0], [1.0]),
+            r"ground_truth must be a jaximu.io.GroundTruth, got NoneType",
+        ),
+        (
+            lambda: keyframes.groundtruth_coverage(truth(), [0.0, 1.0], [1.0]),
+            r"t_i and t_j must have the same shape",
+        ),
+    ],
+)
 def test_bad_input_is_named(call, message):
     with pytest.raises(ValueError, match=message):
         call()

@@ -25,8 +25,11 @@ def test_integer_dt_computes_in_floats():
     np.testing.assert_allclose(N.gyroscope_noise_density, got[0][0], rtol=1e-6)
     Q = np.asarray(N.discrete_covariance(2))
     np.testing.assert_allclose(Q[0, 0], N.gyroscope_noise_density**2 / 2, rtol=1e-6)
-    np.testing.assert_allclose(N.discrete_variances(np.array([1, 2]))[:, 0],
-                               N.gyroscope_noise_density**2 / np.array([1, 2]), rtol=1e-6)
+    np.testing.assert_allclose(
+        N.discrete_variances(np.array([1, 2]))[:, 0],
+        N.gyroscope_noise_density**2 / np.array([1, 2]),
+        rtol=1e-6,
+    )
 
 
 def test_bool_dt_and_integer_dtype_are_refused():
@@ -46,17 +49,24 @@ def test_bool_dt_and_integer_dtype_are_refused():
         N.sample_std(0.01 + 0j)
 
 
-@pytest.mark.parametrize("bad,message", [
-    (-1.0, r"noise\.gyroscope_noise_density must be non-negative"),
-    (float("nan"), r"noise\.gyroscope_noise_density contains non-finite"),
-    ("0.1", r"noise\.gyroscope_noise_density must be an array of numbers, got str"),
-    (0.1 + 1j, r"noise\.gyroscope_noise_density must be real, got a complex"),
-    (True, r"noise\.gyroscope_noise_density must be an array of numbers, got booleans"),
-])
+@pytest.mark.parametrize(
+    "bad,message",
+    [
+        (-1.0, r"noise\.gyroscope_noise_density must be non-negative"),
+        (float("nan"), r"noise\.gyroscope_noise_density contains non-finite"),
+        ("0.1", r"noise\.gyroscope_noise_density must be an array of numbers, got str"),
+        (0.1 + 1j, r"noise\.gyroscope_noise_density must be real, got a complex"),
+        (True, r"noise\.gyroscope_noise_density must be an array of numbers, got booleans"),
+    ],
+)
 def test_densities_are_checked(bad, message):
     n = ImuNoise(bad, 1.0)
-    for call in (lambda: n.sample_std(0.01), lambda: n.variances(),
-                 lambda: n.discrete_variances(0.01), lambda: n.discrete_covariance(0.01)):
+    for call in (
+        lambda: n.sample_std(0.01),
+        lambda: n.variances(),
+        lambda: n.discrete_variances(0.01),
+        lambda: n.discrete_covariance(0.01),
+    ):
         with pytest.raises(ValueError, match=message):
             call()
 

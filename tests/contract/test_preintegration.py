@@ -15,8 +15,9 @@ from jaximu import ImuBias, ImuNoise, NavState
 
 S64 = NavState.identity((), jnp.float64)
 PIM = jaximu.preintegrate(np.zeros((3, 3)), np.tile([0, 0, 9.81], (3, 1)), 0.01)
-PIM_NOISY = jaximu.preintegrate(np.zeros((3, 3)), np.tile([0, 0, 9.81], (3, 1)), 0.01,
-                                noise=ImuNoise.euroc())
+PIM_NOISY = jaximu.preintegrate(
+    np.zeros((3, 3)), np.tile([0, 0, 9.81], (3, 1)), 0.01, noise=ImuNoise.euroc()
+)
 W1 = np.zeros((1, 3))
 A1 = np.array([[0.0, 0.0, 9.81]])
 
@@ -49,10 +50,14 @@ def test_compose_of_mismatched_batches_names_them():
     gyro = np.zeros((2, 3, 3))
     accel = np.tile([0, 0, 9.81], (2, 3, 1))
     ab = jaximu.preintegrate(gyro, accel, 0.01)
-    bc = jaximu.preintegrate(np.concatenate([gyro, gyro[:1]]),
-                             np.concatenate([accel, accel[:1]]), 0.01)
-    with pytest.raises(ValueError, match=r"pim_ab and pim_bc have batch shapes \(2,\) and "
-                                         r"\(3,\), which do not broadcast"):
+    bc = jaximu.preintegrate(
+        np.concatenate([gyro, gyro[:1]]), np.concatenate([accel, accel[:1]]), 0.01
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"pim_ab and pim_bc have batch shapes \(2,\) and "
+        r"\(3,\), which do not broadcast",
+    ):
         jaximu.compose(ab, bc)
     with pytest.raises(ValueError, match=r"pim_bc must be a jaximu\.Preintegrated"):
         jaximu.compose(ab, (bc.delta_q,))
@@ -73,13 +78,17 @@ def samples(B=3, T=20):
     return gyro, gyro.at[..., 2].set(9.81)
 
 
-@pytest.mark.parametrize("pose", [None, jaximu.SensorPose(jnp.asarray([1.0, 0, 0, 0]),
-                                                          jnp.asarray([0.1, 0, 0]))])
+@pytest.mark.parametrize(
+    "pose", [None, jaximu.SensorPose(jnp.asarray([1.0, 0, 0, 0]), jnp.asarray([0.1, 0, 0]))]
+)
 def test_noise_batch_mismatch_names_the_density(pose):
     gyro, accel = samples()
     noise = jaximu.ImuNoise(1e-3, jnp.full((4, 3), 1e-2))
-    with pytest.raises(ValueError, match=r"do not broadcast: gyro \(3,\).*"
-                                         r"noise\.accelerometer_noise_density \(4,\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"do not broadcast: gyro \(3,\).*"
+        r"noise\.accelerometer_noise_density \(4,\)",
+    ):
         jaximu.preintegrate(gyro, accel, 0.005, None, noise, body_P_sensor=pose)
 
 
@@ -91,10 +100,13 @@ def test_broadcasting_noise_batch_still_accepted():
     dens = jnp.asarray([[1e-2] * 3, [2e-2] * 3, [3e-2] * 3])
     pim = jaximu.preintegrate(gyro, accel, 0.005, None, jaximu.ImuNoise(1e-3, dens))
     for i in range(3):
-        one = jaximu.preintegrate(gyro[i], accel[i], 0.005, None,
-                                  jaximu.ImuNoise(1e-3, float(dens[i, 0])))
-        np.testing.assert_allclose(pim.cov[i], one.cov, rtol=1e-12,
-                                   atol=1e-12 * float(np.abs(one.cov).max()))
-    out = jaximu.preintegrate(gyro[0], accel[0], 0.005, None,
-                              jaximu.ImuNoise(1e-3, jnp.full((4, 3), 1e-2)))
+        one = jaximu.preintegrate(
+            gyro[i], accel[i], 0.005, None, jaximu.ImuNoise(1e-3, float(dens[i, 0]))
+        )
+        np.testing.assert_allclose(
+            pim.cov[i], one.cov, rtol=1e-12, atol=1e-12 * float(np.abs(one.cov).max())
+        )
+    out = jaximu.preintegrate(
+        gyro[0], accel[0], 0.005, None, jaximu.ImuNoise(1e-3, jnp.full((4, 3), 1e-2))
+    )
     assert out.cov.shape == (4, 9, 9)

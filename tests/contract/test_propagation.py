@@ -49,8 +49,7 @@ def test_half_precision_is_computed_in_float32_not_float16():
     accel = np.tile(np.float16([0, 0, 9.81]), (n, 1))
     a_excess = float(accel[0, 2]) - 9.81
     before = accel.copy()
-    out = jaximu.propagate_final(NavState.identity((), jnp.float16), gyro, accel,
-                                 np.float16(0.01))
+    out = jaximu.propagate_final(NavState.identity((), jnp.float16), gyro, accel, np.float16(0.01))
     assert out.p.dtype == jnp.float32
     dt = float(np.float16(0.01))
     T = n * dt
@@ -61,13 +60,24 @@ def test_half_precision_is_computed_in_float32_not_float16():
 # --------------------------------------------------------------------------- body_P_sensor
 
 
-@pytest.mark.parametrize("call", [
-    lambda pose: jaximu.propagate(X0, jnp.broadcast_to(GYRO, (2, T, 3)),
-                                  jnp.broadcast_to(ACCEL, (2, T, 3)), DT, body_P_sensor=pose),
-    lambda pose: jaximu.preintegrate(jnp.broadcast_to(GYRO, (2, T, 3)),
-                                     jnp.broadcast_to(ACCEL, (2, T, 3)), DT,
-                                     body_P_sensor=pose),
-])
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda pose: jaximu.propagate(
+            X0,
+            jnp.broadcast_to(GYRO, (2, T, 3)),
+            jnp.broadcast_to(ACCEL, (2, T, 3)),
+            DT,
+            body_P_sensor=pose,
+        ),
+        lambda pose: jaximu.preintegrate(
+            jnp.broadcast_to(GYRO, (2, T, 3)),
+            jnp.broadcast_to(ACCEL, (2, T, 3)),
+            DT,
+            body_P_sensor=pose,
+        ),
+    ],
+)
 def test_a_sensor_pose_whose_batch_does_not_fit_is_named(call):
     # before: JAX's "mul got incompatible shapes" / einsum's label error
     pose = SensorPose(jnp.tile(jnp.array([1.0, 0, 0, 0]), (3, 1)), jnp.zeros((3, 3)))
@@ -106,14 +116,20 @@ def test_earth_rate_is_the_closed_form():
     lat = np.array([-90.0, -30.0, 0.0, 48.1, 90.0])
     phi = np.deg2rad(lat)
     want = 7.292115e-5 * np.stack([0 * phi, np.cos(phi), np.sin(phi)], -1)
-    np.testing.assert_allclose(np.asarray(jaximu.earth_rate(lat)), want, rtol=1e-6,
-                               atol=1e-6 * 7.3e-5)
+    np.testing.assert_allclose(
+        np.asarray(jaximu.earth_rate(lat)), want, rtol=1e-6, atol=1e-6 * 7.3e-5
+    )
 
 
 def test_omega_coriolis_whose_batch_does_not_fit_is_named():
     with pytest.raises(ValueError, match=r"do not broadcast: .*omega_coriolis \(3,\)"):
-        jaximu.propagate(X0, jnp.zeros((2, T, 3)), jnp.broadcast_to(ACCEL, (2, T, 3)), DT,
-                         omega_coriolis=jnp.zeros((3, 3)))
+        jaximu.propagate(
+            X0,
+            jnp.zeros((2, T, 3)),
+            jnp.broadcast_to(ACCEL, (2, T, 3)),
+            DT,
+            omega_coriolis=jnp.zeros((3, 3)),
+        )
 
 
 def test_mismatched_batches_name_the_arguments():

@@ -13,21 +13,31 @@ from jaximu import ImuNoise, NavState
 
 
 def _recording_args(**kw):
-    data = jaximu.io.from_arrays(np.arange(5) * 0.01, np.zeros((5, 3)),
-                                 np.tile([0.0, 0.0, 9.81], (5, 1)))
-    args = dict(data=data, state0=NavState.identity(), P0=np.eye(15) * 1e-4,
-                noise=ImuNoise.euroc(), scheme="midpoint", dtype=jnp.float32)
+    data = jaximu.io.from_arrays(
+        np.arange(5) * 0.01, np.zeros((5, 3)), np.tile([0.0, 0.0, 9.81], (5, 1))
+    )
+    args = dict(
+        data=data,
+        state0=NavState.identity(),
+        P0=np.eye(15) * 1e-4,
+        noise=ImuNoise.euroc(),
+        scheme="midpoint",
+        dtype=jnp.float32,
+    )
     args.update(kw)
     return args
 
 
-@pytest.mark.parametrize("kw,message", [
-    ({"scheme": "rk5"}, r"unknown scheme 'rk5'"),
-    ({"chunk": 0}, r"chunk must be a positive integer, got 0"),
-    ({"dtype": np.float16}, r"dtype must be a floating dtype \(float32 or float64\)"),
-    ({"gravity": -9.81}, r"gravity = -9\.81 is a magnitude"),
-    ({"P0": -np.eye(15)}, r"P0"),
-])
+@pytest.mark.parametrize(
+    "kw,message",
+    [
+        ({"scheme": "rk5"}, r"unknown scheme 'rk5'"),
+        ({"chunk": 0}, r"chunk must be a positive integer, got 0"),
+        ({"dtype": np.float16}, r"dtype must be a floating dtype \(float32 or float64\)"),
+        ({"gravity": -9.81}, r"gravity = -9\.81 is a magnitude"),
+        ({"P0": -np.eye(15)}, r"P0"),
+    ],
+)
 def test_propagate_recording_names_its_arguments(kw, message):
     from jaximu.recording import propagate_recording
 

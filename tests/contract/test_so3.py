@@ -51,18 +51,26 @@ def test_every_so3_kernel_is_in_the_signature_table():
 
 
 def test_so3_reported_examples_raise_naming_the_argument():
-    with pytest.raises(ValueError, match=r"so3\.exp: phi must have shape \(\.\.\., 3\), got \(4,\)"):
+    with pytest.raises(
+        ValueError, match=r"so3\.exp: phi must have shape \(\.\.\., 3\), got \(4,\)"
+    ):
         so3.exp(np.zeros(4))
-    with pytest.raises(ValueError, match=r"so3\.quat_to_matrix: q must have shape \(\.\.\., 4\), "
-                                         r"got \(3,\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"so3\.quat_to_matrix: q must have shape \(\.\.\., 4\), "
+        r"got \(3,\)",
+    ):
         so3.quat_to_matrix(np.zeros(3))
     with pytest.raises(ValueError, match=r"so3\.log_matrix: R must have shape \(\.\.\., 3, 3\)"):
         so3.log_matrix(np.eye(4))
 
 
 def test_so3_batches_that_do_not_broadcast_are_named():
-    with pytest.raises(ValueError, match=r"so3\.quat_rotate: the batch shapes of q \(2, 4\) "
-                                         r"and v \(3, 3\) do not broadcast"):
+    with pytest.raises(
+        ValueError,
+        match=r"so3\.quat_rotate: the batch shapes of q \(2, 4\) "
+        r"and v \(3, 3\) do not broadcast",
+    ):
         so3.quat_rotate(np.ones((2, 4)), np.ones((3, 3)))
     with pytest.raises(ValueError, match=r"so3\.quat_mul: the batch shapes of p"):
         so3.quat_mul(np.ones((2, 4)), np.ones((5, 4)))
@@ -73,10 +81,14 @@ def test_so3_accepts_python_lists_like_arrays():
     q_xyzw = [0.1, -0.2, 0.3, 0.9273618495495704]  # unit
     q = so3.xyzw_to_wxyz(q_xyzw)
     np.testing.assert_allclose(np.asarray(q), np.r_[q_xyzw[3], q_xyzw[:3]], rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(so3.quat_to_matrix(list(np.asarray(q)))),
-                               Rotation.from_quat(q_xyzw).as_matrix(), atol=1e-6)
-    np.testing.assert_allclose(np.asarray(so3.exp([0.0, 0.0, np.pi / 2])),
-                               [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(so3.quat_to_matrix(list(np.asarray(q)))),
+        Rotation.from_quat(q_xyzw).as_matrix(),
+        atol=1e-6,
+    )
+    np.testing.assert_allclose(
+        np.asarray(so3.exp([0.0, 0.0, np.pi / 2])), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-6
+    )
     np.testing.assert_allclose(np.asarray(so3.quat_rotate([1, 0, 0, 0], [1, 2, 3])), [1, 2, 3])
 
 
@@ -93,18 +105,25 @@ def test_so3_kernels_refuse_wrong_shapes_naming_the_argument(data):
     for i, (_arg, shape) in enumerate(sig):
         if i == bad:
             # wrong: not ending in the shape wanted ((2, 4) is a batch of quaternions)
-            shape = data.draw(st.sampled_from([s for s in ((), (2,), (3,), (4,), (5,), (3, 3),
-                                                           (4, 4), (3, 4), (4, 3))
-                                               if s[len(s) - len(shape):] != shape]),
-                              label="wrong shape")
+            shape = data.draw(
+                st.sampled_from(
+                    [
+                        s
+                        for s in ((), (2,), (3,), (4,), (5,), (3, 3), (4, 4), (3, 4), (4, 3))
+                        if s[len(s) - len(shape) :] != shape
+                    ]
+                ),
+                label="wrong shape",
+            )
             args.append(np.ones(batch + shape if shape else ()))
         else:
             args.append(np.ones(batch + shape))
     want = ", ".join(str(s) for s in sig[bad][1])
     with pytest.raises(ValueError) as err:
         getattr(so3, name)(*args)
-    assert re.search(rf"so3\.{name}: {sig[bad][0]} must have shape \(\.\.\., {want}\)",
-                     str(err.value)), str(err.value)
+    assert re.search(
+        rf"so3\.{name}: {sig[bad][0]} must have shape \(\.\.\., {want}\)", str(err.value)
+    ), str(err.value)
 
 
 def test_so3_of_integer_lists_is_computed_in_floats():

@@ -61,9 +61,12 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     big = np.abs(P).max()
     neg = P.copy()
     neg[4, 4] = -1e-4 * big
-    with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the variance "
-                                         r"P0\[4, 4\] = -.* is negative \(0\.0001 of its "
-                                         r"largest entry"):
+    with pytest.raises(
+        ValueError,
+        match=r"P0 is not positive semi-definite: the variance "
+        r"P0\[4, 4\] = -.* is negative \(0\.0001 of its "
+        r"largest entry",
+    ):
         _tolerances.check_covariance("P0", neg.astype(dtype), dtype)
     asym = P.copy()
     asym[0, 1] += 1e-3 * big
@@ -75,8 +78,11 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     bad[2, 3] = bad[3, 2] = 1.01 * scale
     lam = np.linalg.eigvalsh(bad)[0]
     np.testing.assert_allclose(lam, -0.01 * scale, rtol=1e-9)
-    with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: its smallest "
-                                         r"eigenvalue is .*, 0\.0099 of its largest entry") as e:
+    with pytest.raises(
+        ValueError,
+        match=r"P0 is not positive semi-definite: its smallest "
+        r"eigenvalue is .*, 0\.0099 of its largest entry",
+    ) as e:
         _tolerances.check_covariance("P0", bad.astype(dtype), dtype)
     assert f"{lam:.3g}" in str(e.value)
 
@@ -100,10 +106,14 @@ def test_the_entry_points_refuse_the_defect_at_every_scale(scale):
     s = NavState.identity((), np.float64)
     P0 = np.eye(15) * scale
     P0[4, 4] = -1e-4 * scale
-    with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the variance "
-                                         r"P0\[4, 4\]"):
-        jaximu.propagate_covariance_final(s, P0, np.zeros((1, 3)), [[0, 0, 9.81]], 0.01,
-                                          ImuNoise.euroc())
+    with pytest.raises(
+        ValueError,
+        match=r"P0 is not positive semi-definite: the variance "
+        r"P0\[4, 4\]",
+    ):
+        jaximu.propagate_covariance_final(
+            s, P0, np.zeros((1, 3)), [[0, 0, 9.81]], 0.01, ImuNoise.euroc()
+        )
     H = np.asarray(position_jacobian())
     R = np.eye(3) * scale
     R[0, 1] = 1e-3 * scale
@@ -143,9 +153,12 @@ def test_dependent_axes_are_singular_at_every_scale(scale, dtype):
     assert np.linalg.eigvalsh(correlation(P.astype(np.float64)))[0] < 1e-6  # the reference
     ok, lam, zero = _tolerances.definiteness(P, dtype)
     assert not ok and zero == -1
-    with pytest.raises(ValueError, match=rf"S is singular to {np.dtype(dtype).name} precision: "
-                                         r"the smallest eigenvalue of its correlation matrix "
-                                         r"is .*, so dpx, dvx are linearly dependent.*fix it"):
+    with pytest.raises(
+        ValueError,
+        match=rf"S is singular to {np.dtype(dtype).name} precision: "
+        r"the smallest eigenvalue of its correlation matrix "
+        r"is .*, so dpx, dvx are linearly dependent.*fix it",
+    ):
         _tolerances.check_definite("S", P, dtype, fix="fix it", axes=_tolerances.ERROR_AXES)
 
 
@@ -181,11 +194,15 @@ def test_definiteness_is_decided_at_60_eps_of_the_correlation(dtype):
 def test_a_zero_variance_is_named_with_its_axis_and_batch_index():
     P = np.stack([np.eye(9), np.eye(9)]) * 1e-3
     P[1, 4, 4] = 0.0
-    with pytest.raises(ValueError, match=r"the residuals' covariance is singular \(batch index "
-                                         r"\[1\], 1 of 2\): its variance \[1, 4, 4\] \(dpy\) is "
-                                         r"0, not positive"):
-        _tolerances.check_definite("the residuals' covariance", P, np.float64, fix="",
-                           axes=_tolerances.ERROR_AXES)
+    with pytest.raises(
+        ValueError,
+        match=r"the residuals' covariance is singular \(batch index "
+        r"\[1\], 1 of 2\): its variance \[1, 4, 4\] \(dpy\) is "
+        r"0, not positive",
+    ):
+        _tolerances.check_definite(
+            "the residuals' covariance", P, np.float64, fix="", axes=_tolerances.ERROR_AXES
+        )
 
 
 # --------------------------------------------------------------------------- where inverted
@@ -199,9 +216,12 @@ def test_ekf_update_names_a_singular_innovation_covariance_at_every_scale(scale)
     H = np.asarray(position_jacobian())
     P = np.eye(15) * scale
     P[4, 4] = 0.0
-    with pytest.raises(ValueError, match=r"the innovation covariance S = H P Hᵀ \+ R is "
-                                         r"singular: its variance \[1, 1\] \(axis 1\) is 0.*"
-                                         r"R must be positive definite"):
+    with pytest.raises(
+        ValueError,
+        match=r"the innovation covariance S = H P Hᵀ \+ R is "
+        r"singular: its variance \[1, 1\] \(axis 1\) is 0.*"
+        r"R must be positive definite",
+    ):
         jaximu.ekf_update(s, P, np.zeros(3), H, np.zeros((3, 3)))
 
 
@@ -224,20 +244,30 @@ def test_whitened_residual_of_one_sample_names_the_dependent_axes():
     s = NavState.identity((), np.float64)
     one = jaximu.preintegrate(np.zeros((1, 3)), [[0, 0, 9.81]], 0.01, noise=ImuNoise.euroc())
     assert np.linalg.eigvalsh(correlation(np.asarray(one.cov15)))[0] < 1e-12
-    with pytest.raises(ValueError, match=r"pim\.cov15 is singular to float64 precision: .*"
-                                         r"so (dp|dv).* are linearly dependent.*at least two "
-                                         r"samples"):
+    with pytest.raises(
+        ValueError,
+        match=r"pim\.cov15 is singular to float64 precision: .*"
+        r"so (dp|dv).* are linearly dependent.*at least two "
+        r"samples",
+    ):
         jaximu.whitened_residual(s, s, one)
     two = jaximu.preintegrate(np.zeros((2, 3)), [[0, 0, 9.81]] * 2, 0.01, noise=ImuNoise.euroc())
     s_j = NavState(s.q, s.p + 1e-3, s.v, s.b_g, s.b_a)
     r = np.asarray(jaximu.residual(s, s_j, two))
     L = np.linalg.cholesky(np.asarray(two.cov15))
-    np.testing.assert_allclose(np.asarray(jaximu.whitened_residual(s, s_j, two)),
-                               np.linalg.solve(L, r), rtol=1e-8)
+    np.testing.assert_allclose(
+        np.asarray(jaximu.whitened_residual(s, s_j, two)), np.linalg.solve(L, r), rtol=1e-8
+    )
 
 
-MC = dict(trajectory=simulate.circle(), times=np.arange(5) * 0.01, n_runs=2, n_keep=0,
-          chunk_size=2, key=jax.random.key(0))
+MC = dict(
+    trajectory=simulate.circle(),
+    times=np.arange(5) * 0.01,
+    n_runs=2,
+    n_keep=0,
+    chunk_size=2,
+    key=jax.random.key(0),
+)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -246,8 +276,14 @@ def test_monte_carlo_from_an_exact_start_reports_an_undefined_nees(dtype):
     errors are one accelerometer noise): the NEES there is NaN and said undefined, not a
     number from rounding (float32 reported 2·10⁵); later it is defined and finite. The
     reference: numpy's eigenvalues of each predicted covariance's correlation matrix."""
-    res = montecarlo.monte_carlo(P0=np.zeros((15, 15)), noise=ImuNoise.euroc(), dtype=dtype,
-                                 keep_nees=True, nees_hist_times=(0, -1), **MC)
+    res = montecarlo.monte_carlo(
+        P0=np.zeros((15, 15)),
+        noise=ImuNoise.euroc(),
+        dtype=dtype,
+        keep_nees=True,
+        nees_hist_times=(0, -1),
+        **MC,
+    )
     lam = np.array([np.linalg.eigvalsh(correlation(P))[0] for P in res.predicted_cov])
     want = lam > EPS60[dtype]
     assert not want[0] and want[1:].all()
@@ -263,11 +299,15 @@ def test_monte_carlo_whose_nees_is_undefined_at_every_time_is_refused():
     study is refused before the work; one run's errors (``sample_run``) need no NEES and are
     regenerated, their bias part exactly zero."""
     noise = ImuNoise(1.7e-4, 2e-3)
-    with pytest.raises(ValueError, match=r"the predicted covariance at times\[4\] = 0\.04 "
-                                         r"\(and at every recorded time\) is singular: its "
-                                         r"variance \[9, 9\] \(db_gx\) is 0.*give P0 positive "
-                                         r"variances"):
+    with pytest.raises(
+        ValueError,
+        match=r"the predicted covariance at times\[4\] = 0\.04 "
+        r"\(and at every recorded time\) is singular: its "
+        r"variance \[9, 9\] \(db_gx\) is 0.*give P0 positive "
+        r"variances",
+    ):
         montecarlo.monte_carlo(P0=np.zeros((15, 15)), noise=noise, **MC)
-    run = montecarlo.sample_run(MC["trajectory"], MC["times"], np.zeros((15, 15)), noise,
-                                MC["key"], 0)
+    run = montecarlo.sample_run(
+        MC["trajectory"], MC["times"], np.zeros((15, 15)), noise, MC["key"], 0
+    )
     assert run.errors.shape == (4, 15) and np.all(run.errors[:, 9:] == 0)

@@ -59,8 +59,17 @@ def run(capsys, *argv):
 
 def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys, tmp_path):
     js, png = tmp_path / "eval.json", tmp_path / "eval.png"
-    code, out, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(folders["seq"]),
-                         "--json", str(js), "--plot", str(png))
+    code, out, err = run(
+        capsys,
+        "learn",
+        "evaluate",
+        str(folders["model"]),
+        str(folders["seq"]),
+        "--json",
+        str(js),
+        "--plot",
+        str(png),
+    )
     assert code == 0, err
     assert "constant bias" in out and "NEES" in out
     doc = json.loads(js.read_text())
@@ -69,8 +78,9 @@ def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys
     for key in ("aoe_mean_deg", "aoe_rmse_deg", "aye_mean_deg"):
         assert set(s[key]) == {"raw", "constant_bias", "learned"}
     # the untrained model is the constant-bias baseline, and the bias is the model's (zero)
-    assert s["aoe_mean_deg"]["learned"] == pytest.approx(s["aoe_mean_deg"]["constant_bias"],
-                                                        rel=1e-4)
+    assert s["aoe_mean_deg"]["learned"] == pytest.approx(
+        s["aoe_mean_deg"]["constant_bias"], rel=1e-4
+    )
     assert s["aoe_mean_deg"]["raw"] > 1.0
     assert 0.0 <= s["inside_3sigma"] <= 1.0 and s["nees_orientation"] > 0
     assert png.stat().st_size > 10_000
@@ -79,8 +89,9 @@ def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys
 def test_train_writes_a_model_that_evaluates(folders, capsys):
     seq = write_sequence(folders["root"] / "long", seconds=84.0, seed=1)
     out_model = folders["root"] / "trained"
-    code, out, err = run(capsys, "learn", "train", str(seq), "--out", str(out_model),
-                         "--steps", "1", "--seed", "3")
+    code, out, err = run(
+        capsys, "learn", "train", str(seq), "--out", str(out_model), "--steps", "1", "--seed", "3"
+    )
     assert code == 0, err
     assert "validation" in out and "compile" in out
     meta = json.loads((out_model / "model.json").read_text())
@@ -117,8 +128,15 @@ def test_an_output_that_is_a_file_is_not_overwritten(folders, capsys, tmp_path):
     (other / "notes.txt").write_text("mine")
     code, _, err = run(capsys, "learn", "train", str(folders["seq"]), "--out", str(other))
     one_line_error(code, err, "--out", "not a jaximu model")
-    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(folders["seq"]),
-                       "--json", str(tmp_path / "missing" / "x.json"))
+    code, _, err = run(
+        capsys,
+        "learn",
+        "evaluate",
+        str(folders["model"]),
+        str(folders["seq"]),
+        "--json",
+        str(tmp_path / "missing" / "x.json"),
+    )
     one_line_error(code, err, "--json", "does not exist")
 
 
@@ -131,8 +149,9 @@ def test_a_model_that_is_not_one(folders, capsys, tmp_path):
     (bad / "model.json").write_text(json.dumps({"format": "jaximu.learning.Denoiser/0"}))
     code, _, err = run(capsys, "learn", "evaluate", str(bad), str(folders["seq"]))
     one_line_error(code, err, "format", "retrain")
-    (bad / "model.json").write_text(json.dumps(
-        {"format": learning.checkpoint.FORMAT, "config": TINY.to_json()}))
+    (bad / "model.json").write_text(
+        json.dumps({"format": learning.checkpoint.FORMAT, "config": TINY.to_json()})
+    )
     code, _, err = run(capsys, "learn", "evaluate", str(bad), str(folders["seq"]))
     one_line_error(code, err, "weights.eqx", "damaged")
 
@@ -152,8 +171,9 @@ def test_ground_truth_that_does_not_cover_the_imu(folders, capsys, tmp_path):
 def test_nan_samples(folders, capsys, tmp_path):
     seq = write_sequence(tmp_path / "nan", seconds=5.0, nan_row=100)
     js = tmp_path / "x.json"
-    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq),
-                       "--json", str(js))
+    code, _, err = run(
+        capsys, "learn", "evaluate", str(folders["model"]), str(seq), "--json", str(js)
+    )
     one_line_error(code, err, "NaN")
     assert not js.exists()
 

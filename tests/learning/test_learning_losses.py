@@ -24,8 +24,13 @@ def smooth_rates(rng, T, amplitude=1.0):
     t = np.arange(T) * DT
     f = rng.uniform(0.1, 1.5, (3, 3))
     ph = rng.uniform(0, 2 * np.pi, (3, 3))
-    return amplitude * np.stack([np.sin(2 * np.pi * f[i, :, None] * t + ph[i, :, None]).sum(0)
-                                 for i in range(3)], -1) / 2
+    return (
+        amplitude
+        * np.stack(
+            [np.sin(2 * np.pi * f[i, :, None] * t + ph[i, :, None]).sum(0) for i in range(3)], -1
+        )
+        / 2
+    )
 
 
 def scipy_attitudes(q0_wxyz, gyro, dt):
@@ -56,10 +61,14 @@ def model64():
     m = Denoiser(TINY, jax.random.key(3)).astype(jnp.float64)
     # non-zero heads, so every parameter reaches the loss
     k1, k2, k3 = jax.random.split(jax.random.key(4), 3)
-    m = eqx.tree_at(lambda m: m.head.weight, m, 0.3 * jax.random.normal(k1, m.head.weight.shape,
-                                                                          jnp.float64))
-    m = eqx.tree_at(lambda m: m.noise_head.weight, m,
-                    0.3 * jax.random.normal(k2, m.noise_head.weight.shape, jnp.float64))
+    m = eqx.tree_at(
+        lambda m: m.head.weight, m, 0.3 * jax.random.normal(k1, m.head.weight.shape, jnp.float64)
+    )
+    m = eqx.tree_at(
+        lambda m: m.noise_head.weight,
+        m,
+        0.3 * jax.random.normal(k2, m.noise_head.weight.shape, jnp.float64),
+    )
     m = eqx.tree_at(lambda m: m.gyro_matrix, m, 0.01 * jax.random.normal(k3, (3, 3), jnp.float64))
     return m
 
@@ -69,18 +78,29 @@ def _central_differences(f, model, leaves, eps=1e-6):
     out = []
     for where, idx in leaves:
         x = where(model)
+
         def at(v):
             return f(eqx.tree_at(where, model, x.at[idx].set(v)))
+
         v = x[idx]
         out.append((at(v + eps) - at(v - eps)) / (2 * eps))
     return np.array(out)
 
 
-LEAVES = [(lambda m: m.layers[0].weight, (1, 2, 3)), (lambda m: m.layers[1].bias, (2,)),
-          (lambda m: m.head.weight, (0, 1, 0)), (lambda m: m.head.bias, (2,)),
-          (lambda m: m.gyro_matrix, (0, 1)), (lambda m: m.gyro_matrix, (2, 2))]
-NOISE_LEAVES = [(lambda m: m.noise_head.weight, (0, 3, 1)), (lambda m: m.noise_head.bias, (0,)),
-                (lambda m: m.log_bias_sigma, ()), (lambda m: m.log_reference_sigma, ())]
+LEAVES = [
+    (lambda m: m.layers[0].weight, (1, 2, 3)),
+    (lambda m: m.layers[1].bias, (2,)),
+    (lambda m: m.head.weight, (0, 1, 0)),
+    (lambda m: m.head.bias, (2,)),
+    (lambda m: m.gyro_matrix, (0, 1)),
+    (lambda m: m.gyro_matrix, (2, 2)),
+]
+NOISE_LEAVES = [
+    (lambda m: m.noise_head.weight, (0, 3, 1)),
+    (lambda m: m.noise_head.bias, (0,)),
+    (lambda m: m.log_bias_sigma, ()),
+    (lambda m: m.log_reference_sigma, ()),
+]
 
 
 def test_increment_loss_gradient_equals_central_differences(model64):
@@ -91,8 +111,15 @@ def test_increment_loss_gradient_equals_central_differences(model64):
         return losses.increment_loss(m(g, a), q, DT, (16, 32), huber_delta=1e-3)[0]
 
     def nll(m):
-        return losses.increment_loss(m(g, a), q, DT, (16, 32), bias_sigma=m.bias_sigma,
-                                     reference_sigma=m.reference_sigma, random_walk=1e-4)[1]
+        return losses.increment_loss(
+            m(g, a),
+            q,
+            DT,
+            (16, 32),
+            bias_sigma=m.bias_sigma,
+            reference_sigma=m.reference_sigma,
+            random_walk=1e-4,
+        )[1]
 
     for f, leaves in ((huber, LEAVES), (nll, NOISE_LEAVES)):
         f = eqx.filter_jit(f)  # one compilation for the 4 evaluations of each parameter
@@ -113,21 +140,26 @@ def test_window_rotation_covariance_equals_preintegration_covariance():
     accel = jnp.zeros_like(gyro)
     sigma = jnp.asarray([2e-3, 1e-3, 3e-3])
     w = losses.windows(gyro, accel, DT, H, jnp.broadcast_to(sigma, gyro.shape))
-    pim = jaximu.preintegrate(gyro.reshape(4, H, 3), accel.reshape(4, H, 3), DT,
-                              noise=jaximu.ImuNoise(sigma, 0.0))
+    pim = jaximu.preintegrate(
+        gyro.reshape(4, H, 3), accel.reshape(4, H, 3), DT, noise=jaximu.ImuNoise(sigma, 0.0)
+    )
     P = np.asarray(w.Q[..., 0:3, 0:3])
-    np.testing.assert_allclose(P, np.asarray(pim.cov[..., 0:3, 0:3]), rtol=1e-12,
-                               atol=1e-12 * np.abs(P).max())
+    np.testing.assert_allclose(
+        P, np.asarray(pim.cov[..., 0:3, 0:3]), rtol=1e-12, atol=1e-12 * np.abs(P).max()
+    )
     np.testing.assert_allclose(np.asarray(w.delta_q), np.asarray(pim.delta_q), atol=1e-14)
     # the bias column of the window's transition is the preintegrated ∂ΔR/∂b_g
-    np.testing.assert_allclose(np.asarray(w.Phi[..., 0:3, 3:6]), np.asarray(pim.dR_dbg),
-                               rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(w.Phi[..., 0:3, 3:6]), np.asarray(pim.dR_dbg), rtol=1e-12, atol=1e-15
+    )
     # composing two windows equals one window of twice the length
     w2 = losses.compose_pairs(w)
-    pim2 = jaximu.preintegrate(gyro.reshape(2, 2 * H, 3), accel.reshape(2, 2 * H, 3), DT,
-                               noise=jaximu.ImuNoise(sigma, 0.0))
-    np.testing.assert_allclose(np.asarray(w2.Q[..., 0:3, 0:3]),
-                               np.asarray(pim2.cov[..., 0:3, 0:3]), rtol=1e-12, atol=1e-20)
+    pim2 = jaximu.preintegrate(
+        gyro.reshape(2, 2 * H, 3), accel.reshape(2, 2 * H, 3), DT, noise=jaximu.ImuNoise(sigma, 0.0)
+    )
+    np.testing.assert_allclose(
+        np.asarray(w2.Q[..., 0:3, 0:3]), np.asarray(pim2.cov[..., 0:3, 0:3]), rtol=1e-12, atol=1e-20
+    )
     np.testing.assert_allclose(np.asarray(w2.delta_v), np.asarray(pim2.delta_v), atol=1e-13)
 
 
@@ -143,9 +175,11 @@ def test_raw_whole_sequence_evaluation_equals_scipy_integration():
     aye = np.degrees(np.abs((est * Rt.inv()).as_euler("ZYX")[:, 0]))
     m = rep.metrics["raw"]
     assert aoe.mean() > 1.0  # the bias makes a real error
-    np.testing.assert_allclose([m.aoe_mean, m.aoe_rmse, m.aye_mean, m.aye_rmse],
-                               [aoe.mean(), np.sqrt(np.mean(aoe ** 2)), aye.mean(),
-                                np.sqrt(np.mean(aye ** 2))], rtol=1e-9)
+    np.testing.assert_allclose(
+        [m.aoe_mean, m.aoe_rmse, m.aye_mean, m.aye_rmse],
+        [aoe.mean(), np.sqrt(np.mean(aoe**2)), aye.mean(), np.sqrt(np.mean(aye**2))],
+        rtol=1e-9,
+    )
     np.testing.assert_allclose(rep.aoe["raw"], aoe, rtol=1e-9, atol=1e-11)
 
 
@@ -159,10 +193,14 @@ def test_attitude_terms_equal_preintegration_prefixes():
     gyro = jnp.asarray(smooth_rates(rng, T, 2.0))
     sigma, walk = jnp.asarray([2e-3, 1e-3, 3e-3]), 4e-4
     W, B = attitude_terms(gyro, jnp.broadcast_to(sigma, gyro.shape), DT, walk)
-    pim = jaximu.preintegrate(gyro[:-1], jnp.zeros((T - 1, 3)), DT, prefixes=True,
-                              noise=jaximu.ImuNoise(sigma, 0.0, walk, 0.0))
-    np.testing.assert_allclose(np.asarray(B[1:]), np.asarray(pim.dR_dbg), rtol=1e-10,
-                               atol=1e-15)
+    pim = jaximu.preintegrate(
+        gyro[:-1],
+        jnp.zeros((T - 1, 3)),
+        DT,
+        prefixes=True,
+        noise=jaximu.ImuNoise(sigma, 0.0, walk, 0.0),
+    )
+    np.testing.assert_allclose(np.asarray(B[1:]), np.asarray(pim.dR_dbg), rtol=1e-10, atol=1e-15)
     P = np.asarray(pim.cov15[..., 0:3, 0:3])
     np.testing.assert_allclose(np.asarray(W[1:]), P, rtol=1e-10, atol=1e-12 * np.abs(P).max())
     assert np.all(np.asarray(W[0]) == 0)
@@ -175,8 +213,15 @@ def test_bias_sigma_is_set_for_an_average_nees_of_three():
     B = np.broadcast_to(np.eye(3) * np.arange(T)[:, None, None] * DT, (T, 3, 3))
     W = np.broadcast_to(1e-14 * np.eye(3), (T, 3, 3)) * np.arange(T)[:, None, None]
     # errors of a constant bias of 1e-3 rad/s per axis: r = B b
-    terms = [uncertainty.NeesTerms(jnp.asarray(B @ (s * 1e-3 * np.ones(3))), jnp.asarray(W),
-                                   jnp.asarray(B), jnp.asarray(1e-6)) for s in (0.5, 1.5)]
+    terms = [
+        uncertainty.NeesTerms(
+            jnp.asarray(B @ (s * 1e-3 * np.ones(3))),
+            jnp.asarray(W),
+            jnp.asarray(B),
+            jnp.asarray(1e-6),
+        )
+        for s in (0.5, 1.5)
+    ]
     sigma = uncertainty.fit_bias_sigma(terms)
     assert np.mean([uncertainty.average_nees(t, sigma) for t in terms]) == pytest.approx(3, 1e-6)
     # bias-dominated errors: the NEES is 3 (s·1e-3)²/σ_b², averaged over s² = 0.25 and 2.25

@@ -43,14 +43,29 @@ def trained():
     # 41 % of the tolerances below; with these 20 s at 35 %, 7 % and 38 % (the validation
     # AOE at 9 % of its bound against 8 %); with 15 s the density reached 68 %.
     seqs = [simulated(s, seconds=30.0)[0] for s in (0, 1)]
-    cfg = TrainConfig(steps=300, learning_rate=0.01, min_learning_rate=0.002, restart=300,
-                      train_seconds=20.0, horizons=(16, 32, 64, 128), gyro_noise=0.0,
-                      accel_noise=0.0,
-                      gyro_bias_noise=0.0, accel_bias_noise=0.0, weight_decay=0.0,
-                      validate_every=300)
-    mcfg = ModelConfig(channels=(8, 8), kernel=3, dilations=(1, 2), dropout=0.0,
-                       gyro_scale=(0.05, 0.05, 0.05), gyro_density=1e-3,
-                       reference_sigma=1e-5)
+    cfg = TrainConfig(
+        steps=300,
+        learning_rate=0.01,
+        min_learning_rate=0.002,
+        restart=300,
+        train_seconds=20.0,
+        horizons=(16, 32, 64, 128),
+        gyro_noise=0.0,
+        accel_noise=0.0,
+        gyro_bias_noise=0.0,
+        accel_bias_noise=0.0,
+        weight_decay=0.0,
+        validate_every=300,
+    )
+    mcfg = ModelConfig(
+        channels=(8, 8),
+        kernel=3,
+        dilations=(1, 2),
+        dropout=0.0,
+        gyro_scale=(0.05, 0.05, 0.05),
+        gyro_density=1e-3,
+        reference_sigma=1e-5,
+    )
     return learning.train(seqs, cfg, mcfg, seed=0, log=None)
 
 
