@@ -43,7 +43,8 @@ class Layout(NamedTuple):
     scale: Callable[..., Any]  # s X for a per-element scalar s
     scale_cols: Callable[..., Any]  # X diag(s) for a per-element 3-vector s
     diag: Callable[..., Any]  # diag(s) for a per-element 3-vector s
-    barrier: Callable[..., Any] = lambda tree: tree  # materialise a pytree of blocks (see kernels/soa.py)
+    # materialise a pytree of blocks (see kernels/soa.py)
+    barrier: Callable[..., Any] = lambda tree: tree
     skew: Any = None  # [v]x of a V3
     matvec: Any = None  # X v -> V3
     exp_jr: Any = None  # (Exp(φ), Jr(φ)) of a rotation vector φ (V3)
