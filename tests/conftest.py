@@ -7,7 +7,7 @@ import tempfile
 
 # The suite is bound by XLA compilation, not by run time: ask XLA:CPU for less LLVM
 # optimisation (about 1.6x faster compiles) and for its classic loop emitter instead of the
-# MLIR fusion emitters (half the compile CPU time again: tests/test_preintegration.py took
+# MLIR fusion emitters (half the compile CPU time again: tests/engine/test_preintegration.py took
 # 4 min 8 s of CPU with them, 2 min 2 s without, on this project's 2-core machine). Only
 # code generation changes, not the IEEE arithmetic asked for; user programs and the
 # benchmarks run with XLA's defaults. Set before the first JAX computation initialises the
@@ -17,7 +17,7 @@ import tempfile
 # these flags hid one such difference that users' default flags show (a one-lane Monte Carlo
 # program: jaximu.montecarlo._lane_errors). So the tests of bitwise reproducibility (a run
 # regenerated alone, chunk sizes) are marked ``default_codegen`` and run in a child pytest
-# with the caller's flags only (pytest_pyfunc_call below); tests/test_cli.py runs the demo
+# with the caller's flags only (pytest_pyfunc_call below); tests/app/test_cli.py runs the demo
 # (real EuRoC data, every scheme) that way too, so the default code generation is exercised
 # end to end.
 _FAST_COMPILE = (
@@ -73,7 +73,7 @@ jax.config.update("jax_enable_x64", True)
 # module's jax.clear_caches() (and where a test builds a graph another test compiled already)
 # the executables are loaded instead of compiled again. Only compilations of at least 1 s are
 # written: writing each of the thousands of small ones costs more than compiling it again
-# (measured: ~5% on tests/test_sensor.py with everything written, few hits). The `jaximu`
+# (measured: ~5% on tests/geometry/test_sensor.py with everything written, few hits). The `jaximu`
 # commands the tests run as subprocesses get the same folder (JAXIMU_CACHE_DIR), so they
 # never write into the user's ~/.cache; they write with the CLI's own threshold, while the
 # worker that started them waits, so no two writers share the folder at once. A killed

@@ -245,7 +245,7 @@ def calibration_problem(
             ratio beyond :data:`FRAME_SIGNIFICANCE`, noise bounded below by
             ``reference_sigma``); a near-still segment passes the frame check, and a
             deg/s gyro is caught there by its mean rate (:data:`GYRO_BIAS_MAX`). Every 3 s
-            excerpt of the bundled recordings passes (``tests/test_calibration_checks.py``).
+            excerpt of the bundled recordings passes (``tests/calibration/test_calibration_checks.py``).
         extrinsics: the IMU frame may be rotated from the reference's body frame and sit at
             a lever arm (``q_BS``, ``p_BS`` of :class:`ImuCalibration` join the model). The
             frame check then becomes the initialiser: the least-squares rotation between the

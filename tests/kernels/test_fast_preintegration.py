@@ -139,7 +139,7 @@ def test_dispatch():
 )
 def test_fast_path_equals_generic(batch, T, method, kw):
     """The reference is the generic sequential scan (quick to compile; the generic parallel
-    method equals it to rounding, tests/test_preintegration.py), once the generic parallel."""
+    method equals it to rounding, tests/engine/test_preintegration.py), once the generic parallel."""
     args = inputs(batch, T, **kw)
     ref_method = "parallel" if (batch, T) == ((), 300) else "sequential"
     assert_same(

@@ -18,7 +18,7 @@ import pytest
 from jaximu import ImuNoise, datasets, io
 from jaximu import calibration as cal
 
-DATA = pathlib.Path(__file__).parent / "data"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 LENGTH, STRIDE = 3.0, 1.0
 SAMPLES = 600  # LENGTH at 200 Hz
 RZ90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

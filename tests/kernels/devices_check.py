@@ -1,4 +1,4 @@
-"""Child process of ``tests/test_devices.py``: two CPU devices (``jax_num_cpu_devices`` must
+"""Child process of ``tests/kernels/test_devices.py``: two CPU devices (``jax_num_cpu_devices`` must
 be set before JAX starts, so this runs apart from the suite's process).
 
 Each check compares a call under ``jax.set_mesh`` (lanes split over the two devices by
@@ -82,7 +82,7 @@ CASES = {
 # scalar are run_blocked's, the same for every kernel, checked here on propagate_final.
 # (preintegrate/euler passes too, and adds 23 s to this child on the 2-core host: kept out
 # for the suite's time; preintegration gradients are checked against the generic kernel in
-# tests/test_fast_preintegration.py.)
+# tests/kernels/test_fast_preintegration.py.)
 GRADIENTS = {"propagate_final/euler"}
 
 

@@ -12,7 +12,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from jaximu import io
 
-MH03 = pathlib.Path(__file__).parent / "data" / "euroc_mh_03_medium"  # imu.csv + pose .txt
+MH03 = (
+    pathlib.Path(__file__).resolve().parents[1] / "data" / "euroc_mh_03_medium"
+)  # imu.csv + pose .txt
 POSE = "groundtruth_pose.txt"
 
 

@@ -13,7 +13,7 @@ from _shared import dispatch_as, random_inputs
 import jaximu
 from jaximu.engine import _dispatch
 
-DESIGN = pathlib.Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
+DESIGN = pathlib.Path(__file__).resolve().parents[2] / "docs" / "DESIGN.md"
 
 
 def documented_table():
@@ -149,7 +149,7 @@ def test_accelerator_takes_time_chunks_from_the_tables_thresholds(monkeypatch):
     ``COV_CHUNK_STEPS``) on, up to its batch (``MEAN_CHUNK_LANES``, ``COV_CHUNK_LANES``),
     and the sequential kernels one step shorter or one sequence more; the CPU keeps the
     sequential kernels at those lengths. The results are tested against the sequential
-    kernels in tests/test_chunked_covariance.py and tests/test_fast_path.py."""
+    kernels in tests/engine/test_chunked_covariance.py and tests/kernels/test_fast_path.py."""
     acc = _dispatch.ACCELERATOR
     mean_n, mean_b = _dispatch.MEAN_CHUNK_STEPS, _dispatch.MEAN_CHUNK_LANES
     cov_n, cov_b = _dispatch.COV_CHUNK_STEPS[acc], _dispatch.COV_CHUNK_LANES[acc]
@@ -185,7 +185,7 @@ def test_accelerator_mean_of_short_sequences_in_time_chunks_equals_the_scan():
     4 chunks of 32 steps each, the deltas composed as a tree; every state stored, the chunks
     run again from their starts' parallel prefix), per-sample dt, on the accelerator's
     dispatch run here: the CPU's sequential kernel's states (itself tested against the
-    generic scan, tests/test_fast_path.py) to 1e-12 of the largest value."""
+    generic scan, tests/kernels/test_fast_path.py) to 1e-12 of the largest value."""
     n = _dispatch.MEAN_CHUNK_STEPS
     state, gyro, accel = random_inputs(2, n, seed=31)
     dt = jnp.asarray(np.random.default_rng(32).uniform(0.003, 0.007, (2, n)))

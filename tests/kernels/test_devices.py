@@ -1,6 +1,6 @@
 """Under ``jax.set_mesh`` the fast kernels split their lanes over the mesh's devices.
 
-The checks (``tests/devices_check.py``) run in a child process with two CPU devices, since
+The checks (``tests/kernels/devices_check.py``) run in a child process with two CPU devices, since
 the device count is fixed when JAX starts; each compares the split call with the same call
 without a mesh (values and gradients), and reads the lowered program for the split.
 """

@@ -12,7 +12,7 @@ import jaximu
 from jaximu import io
 from jaximu.state import NavState
 
-DATA = pathlib.Path(__file__).parent / "data"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 EUROC = DATA / "euroc_v1_02_medium"
 TUMVI = DATA / "tumvi_room4"
 

@@ -1,5 +1,5 @@
 """`jaximu preintegrate`, `montecarlo`, `calibrate` and `allan` end to end in a subprocess
-(a file of their own so that pytest-xdist runs it beside tests/test_cli.py). The subprocesses
+(a file of their own so that pytest-xdist runs it beside tests/app/test_cli.py). The subprocesses
 keep their compilations in the suite's temporary folder (conftest.py: JAXIMU_CACHE_DIR)."""
 
 import json
@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-SEG = str(pathlib.Path(__file__).parent / "data" / "euroc_v1_02_medium")
+SEG = str(pathlib.Path(__file__).resolve().parents[1] / "data" / "euroc_v1_02_medium")
 
 
 def run(*args):
@@ -48,7 +48,7 @@ def test_montecarlo_command():
 
 
 def test_calibrate_command(tmp_path):
-    # the default optimiser, Levenberg-Marquardt (L-BFGS and Adam: tests/test_calibration.py)
+    # the default optimiser, Levenberg-Marquardt (L-BFGS and Adam: tests/calibration/test_calibration.py)
     res = run("calibrate", SEG, "--estimate", "b_g", "--out", str(tmp_path / "cal.json"))
     assert res.returncode == 0, res.stderr
     assert "compiling the residuals and their Jacobian" in res.stdout

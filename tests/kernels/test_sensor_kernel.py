@@ -2,7 +2,7 @@
 move into the body frame inside the kernel's time chunks (jaximu.sensor.chunk_to_body, with a
 halo of neighbouring samples for the derivative α). Checked against the samples moved first
 by the whole-array transform (jaximu.sensor.to_body, whose α is numpy's gradient in
-tests/test_sensor.py) and run through the generic kernel (``fast=False``): values and
+tests/geometry/test_sensor.py) and run through the generic kernel (``fast=False``): values and
 gradients, at the chunks' seams and the sequence's ends."""
 
 import functools
@@ -169,7 +169,7 @@ def test_covariance_with_samples_moved_in_the_kernel_equals_the_samples_moved_fi
     """The covariance kernels read the moved samples too (their Jacobians take the lever arm
     as before): a pose per lane, 77 steps (chunks and a remainder), n = T, midpoint, every
     covariance stored. (The closed-form Euler covariance with the moved samples is checked
-    as Φ Φᵀ, Φ by finite differences, in tests/test_sensor.py.)"""
+    as Φ Φᵀ, Φ by finite differences, in tests/geometry/test_sensor.py.)"""
     scheme, jacobians, save_all = "midpoint", "autodiff", True
     state, gyro, accel, dt, pose = case_inputs((3,), 77, 77, False, True, np.float64, seed=2)
     P0 = jnp.asarray(np.diag(np.linspace(1e-4, 1e-2, 15)))

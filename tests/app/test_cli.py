@@ -13,7 +13,7 @@ import pytest
 
 from jaximu.datasets import euroc_v1_02_segment
 
-DATA = pathlib.Path(__file__).parent / "data"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 
 
 def run(*args, cwd=None, default_codegen=False):
