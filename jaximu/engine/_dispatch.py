@@ -10,12 +10,14 @@ The engine has two families of kernels:
 
 A ``jax.vmap`` of an entry reaches this table with the whole batch (:mod:`jaximu.engine._batching`),
 so the same row decides for leading axes and for ``vmap``. The table is read top to bottom;
-the first row whose conditions hold names the kernel.
+the first row whose conditions hold names the kernel, and :func:`implementation` returns the
+function that runs it (each engine module registers its own with :func:`implements`).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 
@@ -215,6 +217,27 @@ TABLE = (
 
 GENERIC = "generic"
 
+_IMPLEMENTATIONS: dict[tuple[str, str], Callable[..., Any]] = {}
+
+
+def implements(entry: str, *kernels: str):
+    """Register the decorated function as what runs ``entry`` when the table picks one of
+    ``kernels``. The engine module that defines an entry registers one function per kernel
+    of its rows (and :data:`GENERIC`), each with the entry's own arguments."""
+
+    def register(fn):
+        for name in kernels:
+            _IMPLEMENTATIONS[(entry, name)] = fn
+        return fn
+
+    return register
+
+
+def implementation(entry, scheme, **options) -> Callable[..., Any]:
+    """The function to call for ``entry``: the kernel :func:`kernel` picks for ``scheme`` and
+    ``options`` (the same keywords), as its engine module registered it (:func:`implements`)."""
+    return _IMPLEMENTATIONS[(entry, kernel(entry, scheme, **options))]
+
 
 def kernel(
     entry,
@@ -305,6 +328,12 @@ def preint_method(method, lanes, steps, dtype) -> str:
 def preintegrate_kernel(
     scheme, *, jacobians, prefixes, method, lanes, fast=True, lever=False
 ) -> str:
+    """:func:`kernel` for ``preintegrate``: prefixes (every ``Δ_ik``) have no fast kernel."""
     if prefixes:
         return GENERIC
     return kernel("preintegrate", scheme, jacobians=jacobians, lanes=lanes, fast=fast, lever=lever)
+
+
+def preintegrate_implementation(scheme, **options) -> Callable[..., Any]:
+    """:func:`implementation` for ``preintegrate`` (the options of :func:`preintegrate_kernel`)."""
+    return _IMPLEMENTATIONS[("preintegrate", preintegrate_kernel(scheme, **options))]

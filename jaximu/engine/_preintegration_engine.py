@@ -331,7 +331,6 @@ def _preintegrate_fast(
 def _preintegrate(
     gyro, accel, dt, bias, noise, lever=None, *, scheme, method, jacobians, prefixes, fast=True
 ):
-    step_fn = _step if jacobians == "analytic" else _step_autodiff
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = tuple(
         jnp.broadcast_shapes(
@@ -346,21 +345,35 @@ def _preintegrate(
     )
     lanes = int(np.prod(batch, dtype=np.int64))
     method = dispatch.preint_method(method, lanes, gyro.shape[-2], gyro.dtype)
-    if (
-        dispatch.preintegrate_kernel(
-            scheme,
-            jacobians=jacobians,
-            prefixes=prefixes,
-            method=method,
-            lanes=lanes,
-            fast=fast,
-            lever=lever is not None,
-        )
-        != dispatch.GENERIC
-    ):
-        return _preintegrate_fast(
-            gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians
-        )
+    run = dispatch.preintegrate_implementation(
+        scheme,
+        jacobians=jacobians,
+        prefixes=prefixes,
+        method=method,
+        lanes=lanes,
+        fast=fast,
+        lever=lever is not None,
+    )
+    return run(gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes)
+
+
+# Preintegration's implementations, one per kernel of the table's "preintegrate" rows, with
+# one signature: (gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians,
+# prefixes).
+
+
+@dispatch.implements("preintegrate", "soa_preint_euler", "soa_preint_midpoint")
+def _preintegrate_soa(
+    gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes
+):
+    return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians)
+
+
+@dispatch.implements("preintegrate", dispatch.GENERIC)
+def _preintegrate_generic(
+    gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes
+):
+    step_fn = _step if jacobians == "analytic" else _step_autodiff
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype
     b_g, b_a = bias.b_g, bias.b_a

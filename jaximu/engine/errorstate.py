@@ -215,7 +215,7 @@ def _propagate_covariance(
     """The covariance's engine. ``pose``: ``None``, or the samples are a sensor's there and
     ``state``'s biases the sensor's (:func:`jaximu.engine._inputs.sensor_engine_inputs`; ``P0``,
     ``noise`` and ``lever`` are already the body's); the returned biases are the body's."""
-    att = get_attitude(attitude)
+    get_attitude(attitude)  # an unknown form is named here, before the table is read
     nb = lambda x: x.shape[:-1] if x.ndim else ()  # noqa: E731
     batch = jnp.broadcast_shapes(
         state.batch_shape,
@@ -229,7 +229,7 @@ def _propagate_covariance(
         *(() if pose is None else (nb(pose.q), nb(pose.p))),
     )
     lanes = int(np.prod(batch, dtype=np.int64))
-    kernel = dispatch.kernel(
+    run = dispatch.implementation(
         "covariance",
         scheme,
         attitude=attitude,
@@ -242,49 +242,141 @@ def _propagate_covariance(
         rotating=omega is not None,
         lever=lever is not None,
     )
-    soa = kernel in ("soa_cov_analytic", "soa_cov_autodiff")
-    state = unit_start(state, soa, attitude)
-    # the time chunks read samples moved into the body frame (a chunk's own ends have no
-    # neighbours for the lever arm's rate derivative)
-    state, gyro, accel = sensor_engine_inputs(soa, pose, state, gyro, accel, dt, tangential)
-    if kernel == "soa_cov_chunked":
-        return _propagate_covariance_chunked(
-            state,
-            P0,
-            gyro,
-            accel,
-            dt,
-            g,
-            noise,
-            batch,
-            scheme,
-            jacobians,
-            omega,
-            coriolis,
-            lever,
-            save_all,
-            attitude,
-        )
-    if soa:
-        return _propagate_covariance_fast(
-            state,
-            P0,
-            gyro,
-            accel,
-            dt,
-            g,
-            noise,
-            batch,
-            scheme,
-            jacobians,
-            omega,
-            coriolis,
-            lever,
-            save_all,
-            attitude,
-            pose,
-            tangential,
-        )
+    return run(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        noise,
+        batch,
+        scheme,
+        jacobians,
+        omega,
+        coriolis,
+        lever,
+        save_all,
+        attitude,
+        pose,
+        tangential,
+    )
+
+
+# The covariance's implementations, one per kernel of the table's "covariance" rows, with one
+# signature: (state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians, omega,
+# coriolis, lever, save_all, attitude, pose, tangential). Only the structure-of-arrays
+# kernels move a sensor's samples into the body frame themselves; the time chunks read them
+# moved (a chunk's own ends have no neighbours for the lever arm's rate derivative).
+
+
+@dispatch.implements("covariance", "soa_cov_analytic", "soa_cov_autodiff")
+def _covariance_soa(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    batch,
+    scheme,
+    jacobians,
+    omega,
+    coriolis,
+    lever,
+    save_all,
+    attitude,
+    pose,
+    tangential,
+):
+    state = unit_start(state, True, attitude)
+    state, gyro, accel = sensor_engine_inputs(True, pose, state, gyro, accel, dt, tangential)
+    return _propagate_covariance_fast(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        noise,
+        batch,
+        scheme,
+        jacobians,
+        omega,
+        coriolis,
+        lever,
+        save_all,
+        attitude,
+        pose,
+        tangential,
+    )
+
+
+@dispatch.implements("covariance", "soa_cov_chunked")
+def _covariance_chunked(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    batch,
+    scheme,
+    jacobians,
+    omega,
+    coriolis,
+    lever,
+    save_all,
+    attitude,
+    pose,
+    tangential,
+):
+    state = unit_start(state, False, attitude)
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
+    return _propagate_covariance_chunked(
+        state,
+        P0,
+        gyro,
+        accel,
+        dt,
+        g,
+        noise,
+        batch,
+        scheme,
+        jacobians,
+        omega,
+        coriolis,
+        lever,
+        save_all,
+        attitude,
+    )
+
+
+@dispatch.implements("covariance", dispatch.GENERIC)
+def _covariance_generic(
+    state,
+    P0,
+    gyro,
+    accel,
+    dt,
+    g,
+    noise,
+    batch,
+    scheme,
+    jacobians,
+    omega,
+    coriolis,
+    lever,
+    save_all,
+    attitude,
+    pose,
+    tangential,
+):
+    att = get_attitude(attitude)
+    state = unit_start(state, False, attitude)
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
     state = broadcast_state(state, batch)
     P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
     xs = time_major(gyro, accel, dt, scheme)

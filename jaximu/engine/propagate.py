@@ -263,7 +263,7 @@ def _propagate(
     the structure-of-arrays kernel moves the samples into the body frame in its time chunks,
     the others read them moved (:func:`jaximu.sensor.to_body`). The returned states' biases
     are then the body's."""
-    att = get_attitude(attitude)
+    get_attitude(attitude)  # an unknown form is named here, before the table is read
     batch = jnp.broadcast_shapes(
         state.batch_shape,
         gyro.shape[:-2],
@@ -274,7 +274,7 @@ def _propagate(
         *(() if pose is None else (pose.q.shape[:-1], pose.p.shape[:-1])),
     )
     lanes = int(np.prod(batch, dtype=np.int64))
-    kernel = dispatch.kernel(
+    run = dispatch.implementation(
         "mean",
         scheme,
         attitude=attitude,
@@ -285,28 +285,68 @@ def _propagate(
         fast=fast,
         rotating=omega is not None,
     )
-    state = unit_start(state, kernel == "soa_mean", attitude)
-    state, gyro, accel = sensor_engine_inputs(
-        kernel == "soa_mean", pose, state, gyro, accel, dt, tangential
+    return run(
+        scheme,
+        state,
+        gyro,
+        accel,
+        dt,
+        g,
+        batch,
+        save_all,
+        omega,
+        coriolis,
+        attitude,
+        pose,
+        tangential,
     )
-    if kernel == "soa_mean":
-        return _propagate_fast(
-            scheme,
-            state,
-            gyro,
-            accel,
-            dt,
-            g,
-            batch,
-            save_all,
-            omega,
-            coriolis,
-            attitude,
-            pose,
-            tangential,
-        )
-    if kernel == "soa_mean_chunked":
-        return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
+
+
+# The mean's implementations, one per kernel of the table's "mean" rows, with one signature:
+# (scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose,
+# tangential). Only the structure-of-arrays kernel moves a sensor's samples into the body
+# frame itself (in its time chunks); the others read them moved.
+
+
+@dispatch.implements("mean", "soa_mean")
+def _mean_soa(
+    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
+):
+    state = unit_start(state, True, attitude)
+    state, gyro, accel = sensor_engine_inputs(True, pose, state, gyro, accel, dt, tangential)
+    return _propagate_fast(
+        scheme,
+        state,
+        gyro,
+        accel,
+        dt,
+        g,
+        batch,
+        save_all,
+        omega,
+        coriolis,
+        attitude,
+        pose,
+        tangential,
+    )
+
+
+@dispatch.implements("mean", "soa_mean_chunked")
+def _mean_chunked(
+    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
+):
+    state = unit_start(state, False, attitude)
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
+    return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
+
+
+@dispatch.implements("mean", dispatch.GENERIC)
+def _mean_generic(
+    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
+):
+    att = get_attitude(attitude)
+    state = unit_start(state, False, attitude)
+    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
     state = broadcast_state(state, batch)
     xs = time_major(gyro, accel, dt, scheme)
     body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, coriolis)

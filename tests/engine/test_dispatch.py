@@ -143,6 +143,42 @@ def kernel_picked(entry, lanes, steps, monkeypatch, **kw):
     raise AssertionError("the entry did not ask the dispatch")
 
 
+def test_the_table_returns_the_function_that_runs_each_kernel():
+    """Every kernel the table names (and each entry's generic one) has the function that runs
+    it registered by its engine module, and ``implementation`` returns that function for the
+    options the row matches (the same choice :func:`kernel` names), read from the functions'
+    own modules and names."""
+    from jaximu.engine import _preintegration_engine, errorstate, propagate
+
+    registered = _dispatch._IMPLEMENTATIONS
+    for row in _dispatch.TABLE:
+        assert (row.entry, row.kernel) in registered, row
+    for entry in ("mean", "covariance", "preintegrate"):
+        assert (entry, _dispatch.GENERIC) in registered, entry
+    on_cpu = dict(dtype="float64", on=_dispatch.CPU)
+    mean = dict(attitude="quaternion", steps=100, **on_cpu)
+    assert _dispatch.implementation("mean", "euler", lanes=64, **mean) is propagate._mean_soa
+    assert (
+        _dispatch.implementation("mean", "euler", lanes=64, fast=False, **mean)
+        is propagate._mean_generic
+    )
+    cov = dict(attitude="quaternion", jacobians="analytic", **on_cpu)
+    assert (
+        _dispatch.implementation("covariance", "midpoint", lanes=64, steps=100, **cov)
+        is errorstate._covariance_soa
+    )
+    assert (
+        _dispatch.implementation("covariance", "euler", lanes=1, steps=4096, **cov)
+        is errorstate._covariance_chunked
+    )
+    assert (
+        _dispatch.preintegrate_implementation(
+            "euler", jacobians="analytic", prefixes=True, method="sequential", lanes=64
+        )
+        is _preintegration_engine._preintegrate_generic
+    )
+
+
 def test_accelerator_takes_time_chunks_from_the_tables_thresholds(monkeypatch):
     """On an accelerator (its dispatch run here: tests/_shared.dispatch_as) the public
     entries ask the dispatch for the time chunks from the table's length (``MEAN_CHUNK_STEPS``,
