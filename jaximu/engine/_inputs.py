@@ -82,6 +82,19 @@ def unit_start(state: NavState, soa: bool, attitude: str) -> NavState:
     return NavState(so3.quat_normalize(state.q), state.p, state.v, state.b_g, state.b_a)
 
 
+def kernel_ready(inputs, soa: bool):
+    """``inputs`` (an engine's inputs after the dispatch: a ``NamedTuple`` with ``state``,
+    ``gyro``, ``accel``, ``dt``, ``attitude``, ``pose``, ``tangential``) as the chosen kernel
+    reads them: the start normalised (:func:`unit_start`) and a sensor's samples moved into
+    the body frame, except where a structure-of-arrays kernel (``soa``) does either itself
+    (:func:`sensor_engine_inputs`)."""
+    state = unit_start(inputs.state, soa, inputs.attitude)
+    state, gyro, accel = sensor_engine_inputs(
+        soa, inputs.pose, state, inputs.gyro, inputs.accel, inputs.dt, inputs.tangential
+    )
+    return inputs._replace(state=state, gyro=gyro, accel=accel)
+
+
 def broadcast_state(state: NavState, batch) -> NavState:
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, tuple(batch) + x.shape[-1:]), state)
 

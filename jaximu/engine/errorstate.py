@@ -37,20 +37,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.engine import _chunked
 from jaximu.engine import _dispatch as dispatch
 from jaximu.engine._batching import ArgSpec, leading_axes
+from jaximu.engine._covariance_lanes import CovarianceInputs
 from jaximu.engine._inputs import (
     broadcast_state,
-    flatten_batch,
-    kernel_samples,
-    lane_values,
+    kernel_ready,
     n_steps,
     prepare,
-    sensor_engine_inputs,
-    soa_samples,
     time_major,
-    unit_start,
 )
 from jaximu.engine.jacobians import (
     JACOBIANS,
@@ -73,14 +68,11 @@ from jaximu.geometry import _checks as val
 from jaximu.geometry import _tolerances, sensor
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState
-from jaximu.kernels import fast as _fast
-from jaximu.kernels import lane_forms
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes import world
 from jaximu.schemes.integrators import (
     blocks_analytic,
     get_attitude,
-    get_scheme,
 )
 
 __all__ = [
@@ -243,143 +235,38 @@ def _propagate_covariance(
         lever=lever is not None,
     )
     return run(
-        state,
-        P0,
-        gyro,
-        accel,
-        dt,
-        g,
-        noise,
-        batch,
-        scheme,
-        jacobians,
-        omega,
-        coriolis,
-        lever,
-        save_all,
-        attitude,
-        pose,
-        tangential,
-    )
-
-
-# The covariance's implementations, one per kernel of the table's "covariance" rows, with one
-# signature: (state, P0, gyro, accel, dt, g, noise, batch, scheme, jacobians, omega,
-# coriolis, lever, save_all, attitude, pose, tangential). Only the structure-of-arrays
-# kernels move a sensor's samples into the body frame themselves; the time chunks read them
-# moved (a chunk's own ends have no neighbours for the lever arm's rate derivative).
-
-
-@dispatch.implements("covariance", "soa_cov_analytic", "soa_cov_autodiff")
-def _covariance_soa(
-    state,
-    P0,
-    gyro,
-    accel,
-    dt,
-    g,
-    noise,
-    batch,
-    scheme,
-    jacobians,
-    omega,
-    coriolis,
-    lever,
-    save_all,
-    attitude,
-    pose,
-    tangential,
-):
-    state = unit_start(state, True, attitude)
-    state, gyro, accel = sensor_engine_inputs(True, pose, state, gyro, accel, dt, tangential)
-    return _propagate_covariance_fast(
-        state,
-        P0,
-        gyro,
-        accel,
-        dt,
-        g,
-        noise,
-        batch,
-        scheme,
-        jacobians,
-        omega,
-        coriolis,
-        lever,
-        save_all,
-        attitude,
-        pose,
-        tangential,
-    )
-
-
-@dispatch.implements("covariance", "soa_cov_chunked")
-def _covariance_chunked(
-    state,
-    P0,
-    gyro,
-    accel,
-    dt,
-    g,
-    noise,
-    batch,
-    scheme,
-    jacobians,
-    omega,
-    coriolis,
-    lever,
-    save_all,
-    attitude,
-    pose,
-    tangential,
-):
-    state = unit_start(state, False, attitude)
-    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
-    return _propagate_covariance_chunked(
-        state,
-        P0,
-        gyro,
-        accel,
-        dt,
-        g,
-        noise,
-        batch,
-        scheme,
-        jacobians,
-        omega,
-        coriolis,
-        lever,
-        save_all,
-        attitude,
+        CovarianceInputs(
+            state,
+            P0,
+            gyro,
+            accel,
+            dt,
+            g,
+            noise,
+            batch,
+            scheme,
+            jacobians,
+            omega,
+            coriolis,
+            lever,
+            save_all,
+            attitude,
+            pose,
+            tangential,
+        )
     )
 
 
 @dispatch.implements("covariance", dispatch.GENERIC)
-def _covariance_generic(
-    state,
-    P0,
-    gyro,
-    accel,
-    dt,
-    g,
-    noise,
-    batch,
-    scheme,
-    jacobians,
-    omega,
-    coriolis,
-    lever,
-    save_all,
-    attitude,
-    pose,
-    tangential,
-):
-    att = get_attitude(attitude)
-    state = unit_start(state, False, attitude)
-    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
-    state = broadcast_state(state, batch)
-    P0 = jnp.broadcast_to(P0, tuple(batch) + (15, 15))
-    xs = time_major(gyro, accel, dt, scheme)
+def _covariance_generic(inputs: CovarianceInputs):
+    """The covariance by ``lax.scan`` on ``(..., 3)`` arrays: the reference kernel."""
+    a = kernel_ready(inputs, soa=False)
+    scheme, jacobians, noise, g, batch = a.scheme, a.jacobians, a.noise, a.g, a.batch
+    omega, coriolis, lever, save_all = a.omega, a.coriolis, a.lever, a.save_all
+    att = get_attitude(a.attitude)
+    state = broadcast_state(a.state, batch)
+    P0 = jnp.broadcast_to(a.P0, tuple(batch) + (15, 15))
+    xs = time_major(a.gyro, a.accel, a.dt, scheme)
     b_g, b_a = state.b_g, state.b_a
     mean = mean_body(scheme, att, b_g, b_a, g, omega, coriolis)
 
@@ -409,7 +296,7 @@ def _covariance_generic(
     carry0 = (att.from_quat(state.q), state.p, state.v, jnp.zeros(batch, bool), P_init)
     (x, p, v, locked, Pc), out = jax.lax.scan(body, carry0, xs)
     if save_all:
-        T = n_steps(gyro, dt)
+        T = n_steps(a.gyro, a.dt)
         q_t, p_t, v_t, P_t = out
         q_t, p_t, v_t = (jnp.moveaxis(y, 0, -2) for y in (q_t, p_t, v_t))
         P_t = jnp.moveaxis(P_t, 0, -3)
@@ -424,149 +311,6 @@ def _covariance_generic(
         return states, P_t, locked
     P_final = blk.blocks_to_dense(Pc)
     return NavState(att.to_quat(x), p, v, b_g, b_a), P_final, locked
-
-
-def _propagate_covariance_fast(
-    state,
-    P0,
-    gyro,
-    accel,
-    dt,
-    g,
-    noise,
-    batch,
-    scheme,
-    jacobians,
-    omega=None,
-    coriolis="exact",
-    lever=None,
-    save_all=False,
-    attitude="quaternion",
-    pose=None,
-    tangential=True,
-):
-    """Mean and covariance (final, or after every step with ``save_all``) on the
-    :mod:`jaximu.kernels.fast` layout, any scheme with closed-form or autodiff blocks
-    (:func:`jaximu.kernels.fast.cov_step_blocks`), the attitude form's state on lanes
-    (:data:`jaximu.kernels.lane_forms.LANE_FORMS`); the block-structured update. ``pose``: the samples are
-    a sensor's, moved into the body frame in the kernel's time chunks."""
-    gyro, accel, dt, pose, n_samples = soa_samples(scheme, gyro, accel, dt, pose, batch)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
-        batch, state, gyro, accel, dt, g
-    )
-    P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
-
-    def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
-        return var / (h[..., None] if jnp.ndim(h) else h)
-
-    form = lane_forms.lane_form(attitude)
-    x, p, v, P, *locked = _fast.propagate_cov(
-        lane_forms.from_quat(form, q),
-        p,
-        v,
-        b_g,
-        b_a,
-        P0_f,
-        gyro_f,
-        accel_f,
-        dt_f,
-        g_f,
-        qc_fn,
-        var,
-        get_scheme(scheme),
-        jacobians,
-        omega,
-        coriolis,
-        lever,
-        save_all,
-        form,
-        pose,
-        tangential,
-        n_samples,
-    )
-    q = lane_forms.to_quat(form, x)
-    unflat = lambda x: x.reshape(tuple(batch) + x.shape[1:])  # noqa: E731
-    lead = tuple(batch) + (q.shape[1:2] if save_all else ())  # (B, T, 4) with save_all
-    st = NavState(
-        unflat(q),
-        unflat(p),
-        unflat(v),
-        jnp.broadcast_to(state.b_g[..., None, :] if save_all else state.b_g, lead + (3,)),
-        jnp.broadcast_to(state.b_a[..., None, :] if save_all else state.b_a, lead + (3,)),
-    )
-    # Euler angles: the lanes that reached the pitch singularity (by the last step)
-    return st, unflat(P), unflat(locked[0]) if locked else jnp.zeros(batch, bool)
-
-
-def _lane_inputs(P0, noise, omega, lever, batch, dtype):
-    """The covariance kernels' lanes of ``P0`` ``(B, 15, 15)``, the noise's variances
-    (``(12,)`` shared or ``(B, 12)``) and a world rate and lever arm (shared ``(3,)`` or
-    ``(B, 3)``; ``None`` when not given)."""
-    B = int(np.prod(batch, dtype=np.int64))
-    P0_f = jnp.broadcast_to(P0, tuple(batch) + (15, 15)).reshape((B, 15, 15))
-    var = noise.variances(dtype)  # (..., 12)
-    if var.ndim > 1:  # noise per batch element
-        var = jnp.broadcast_to(var, tuple(batch) + (12,)).reshape((B, 12))
-    omega, lever = (None if x is None else lane_values(x, batch) for x in (omega, lever))
-    return P0_f, var, omega, lever
-
-
-def _propagate_covariance_chunked(
-    state,
-    P0,
-    gyro,
-    accel,
-    dt,
-    g,
-    noise,
-    batch,
-    scheme,
-    jacobians,
-    omega,
-    coriolis,
-    lever,
-    save_all,
-    attitude,
-):
-    """Mean and covariance of a few long sequences in time chunks side by side
-    (:mod:`jaximu.engine._chunked`); the samples are the body's already."""
-    gyro, accel, dt = kernel_samples(scheme, gyro, accel, dt)
-    (q, p, v, b_g, b_a), gyro_f, accel_f, dt_f, g_f = flatten_batch(
-        batch, state, gyro, accel, dt, g
-    )
-    P0_f, var, omega, lever = _lane_inputs(P0, noise, omega, lever, batch, q.dtype)
-    form = lane_forms.lane_form(attitude)
-    x, p, v, P, locked = _chunked.covariance(
-        get_scheme(scheme),
-        form,
-        lane_forms.from_quat(form, q),
-        p,
-        v,
-        b_g,
-        b_a,
-        P0_f,
-        gyro_f,
-        accel_f,
-        dt_f,
-        g_f,
-        var,
-        jacobians,
-        omega,
-        coriolis,
-        lever,
-        save_all,
-    )
-    q = lane_forms.to_quat(form, x)
-    lead = tuple(batch) + (q.shape[1:2] if save_all else ())
-
-    def unflat(x):
-        return x.reshape(tuple(batch) + x.shape[1:])
-
-    def bias(b):
-        return jnp.broadcast_to(b[..., None, :] if save_all else b, lead + (3,))
-
-    st = NavState(unflat(q), unflat(p), unflat(v), bias(state.b_g), bias(state.b_a))
-    return st, unflat(P), jnp.zeros(batch, bool) if locked is None else unflat(locked)
 
 
 NOISE = ArgSpec(1, lambda args, batched: 3)  # a density: scalar (isotropic) or (..., 3)

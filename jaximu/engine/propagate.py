@@ -8,6 +8,7 @@ the same batched kernels (section 4), and :mod:`jaximu.engine._dispatch` picks t
 from __future__ import annotations
 
 import functools
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,14 +20,13 @@ from jaximu.engine._batching import ArgSpec, leading_axes
 from jaximu.engine._inputs import (
     broadcast_state,
     flatten_batch,
+    kernel_ready,
     kernel_samples,
     lane_values,
     n_steps,
     prepare,
-    sensor_engine_inputs,
     soa_samples,
     time_major,
-    unit_start,
 )
 from jaximu.geometry import _checks as val
 from jaximu.geometry import sensor, so3
@@ -286,70 +286,70 @@ def _propagate(
         rotating=omega is not None,
     )
     return run(
-        scheme,
-        state,
-        gyro,
-        accel,
-        dt,
-        g,
-        batch,
-        save_all,
-        omega,
-        coriolis,
-        attitude,
-        pose,
-        tangential,
+        MeanInputs(
+            scheme,
+            state,
+            gyro,
+            accel,
+            dt,
+            g,
+            batch,
+            save_all,
+            omega,
+            coriolis,
+            attitude,
+            pose,
+            tangential,
+        )
     )
 
 
-# The mean's implementations, one per kernel of the table's "mean" rows, with one signature:
-# (scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose,
-# tangential). Only the structure-of-arrays kernel moves a sensor's samples into the body
-# frame itself (in its time chunks); the others read them moved.
+class MeanInputs(NamedTuple):
+    """The mean engine's inputs once checked and dispatched, in the order of
+    :func:`_propagate_fast`'s parameters: the scheme, ``state``, the samples and ``dt``,
+    gravity ``g``, the broadcast ``batch`` shape, the static options and the optional world
+    rate and sensor pose (``None`` when not given)."""
+
+    scheme: str
+    state: NavState
+    gyro: Any
+    accel: Any
+    dt: Any
+    g: Any
+    batch: tuple
+    save_all: bool
+    omega: Any
+    coriolis: str
+    attitude: str
+    pose: Any
+    tangential: bool
+
+
+# The mean's implementations, one per kernel of the table's "mean" rows, each taking the
+# engine's MeanInputs. Only the structure-of-arrays kernel moves a sensor's samples into the
+# body frame itself (in its time chunks); the others read them moved (kernel_ready).
 
 
 @dispatch.implements("mean", "soa_mean")
-def _mean_soa(
-    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
-):
-    state = unit_start(state, True, attitude)
-    state, gyro, accel = sensor_engine_inputs(True, pose, state, gyro, accel, dt, tangential)
-    return _propagate_fast(
-        scheme,
-        state,
-        gyro,
-        accel,
-        dt,
-        g,
-        batch,
-        save_all,
-        omega,
-        coriolis,
-        attitude,
-        pose,
-        tangential,
-    )
+def _mean_soa(inputs: MeanInputs):
+    return _propagate_fast(*kernel_ready(inputs, soa=True))
 
 
 @dispatch.implements("mean", "soa_mean_chunked")
-def _mean_chunked(
-    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
-):
-    state = unit_start(state, False, attitude)
-    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
-    return _propagate_chunked(scheme, state, gyro, accel, dt, g, batch, save_all)
+def _mean_chunked(inputs: MeanInputs):
+    a = kernel_ready(inputs, soa=False)
+    return _propagate_chunked(a.scheme, a.state, a.gyro, a.accel, a.dt, a.g, a.batch, a.save_all)
 
 
 @dispatch.implements("mean", dispatch.GENERIC)
-def _mean_generic(
-    scheme, state, gyro, accel, dt, g, batch, save_all, omega, coriolis, attitude, pose, tangential
-):
-    att = get_attitude(attitude)
-    state = unit_start(state, False, attitude)
-    state, gyro, accel = sensor_engine_inputs(False, pose, state, gyro, accel, dt, tangential)
-    state = broadcast_state(state, batch)
-    xs = time_major(gyro, accel, dt, scheme)
-    body = mean_body(scheme, att, state.b_g, state.b_a, g, omega, coriolis)
+def _mean_generic(inputs: MeanInputs):
+    """The mean by ``lax.scan`` on ``(..., 3)`` arrays: the reference kernel."""
+    a = kernel_ready(inputs, soa=False)
+    scheme, batch, save_all, gyro, dt = a.scheme, a.batch, a.save_all, a.gyro, a.dt
+    att = get_attitude(a.attitude)
+    state = broadcast_state(a.state, batch)
+    xs = time_major(gyro, a.accel, dt, scheme)
+    body = mean_body(scheme, att, state.b_g, state.b_a, a.g, a.omega, a.coriolis)
 
     def scan_body(carry, xs):
         carry, _ = body(carry, xs)

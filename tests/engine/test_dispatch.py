@@ -148,7 +148,7 @@ def test_the_table_returns_the_function_that_runs_each_kernel():
     it registered by its engine module, and ``implementation`` returns that function for the
     options the row matches (the same choice :func:`kernel` names), read from the functions'
     own modules and names."""
-    from jaximu.engine import _preintegration_engine, errorstate, propagate
+    from jaximu.engine import _covariance_lanes, _preintegration_engine, propagate
 
     registered = _dispatch._IMPLEMENTATIONS
     for row in _dispatch.TABLE:
@@ -165,11 +165,11 @@ def test_the_table_returns_the_function_that_runs_each_kernel():
     cov = dict(attitude="quaternion", jacobians="analytic", **on_cpu)
     assert (
         _dispatch.implementation("covariance", "midpoint", lanes=64, steps=100, **cov)
-        is errorstate._covariance_soa
+        is _covariance_lanes.covariance_soa
     )
     assert (
         _dispatch.implementation("covariance", "euler", lanes=1, steps=4096, **cov)
-        is errorstate._covariance_chunked
+        is _covariance_lanes.covariance_chunked
     )
     assert (
         _dispatch.preintegrate_implementation(
