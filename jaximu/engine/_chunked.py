@@ -10,7 +10,8 @@ in order or as an associative (parallel prefix) scan:
 * the mean: a chunk run from the identity without gravity gives its exact deltas
   ``(ΔR, Δp, Δv, Δt)`` (:func:`jaximu.integrators.compose_deltas`);
 * the covariance: a chunk run with ``P = 0`` gives its noise ``Q_c`` and, multiplying the
-  steps' transitions, its ``Φ_c``; ``P ↦ Φ_c P Φ_cᵀ + Q_c`` composes associatively
+  steps' transitions, its ``Φ_c`` (run from the identity, only their bias columns: the
+  others follow from the chunk's deltas, :func:`local_transition`); ``P ↦ Φ_c P Φ_cᵀ + Q_c`` composes associatively
   (:func:`jaximu.schemes._blocks.compose_transitions`). In a still world the chunks need no mean
   first: ``Φ`` does not depend on ``p``, ``v`` or gravity, and a chunk run from the identity
   has the transition and noise of the chunk run from its true start ``R_c`` in coordinates
@@ -136,14 +137,6 @@ def runs_from_identity(omega, attitude) -> bool:
     the summaries: a still world, an attitude form whose step is a right multiplication of
     ``R``), or from their true starts (a turning world, Euler angles): module docstring."""
     return omega is None and attitude != "euler_angles"
-
-
-def padded_variances(h, var):
-    """``σ² / dt`` of the noise (:meth:`jaximu.noise.ImuNoise.discrete_variances`), and
-    ``σ²`` for a padding step (``dt = 0``, whose noise columns ``G`` are all zero: no noise
-    rather than ``0 · ∞``)."""
-    inv = 1.0 / jnp.where(h > 0, h, jnp.ones_like(h))  # one division a lane, not twelve
-    return var * (inv[..., None] if jnp.ndim(inv) else inv)
 
 
 def _rotation_maps(R, rotated):
@@ -291,6 +284,30 @@ def _join(ident, F, pattern):
     return out
 
 
+BIAS_COLUMNS = {0: {3: "X"}, 1: {3: "X", 4: "X"}, 2: {3: "X", 4: "X"}}
+"""The block columns of a chunk's transition that its kernel multiplies when the chunk runs
+from the identity in a still world (:func:`local_transition`): those of the biases."""
+
+
+def local_transition(bias_leaves, deltas, world_error, pattern):
+    """The leaves of a chunk's transition ``Φ_c`` in the form ``pattern``
+    (:func:`jaximu.schemes._blocks.rows_leaves`, each ``(C, 3, 3, B)`` or ``(C, B)``), the
+    chunk run from the identity without gravity in a still world, from its bias columns
+    ``bias_leaves`` (:data:`BIAS_COLUMNS`) and its deltas ``(ΔR, Δp, Δv, Δt)``
+    ``(C, B, ·)``. The other columns are exact in closed form, for every scheme: every
+    step is a rotation ``R`` times the step's body-frame terms, so a rotation error at the
+    start (``R₀ = I``) turns the whole run, ``δp = −[Δp]× δθ`` and ``δv = −[Δv]× δθ``, and
+    ends as ``δθ`` (the world-frame error, ``world_error``) or ``ΔRᵀ δθ`` (the body-frame
+    one); the position and velocity errors at the start move as ``δp + Δt δv`` and ``δv``."""
+    blocks = lambda X: jnp.moveaxis(X, (-2, -1), (1, 2))  # (C, B, 3, 3) -> (C, 3, 3, B)
+    dR, dp, dv, dT = deltas
+    rows = blk.rows_from_leaves(bias_leaves, BIAS_COLUMNS)
+    rows[0][0] = "I" if world_error else blocks(jnp.swapaxes(so3.quat_to_matrix(dR), -1, -2))
+    rows[1].update({0: blocks(so3.skew(-dp)), 1: "I", 2: blk.ScaledIdentity(dT)})
+    rows[2].update({0: blocks(so3.skew(-dv)), 2: "I"})
+    return tuple(blk.rows_leaves(rows, pattern))
+
+
 def _start_indices(C, L, n):
     """Each chunk's start as an index into the states after every step (``-1``: the
     initial state), clamped to the last state: chunks past the end are all padding."""
@@ -358,6 +375,9 @@ def covariance(
         if len(mean) > 3:
             locked = mean[3][:, -1, 0]
     zeros = jnp.zeros((B * C, 15, 15), dtype)
+    # from the identity the kernel multiplies only the transitions' bias columns: the
+    # others follow from the chunk's deltas (local_transition)
+    accumulated = BIAS_COLUMNS if local else pattern
     out = _fast.propagate_cov(
         x_s,
         p_s,
@@ -369,7 +389,6 @@ def covariance(
         accel_c,
         dt_c,
         g_s,
-        padded_variances,
         var_c,
         sch,
         jacobians,
@@ -378,7 +397,7 @@ def covariance(
         lever_c,
         False,
         form,
-        transition=pattern,
+        transition=accumulated,
     )
     soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))
     Q = tuple(soa(x) for x in out[3])  # (C, 3, 3, B)
@@ -388,6 +407,7 @@ def covariance(
     if local:  # the chunks' deltas move the state from one chunk's start to the next
         deltas = (lane_forms.to_quat(form, out[0]), out[1], out[2], jnp.sum(dt_c, axis=-1))
         deltas = tuple(by_chunk(x, B, C) for x in deltas)  # (C, B, ·)
+        F = local_transition(F, deltas, world_error, pattern)
         start = (so3.quat_normalize(lane_forms.to_quat(form, q)), p, v)
         rotated = (0, 1, 2) if world_error else (1, 2)
     Pb = dict(zip(UPPER, _fast.dense_to_lanes(P0)))
@@ -427,7 +447,6 @@ def covariance(
         accel_c,
         dt_c,
         rep(g_b),
-        padded_variances,
         var_c,
         sch,
         jacobians,

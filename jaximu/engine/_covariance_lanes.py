@@ -65,9 +65,6 @@ def covariance_soa(inputs: CovarianceInputs):
     )
     P0_f, var, omega, lever = _lane_inputs(a.P0, a.noise, a.omega, a.lever, batch, q.dtype)
 
-    def qc_fn(h, var):  # noise.discrete_variances(h) = σ² / dt
-        return var / (h[..., None] if jnp.ndim(h) else h)
-
     form = lane_forms.lane_form(a.attitude)
     x, p, v, P, *locked = _fast.propagate_cov(
         lane_forms.from_quat(form, q),
@@ -80,7 +77,6 @@ def covariance_soa(inputs: CovarianceInputs):
         accel_f,
         dt_f,
         g_f,
-        qc_fn,
         var,
         get_scheme(scheme),
         a.jacobians,

@@ -61,7 +61,7 @@ COV_CHUNK_LANES = {"cpu": 8, "accelerator": 4096}
 """Up to this many sequences the covariance runs in time chunks, by backend. The CPU: each
 sequence's chunks fill a block of lanes (more sequences fill it themselves). An accelerator:
 at least 16 chunks a sequence. The chunks' lanes do the sequential scan's work and carry
-their transitions too (12% more a step on the CPU), and a float64 covariance step on the
+their transitions' bias columns too (10% more a step on the CPU), and a float64 covariance step on the
 H100 grew by 2.7 ns a lane (1024 × 1000: 35 µs a step, 16384 × 200: 76 µs), so the extra
 work would match the ~30 µs launch saved a step from about 16384 (half as much again a
 lane) to 65536 sequences (12%); 4096 keeps a margin until measured."""

@@ -345,6 +345,7 @@ def cov_step_blocks(
     world_error=False,
     form: LaneForm = QUATERNION,
     transition=False,
+    qc_scale=None,
 ):
     """Mean + covariance step of any scheme on the SoA layout: the blocks of ``Φ`` in closed
     form (``jacobians="analytic"``, :meth:`jaximu.integrators.Scheme.blocks`) or by autodiff
@@ -357,7 +358,10 @@ def cov_step_blocks(
     ``δθ_W = R δθ`` (:func:`world_error_blocks`), where ``Φ_θθ = I``. ``form``: the
     attitude form of ``q`` (:data:`LANE_FORMS`; closed forms only for the exact ones).
     ``transition``: return the step's whole transition too, as block rows
-    (:func:`jaximu.schemes._blocks.transition_rows`, between the world's maps in a turning world)."""
+    (:func:`jaximu.schemes._blocks.transition_rows`, between the world's maps in a turning world),
+    with the ``p_over_v`` of :func:`jaximu.schemes._blocks.rows_product` (``None`` where
+    they have no such structure). ``qc_scale``: as
+    :func:`jaximu.schemes._blocks.structured_update`'s."""
     q, p, v, Pb = carry
     if omega is not None:
         v = tuple(_enter_world(omega, V3(*p), V3(*v), coriolis))
@@ -388,18 +392,43 @@ def cov_step_blocks(
         b = SOA.barrier(b)
         rows = _blocks.transition_rows(b, SOA, s)
     if omega is None:
-        new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, s)
+        new = structured_update(dict(zip(UPPER, Pb)), b, qc4, SOA, s, qc_scale)
     else:
         pre, post = world.error_maps(omega.stack(), h, coriolis, SOA)
         new = world.covariance_step(
-            dict(zip(UPPER, Pb)), b, qc4, omega.stack(), h, coriolis, SOA, s, maps=(pre, post)
+            dict(zip(UPPER, Pb)),
+            b,
+            qc4,
+            omega.stack(),
+            h,
+            coriolis,
+            SOA,
+            s,
+            maps=(pre, post),
+            qc_scale=qc_scale,
         )
         if transition:
             rows = _blocks.rows_product(post, rows, SOA)
             rows = rows if pre is None else _blocks.rows_product(rows, pre, SOA)
         q1, p1, v1 = _leave_world(q1, p1, v1, h, g, omega, coriolis, form)
     out = (q1, p1, v1, tuple(new[k] for k in UPPER))
-    return out + (rows,) if transition else out
+    # the rows, and s where their p row is s times their v row (a still world)
+    return out + ((rows, s if omega is None else None),) if transition else out
+
+
+def discrete_variances(h, var):
+    """A step's noise variances ``σ² / h`` (:meth:`jaximu.noise.ImuNoise.discrete_variances`)
+    as twelve per-lane scalars, and a factor of all of them (or ``None``): steps ``h`` shared
+    ``()`` or per lane ``(Bc,)``, ``var`` ``(12,)`` shared or ``(Bc, 12)``. Shared ``σ²``
+    with per-lane steps (a sequence's time chunks side by side) stay shared, their ``1 / h``
+    the factor that :func:`jaximu.schemes._blocks.structured_update` applies once per noise
+    block (per-lane variances cost the update a tenth more). A step of ``h = 0`` (a
+    chunk's padding: ``G = 0``) has none rather than ``0 · ∞``."""
+    safe = jnp.where(h > 0, h, jnp.ones_like(h))
+    if var.ndim == 1 and jnp.ndim(h):
+        return tuple(var[i] for i in range(12)), 1.0 / safe
+    qc = var / (safe[..., None] if jnp.ndim(safe) else safe)
+    return tuple(qc[..., i] for i in range(12)), None
 
 
 def world_error_frame(omega, save_all, form: LaneForm) -> bool:
@@ -451,8 +480,7 @@ def propagate_cov(
     accel,
     dt,
     g,
-    qc_fn,
-    qc_params,
+    var,
     scheme,
     jacobians,
     omega=None,
@@ -466,9 +494,10 @@ def propagate_cov(
     transition=None,
 ):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
-    after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``qc_fn(h, params) -> (…, 12)``
-    discrete variances from the noise parameters ``qc_params``: ``(m,)`` shared by all lanes
-    or ``(B, m)`` per lane.
+    after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``var``: the noise's continuous-time
+    variances ``σ²`` (:meth:`jaximu.noise.ImuNoise.variances`), ``(12,)`` shared by all lanes
+    or ``(B, 12)`` per lane; a step's are ``σ² / dt``, none for a step of ``dt = 0`` (a time
+    chunk's padding, :mod:`jaximu.engine._chunked`).
     ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
     uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
     ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
@@ -491,7 +520,7 @@ def propagate_cov(
     rotating = omega is not None
     shared_w = not rotating or omega.ndim == 1
     shared_r = lever is None or lever.ndim == 1
-    shared_n = qc_params.ndim == 1
+    shared_n = var.ndim == 1
     world_error = world_error_frame(omega, save_all, form)
     assert transition is None or not save_all
     euler = form.name == "euler_angles"
@@ -499,12 +528,12 @@ def propagate_cov(
     # the pose's rotation and lever arm are each shared or per lane (a vmap over lever arms)
     shared_pose = tuple(x is None or x.ndim == 1 for x in (pose_q, pose_p))
 
-    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, qc_params, omega, lever, pose_q, pose_p):
+    def block(q, p, v, b_g, b_a, P0, gyro, accel, dt, g, var, omega, lever, pose_q, pose_p):
         consts = (
             _components(b_g),
             _components(b_a),
             _components(g),
-            qc_params,
+            var,
             (_components(omega) if rotating else None),
             (None if lever is None else _components(lever)),
         )
@@ -523,6 +552,8 @@ def propagate_cov(
                     transition,
                 )
 
+            # the block columns the pattern holds (the product's others are not formed)
+            columns = sorted({j for row in transition.values() for j in row})
             carry = carry + (tuple(conform({})),)
 
         def step(c, w, a, h, consts):
@@ -530,18 +561,21 @@ def propagate_cov(
                 return cov_step(c, w, a, h, consts)
             out = cov_step(c[:-1], w, a, h, consts, True)
             acc = _blocks.rows_from_leaves(c[-1], transition)
-            return out[:-1] + (tuple(conform(_blocks.rows_product(out[-1], acc, SOA))),)
+            rows, p_over_v = out[-1]
+            product = _blocks.rows_product(rows, acc, SOA, columns, p_over_v)
+            return out[:-1] + (tuple(conform(product)),)
 
         def cov_step(c, w, a, h, consts, with_transition=False):
             bg, ba, gv, ln, wv, rv = consts
-            qc = qc_fn(h, ln)  # (12,) or (Bc, 12)
-            qc = tuple(qc[..., i] for i in range(12))
+            qc, qc_scale = discrete_variances(h, ln)
             bg, ba = V3(*bg), V3(*ba)
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
             # the step's inputs in memory: read through the scan's dynamic slice inside the
             # 3-D block fusions they stop LLVM from vectorising them
-            omega0, f0, omega1, f1, h, qc = _materialise((omega0, f0, omega1, f1, h, qc))
+            omega0, f0, omega1, f1, h, qc, qc_scale = _materialise(
+                (omega0, f0, omega1, f1, h, qc, qc_scale)
+            )
             out = cov_step_blocks(
                 scheme,
                 jacobians,
@@ -559,6 +593,7 @@ def propagate_cov(
                 world_error,
                 form,
                 with_transition,
+                qc_scale,
             )
             if not euler:
                 return out
@@ -617,7 +652,7 @@ def propagate_cov(
         accel,
         dt,
         g,
-        qc_params,
+        var,
         omega,
         lever,
         pose_q,

@@ -344,21 +344,41 @@ def transition_rows(b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
     }
 
 
-def rows_product(F, G, ops: Layout = ARRAYS):
+def rows_product(F, G, ops: Layout = ARRAYS, columns=range(5), p_over_v=None):
     """``F G`` of two matrices that are the identity but for their block rows ``{i: {j:
     entry}}`` (:func:`transition_rows`, :func:`jaximu.world.error_map_rows`); the product
-    in the same form (its rows: those of ``F`` and of ``G``)."""
+    in the same form (its rows: those of ``F`` and of ``G``). ``columns``: only these block
+    columns of the product, for a ``G`` given by those columns alone (``(F G)[:, J] = F
+    G[:, J]``: a product of transitions accumulated column by column).
+
+    ``p_over_v``: ``s`` when ``F``'s p row is ``s`` times its v row but for its p and v
+    columns (``I`` and ``dt I``; :func:`phi_p_phit`); its products are then not formed:
+    ``(F G)_pj = G_pj + s (F G)_vj + (dt − s) G_vj``."""
 
     def g(k, j):
         return G[k].get(j) if k in G else ("I" if k == j else None)
 
     out = {i: dict(G[i]) for i in G if i not in F}
     for i, Fi in F.items():
+        if i == 1 and p_over_v is not None:
+            continue
         row = {
             j: entry_add(*(entry_mul(Fik, g(k, j), ops) for k, Fik in Fi.items()), ops=ops)
-            for j in range(5)
+            for j in columns
         }
         out[i] = {j: x for j, x in row.items() if x is not None}
+    if p_over_v is not None and 1 in F:
+        s, rest = ScaledIdentity(p_over_v), ScaledIdentity(F[1][2].s - p_over_v)
+        row = {
+            j: entry_add(
+                g(1, j),
+                entry_mul(s, out[2].get(j), ops),
+                entry_mul(rest, g(2, j), ops),
+                ops=ops,
+            )
+            for j in columns
+        }
+        out[1] = {j: x for j, x in row.items() if x is not None}
     return out
 
 
@@ -527,7 +547,7 @@ def noise_blocks(columns, variances, ops: Layout = ARRAYS):
     return out
 
 
-def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
+def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None, qc_scale=None):
     """``Φ P Φᵀ + G Q_c Gᵀ`` on the upper blocks of ``P``, using the structure of ``Φ``.
 
     Args:
@@ -538,6 +558,9 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         ops: the block layout (:data:`ARRAYS` or :data:`jaximu.kernels.lane_math.SOA`).
         p_over_v: ``s`` with ``Cp = s Cv``, ``Dp = s Dv``, ``Ep = s Ev`` when the scheme has
             that structure (:func:`phi_p_phit`), or ``None``.
+        qc_scale: a per-element factor of every variance in ``qc`` (``1/dt`` of shared
+            ``σ²`` when the steps differ by element), applied once to each noise block;
+            ``None``: none.
     """
     if not isinstance(qc, (tuple, list)):
         qc = (qc[..., 0:3], qc[..., 3:6], qc[..., 6:9], qc[..., 9:12])
@@ -549,10 +572,13 @@ def structured_update(Pb, b: Blocks, qc, ops: Layout = ARRAYS, p_over_v=None):
         Q = noise_blocks([{0: b.B, 1: b.Dp, 2: b.Dv}, {1: b.Ep, 2: b.Ev}], [qc[0], qc[1]], ops)
     else:  # G's p rows are s times its v rows too
         Q = noise_blocks([{0: b.B, 2: b.Dv}, {2: b.Ev}], [qc[0], qc[1]], ops)
+    if qc_scale is not None:
+        Q = {k: scale(qc_scale, X, ops) for k, X in Q.items()}
+    if p_over_v is not None:
         Q[(0, 1)] = scale(p_over_v, Q.get((0, 2)), ops)
         Q[(1, 2)] = scale(p_over_v, Q.get((2, 2)), ops)
         Q[(1, 1)] = scale(p_over_v * p_over_v, Q.get((2, 2)), ops)
-    hh = h * h
+    hh = h * h if qc_scale is None else h * h * qc_scale
     Q[(3, 3)] = ops.scale(hh, ops.diag(qc[2]))
     Q[(4, 4)] = ops.scale(hh, ops.diag(qc[3]))
     return symmetrize_diagonal(add_blocks(phi_p_phit(Pb, b, ops, p_over_v), Q), ops)

@@ -223,7 +223,9 @@ def error_maps(omega, h, coriolis, ops=blk.ARRAYS):
     return pre, post
 
 
-def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None, maps=None):
+def covariance_step(
+    Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None, maps=None, qc_scale=None
+):
     """The covariance step in a turning world (:mod:`jaximu.world`), on block-structured
     ``Pb``: ``Post (Φ (Pre P Preᵀ) Φᵀ + G Q Gᵀ) Postᵀ`` with the still-world step's ``Φ``
     between the error maps of :func:`error_map_rows` (exact transition: into
@@ -231,12 +233,12 @@ def covariance_step(Pb, b, qc, omega, h, coriolis, ops=blk.ARRAYS, p_over_v=None
     ``[p, v]`` Jacobian), each applied as a block congruence (:func:`jaximu.schemes._blocks.congruence`).
     ``ops``: the block layout (the maps' blocks are made as arrays from ``omega``
     ``(..., 3)`` and ``h``, then converted: ``ops.from_arrays``); ``p_over_v``: as
-    :func:`jaximu.schemes._blocks.structured_update`; ``maps``: :func:`error_maps`' result when the
-    caller has it."""
+    :func:`jaximu.schemes._blocks.structured_update`, as is ``qc_scale``; ``maps``:
+    :func:`error_maps`' result when the caller has it."""
     pre, post = error_maps(omega, h, coriolis, ops) if maps is None else maps
     if pre is not None:
         Pb = blk.congruence(Pb, pre, ops)
-    return blk.congruence(blk.structured_update(Pb, b, qc, ops, p_over_v), post, ops)
+    return blk.congruence(blk.structured_update(Pb, b, qc, ops, p_over_v, qc_scale), post, ops)
 
 
 # --------------------------------------------------------------------------- classic
