@@ -398,6 +398,7 @@ def covariance(
         False,
         form,
         transition=accumulated,
+        padded=True,
     )
     soa = lambda x: jnp.moveaxis(x.reshape((B, C) + x.shape[1:]), (0, 1), (-1, 0))
     Q = tuple(soa(x) for x in out[3])  # (C, 3, 3, B)
@@ -455,6 +456,7 @@ def covariance(
         lever_c,
         True,
         form,
+        padded=True,
     )
     seq = lambda x: x.reshape((B, C * L) + x.shape[2:])[:, :n]
     return seq(x_t), seq(p_t), seq(v_t), seq(P_t), locked

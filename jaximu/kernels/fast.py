@@ -416,18 +416,21 @@ def cov_step_blocks(
     return out + ((rows, s if omega is None else None),) if transition else out
 
 
-def discrete_variances(h, var):
+def discrete_variances(h, var, padded=False):
     """A step's noise variances ``σ² / h`` (:meth:`jaximu.noise.ImuNoise.discrete_variances`)
     as twelve per-lane scalars, and a factor of all of them (or ``None``): steps ``h`` shared
     ``()`` or per lane ``(Bc,)``, ``var`` ``(12,)`` shared or ``(Bc, 12)``. Shared ``σ²``
     with per-lane steps (a sequence's time chunks side by side) stay shared, their ``1 / h``
     the factor that :func:`jaximu.schemes._blocks.structured_update` applies once per noise
-    block (per-lane variances cost the update a tenth more). A step of ``h = 0`` (a
-    chunk's padding: ``G = 0``) has none rather than ``0 · ∞``."""
-    safe = jnp.where(h > 0, h, jnp.ones_like(h))
+    block (per-lane variances cost the update a tenth more). ``padded``: steps of ``h = 0``
+    are a chunk's padding (``G = 0``), with no noise rather than ``0 · ∞``; otherwise a step
+    too short for ``σ² / h`` (a float32 ``dt`` of 1e-45, which XLA's CPU flushes to zero)
+    gives the non-finite value the engine's output check names."""
+    if padded:
+        h = jnp.where(h > 0, h, jnp.ones_like(h))
     if var.ndim == 1 and jnp.ndim(h):
-        return tuple(var[i] for i in range(12)), 1.0 / safe
-    qc = var / (safe[..., None] if jnp.ndim(safe) else safe)
+        return tuple(var[i] for i in range(12)), 1.0 / h
+    qc = var / (h[..., None] if jnp.ndim(h) else h)
     return tuple(qc[..., i] for i in range(12)), None
 
 
@@ -492,12 +495,13 @@ def propagate_cov(
     tangential=True,
     n_samples=None,
     transition=None,
+    padded=False,
 ):
     """Mean and covariance: the final ``(q, p, v, P)`` ``(B, ·)``, or with ``save_all`` those
     after every step, ``(B, T, ·)`` (``P`` ``(B, T, 15, 15)``). ``var``: the noise's continuous-time
     variances ``σ²`` (:meth:`jaximu.noise.ImuNoise.variances`), ``(12,)`` shared by all lanes
-    or ``(B, 12)`` per lane; a step's are ``σ² / dt``, none for a step of ``dt = 0`` (a time
-    chunk's padding, :mod:`jaximu.engine._chunked`).
+    or ``(B, 12)`` per lane; a step's are ``σ² / dt`` (:func:`discrete_variances`), none for
+    a step of ``dt = 0`` where ``padded`` (a time chunk's padding, :mod:`jaximu.engine._chunked`).
     ``scheme``: a :class:`jaximu.integrators.Scheme` (inputs with ``T + 1`` samples when it
     uses sample k+1); ``jacobians``: ``"analytic"`` or ``"autodiff"`` (:func:`cov_step_blocks`);
     ``omega``: ``None``, ``(3,)`` or ``(B, 3)``, the world's rate (:mod:`jaximu.world`);
@@ -567,7 +571,7 @@ def propagate_cov(
 
         def cov_step(c, w, a, h, consts, with_transition=False):
             bg, ba, gv, ln, wv, rv = consts
-            qc, qc_scale = discrete_variances(h, ln)
+            qc, qc_scale = discrete_variances(h, ln, padded)
             bg, ba = V3(*bg), V3(*ba)
             omega0, f0 = V3(*w[:3]) - bg, V3(*a[:3]) - ba
             omega1, f1 = (V3(*w[3:]) - bg, V3(*a[3:]) - ba) if len(w) == 6 else (omega0, f0)
