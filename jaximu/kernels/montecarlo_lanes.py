@@ -26,7 +26,7 @@ from jaximu.schemes.integrators import SCHEME_OBJECTS
 # pairs 6-13 the initial error ε (counter 0; 15 of the 16 normals);
 # pairs 14-15 the measurement noise of update u (counter u).
 _WHITE, _WALK, _INIT, _MEAS = 0, 3, 6, 14
-_N_STREAMS = 16
+N_STREAMS = 16
 _POSITION_H = (None, "I", None, None, None)  # H = [0, I, 0, 0, 0] by column blocks
 
 
@@ -257,17 +257,17 @@ def _lane_stats(e, wt, W=None, Pb=None, nis=None):
 
 
 @functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt"))
-def _chunk(run, wt, c, *, scheme, seg, mode, filt=False):
+def run_chunk(run, wt, c, *, scheme, seg, mode, filt=False):
     """The jitted lane kernel (:func:`_run_lanes`). Every caller gives it at least two lanes:
     a one-lane program rounds differently (:func:`jaximu.montecarlo._lane_errors`), so the
     rule is checked here, at trace time, where a new caller would break it."""
     if run.shape[0] < 2:
-        raise AssertionError(f"_chunk needs at least two lanes, got {run.shape[0]}")
+        raise AssertionError(f"run_chunk needs at least two lanes, got {run.shape[0]}")
     return _run_lanes(run, wt, c, scheme=scheme, seg=seg, mode=mode, filt=filt)
 
 
 @jax.jit
-def _measured(run, c):
+def measured_run(run, c):
     """Measured samples, true biases and initial estimate of one run (``run``: ``(1,)``), from
     the same streams and counters as the kernel."""
     q, p, v, dbg, dba = _initial(run, c)

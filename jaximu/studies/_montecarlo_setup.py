@@ -19,7 +19,7 @@ from jaximu.geometry import _tolerances
 from jaximu.geometry.noise import check_noise
 from jaximu.geometry.state import NavState, boxminus
 from jaximu.kernels import rng as _rng
-from jaximu.kernels.montecarlo_lanes import _N_STREAMS
+from jaximu.kernels.montecarlo_lanes import N_STREAMS
 from jaximu.schemes.integrators import SCHEME_OBJECTS, SCHEMES
 from jaximu.studies.simulate import Trajectory, ideal_imu, true_states
 
@@ -145,7 +145,7 @@ def _prepare(
         raise ValueError(f"gravity must be a magnitude or a (3,) vector, got shape {g.shape}")
     b_g0 = np.zeros(3) if b_g0 is None else val.check_array("b_g0", b_g0, (3,))
     b_a0 = np.zeros(3) if b_a0 is None else val.check_array("b_a0", b_a0, (3,))
-    keys = _rng.stream_keys(key, _N_STREAMS)
+    keys = _rng.stream_keys(key, N_STREAMS)
     T = len(times) - 1
     dt64 = np.diff(times)
     dt = jnp.asarray(dt64, dtype)

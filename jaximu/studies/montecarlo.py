@@ -54,7 +54,7 @@ from jaximu.geometry import _checks as val
 from jaximu.geometry import _tolerances
 from jaximu.geometry.noise import ImuNoise
 from jaximu.geometry.state import NavState
-from jaximu.kernels.montecarlo_lanes import _chunk, _measured
+from jaximu.kernels.montecarlo_lanes import measured_run, run_chunk
 from jaximu.studies._montecarlo_result import MonteCarloResult, chi2_interval, load_result
 from jaximu.studies._montecarlo_setup import PositionFix, _prepare
 from jaximu.studies._montecarlo_stats import _Acc, _allgather_f64, _Progress
@@ -236,7 +236,7 @@ def monte_carlo(
         return run, jax.device_put(wt, devices[d]), consts[d]
 
     def launch(j, i):
-        return i, jax.block_until_ready(_chunk(*inputs(j, i), **kw))
+        return i, jax.block_until_ready(run_chunk(*inputs(j, i), **kw))
 
     # One scan runs on one core (XLA:CPU runs a while loop's body on the calling thread), so
     # a CPU device gets as many chunks in flight as the process has cores, each from its own
@@ -245,7 +245,7 @@ def monte_carlo(
     workers = sum(_in_flight(d) for d in devices) if len(mine) > 1 else 1
     if workers > 1:  # compile once, before the threads ask for it
         for d in {j % len(devices): None for j in range(min(len(mine), len(devices)))}:
-            _chunk.lower(*inputs(d, mine[0]), **kw).compile()
+            run_chunk.lower(*inputs(d, mine[0]), **kw).compile()
     with concurrent.futures.ThreadPoolExecutor(workers) as pool:
         pending = []
         for j, i in enumerate(mine):
@@ -362,7 +362,7 @@ def _lane_errors(study, run):
     n = run.shape[0]
     if n == 1:
         run = jnp.concatenate([run, run])
-    e = _chunk(
+    e = run_chunk(
         run,
         jnp.ones(run.shape[0], study.dtype),
         study.consts,
@@ -441,7 +441,7 @@ def sample_run(
     )
     run = jnp.asarray([i], jnp.uint32)
     e = _lane_errors(st, run)[:, 0]
-    gyro, accel, b, start = _measured(run, st.consts)
+    gyro, accel, b, start = measured_run(run, st.consts)
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
     return Run(
         f64(e),

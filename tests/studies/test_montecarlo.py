@@ -445,7 +445,7 @@ def test_filter_study_kernel_calls_no_lapack(setup):
     chunk in flight per core (the pool's threads running the chunks) two chunks deadlocked
     (seen with the dense update: 4096 runs in chunks of 2048 on 2 cores never returned).
     The update and the NEES run unrolled on the lanes instead."""
-    from jaximu.studies.montecarlo import _chunk, _prepare
+    from jaximu.studies.montecarlo import _prepare, run_chunk
 
     traj, times, P0, noise = setup
     st = _prepare(
@@ -464,7 +464,7 @@ def test_filter_study_kernel_calls_no_lapack(setup):
         measurement=PositionFix(0.01),
     )
     run = jnp.arange(4, dtype=jnp.uint32)
-    hlo = _chunk.lower(
+    hlo = run_chunk.lower(
         run,
         jnp.ones(4, jnp.float32),
         st.consts,
