@@ -160,7 +160,8 @@ def _free_sigmas(estimate, bases: NoiseBases):
             or (name.startswith("reference_sigma") and "reference_sigma" in estimate)
         ]
         return free, None
-    free, tie = [], []
+    free: list[int] = []
+    tie: list[int] = []
     for i, name in enumerate(DENSITIES):
         if PER_AXIS_FIELDS[i] in estimate:
             for a in range(3):
@@ -441,6 +442,7 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
             [Fix("estimate", phrase="{} without q_BS and p_BS")],
         )
     initial = initial if initial is not None else ImuCalibration.default(dtype=dtype)
+    _check_per_axis(problem, estimate)  # before the per-axis bases are built
     bases = noise_bases(problem, any(n in estimate for n in PER_AXIS_FIELDS))
     out = fit(problem, initial, estimate, steps, tol, bases)
     free_s, sig, first = out["free_sigmas"], out["sigmas"], out["first"]
