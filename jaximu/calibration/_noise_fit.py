@@ -153,13 +153,12 @@ def _free_sigmas(estimate, bases: NoiseBases):
     each, in order; per-axis bases: a density named isotropically sets its three axes
     together)."""
     if not bases.per_axis:
-        free = [
+        return [
             i
             for i, name in enumerate(bases.labels)
             if name in estimate
             or (name.startswith("reference_sigma") and "reference_sigma" in estimate)
-        ]
-        return free, None
+        ], None
     free: list[int] = []
     tie: list[int] = []
     for i, name in enumerate(DENSITIES):
