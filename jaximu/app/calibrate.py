@@ -354,7 +354,8 @@ def add_parser(sub):
     p.add_argument(
         "--imu-yaml",
         metavar="YAML",
-        help="write the fitted densities as a Kalibr imu.yaml (with noise in --estimate)",
+        help="write the fitted densities as a Kalibr imu.yaml (with noise in --estimate; "
+        "a density fitted per axis as its axes' root mean square, said in the file)",
     )
     p.add_argument("--float64", action="store_true", help="compute in float64")
     _add_sensor_options(p)
