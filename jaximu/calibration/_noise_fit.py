@@ -21,14 +21,18 @@ covariance under the model (:func:`length_check`),
 
 ``C_ki`` the window's 9×9 covariance with density ``i`` alone at 1, ``J`` its bias
 Jacobians, ``t_k`` its start (the bias drifts from its value at the first keyframe, the fit's
-constant bias) and ``R_k`` the reference's noise at both ends.
+constant bias) and ``R_k`` the reference's noise at both ends. Per axis
+(:data:`PER_AXIS_FIELDS` in ``estimate``), ``i`` runs over the twelve densities and axes
+(:func:`noise_bases`: ``Q_c`` is diagonal, so the covariance is linear in each axis's
+variance too) and ``J J ᵀ`` over the bias Jacobian's single columns.
 
 Fit. Densities in log coordinates ``σ_i = σ_i0 exp(u_i)`` (positive), the calibration's
 fields (biases, …) in the normalised coordinates of the rest of the calibration; damped
 Newton with the residuals linearised in the fields (Gauss–Newton there, exact in ``u``), the
 gradient and Hessian by autodiff through the filter, each step accepted when the true NLL
 falls. Standard errors: the inverse Hessian at the optimum (observed information), mapped to
-the densities by ``dσ = σ du``.
+the densities by ``dσ = σ du``. A density named isotropically among per-axis bases is one
+coordinate that sets its three axes' ``u`` (``tie`` of :func:`_noise_filter.nll`).
 """
 
 from __future__ import annotations
