@@ -174,6 +174,8 @@ def main():
         help="white densities 1×, 2×, 3× on x, y, z, fitted per axis",
     )
     args = ap.parse_args()
+    if args.check_model and args.per_axis:
+        ap.error("--check-model checks the isotropic model: leave --per-axis out")
     noise = GRADES[args.grade]
     names, target = (AXIS_NAMES, AXIS_TARGET) if args.per_axis else (NAMES, TARGET)
     if args.per_axis:
