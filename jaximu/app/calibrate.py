@@ -6,8 +6,9 @@ noise densities against a recording's ground truth.
                         [--reference-sigma 1e-3,1e-3,1e-2] [--imu-yaml imu.yaml]
 
 ``noise`` in ``--estimate`` stands for the four densities and the reference's σ
-(:data:`jaximu.calibration.NOISE_FIELDS`); any of those names may be given alone. Parsing and
-printing only: the work is :mod:`jaximu.calibration`'s.
+(:data:`jaximu.calibration.NOISE_FIELDS`), ``noise_per_axis`` for the four densities per axis
+and the reference's σ (:data:`jaximu.calibration.PER_AXIS_FIELDS`); any of those names may be
+given alone. Parsing and printing only: the work is :mod:`jaximu.calibration`'s.
 
 The shared helpers of :mod:`jaximu.app.common` are imported under the private names
 (``_load``, ``_dtype``, …) this module has always called them by.
@@ -71,18 +72,29 @@ def _numbers(flag, text, count=None):
 
 def _estimate(text, cal):
     names = []
+    aliases = {
+        "noise": cal.NOISE_FIELDS,
+        "noise_per_axis": cal.PER_AXIS_FIELDS + ("reference_sigma",),
+    }
     for s in (s.strip() for s in text.split(",")):
-        if s == "noise":
-            names += [n for n in cal.NOISE_FIELDS if n not in names]
+        if s in aliases:
+            names += [n for n in aliases[s] if n not in names]
         elif s and s not in names:
             names.append(s)
-    known = cal.FIELDS + cal.NOISE_FIELDS
+    known = cal.FIELDS + cal.NOISE_FIELDS + cal.PER_AXIS_FIELDS
     unknown = [s for s in names if s not in known]
     if unknown or not names:
         raise UsageError(
             f"{f'unknown field(s) {unknown} in' if unknown else 'no field in'} "
             f"--estimate; fields: {', '.join(cal.FIELDS)}, and the noise's "
-            f"{', '.join(cal.NOISE_FIELDS)} (or noise for all of them)"
+            f"{', '.join(cal.NOISE_FIELDS)} (or noise for all of them), per axis "
+            f"{', '.join(cal.PER_AXIS_FIELDS)} (or noise_per_axis)"
+        )
+    both = [n for n in cal.NOISE_FIELDS[:4] if n in names and f"{n}_per_axis" in names]
+    if both:
+        raise UsageError(
+            f"--estimate names {both[0]} both isotropically and per axis: give one "
+            "(noise and noise_per_axis together name every density both ways)"
         )
     return tuple(names)
 
@@ -93,7 +105,7 @@ def cmd_calibrate(args):
     from jaximu import calibration as cal
 
     estimate = _estimate(args.estimate, cal)
-    noise_fit = any(n in cal.NOISE_FIELDS for n in estimate)
+    noise_fit = any(n in cal.NOISE_FIELDS + cal.PER_AXIS_FIELDS for n in estimate)
     if args.keyframe_interval is not None and not args.keyframe_interval > 0:
         raise UsageError("--keyframe-interval must be positive")
     if noise_fit and args.keyframe_interval is not None:
@@ -213,12 +225,7 @@ def cmd_calibrate(args):
     if args.imu_yaml:
         from jaximu.calibration import kalibr
 
-        iso = cal.ImuNoise(
-            *(
-                float(np.sqrt(np.mean(np.asarray(getattr(res.noise, n)) ** 2)))
-                for n in kalibr.DENSITIES
-            )
-        )
+        iso, note = _kalibr_noise(res.noise)
         kalibr.write_imu_yaml(
             args.imu_yaml,
             iso,
@@ -226,11 +233,29 @@ def cmd_calibrate(args):
             comment=(
                 f"jaximu calibrate {args.file}: densities by likelihood over windows of "
                 f"{', '.join(f'{x:g}' for x in res.window_lengths)} s; χ²/dof = "
-                f"{res.reduced_chi2:.3f}"
+                f"{res.reduced_chi2:.3f}" + (f"\n{note}" if note else "")
             ),
         )
-        print(f"Kalibr imu.yaml written to {args.imu_yaml}")
+        print(f"Kalibr imu.yaml written to {args.imu_yaml}" + (f" ({note})" if note else ""))
     return 0
+
+
+def _kalibr_noise(noise):
+    """``(ImuNoise of scalars, note)``: Kalibr's imu.yaml holds one number per density, so a
+    density fitted per axis is written as its axes' root mean square, which ``note`` says
+    with the per-axis values (``""`` when every density is one number)."""
+    from jaximu import calibration as cal
+    from jaximu.calibration import kalibr
+
+    values = {n: np.asarray(getattr(noise, n), np.float64) for n in kalibr.DENSITIES}
+    per_axis = [f"{n} {np.array2string(x, precision=4)}" for n, x in values.items() if x.ndim]
+    iso = cal.ImuNoise(**{n: float(np.sqrt(np.mean(x**2))) for n, x in values.items()})
+    if not per_axis:
+        return iso, ""
+    return iso, (
+        "per-axis densities written as their axes' root mean square (Kalibr's imu.yaml "
+        f"holds one number per density): {'; '.join(per_axis)}"
+    )
 
 
 def _json_numbers(x):
@@ -281,7 +306,9 @@ def add_parser(sub):
         "initialised in closed form), p_BS (its lever arm); the noise densities "
         "gyroscope_noise_density, accelerometer_noise_density, "
         "gyroscope_random_walk, accelerometer_random_walk and reference_sigma, or "
-        "noise for all five",
+        "noise for all five; a density per axis: its name with _per_axis (e.g. "
+        "gyroscope_noise_density_per_axis), or noise_per_axis for the four and "
+        "reference_sigma",
     )
     p.add_argument(
         "--keyframe-interval",
@@ -327,7 +354,8 @@ def add_parser(sub):
     p.add_argument(
         "--imu-yaml",
         metavar="YAML",
-        help="write the fitted densities as a Kalibr imu.yaml (with noise in --estimate)",
+        help="write the fitted densities as a Kalibr imu.yaml (with noise in --estimate; "
+        "a density fitted per axis as its axes' root mean square, said in the file)",
     )
     p.add_argument("--float64", action="store_true", help="compute in float64")
     _add_sensor_options(p)

@@ -11,6 +11,7 @@ from jaximu.calibration._estimate import CalibrationResult, calibrate
 from jaximu.calibration.problem import (
     FIELDS,
     NOISE_FIELDS,
+    PER_AXIS_FIELDS,
     SCALES,
     CalibrationError,
     CalibrationProblem,
@@ -34,6 +35,7 @@ __all__ = [
     "calibrate",
     "FIELDS",
     "NOISE_FIELDS",
+    "PER_AXIS_FIELDS",
     "SCALES",
     "noise_table",
 ]

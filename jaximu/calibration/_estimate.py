@@ -37,7 +37,7 @@ from jaximu.calibration._model import (
     sensor_matrix,  # noqa: F401  (calibration.sensor_matrix)
 )
 from jaximu.calibration._noise_fit import noise_result
-from jaximu.calibration._noise_problem import NOISE_FIELDS, NoiseProblem
+from jaximu.calibration._noise_problem import NOISE_FIELDS, PER_AXIS_FIELDS, NoiseProblem
 from jaximu.calibration._noise_table import noise_table
 from jaximu.calibration.problem import _check_initial, _sqrt_information
 from jaximu.errors import Fix, InputError
@@ -67,8 +67,9 @@ class CalibrationResult:
             keyframe of theirs falls inside a reference gap; note: why, in words
             (:attr:`CalibrationProblem.skip_note`; "" when none was left out).
         noise, noise_std: with ``window_lengths`` (a noise fit), the :class:`ImuNoise` at
-            the estimate (estimated densities isotropic; the others as given) and the 1σ of
-            each (0 for fixed ones), from the observed information of the likelihood;
+            the estimate (a density named in :data:`NOISE_FIELDS` one number, in
+            :data:`PER_AXIS_FIELDS` a ``(3,)`` array per axis; the others as given) and the
+            1σ of each (0 for fixed ones), from the observed information of the likelihood;
             ``None`` otherwise. reference_sigma, reference_sigma_std: ``(3,)``
             ``(σ_θ [rad], σ_p [m], σ_v [m/s])`` and its 1σ. noise_given,
             reference_sigma_given: the values the problem was built with. rate_hz: the IMU's
@@ -126,7 +127,10 @@ def calibrate(
         problem: from :func:`calibration_problem`.
         initial: starting values (default :meth:`ImuCalibration.default`); the other fields
             stay at these values.
-        estimate: names from :data:`FIELDS` (at least one).
+        estimate: names from :data:`FIELDS` (at least one); on a problem built with
+            ``window_lengths``, also :data:`NOISE_FIELDS` (the densities isotropic: one value
+            for the three axes) and :data:`PER_AXIS_FIELDS` (a density per axis, e.g.
+            ``"gyroscope_noise_density_per_axis"``: three values; each density by one name).
         optimizer: ``"lm"`` (default: Levenberg–Marquardt on the whitened residuals, whose
             one compiled residuals-and-Jacobian function also gives the Laplace covariance;
             default 50 steps), ``"lbfgs"`` (optax L-BFGS with zoom line search; default 100
@@ -158,11 +162,11 @@ def calibrate(
             f"estimate must be a tuple of field names from {FIELDS}, got "
             f"{type(estimate).__name__} {estimate!r}"
         ) from None
-    unknown = [n for n in estimate if n not in FIELDS + NOISE_FIELDS]
+    unknown = [n for n in estimate if n not in FIELDS + NOISE_FIELDS + PER_AXIS_FIELDS]
     if unknown:
         raise ValueError(
             f"unknown calibration fields {unknown}; fields are {FIELDS} and the "
-            f"noise's {NOISE_FIELDS}"
+            f"noise's {NOISE_FIELDS} (a density per axis: {PER_AXIS_FIELDS})"
         )
     if not estimate:
         raise ValueError("estimate names no field")
@@ -181,7 +185,7 @@ def calibrate(
         return CalibrationResult(
             **noise_result(problem, initial, estimate, steps, tol, max_reduced_chi2)
         )
-    noise_names = [n for n in estimate if n in NOISE_FIELDS]
+    noise_names = [n for n in estimate if n in NOISE_FIELDS + PER_AXIS_FIELDS]
     if noise_names:
         raise InputError(
             f"estimate names {noise_names}, but the problem was built without window_lengths: "

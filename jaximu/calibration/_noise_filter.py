@@ -21,8 +21,8 @@ maps ``x_k`` and the step's noise ``ν_k = [n_k, w_k, ε_{k+1}]`` to ``[r_k; x_{
     [r_k; x_{k+1}] = G_k x_k + Γ_k ν_k,   G_k = [[F_k, A_k], [I, 0], [0, 0]],
     Γ_k = [[I, 0, B_k], [0, I, 0], [0, 0, I]],   Cov ν_k = blockdiag(cov15_k, R),
 
-so ``Q_k = Γ_k Cov(ν_k) Γ_kᵀ`` (24×24) is linear in the seven squared σ (four densities,
-``σ_θ, σ_p, σ_v``): ``Q_k = Σ_b σ_b² Q_kb``.
+so ``Q_k = Γ_k Cov(ν_k) Γ_kᵀ`` (24×24) is linear in the squared σ (the four densities, or
+their twelve per-axis values, and ``σ_θ, σ_p, σ_v``): ``Q_k = Σ_b σ_b² Q_kb``.
 
 Likelihood. From ``x_k | r_{<k} ~ N(m, P)``: ``[r_k; x_{k+1}]`` has mean ``G m`` and
 covariance ``G P Gᵀ + Q_k``; the innovation ``e_k = r_k - (G m)_r`` has covariance ``S_k``
@@ -50,39 +50,42 @@ import numpy as np
 
 from jaximu.calibration._checks import QUICK_COMPILE
 
-N_SIGMA = 7
-"""The four densities and the reference's ``σ_θ, σ_p, σ_v``."""
-
 
 def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
     """The filter's matrices in float64 numpy, scaled.
 
     Args:
-        cov15_basis: ``(K, 4, 15, 15)`` each window's ``cov15`` with one density alone at its
-            initial value.
+        cov15_basis: ``(K, D, 15, 15)`` each window's ``cov15`` with one density alone at its
+            initial value: ``D = 4`` isotropic densities, or ``D = 12`` per axis (density
+            ``i``'s axis ``a`` at ``3 i + a``; the order of :data:`DENSITIES`).
         bias_jacobian: ``(K, 9, 6)`` ``F_k``.
         reference_jacobian: ``(K, 9, 2, 9)`` ``[A_k, B_k]`` (residual in the reference's
             errors at the window's start, end).
         ref_sigma0: ``(3,)`` initial ``(σ_θ, σ_p, σ_v)`` (positive).
 
     Returns:
-        ``(H, Qb, P0b, d)``: ``H`` ``(K, 24, 15)`` the scaled ``G_k``; ``Qb`` ``(K, 7, 24,
-        24)`` the scaled ``Q_kb`` at the initial σ; ``P0b`` ``(7, 15, 15)`` the initial
-        state's covariance (``ε_0``); ``d`` ``(K, 9)`` the residual scale (divide ``r``)."""
+        ``(H, Qb, P0b, d)``: ``H`` ``(K, 24, 15)`` the scaled ``G_k``; ``Qb`` ``(K, D + 3,
+        24, 24)`` the scaled ``Q_kb`` at the initial σ (the densities', then ``σ_θ, σ_p,
+        σ_v``); ``P0b`` ``(D + 3, 15, 15)`` the initial state's covariance (``ε_0``); ``d``
+        ``(K, 9)`` the residual scale (divide ``r``)."""
     # a window in a reference gap may hold non-finite Jacobians; the filter only predicts
     # through it, and a NaN there would still reach the gradient through jnp.where
     cov = np.nan_to_num(np.asarray(cov15_basis, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     F = np.nan_to_num(np.asarray(bias_jacobian, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     Jr = np.nan_to_num(np.asarray(reference_jacobian, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    K = cov.shape[0]
+    K, D = cov.shape[:2]
+    n_sigma = D + 3
+    per = D // 4  # bases per density: 1 isotropic, 3 per axis
     A, B = Jr[:, :, 0, :], Jr[:, :, 1, :]
     s_ref = np.repeat(np.asarray(ref_sigma0, np.float64), 3)  # (9,)
-    # a window's bias variance per density; K windows: σ_rw0² T, the bias state's scale
+    # a window's bias variance per density (its axes' bases together); K windows: σ_rw0² T,
+    # the bias state's scale
+    rw_g, rw_a = slice(2 * per, 3 * per), slice(3 * per, 4 * per)
     var_win = (
         np.stack(
             [
-                cov[:, 2, 9:12, 9:12].trace(axis1=1, axis2=2),
-                cov[:, 3, 12:15, 12:15].trace(axis1=1, axis2=2),
+                cov[:, rw_g, 9:12, 9:12].trace(axis1=2, axis2=3).sum(1),
+                cov[:, rw_a, 12:15, 12:15].trace(axis1=2, axis2=3).sum(1),
             ],
             1,
         ).mean(0)
@@ -91,23 +94,23 @@ def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
     s_b = np.repeat(np.sqrt(var_win * K), 3)
     s_b = np.where(s_b > 0, s_b, 1.0)
     # the physical noise bases: Cov ν per σ, mapped by Γ_k
-    Qb = np.zeros((K, N_SIGMA, 24, 24))
-    for i in range(4):
+    Qb = np.zeros((K, n_sigma, 24, 24))
+    for i in range(D):
         Qb[:, i, :15, :15] = cov[:, i]  # [n; w] → [r; δb_{k+1}] with Γ = I there
     for j in range(3):
         Rj = np.zeros((9, 9))
         Rj[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = np.eye(3) * ref_sigma0[j] ** 2
         BR = B @ Rj  # (K, 9, 9)
-        Qb[:, 4 + j, :9, :9] = BR @ np.swapaxes(B, 1, 2)
-        Qb[:, 4 + j, :9, 15:] = BR
-        Qb[:, 4 + j, 15:, :9] = np.swapaxes(BR, 1, 2)
-        Qb[:, 4 + j, 15:, 15:] = Rj
+        Qb[:, D + j, :9, :9] = BR @ np.swapaxes(B, 1, 2)
+        Qb[:, D + j, :9, 15:] = BR
+        Qb[:, D + j, 15:, :9] = np.swapaxes(BR, 1, 2)
+        Qb[:, D + j, 15:, 15:] = Rj
     G = np.zeros((K, 24, 15))
     G[:, :9, :6], G[:, :9, 6:] = F, A
     G[:, 9:15, :6] = np.eye(6)
-    P0b = np.zeros((N_SIGMA, 15, 15))
+    P0b = np.zeros((n_sigma, 15, 15))
     for j in range(3):
-        P0b[4 + j, 6 + 3 * j : 9 + 3 * j, 6 + 3 * j : 9 + 3 * j] = np.eye(3) * ref_sigma0[j] ** 2
+        P0b[D + j, 6 + 3 * j : 9 + 3 * j, 6 + 3 * j : 9 + 3 * j] = np.eye(3) * ref_sigma0[j] ** 2
     # scaling: residual rows by the marginal σ of the initial model, state by s_x
     marg = Qb.sum(1)[:, :9, :9] + A @ P0b.sum(0)[6:, 6:] @ np.swapaxes(A, 1, 2)
     d = np.sqrt(np.maximum(np.diagonal(marg, axis1=1, axis2=2), 0))
@@ -144,7 +147,8 @@ def _step(carry, inputs, c):
 def filter_pass(u, r, H, Qb, P0b, kept):
     """``(NLL, w)``: the negative log-likelihood (scaled residuals; add ``Σ log d`` for the
     physical one) and the whitened innovations ``(K, 9)`` (zero where not ``kept``), at log
-    σ offsets ``u`` ``(7,)`` (``σ = σ_0 e^u``); ``r`` ``(K, 9)`` scaled residuals."""
+    σ offsets ``u`` ``(D + 3,)`` (``σ = σ_0 e^u``, the order of ``Qb``); ``r`` ``(K, 9)``
+    scaled residuals."""
     c = jnp.exp(2 * u)
     P0 = jnp.einsum("b,bij->ij", c, P0b)
     m0 = jnp.zeros(15, r.dtype)
@@ -152,21 +156,23 @@ def filter_pass(u, r, H, Qb, P0b, kept):
     return jnp.sum(terms), w
 
 
-def nll(p, r, J, H, Qb, P0b, kept, u0, free_idx, n_c):
+def nll(p, r, J, H, Qb, P0b, kept, u0, free_idx, n_c, tie=None):
     """The NLL at ``p = [δ, u_free]``: residuals ``r + J δ`` (``J`` ``(K, 9, n_c)``, the
-    calibration's fields linearised), log σ ``u0`` with ``u0[free_idx] = u_free``."""
-    u = u0.at[free_idx].set(p[n_c:])
+    calibration's fields linearised), log σ ``u0`` with ``u0[free_idx] = u_free[tie]``
+    (``tie``: which free coordinate sets each of ``free_idx``, so that an isotropic density
+    among per-axis bases sets its three axes' σ; ``None``: one each, in order)."""
+    u = u0.at[free_idx].set(p[n_c:] if tie is None else p[n_c:][tie])
     e = r + jnp.einsum("kin,n->ki", J, p[:n_c])
     return filter_pass(u, e, H, Qb, P0b, kept)[0]
 
 
-def nll_derivatives(p, r, J, H, Qb, P0b, kept, u0, free_idx):
+def nll_derivatives(p, r, J, H, Qb, P0b, kept, u0, free_idx, tie=None):
     """``(NLL, gradient, Hessian)`` in ``p`` (autodiff through the filter; ``n_c`` from
     ``J``'s last axis). The Hessian's columns one at a time (``lax.map`` of forward over
     reverse): ``jax.hessian`` batches the tangents through the filter's small Cholesky
     factors, several times slower on CPU."""
     n_c = J.shape[-1]
-    f = lambda q: nll(q, r, J, H, Qb, P0b, kept, u0, free_idx, n_c)  # noqa: E731
+    f = lambda q: nll(q, r, J, H, Qb, P0b, kept, u0, free_idx, n_c, tie)  # noqa: E731
     value, grad = jax.value_and_grad(f)(p)
     column = lambda v: jax.jvp(jax.grad(f), (p,), (v,))[1]  # noqa: E731
     hess = jax.lax.map(column, jnp.eye(p.shape[0], dtype=p.dtype))

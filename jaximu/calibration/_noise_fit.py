@@ -21,14 +21,18 @@ covariance under the model (:func:`length_check`),
 
 ``C_ki`` the window's 9×9 covariance with density ``i`` alone at 1, ``J`` its bias
 Jacobians, ``t_k`` its start (the bias drifts from its value at the first keyframe, the fit's
-constant bias) and ``R_k`` the reference's noise at both ends.
+constant bias) and ``R_k`` the reference's noise at both ends. Per axis
+(:data:`PER_AXIS_FIELDS` in ``estimate``), ``i`` runs over the twelve densities and axes
+(:func:`noise_bases`: ``Q_c`` is diagonal, so the covariance is linear in each axis's
+variance too) and ``J J ᵀ`` over the bias Jacobian's single columns.
 
 Fit. Densities in log coordinates ``σ_i = σ_i0 exp(u_i)`` (positive), the calibration's
 fields (biases, …) in the normalised coordinates of the rest of the calibration; damped
 Newton with the residuals linearised in the fields (Gauss–Newton there, exact in ``u``), the
 gradient and Hessian by autodiff through the filter, each step accepted when the true NLL
 falls. Standard errors: the inverse Hessian at the optimum (observed information), mapped to
-the densities by ``dσ = σ du``.
+the densities by ``dσ = σ du``. A density named isotropically among per-axis bases is one
+coordinate that sets its three axes' ``u`` (``tie`` of :func:`_noise_filter.nll`).
 """
 
 from __future__ import annotations
@@ -49,15 +53,17 @@ from jaximu.calibration._model import (
     ImuCalibration,
 )
 from jaximu.calibration._noise_problem import (
-    _SIGMAS,
     DENSITIES,
     MIN_WINDOWS,
     NOISE_FIELDS,
+    PER_AXIS_FIELDS,
+    NoiseBases,
     NoiseProblem,
     _all_residuals,
     _isotropic,
     _length_slice,
     _residuals_and_jacobian,
+    noise_bases,
 )
 from jaximu.errors import Fix, InputError
 from jaximu.geometry.noise import ImuNoise
@@ -65,14 +71,15 @@ from jaximu.geometry.noise import ImuNoise
 # --------------------------------------------------------------------------- the likelihood
 
 
-def nll_and_gradient(problem: NoiseProblem, u, initial=None):
+def nll_and_gradient(problem: NoiseProblem, u, initial=None, bases: NoiseBases | None = None):
     """The negative log-likelihood of the base windows' residuals (the filter's exact joint
     one, :mod:`jaximu.calibration._noise_filter`) at log σ offsets ``u`` ``(7,)`` (``σ = σ_0 e^u`` for
-    the four densities and ``σ_θ, σ_p, σ_v``) at the calibration ``initial``, and its
-    gradient in ``u`` (autodiff through the filter). For checks; :func:`fit` minimises it."""
+    the four densities and ``σ_θ, σ_p, σ_v``; ``(15,)`` with per-axis ``bases``, the twelve
+    per-axis densities first) at the calibration ``initial``, and its gradient in ``u``
+    (autodiff through the filter). For checks; :func:`fit` minimises it."""
     dtype = problem.base.gyro.dtype
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
-    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype)
+    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype, bases)
     r = _compiled(_all_residuals, True, ("multiples",))(init, problem.base, multiples=(1,))
     r = jnp.where(kept[:, None], r / jnp.asarray(d, dtype), 0)
     f = lambda x: nf.filter_pass(x + jnp.asarray(u0, dtype), r, H, Qb, P0b, kept)[0]  # noqa: E731
@@ -91,33 +98,39 @@ def _whitened(u, r, basis):
     return jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
 
 
-def _bases(problem: NoiseProblem):
-    """``(K_all, 7, 9, 9)`` bases of each window's *marginal* covariance under the model (each
-    σ at its initial value; the bias drifting from its value at the first keyframe, variance
-    ``σ_rw² t`` at the window's start ``t``), divided by ``s sᵀ``, ``s`` the square root of
-    the initial covariance's diagonal (conditioning for float32), and ``log s`` ``(K_all, 9)``."""
+def _bases(problem: NoiseProblem, bases: NoiseBases):
+    """``(K_all, D + 3, 9, 9)`` bases of each window's *marginal* covariance under the model
+    (each σ at its initial value; the bias drifting from its value at the first keyframe,
+    variance ``σ_rw² t`` at the window's start ``t``), divided by ``s sᵀ``, ``s`` the square
+    root of the initial covariance's diagonal (conditioning for float32), and ``log s``
+    ``(K_all, 9)``."""
     t = problem.start
-    cov = problem.cov_basis.copy()
-    cov[:, 2] += t[:, None, None] * problem.bias_basis[:, 0]
-    cov[:, 3] += t[:, None, None] * problem.bias_basis[:, 1]
+    cov = bases.cov_basis.copy()
+    per = cov.shape[1] // 4  # bases per density
+    for a in range(per):  # the random walks' bases: 2 per … 4 per
+        cov[:, 2 * per + a] += t[:, None, None] * bases.bias_basis[:, a]
+        cov[:, 3 * per + a] += t[:, None, None] * bases.bias_basis[:, per + a]
     basis = np.concatenate([cov, problem.reference_basis], 1)
     d = np.sqrt(np.diagonal(basis.sum(1), axis1=-2, axis2=-1))
     d = np.where(d > 0, d, 1.0)
     return basis / (d[:, None, :, None] * d[:, None, None, :]), np.log(d)
 
 
-def length_check(problem: NoiseProblem, calibration, sigmas):
+def length_check(problem: NoiseProblem, calibration, sigmas, bases: NoiseBases | None = None):
     """``χ²/dof`` of each window length's residuals, each window whitened by its own marginal
-    covariance at the calibration and the seven σ (``(7,)``): ≈ 1 at every length when the
+    covariance at the calibration and the σ of ``bases`` (default: the isotropic ones, ``(7,)``:
+    four densities, ``σ_θ, σ_p, σ_v``; per axis ``(15,)``): ≈ 1 at every length when the
     model explains the residuals at every time scale. A rough check, not a χ² test: the
     windows overlap and share one realisation of the bias drift, which dominates the marginal
     variance of late windows, so tens of percent from 1 are expected; a factor of several,
     or a trend with the length, says the model misses something."""
     dtype = problem.base.gyro.dtype
-    basis, logd = _bases(problem)
-    s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
+    bases = bases if bases is not None else noise_bases(problem, False)
+    basis, logd = _bases(problem, bases)
+    # each σ over the σ its basis was built at (a σ of 0: no share of the covariance)
+    sigmas, scale = np.asarray(sigmas, np.float64), bases.scale
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(s0 > 0, np.log(np.asarray(sigmas) / np.where(s0 > 0, s0, 1.0)), 0.0)
+        u = np.where(sigmas > 0, np.log(sigmas / np.where(scale > 0, scale, 1.0)), -np.inf)
     r = _compiled(_all_residuals, True, ("multiples",))(
         calibration, problem.base, multiples=problem.multiples
     )
@@ -138,14 +151,34 @@ def length_check(problem: NoiseProblem, calibration, sigmas):
 # --------------------------------------------------------------------------- the fit
 
 
-def _free_sigmas(estimate):
-    """Indices into :data:`_SIGMAS` of the estimated σ (``reference_sigma``: all three)."""
-    return [
-        i
-        for i, name in enumerate(_SIGMAS)
-        if name in estimate
-        or (name.startswith("reference_sigma") and "reference_sigma" in estimate)
-    ]
+def _free_sigmas(estimate, bases: NoiseBases):
+    """``(free, tie)``: the indices into ``bases``' σ of the estimated ones
+    (``reference_sigma``: all three), and which fitted coordinate sets each (``None``: one
+    each, in order; per-axis bases: a density named isotropically sets its three axes
+    together)."""
+    if not bases.per_axis:
+        return [
+            i
+            for i, name in enumerate(bases.labels)
+            if name in estimate
+            or (name.startswith("reference_sigma") and "reference_sigma" in estimate)
+        ], None
+    free: list[int] = []
+    tie: list[int] = []
+    for i, name in enumerate(DENSITIES):
+        if PER_AXIS_FIELDS[i] in estimate:
+            for a in range(3):
+                free.append(3 * i + a)
+                tie.append(len(set(tie)))
+        elif name in estimate:
+            n = len(set(tie))
+            free += [3 * i, 3 * i + 1, 3 * i + 2]
+            tie += [n, n, n]
+    if "reference_sigma" in estimate:
+        for j in range(3):
+            free.append(12 + j)
+            tie.append(len(set(tie)))
+    return free, tie
 
 
 def _check_identifiable(problem: NoiseProblem, estimate, s0):
@@ -197,45 +230,103 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
         )
 
 
-def _filter_arrays(problem: NoiseProblem, dtype):
+MIN_WINDOWS_PER_AXIS = 3 * MIN_WINDOWS
+"""Fewest base windows for a density fitted per axis: each axis's density shows in a third
+of the residual's components the isotropic one shows in, so the same information per
+fitted value takes three times the windows."""
+
+
+def _check_per_axis(problem: NoiseProblem, estimate):
+    """Refuse a density named both per axis and isotropically, a per-axis starting value
+    that is not positive on every axis, and too few windows for per-axis values."""
+    named = [i for i, n in enumerate(PER_AXIS_FIELDS) if n in estimate]
+    both = [DENSITIES[i] for i in named if DENSITIES[i] in estimate]
+    if both:
+        raise InputError(
+            f"estimate names {both[0]} both isotropically and per axis "
+            f"({PER_AXIS_FIELDS[DENSITIES.index(both[0])]}): one value or three",
+            [Fix("estimate", phrase=f"one of the two names of {both[0]} in {{}}")],
+        )
+    for i in named:
+        n = DENSITIES[i]
+        v = np.broadcast_to(np.asarray(getattr(problem.noise, n), np.float64), (3,))
+        if not np.all(v > 0):
+            raise InputError(
+                f"noise.{n} is {v.tolist()}: fitted per axis, each axis's logarithm is "
+                "estimated, starting from it",
+                [Fix("noise", phrase=f"a positive {n} on every axis in {{}} to start from")],
+            )
+    if not named:
+        return
+    K0 = problem.base.n_windows
+    n_fit = int(problem.kept[:K0].sum())
+    if n_fit < MIN_WINDOWS_PER_AXIS:
+        W = problem.window_lengths[0]
+        raise InputError(
+            f"the recording holds {n_fit} windows of {W:g} s in the fit; a density per "
+            f"axis needs at least {MIN_WINDOWS_PER_AXIS} (three values where the isotropic "
+            f"fit has one): {', '.join(PER_AXIS_FIELDS[i] for i in named)} cannot be "
+            "identified",
+            [
+                Fix(
+                    "window_lengths",
+                    phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS_PER_AXIS:.3g}"
+                    " s in {} (or a longer recording, or the isotropic names in estimate)",
+                )
+            ],
+        )
+
+
+def _filter_arrays(problem: NoiseProblem, dtype, bases: NoiseBases | None = None):
     """The base windows' state space (:func:`jaximu.calibration._noise_filter.state_space`) as arrays of
     ``dtype``, their ``kept`` mask, the residual scale ``d`` and the log σ offsets ``u0``
-    ``(7,)`` of the given σ from those the bases were built at (``-inf`` for a reference σ
-    given as 0)."""
-    H, Qb, P0b, d = problem.filter
+    ``(D + 3,)`` of the given σ from those the bases were built at (``-inf`` for a σ given
+    as 0); ``bases``: default the problem's isotropic ones."""
+    bases = bases if bases is not None else noise_bases(problem, False)
+    H, Qb, P0b, d = bases.filter
     K0 = problem.base.n_windows
     kept = problem.kept[:K0]
-    ref0 = problem.reference_sigma
-    with np.errstate(divide="ignore"):
-        u_ref = np.log(ref0 / np.where(ref0 > 0, ref0, 1.0))
-    u0 = np.concatenate([np.zeros(4), u_ref])
+    u0 = bases.u0
     arrays = tuple(jnp.asarray(x, dtype) for x in (H, Qb, P0b))
     return arrays, jnp.asarray(kept), d, u0
 
 
-def fit(problem: NoiseProblem, initial, estimate, steps, tol):
+def fit(problem: NoiseProblem, initial, estimate, steps, tol, bases: NoiseBases | None = None):
     """Maximise the exact joint likelihood of the base windows' residuals
-    (:mod:`jaximu.calibration._noise_filter`) over the ``estimate``d fields and σ.
+    (:mod:`jaximu.calibration._noise_filter`) over the ``estimate``d fields and σ, with the
+    covariance ``bases`` (default: the problem's isotropic ones; :func:`noise_bases`).
 
-    Returns a dict: ``calibration`` (:class:`ImuCalibration`), ``sigmas`` ``(7,)`` (the four
-    densities and ``σ_θ, σ_p, σ_v``), ``cov_z`` (inverse Hessian in ``[z, u]``), ``free``,
-    ``free_sigmas``, ``history`` (NLL per accepted step), ``converged``, ``chi2`` (of the
-    whitened innovations), ``dof``, ``n_windows``."""
+    Returns a dict: ``calibration`` (:class:`ImuCalibration`), ``sigmas`` ``(D + 3,)`` (the
+    densities, four or twelve per axis, and ``σ_θ, σ_p, σ_v``), ``cov_z`` (inverse Hessian in
+    ``[z, u]``), ``free``, ``free_sigmas`` (indices into ``sigmas``), ``tie`` (which fitted
+    coordinate sets each, or ``None``: one each), ``first`` (each fitted coordinate's first
+    σ), ``history`` (NLL per accepted step), ``converged``, ``chi2`` (of the whitened
+    innovations), ``dof``, ``n_windows``."""
     base = problem.base
     dtype = base.gyro.dtype
+    bases = bases if bases is not None else noise_bases(problem, False)
     s0 = np.concatenate([_isotropic(problem.noise), problem.reference_sigma])
     _check_identifiable(problem, estimate, s0)
+    _check_per_axis(problem, estimate)
     free_c = tuple(n for n in FIELDS if n in estimate)
-    free_s = _free_sigmas(estimate)
+    free_s, tie = _free_sigmas(estimate, bases)
+    first = free_s if tie is None else [free_s[tie.index(j)] for j in range(len(set(tie)))]
     layout = _Layout(free_c, 0)
     n_c = _n_free(free_c)
-    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype)
+    (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype, bases)
+    if tie is not None:  # a density fitted isotropically starts at its axes' RMS
+        for j in range(len(first)):
+            members = [i for i, t in zip(free_s, tie) if t == j]
+            if len(members) > 1:
+                u0 = u0.copy()
+                u0[members] = 0.0
     K0 = base.n_windows
     const = float(np.log(d[problem.kept[:K0]]).sum())
     scale = jnp.asarray(d, dtype)
     init_vec = jnp.asarray(_flatten(initial), dtype)
     graph = _compiled(_residuals_and_jacobian, True, ("multiples", "layout"))
     idx = jnp.asarray(free_s, jnp.int32)
+    tied = () if tie is None else (jnp.asarray(tie, jnp.int32),)
     derivs = nf.compiled_derivatives(base.gyro.size // 3 <= QUICK_COMPILE_SAMPLES)
 
     def evaluate(z):
@@ -247,8 +338,8 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
         return r, jnp.where(kept[:, None, None], J, 0)
 
     def derivatives(z, u, r, J):
-        p = jnp.asarray(np.concatenate([np.zeros(n_c), u[free_s]]), dtype)
-        f, g, Hs = derivs(p, r, J, H, Qb, P0b, kept, jnp.asarray(u, dtype), idx)
+        p = jnp.asarray(np.concatenate([np.zeros(n_c), u[first]]), dtype)
+        f, g, Hs = derivs(p, r, J, H, Qb, P0b, kept, jnp.asarray(u, dtype), idx, *tied)
         return float(f), np.asarray(g, np.float64), np.asarray(Hs, np.float64)
 
     z, u = np.zeros(n_c), u0.copy()
@@ -272,7 +363,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
             converged = True
             break
         z_new, u_new = z + delta[:n_c], u.copy()
-        u_new[free_s] += delta[n_c:]
+        u_new[free_s] += delta[n_c:] if tie is None else delta[n_c:][tie]
         r_new, J_new = evaluate(z_new)
         f_new, g_new, H_new = derivatives(z_new, u_new, r_new, J_new)
         if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and f_new < f:
@@ -287,15 +378,16 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol):
     calib, _ = _unpack(jnp.asarray(z, dtype), init_vec, base.velocities, layout)
     scales = np.asarray(_scale_vector(free_c, dtype), np.float64) if n_c else np.zeros(0)
     n_kept = int(problem.kept[:K0].sum())
-    n = n_c + len(free_s)
-    with np.errstate(invalid="ignore"):
-        sigmas = s0 * np.exp(u - u0)
+    n = n_c + len(first)
+    sigmas = bases.scale * np.exp(u)  # 0 for a σ given as 0 (u = -inf)
     return dict(
         calibration=calib,
         sigmas=np.where(np.isfinite(sigmas), sigmas, 0.0),
         cov_z=cov_z,
         free=free_c,
         free_sigmas=free_s,
+        tie=tie,
+        first=first,
         scales=scales,
         history=np.asarray(history),
         converged=converged,
@@ -353,13 +445,18 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
             [Fix("estimate", phrase="{} without q_BS and p_BS")],
         )
     initial = initial if initial is not None else ImuCalibration.default(dtype=dtype)
-    out = fit(problem, initial, estimate, steps, tol)
-    free_s, sig = out["free_sigmas"], out["sigmas"]
-    jac = np.concatenate([out["scales"], sig[free_s]])  # physical per coordinate (dσ = σ du)
+    _check_per_axis(problem, estimate)  # before the per-axis bases are built
+    bases = noise_bases(problem, any(n in estimate for n in PER_AXIS_FIELDS))
+    out = fit(problem, initial, estimate, steps, tol, bases)
+    free_s, sig, first = out["free_sigmas"], out["sigmas"], out["first"]
+    jac = np.concatenate([out["scales"], sig[first]])  # physical per coordinate (dσ = σ du)
     cov = out["cov_z"] * jac[:, None] * jac[None, :]
     se = np.sqrt(np.diag(cov))  # NaN where the likelihood does not determine the value
     names = [f"{n}[{i}]" for n in out["free"] for i in range(_TANGENT[n])]
-    names += [_SIGMAS[i] for i in free_s]
+    names += [
+        _label(bases, i, out["tie"] is not None and out["tie"].count(j) > 1)
+        for j, i in enumerate(first)
+    ]
     flat = [n for n, e in zip(names, se) if not np.isfinite(e)]
     if flat:
         warnings.warn(
@@ -378,11 +475,18 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
             off += k
         else:
             std[name] = jnp.zeros(shape, dtype)
-    sig_std = np.zeros(7)
-    sig_std[free_s] = se[off:]
+    sig_std = np.zeros(len(sig))
+    sig_std[free_s] = se[off:] if out["tie"] is None else se[off:][out["tie"]]
     given = problem.noise
-    fitted = ImuNoise(*(sig[i] if i in free_s else getattr(given, DENSITIES[i]) for i in range(4)))
-    ref = np.where(np.isin(np.arange(4, 7), free_s), sig[4:], problem.reference_sigma)
+    D = len(sig) - 3
+    if bases.per_axis:
+        fitted, noise_std = _per_axis_noise(given, estimate, sig, sig_std)
+    else:
+        fitted = ImuNoise(
+            *(sig[i] if i in free_s else getattr(given, DENSITIES[i]) for i in range(4))
+        )
+        noise_std = ImuNoise(*sig_std[:4])
+    ref = np.where(np.isin(np.arange(D, D + 3), free_s), sig[D:], problem.reference_sigma)
     red = out["chi2"] / out["dof"]
     if max_reduced_chi2 is not None and red > max_reduced_chi2:
         warnings.warn(
@@ -392,12 +496,17 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
             stacklevel=3,
         )
     base = problem.base
-    by_length = length_check(problem, out["calibration"], np.concatenate([_isotropic(fitted), ref]))
+    by_length = length_check(
+        problem,
+        out["calibration"],
+        np.concatenate([sig[:D] if bases.per_axis else _isotropic(fitted), ref]),
+        bases,
+    )
     return dict(
         calibration=out["calibration"],
         std=ImuCalibration(**std),
         covariance=cov,
-        free=out["free"] + tuple(n for n in NOISE_FIELDS if n in estimate),
+        free=out["free"] + tuple(n for n in NOISE_FIELDS + PER_AXIS_FIELDS if n in estimate),
         velocities=np.asarray(base.velocities, np.float64),
         loss_history=out["history"],
         chi2=out["chi2"],
@@ -408,12 +517,36 @@ def noise_result(problem: NoiseProblem, initial, estimate, steps, tol, max_reduc
         skipped_windows=int((~problem.kept[: base.n_windows]).sum()),
         note=base.skip_note,
         noise=fitted,
-        noise_std=ImuNoise(*sig_std[:4]),
+        noise_std=noise_std,
         reference_sigma=ref,
-        reference_sigma_std=sig_std[4:],
+        reference_sigma_std=sig_std[D:],
         noise_given=given,
         reference_sigma_given=problem.reference_sigma,
         rate_hz=problem.rate_hz,
         window_lengths=problem.window_lengths,
         chi2_by_length=by_length,
     )
+
+
+def _label(bases: NoiseBases, i, tied):
+    """The name of the fitted σ whose first basis is ``i`` (a density fitted isotropically
+    among per-axis bases: its name)."""
+    return DENSITIES[i // 3] if tied else bases.labels[i]
+
+
+def _per_axis_noise(given: ImuNoise, estimate, sig, sig_std):
+    """``(noise, noise_std)`` of a fit with per-axis bases (``sig``, ``sig_std``: ``(15,)``):
+    a density named per axis as its ``(3,)`` values, one named isotropically as one number,
+    the others as given (standard error 0)."""
+    vals, errs = [], []
+    for i, name in enumerate(DENSITIES):
+        if PER_AXIS_FIELDS[i] in estimate:
+            vals.append(sig[3 * i : 3 * i + 3].copy())
+            errs.append(sig_std[3 * i : 3 * i + 3].copy())
+        elif name in estimate:
+            vals.append(float(sig[3 * i]))
+            errs.append(float(sig_std[3 * i]))
+        else:
+            vals.append(getattr(given, name))
+            errs.append(0.0)
+    return ImuNoise(*vals), ImuNoise(*errs)

@@ -6,6 +6,7 @@ unit-density covariance bases and the densities' names (:class:`NoiseProblem`).
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,7 +48,13 @@ NOISE_FIELDS = DENSITIES + ("reference_sigma",)
 and the reference's ``(σ_θ, σ_p, σ_v)``)."""
 
 
-_SIGMAS = DENSITIES + ("reference_sigma_theta", "reference_sigma_p", "reference_sigma_v")
+PER_AXIS_FIELDS = tuple(f"{n}_per_axis" for n in DENSITIES)
+"""The densities fitted per axis (three values each, the IMU's x, y, z), which ``estimate=``
+may name instead of their isotropic names in :data:`NOISE_FIELDS`, density by density."""
+
+
+_REFERENCE_SIGMAS = ("reference_sigma_theta", "reference_sigma_p", "reference_sigma_v")
+_SIGMAS = DENSITIES + _REFERENCE_SIGMAS
 
 
 MIN_WINDOWS = 16
@@ -83,6 +90,8 @@ class NoiseProblem:
             reference's errors at its start and end.
         filter: ``(H, Qb, P0b, d)`` of :func:`jaximu.calibration._noise_filter.state_space` from those
             (the likelihood's state space, at the initial σ).
+        initial: the :class:`ImuCalibration` the bases were computed at (``None``: the
+            default), for the per-axis bases (:func:`noise_bases`).
     """
 
     base: CalibrationProblem
@@ -102,6 +111,7 @@ class NoiseProblem:
     window_bias_jacobian: np.ndarray
     window_reference_jacobian: np.ndarray
     filter: tuple
+    initial: ImuCalibration | None = None
 
     @property
     def n_windows(self) -> tuple:
@@ -153,13 +163,21 @@ def _check_lengths(window_lengths, period):
     return W, tuple(sorted({int(x) for x in m}))
 
 
-def _unit_noises(noise0, dtype):
-    """One :class:`ImuNoise` per density: that density at its initial value, the rest 0."""
+def _unit_noises(noise0, dtype, per_axis=False):
+    """One :class:`ImuNoise` per density: that density at its initial value, the rest 0; or
+    (``per_axis``) one per density and axis (density ``i``'s axis ``a`` at ``3 i + a``: that
+    axis alone at the density's initial value)."""
     out = []
     for i in range(4):
-        vals = [jnp.zeros((), dtype)] * 4
-        vals[i] = jnp.asarray(getattr(noise0, DENSITIES[i]), dtype)
-        out.append(ImuNoise(*vals))
+        if not per_axis:
+            vals = [jnp.zeros((), dtype)] * 4
+            vals[i] = jnp.asarray(getattr(noise0, DENSITIES[i]), dtype)
+            out.append(ImuNoise(*vals))
+            continue
+        for a in range(3):
+            vals = [jnp.zeros(3, dtype)] * 4
+            vals[i] = jnp.asarray(getattr(noise0, DENSITIES[i]), dtype) * jnp.eye(3, dtype=dtype)[a]
+            out.append(ImuNoise(*vals))
     return out
 
 
@@ -177,26 +195,36 @@ def _rows(tree, m):
     return jax.tree_util.tree_map(lambda x: x[: K * m].reshape((K, m) + x.shape[1:]), tree)
 
 
-def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast):
-    """``(cov, jac, cov15)``: per window of every length (concatenated), ``(4, 9, 9)``
-    covariances from each density alone and the ``(9, 6)`` bias Jacobian; per base window
-    the whole ``(4, 15, 15)`` ``cov15`` (the bias random walk's block and its correlation
-    with the window's noise: the filter's); ``gyro``, ``accel``, ``dt``: the ``K`` base
-    windows' corrected samples."""
+def _long_window_bases(gyro, accel, dt, noise0, multiples, *, scheme, fast, per_axis=False):
+    """``(cov, jac, cov15)``: per window of every length (concatenated), ``(D, 9, 9)``
+    covariances from each density alone (``D = 4``; per axis, ``D = 12``:
+    :func:`_unit_noises`) and the ``(9, 6)`` bias Jacobian; per base window the whole
+    ``(D, 15, 15)`` ``cov15`` (the bias random walk's block and its correlation with the
+    window's noise: the filter's); ``gyro``, ``accel``, ``dt``: the ``K`` base windows'
+    corrected samples."""
     dtype = gyro.dtype
     zero3 = jnp.zeros(3, dtype)
-    covs, jac, full = [], [], []
-    for i, unit in enumerate(_unit_noises(noise0, dtype)):
+
+    def one(unit):
         pim = _preintegrate_sequential(
             gyro, accel, dt, ImuBias(zero3, zero3), unit, scheme=scheme, fast=fast
         )
-        per_m = []
-        for m in multiples:
-            per_m.append(pim if m == 1 else _fold(_rows(pim, m), m))
-        covs.append(jnp.concatenate([p.cov15[:, :9, :9] for p in per_m]))
-        full.append(pim.cov15)
+        per_m = [pim if m == 1 else _fold(_rows(pim, m), m) for m in multiples]
+        cov = jnp.concatenate([p.cov15[:, :9, :9] for p in per_m])
+        jac = jnp.concatenate([p.transition[:, :9, 9:15] for p in per_m])
+        return cov, jac, pim.cov15
+
+    units = _unit_noises(noise0, dtype, per_axis)
+    if per_axis:  # one trace for the twelve (their means and Jacobians are the same)
+        cov, jac, full = jax.vmap(one)(jax.tree_util.tree_map(lambda *x: jnp.stack(x), *units))
+        return jnp.moveaxis(cov, 0, 1), jac[0], jnp.moveaxis(full, 0, 1)
+    covs, jac, full = [], [], []
+    for i, unit in enumerate(units):
+        c, j, f = one(unit)
+        covs.append(c)
+        full.append(f)
         if i == 0:
-            jac = jnp.concatenate([p.transition[:, :9, 9:15] for p in per_m])
+            jac = j
     return jnp.stack(covs, 1), jac, jnp.stack(full, 1)
 
 
@@ -331,12 +359,110 @@ def noise_problem(
         window_bias_jacobian=F,
         window_reference_jacobian=Jr[:K0],
         filter=state_space(cov15, F, Jr[:K0], np.where(sig > 0, sig, 1.0)),
+        initial=initial,
     )
 
 
 def _length_slice(multiples, K0, k):
     off = sum(K0 // m for m in multiples[:k])
     return slice(off, off + K0 // multiples[k])
+
+
+class NoiseBases(NamedTuple):
+    """The covariance bases one fit uses: one per density (isotropic, ``D = 4``) or per
+    density and axis (``D = 12``, density ``i``'s axis ``a`` at ``3 i + a``), then the
+    reference's ``σ_θ, σ_p, σ_v``.
+
+    Attributes:
+        per_axis: whether the densities' bases are per axis.
+        labels: ``(D + 3,)`` each σ's name (``gyroscope_noise_density[y]``, …).
+        given: ``(D + 3,)`` the σ given to the problem (per axis: each axis's value; else
+            the axes' root mean square).
+        scale: ``(D + 3,)`` the σ the bases were built at (``σ = scale · e^u``).
+        u0: ``(D + 3,)`` ``log(given / scale)`` (``-inf`` for a σ given as 0).
+        cov_basis: ``(K_all, D, 9, 9)``; ``bias_basis``: ``(K_all, 2 D / 4, 9, 9)`` (the
+            gyroscope's random walk, then the accelerometer's); ``filter``: ``(H, Qb, P0b, d)``,
+            as :class:`NoiseProblem`'s.
+    """
+
+    per_axis: bool
+    labels: tuple
+    given: np.ndarray
+    scale: np.ndarray
+    u0: np.ndarray
+    cov_basis: np.ndarray
+    bias_basis: np.ndarray
+    filter: tuple
+
+
+def noise_bases(problem: NoiseProblem, per_axis: bool) -> NoiseBases:
+    """The problem's isotropic bases, or (``per_axis``) the twelve per-axis ones: built here,
+    at the same calibration and starting densities (each axis at its density's root mean
+    square), the covariance being linear in the twelve per-axis variances."""
+    ref = problem.reference_sigma
+    ref_scale = np.where(ref > 0, ref, 1.0)
+    with np.errstate(divide="ignore"):
+        u_ref = np.log(ref / ref_scale)
+    s0 = _isotropic(problem.noise)
+    if not per_axis:
+        return NoiseBases(
+            False,
+            _SIGMAS,
+            np.concatenate([s0, ref]),
+            np.concatenate([s0, ref_scale]),
+            np.concatenate([np.zeros(4), u_ref]),
+            problem.cov_basis,
+            problem.bias_basis,
+            problem.filter,
+        )
+    base = problem.base
+    dtype = base.gyro.dtype
+    K0 = base.n_windows
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
+    init = problem.initial if problem.initial is not None else ImuCalibration.default(dtype=dtype)
+    g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
+    noise0 = ImuNoise(*(jnp.asarray(x, dtype) for x in s0))
+    cov, jac, cov15 = _compiled(
+        _long_window_bases, True, ("multiples", "scheme", "fast", "per_axis")
+    )(
+        g_c,
+        a_c,
+        flat(base.dt),
+        noise0,
+        problem.multiples,
+        scheme=base.scheme,
+        fast=False,
+        per_axis=True,
+    )
+    cov, jac = np.asarray(cov, np.float64), np.asarray(jac, np.float64)
+    bias = np.stack(
+        [s0[2 + c // 3] ** 2 * jac[:, :, c, None] * jac[:, None, :, c] for c in range(6)], 1
+    )
+    given = np.stack(
+        [
+            np.broadcast_to(np.asarray(getattr(problem.noise, n), np.float64), (3,))
+            for n in DENSITIES
+        ]
+    )
+    scale = np.repeat(s0, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_d = np.where(scale > 0, np.log(given.reshape(-1) / np.where(scale > 0, scale, 1.0)), 0.0)
+    labels = tuple(f"{n}[{'xyz'[a]}]" for n in DENSITIES for a in range(3)) + _REFERENCE_SIGMAS
+    return NoiseBases(
+        True,
+        labels,
+        np.concatenate([given.reshape(-1), ref]),
+        np.concatenate([scale, ref_scale]),
+        np.concatenate([u_d, u_ref]),
+        cov,
+        bias,
+        state_space(
+            np.asarray(cov15, np.float64),
+            problem.window_bias_jacobian,
+            problem.window_reference_jacobian,
+            ref_scale,
+        ),
+    )
 
 
 # --------------------------------------------------------------------------- the residuals

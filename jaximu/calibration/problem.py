@@ -53,7 +53,8 @@ likelihood of consecutive windows' residuals (a Kalman filter's prediction-error
 decomposition, :mod:`jaximu.calibration._noise_filter`): :func:`calibration_problem` with
 ``window_lengths`` returns a
 :class:`jaximu.calibration._noise_problem.NoiseProblem`, and ``estimate=`` may then name
-:data:`NOISE_FIELDS` beside the fields; the model, its covariance and the fit are in
+:data:`NOISE_FIELDS` (isotropic densities) or :data:`PER_AXIS_FIELDS` (per axis) beside the
+fields; the model, its covariance and the fit are in
 :mod:`jaximu.calibration._noise_fit` (docs/guide/noise-densities.md).
 
 Adding an estimable field (an IMU–body extrinsic, say): a pytree field of
@@ -103,7 +104,12 @@ from jaximu.calibration._model import (
     calibration_residuals,
     sensor_matrix,  # noqa: F401  (calibration.sensor_matrix)
 )
-from jaximu.calibration._noise_problem import NOISE_FIELDS, NoiseProblem, noise_problem
+from jaximu.calibration._noise_problem import (
+    NOISE_FIELDS,
+    PER_AXIS_FIELDS,
+    NoiseProblem,
+    noise_problem,
+)
 from jaximu.calibration._noise_table import noise_table
 from jaximu.errors import Fix, InputError
 from jaximu.geometry import _checks as val
@@ -123,6 +129,7 @@ __all__ = [
     "calibration_residuals",
     "FIELDS",
     "NOISE_FIELDS",
+    "PER_AXIS_FIELDS",
     "SCALES",
     "noise_table",
 ]
@@ -260,7 +267,7 @@ def calibration_problem(
 
         window_lengths: window lengths [s] for fitting the noise densities
             (``estimate=(..., "gyroscope_noise_density", …, "reference_sigma")`` in
-            :func:`calibrate`), e.g. ``(0.25, 1, 4)``: the shortest are the keyframe
+            :func:`calibrate`, or per axis ``"gyroscope_noise_density_per_axis"``, …), e.g. ``(0.25, 1, 4)``: the shortest are the keyframe
             windows, whose residuals' exact joint likelihood is fitted (white noise, random
             walk and the reference's noise separate through their correlation in time:
             :mod:`jaximu.calibration._noise_filter`); each longer one, a whole multiple of the shortest
