@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -354,25 +354,47 @@ def _preintegrate(
         fast=fast,
         lever=lever is not None,
     )
-    return run(gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes)
+    return run(
+        PreintegrationInputs(
+            gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes
+        )
+    )
 
 
-# Preintegration's implementations, one per kernel of the table's "preintegrate" rows, with
-# one signature: (gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians,
-# prefixes).
+class PreintegrationInputs(NamedTuple):
+    """The preintegration engine's inputs once checked and dispatched, in the order every
+    implementation reads them: the samples and ``dt``, the linearisation ``bias``, ``noise``
+    (``None``: none), the broadcast ``batch`` shape, the resolved ``method``, then the
+    static options and the optional lever arm (``None`` when not given)."""
+
+    gyro: Any
+    accel: Any
+    dt: Any
+    bias: ImuBias
+    noise: Any
+    batch: tuple
+    method: str
+    scheme: str
+    lever: Any
+    jacobians: str
+    prefixes: bool
+
+
+# Preintegration's implementations, one per kernel of the table's "preintegrate" rows, each
+# taking the engine's PreintegrationInputs.
 
 
 @dispatch.implements("preintegrate", "soa_preint_euler", "soa_preint_midpoint")
-def _preintegrate_soa(
-    gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes
-):
-    return _preintegrate_fast(gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians)
+def _preintegrate_soa(inputs: PreintegrationInputs):
+    a = inputs
+    return _preintegrate_fast(
+        a.gyro, a.accel, a.dt, a.bias, a.noise, a.batch, a.method, a.scheme, a.lever, a.jacobians
+    )
 
 
 @dispatch.implements("preintegrate", dispatch.GENERIC)
-def _preintegrate_generic(
-    gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes
-):
+def _preintegrate_generic(inputs: PreintegrationInputs):
+    gyro, accel, dt, bias, noise, batch, method, scheme, lever, jacobians, prefixes = inputs
     step_fn = _step if jacobians == "analytic" else _step_autodiff
     w0, a0, w1, a1, h = _pairs(gyro, accel, dt, scheme)
     dtype = w0.dtype

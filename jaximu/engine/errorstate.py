@@ -430,7 +430,7 @@ def propagate_covariance(
         P0: ``(..., 15, 15)`` symmetric PSD covariance of ``[dθ, dp, dv, db_g, db_a]`` at t_0.
         noise: :class:`ImuNoise` densities (fields may be batched ``(..., 3)``).
         jacobians: ``"analytic"`` (closed forms + block-structured update; exact-exponential
-            forms), ``"autodiff"`` (``jax.jacfwd`` of the step in the 9 non-structural
+            forms), ``"autodiff"`` (``jax.jvp`` of the step in the 9 non-structural
             directions, :func:`blocks_autodiff`; any form; the same block update) or ``"auto"``
             (analytic where available).
         body_P_sensor, tangential, omega_coriolis, coriolis_exact, coriolis_second_order: as

@@ -13,10 +13,17 @@ import numpy as np
 
 from jaximu.geometry import _checks as val
 from jaximu.geometry import sensor
+from jaximu.geometry._vec import V3
 from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState, boxminus, boxplus, check_state, require_navstate
 from jaximu.schemes import _blocks as blk
 from jaximu.schemes._blocks import Blocks
+from jaximu.schemes._jvp_blocks import (
+    ARRAY_DIRECTIONS,
+    array_rotation_rows,
+    array_rotation_tangents,
+    blocks_by_jvp,
+)
 from jaximu.schemes.integrators import (
     Attitude,
     blocks_analytic,
@@ -57,51 +64,60 @@ def jacobians_autodiff(scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h
 def blocks_autodiff(
     scheme, att: Attitude, state: NavState, w0, a0, w1, a1, h, g, lever=None
 ) -> Blocks:
-    """The blocks of ``Φ`` by ``jax.jacfwd`` of the step, in the 9 directions that are not
-    structural: ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form).
+    """The blocks of ``Φ`` by ``jax.jvp`` of the step in the 9 directions that are not
+    structural, ``dθ``, ``db_g``, ``db_a`` (any scheme and attitude form):
+    :func:`jaximu.schemes._jvp_blocks.blocks_by_jvp` in the array layout, the function
+    that makes the structure-of-arrays kernels' blocks too
+    (:func:`jaximu.kernels.fast.blocks_autodiff`).
 
-    The rest of ``Φ`` is known for every step of this library: ``p⁺``, ``v⁺`` depend on
-    ``p``, ``v`` through ``I`` and ``dt I`` only, ``θ⁺`` not at all, the biases are carried.
-    ``G`` is known from ``Φ`` (the white noises enter exactly as the biases do,
-    ``ω = w - b_g - n_g``, ``f = a - b_a - n_a``; the walks as ``dt I``), so
-    :func:`structured_update` serves both Jacobian options. 9 tangents instead of 27, and
-    no dense 15×15 products; tested equal to :func:`jacobians_autodiff` (dense) and to the
+    The step is :func:`nav_step` from the quaternion ``state.q`` (its form's own
+    coordinates inside); the directions are those of :func:`boxplus` and the rows those of
+    :func:`boxminus` (``q ⊗ [0, ½ e_j]``, ``2 vec(q⁺* ⊗ δq⁺)``; the biases as ``-e_j`` on
+    the samples). ``G`` is known from ``Φ`` (the white noises enter exactly as the biases
+    do, ``ω = w - b_g - n_g``, ``f = a - b_a - n_a``; the walks as ``dt I``), so
+    :func:`structured_update` serves both Jacobian options. 9 tangents instead of 27, and no
+    dense 15×15 products; tested equal to :func:`jacobians_autodiff` (dense) and to the
     closed forms.
 
     ``lever``: the lever arm ``r`` (``(..., 3)`` [m]) of samples moved from a sensor to the
     body (:mod:`jaximu.sensor`): their specific force carries ``-ω×(ω×r)``, so it moves with
-    the gyro bias, and the derivative sees it (:func:`jaximu.sensor.moved_specific_force`).
+    the gyro bias by ``K δb_g`` (:func:`jaximu.sensor.centripetal_jacobian`).
     """
-    nominal = nav_step(scheme, att, state, w0, a0, w1, a1, h, g)
-    dtype = state.q.dtype
-    z6 = jnp.zeros(6, dtype)
-
-    def rows(d9):
-        delta = jnp.concatenate([d9[0:3], z6, d9[3:9]])
-        at = boxplus(state, delta)
-        a0_, a1_ = a0, a1
-        if lever is not None:
-            a0_ = sensor.moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, lever)
-            a1_ = sensor.moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, lever)
-        moved = nav_step(scheme, att, at, w0, a0_, w1, a1_, h, g)
-        return boxminus(moved, nominal)[..., :9]
-
-    J = jax.jacfwd(rows)(jnp.zeros(9, dtype))  # (..., 9 rows θ p v, 9 cols θ b_g b_a)
-
-    def blk_(r, c):
-        return J[..., 3 * r : 3 * r + 3, 3 * c : 3 * c + 3]
-
-    return Blocks(
-        A=blk_(0, 0),
-        B=blk_(0, 1),
-        Cp=blk_(1, 0),
-        Cv=blk_(2, 0),
-        Dp=blk_(1, 1),
-        Dv=blk_(2, 1),
-        Ep=blk_(1, 2),
-        Ev=blk_(2, 2),
-        dt=h,
+    batch = jnp.broadcast_shapes(
+        state.q.shape[:-1],
+        state.b_g.shape[:-1],
+        state.b_a.shape[:-1],
+        *(x.shape[:-1] for x in (w0, a0, w1, a1)),
+        *(() if lever is None else (jnp.shape(lever)[:-1],)),
     )
+    q, w0, a0, w1, a1 = (
+        jnp.broadcast_to(x, batch + x.shape[-1:]) for x in (state.q, w0, a0, w1, a1)
+    )
+
+    def step(q, w0, w1, a0, a1):
+        s = nav_step(
+            scheme, att, NavState(q, state.p, state.v, state.b_g, state.b_a), w0, a0, w1, a1, h, g
+        )
+        return s.q, s.p, s.v
+
+    def k_cols(w):  # direction j moves f by the column K e_j
+        K = sensor.centripetal_jacobian(V3.of(w - state.b_g), V3.of(lever), blk.ARRAYS)
+        return jnp.moveaxis(jnp.broadcast_to(K, batch + (3, 3)), -1, 0)
+
+    _, b = blocks_by_jvp(
+        step,
+        q,
+        w0,
+        w1,
+        a0,
+        a1,
+        h,
+        array_rotation_tangents(q),
+        array_rotation_rows,
+        ARRAY_DIRECTIONS,
+        None if lever is None else k_cols,
+    )
+    return b
 
 
 def dense_from_blocks(b: Blocks):

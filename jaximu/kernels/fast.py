@@ -6,11 +6,10 @@ structure-of-arrays layout of :mod:`jaximu.kernels.soa` (why that layout: docs/D
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
 from jaximu.geometry import sensor, so3
 from jaximu.geometry._vec import V3
-from jaximu.kernels.lane_directions import direction_block, jvp_directions, lane_directions
+from jaximu.kernels.lane_directions import LANE_DIRECTIONS
 from jaximu.kernels.lane_forms import LANE_FORMS, LaneForm, _sincos, mean_step
 from jaximu.kernels.lane_math import (
     SOA,
@@ -30,7 +29,8 @@ from jaximu.kernels.soa import (
     run_blocked,
 )
 from jaximu.schemes import _blocks, world
-from jaximu.schemes._blocks import UPPER, Blocks, block, structured_update
+from jaximu.schemes._blocks import UPPER, block, structured_update
+from jaximu.schemes._jvp_blocks import blocks_by_jvp
 from jaximu.schemes.integrators import GIMBAL_LOCK_COS
 
 QUATERNION = LANE_FORMS["quaternion"]
@@ -258,74 +258,45 @@ def blocks_autodiff(
     world_error=False,
     form: LaneForm = QUATERNION,
 ):
-    """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff.
-
-    ``jax.jvp`` of :func:`jaximu.kernels.lane_forms.mean_step` in the 9 non-structural directions, in
-    three groups that each perturb only their own inputs, so that JAX's symbolic zeros skip
-    what a direction cannot reach (a ``db_a`` tangent never enters the half angle): ``dθ``
-    (the tangent ``q ⊗ [0, ½ e_j]`` of ``q ⊗ Exp(dθ)``), ``db_g`` and ``db_a`` (``-e_j`` on
-    both samples' rate or specific force). Each group is a ``vmap`` over its 3 directions,
-    direction axis major, lanes minor. The rotation rows are ``2 vec(q⁺* ⊗ δq⁺)`` (the
-    tangent of ``Log(q̂⁺* q⁺)``). As :func:`jaximu.errorstate.blocks_autodiff`, on this
-    layout. ``lever`` (a :class:`V3`, or ``None``): samples moved from a sensor at that lever
-    arm, whose specific force moves by ``K δb_g`` (:func:`jaximu.sensor.centripetal_jacobian`):
-    the ``db_g`` tangents then perturb the specific force too. ``world_error``: the rotation
-    error in the world frame (``Exp(δθ_W) ⊗ q``: tangent ``[0, ½ e_j] ⊗ q``, rows
-    ``2 vec(δq⁺ ⊗ q⁺*)``), whose ``A`` block is the identity (returned as ``"I"``, not formed).
+    """One step of ``scheme`` and the blocks of its ``Φ`` on SoA lanes, by autodiff:
+    :func:`jaximu.schemes._jvp_blocks.blocks_by_jvp` (the 9 non-structural directions in
+    three groups, each a ``vmap`` of ``jax.jvp`` of :func:`jaximu.kernels.lane_forms.mean_step`,
+    direction axis major, lanes minor) in the lane layout; the same function makes the
+    array layout's blocks (:func:`jaximu.engine.jacobians.blocks_autodiff`). The attitude's
+    tangents and rows are those of ``form`` (:data:`LANE_FORMS`; a quaternion: ``q ⊗ [0, ½
+    e_j]`` and ``2 vec(q⁺* ⊗ δq⁺)``, the tangent of ``Log(q̂⁺* q⁺)``; a matrix: ``R [e_j]x``,
+    ``vee(R⁺ᵀ δR⁺)``). ``lever`` (a :class:`V3`, or ``None``): samples moved from a sensor
+    at that lever arm, whose specific force moves by ``K δb_g``
+    (:func:`jaximu.sensor.centripetal_jacobian`). ``world_error``: the rotation error in the
+    world frame (``Exp(δθ_W) ⊗ q``: tangent ``[0, ½ e_j] ⊗ q``, rows ``2 vec(δq⁺ ⊗ q⁺*)``),
+    whose ``A`` block is the identity (returned as ``"I"``, not formed).
 
     Returns:
-        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks. ``form``: the attitude form
-        of ``q`` (:data:`LANE_FORMS`), whose own tangents and rows these are (a matrix:
-        ``R [e_j]x``, ``vee(R⁺ᵀ δR⁺)``).
+        ``((q⁺, p⁺, v⁺), Blocks)`` with ``(3, 3, B)`` blocks.
     """
-    dtype = q[0].dtype
     lanes = q[0].shape
 
     def step(q, omega0, omega1, f0, f1):
         return mean_step(scheme, q, p, v, omega0, f0, omega1, f1, h, g, form=form)
 
-    tq = form.tangents(q, world_error)
-    minus_e = V3(*lane_directions(-np.eye(3), dtype, lanes))
-    q1, p1, v1 = step(q, omega0, omega1, f0, f1)
-    d_theta = jvp_directions(lambda q: step(q, omega0, omega1, f0, f1), (q,), (tq,))
-    if lever is None:
-        d_bg = jvp_directions(
-            lambda w0, w1: step(q, w0, w1, f0, f1), (omega0, omega1), (minus_e, minus_e)
-        )
-    else:  # direction j moves f by the column K e_j: component i is K[i, j] per lane
+    def k_cols(omega):  # direction j moves f by the column K e_j: component i is K[i, j]
+        K = jnp.broadcast_to(sensor.centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
+        return V3(K[0], K[1], K[2])
 
-        def k_cols(omega):
-            K = jnp.broadcast_to(sensor.centripetal_jacobian(omega, lever, SOA), (3, 3) + lanes)
-            return V3(K[0], K[1], K[2])
-
-        d_bg = jvp_directions(
-            lambda w0, w1, a0, a1: step(q, w0, w1, a0, a1),
-            (omega0, omega1, f0, f1),
-            (minus_e, minus_e, k_cols(omega0), k_cols(omega1)),
-        )
-    d_ba = jvp_directions(
-        lambda a0, a1: step(q, omega0, omega1, a0, a1), (f0, f1), (minus_e, minus_e)
+    return blocks_by_jvp(
+        step,
+        q,
+        omega0,
+        omega1,
+        f0,
+        f1,
+        h,
+        form.tangents(q, world_error),
+        lambda tq1, q1: form.rows(tq1, q1, world_error),
+        LANE_DIRECTIONS,
+        None if lever is None else k_cols,
+        identity_A=world_error,
     )
-
-    def block(rows):
-        return direction_block(rows, dtype)
-
-    def rot(tq1):
-        return form.rows(tq1, q1, world_error)
-
-    (tq_t, tp_t, tv_t), (tq_g, tp_g, tv_g), (_, tp_a, tv_a) = d_theta, d_bg, d_ba
-    b = Blocks(
-        A="I" if world_error else block(rot(tq_t)),
-        B=block(rot(tq_g)),
-        Cp=block(tp_t),
-        Cv=block(tv_t),
-        Dp=block(tp_g),
-        Dv=block(tv_g),
-        Ep=block(tp_a),
-        Ev=block(tv_a),
-        dt=h,
-    )
-    return (q1, p1, v1), b
 
 
 def cov_step_blocks(

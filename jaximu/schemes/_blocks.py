@@ -178,19 +178,11 @@ def phi_from_dense(Phi):
     )
 
 
-def phi_compose(F: Blocks, P: Blocks) -> Blocks:
-    """``F Φ`` for two structured transitions (``F`` applied after ``P``): 6 products."""
-    return Blocks(
-        A=mm(F.A, P.A),
-        B=add(mm(F.A, P.B), F.B),
-        Cp=add(mm(F.Cp, P.A), P.Cp, scale(F.dt, P.Cv)),
-        Cv=add(mm(F.Cv, P.A), P.Cv),
-        Dp=add(mm(F.Cp, P.B), P.Dp, scale(F.dt, P.Dv), F.Dp),
-        Dv=add(mm(F.Cv, P.B), P.Dv, F.Dv),
-        Ep=add(P.Ep, scale(F.dt, P.Ev), F.Ep),
-        Ev=add(P.Ev, F.Ev),
-        dt=F.dt + P.dt,
-    )
+def phi_compose(F: Blocks, P: Blocks, ops: Layout = ARRAYS) -> Blocks:
+    """``F Φ`` for two structured transitions (``F`` applied after ``P``): the product of
+    their block rows (:func:`rows_product` of :func:`transition_rows`, 6 products), as
+    :class:`Blocks`."""
+    return rows_to_blocks(rows_product(transition_rows(F, ops), transition_rows(P, ops), ops))
 
 
 def block(Pb, i, j, ops: Layout = ARRAYS):
@@ -342,6 +334,34 @@ def transition_rows(b: Blocks, ops: Layout = ARRAYS, p_over_v=None):
         1: {0: Cp, 1: "I", 2: ScaledIdentity(b.dt), 3: Dp, 4: Ep},
         2: {0: b.Cv, 2: "I", 3: b.Dv, 4: b.Ev},
     }
+
+
+# the block columns of a transition's rows θ, p, v that may be non-zero (module docstring)
+_TRANSITION_COLUMNS = {0: (0, 3), 1: (0, 1, 2, 3, 4), 2: (0, 2, 3, 4)}
+
+
+def rows_to_blocks(rows) -> Blocks:
+    """The inverse of :func:`transition_rows`: the :class:`Blocks` of a transition given by
+    its block rows θ, p, v (missing entries zero; ``p_over_v`` not applied, the p row as
+    given)."""
+    extra = [(i, j) for i, row in rows.items() for j in row if j not in _TRANSITION_COLUMNS[i]]
+    if extra:
+        raise ValueError(f"blocks {extra} are outside a transition's structure")
+    if not (isinstance(rows[1].get(1), str) and isinstance(rows[2].get(2), str)):
+        raise ValueError("blocks (1, 1) and (2, 2) of a transition are the identity")
+    if not isinstance(rows[1].get(2), ScaledIdentity):
+        raise ValueError("block (1, 2) of a transition is dt I")
+    return Blocks(
+        A=rows[0].get(0),
+        B=rows[0].get(3),
+        Cp=rows[1].get(0),
+        Cv=rows[2].get(0),
+        Dp=rows[1].get(3),
+        Dv=rows[2].get(3),
+        Ep=rows[1].get(4),
+        Ev=rows[2].get(4),
+        dt=rows[1][2].s,
+    )
 
 
 def rows_product(F, G, ops: Layout = ARRAYS, columns=range(5), p_over_v=None):

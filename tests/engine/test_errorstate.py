@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 import jaximu
 from jaximu.errorstate import blocks_autodiff, dense_from_blocks, jacobians_autodiff
 from jaximu.integrators import get_attitude, nav_step
+from jaximu.sensor import moved_specific_force
 from jaximu.state import boxminus, boxplus
 
 G = 9.81
@@ -80,6 +81,30 @@ def test_autodiff_jacobians_equal_central_differences(scheme, attitude):
     Phi_b, G_b = dense_from_blocks(b)
     np.testing.assert_allclose(Phi_b, Phi, rtol=0, atol=1e-13 * np.abs(Phi).max())
     np.testing.assert_allclose(G_b, G_, rtol=0, atol=1e-13 * np.abs(G_).max())
+
+
+def test_blockwise_autodiff_broadcasts_batches_and_moves_the_specific_force_with_a_lever():
+    """The 9-direction blocks of one state and ``(2, 3)`` batched samples moved from a
+    sensor at a lever arm equal central differences of the step whose specific force is
+    corrected at the perturbed rate (:func:`jaximu.sensor.moved_specific_force`), per element."""
+    att = get_attitude("quaternion")
+    state = random_state(5)
+    w0, a0, w1, a1 = (jnp.asarray(x) for x in random_samples(6, (2, 3)))
+    h, r = jnp.asarray(0.01), jnp.asarray([0.1, -0.2, 0.05])
+    b = blocks_autodiff("midpoint", att, state, w0, a0, w1, a1, h, G_W, lever=r)
+    Phi_b, _ = dense_from_blocks(b)
+    assert Phi_b.shape == (2, 3, 15, 15)
+    nominal = nav_step("midpoint", att, state, w0, a0, w1, a1, h, G_W)
+
+    @jax.jit
+    def error(delta):
+        at = boxplus(state, delta)
+        a0_ = moved_specific_force(a0, w0 - state.b_g, w0 - at.b_g, r)
+        a1_ = moved_specific_force(a1, w1 - state.b_g, w1 - at.b_g, r)
+        return boxminus(nav_step("midpoint", att, at, w0, a0_, w1, a1_, h, G_W), nominal)
+
+    fd = central_differences(error, 15)
+    np.testing.assert_allclose(Phi_b, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
 
 
 @pytest.mark.parametrize("attitude", ["quaternion", "matrix"])

@@ -61,6 +61,20 @@ def test_rows_product_equals_dense_product_on_its_columns(columns, shortcut):
     np.testing.assert_allclose(got[:9, cols], want[:9, cols], rtol=0, atol=1e-14 * scale)
 
 
+def test_phi_compose_equals_dense_product_and_rows_to_blocks_inverts_transition_rows():
+    F, P = random_blocks(0.003), random_blocks(0.0015)
+    got = blk.phi_compose(F, P)
+    want = dense(blk.transition_rows(F)) @ dense(blk.transition_rows(P))
+    np.testing.assert_allclose(
+        np.asarray(blk.phi_to_dense(got)), want, rtol=0, atol=1e-14 * np.abs(want).max()
+    )
+    back = blk.rows_to_blocks(blk.transition_rows(F))
+    for name, x in F._asdict().items():
+        np.testing.assert_array_equal(np.asarray(getattr(back, name)), np.asarray(x))
+    with pytest.raises(ValueError, match=r"outside a transition"):
+        blk.rows_to_blocks({0: {0: F.A, 1: F.B}, 1: blk.transition_rows(F)[1], 2: {}})
+
+
 def test_structured_update_with_a_noise_factor_equals_dense_update():
     s = 0.0025
     b = random_blocks(s)
