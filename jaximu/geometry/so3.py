@@ -25,6 +25,7 @@ infinite partial.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = [
     "skew",
@@ -98,19 +99,27 @@ def _batches(fn: str, a: str, x, na: int, b: str, y, nb: int):
         ) from None
 
 
+# column c of [e_i]x is e_i × e_c
+SKEW_GENERATORS = np.stack([np.cross(np.eye(3)[i], np.eye(3)).T for i in range(3)])
+"""``(3, 3, 3)``: ``[e_i]x`` for the axes ``e_i`` (so(3)'s generators): ``[v]x = Σ_i v_i
+[e_i]x``, the one definition of the skew matrix in every layout (:func:`skew_of`)."""
+
+
+def skew_of(components, lanes_last=False):
+    """``[v]x = Σ_i v_i [e_i]x`` from ``v``'s three components (arrays of one batch shape
+    ``S``): ``S + (3, 3)``, or with ``lanes_last`` ``(3, 3) + S`` (the structure-of-arrays
+    layout of :mod:`jaximu.kernels.lane_math`, lanes minor). The dtype is the components'."""
+    dtype = jnp.result_type(*components)
+    G = jnp.asarray(SKEW_GENERATORS, dtype)
+    if lanes_last:
+        return sum(G[i][:, :, None] * components[i][None, None] for i in range(3))
+    return sum(G[i] * components[i][..., None, None] for i in range(3))
+
+
 def skew(v):
     """Skew-symmetric matrix ``[v]x`` with ``[v]x w = v x w``. ``(..., 3) -> (..., 3, 3)``."""
     v = _arg("skew", "v", v, (3,))
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    o = jnp.zeros_like(x)
-    return jnp.stack(
-        [
-            jnp.stack([o, -z, y], axis=-1),
-            jnp.stack([z, o, -x], axis=-1),
-            jnp.stack([-y, x, o], axis=-1),
-        ],
-        axis=-2,
-    )
+    return skew_of((v[..., 0], v[..., 1], v[..., 2]))
 
 
 def _skew_sq(v):

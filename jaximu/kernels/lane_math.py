@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.geometry import so3
 from jaximu.geometry._vec import V3
 from jaximu.kernels import device
 from jaximu.schemes._blocks import Layout
@@ -152,7 +153,7 @@ def quat_matrix(q, dtype):
 _E3 = np.eye(3)
 
 
-_S3 = np.stack([np.stack([np.cross(_E3[i], _E3[c]) for c in range(3)], axis=1) for i in range(3)])
+_S3 = so3.SKEW_GENERATORS
 
 
 def _bmm(X, Y):
@@ -218,9 +219,8 @@ def _bt(X):
 
 
 def _skew3(t, dtype):
-    """3-tuple of ``(B,)`` -> ``[v]x`` as ``(3, 3, B)``."""
-    S = jnp.asarray(_S3, dtype)
-    return sum(S[i][:, :, None] * t[i][None, None] for i in range(3))
+    """3-tuple of ``(B,)`` -> ``[v]x`` as ``(3, 3, B)`` (:func:`jaximu.geometry.so3.skew_of`)."""
+    return so3.skew_of(tuple(jnp.asarray(x, dtype) for x in t), lanes_last=True)
 
 
 def _outer(u, v):
