@@ -159,32 +159,3 @@ def pytest_pyfunc_call(pyfuncitem):
             f"in a child pytest with XLA's default code generation:\n{report}", pytrace=False
         )
     return True
-
-
-# The test files that take longest (seconds of test time on the project's 2-core machine,
-# idle), longest first. pytest-xdist (`--dist loadfile`) hands whole files to its two
-# workers in the order they are collected, each taking the next when it is free; its own
-# order (most tests first, which pyproject.toml turns off) left files of few but slow tests
-# (the trained model's, the multi-device subprocess) to the end of one worker while the
-# other had finished: a 24 s imbalance. Longest first, the last files handed out are short
-# ones, and both workers end together. Files not listed keep their order, after these.
-_LONGEST_FIRST = """
-kernels/test_fast_preintegration.py engine/test_chunked_covariance.py
-calibration/test_calibration_noise.py studies/test_montecarlo.py
-kernels/test_fast_preintegration_autodiff.py engine/test_preintegration.py
-kernels/test_fast_path.py kernels/test_fast_attitude_forms.py
-learning/test_learning_training.py geometry/test_sensor.py calibration/test_calibration.py
-engine/test_errorstate.py engine/test_propagate.py app/test_cli_commands.py
-engine/test_vmap_routing.py test_properties.py kernels/test_devices.py
-schemes/test_coriolis.py studies/test_simulate.py kernels/test_one_kernel.py app/test_cli.py
-engine/test_gradient_edge_cases.py calibration/test_calibration_extrinsics.py
-learning/test_learning_losses.py learning/test_learning_commands.py
-calibration/test_calibration_gaps.py kernels/test_sensor_kernel.py
-""".split()
-
-
-def pytest_collection_modifyitems(config, items):
-    """Collected tests grouped by file, the files of :data:`_LONGEST_FIRST` first, in its
-    order (a stable sort: the tests of a file keep theirs)."""
-    rank = {"tests/" + f: i for i, f in enumerate(_LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
