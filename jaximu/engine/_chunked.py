@@ -11,9 +11,10 @@ in order or as an associative (parallel prefix) scan:
   ``(ΔR, Δp, Δv, Δt)`` (:func:`jaximu.integrators.compose_deltas`);
 * the covariance: a chunk run with ``P = 0`` gives its noise ``Q_c`` and, multiplying the
   steps' transitions, its ``Φ_c`` (run from the identity, only their bias columns: the
-  others follow from the chunk's deltas, :func:`local_transition`); ``P ↦ Φ_c P Φ_cᵀ +
-  Q_c`` composes associatively (:func:`jaximu.schemes._blocks.compose_transitions`). In a still world the chunks need no mean
-  first: ``Φ`` does not depend on ``p``, ``v`` or gravity, and a chunk run from the identity
+  others follow from the chunk's deltas, :func:`local_transition`);
+  ``P ↦ Φ_c P Φ_cᵀ + Q_c`` composes associatively
+  (:func:`jaximu.schemes._blocks.compose_transitions`). In a still world the chunks need no
+  mean first: ``Φ`` does not depend on ``p``, ``v`` or gravity, and a chunk run from the identity
   has the transition and noise of the chunk run from its true start ``R_c`` in coordinates
   turned by ``R_c`` (``T = blockdiag(R_c, R_c, R_c, I, I)`` for the world-frame rotation
   error, ``blockdiag(I, R_c, R_c, I, I)`` for the body-frame one), so one pass gives the
