@@ -2,6 +2,7 @@
 VINS-Mono's midpoint, analytic Jacobians, final i→j only) against the generic recursion it
 replaces."""
 
+import dataclasses
 import functools
 
 import jax
@@ -63,10 +64,28 @@ def inputs(
     return (jnp.asarray(g, dtype), jnp.asarray(a, dtype), jnp.asarray(dt, dtype), bias, noise)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "fast", "scheme", "jacobians"))
 def pre(
     gyro, accel, dt, bias, noise, lever=None, *, method, fast, scheme="euler", jacobians="analytic"
 ):
+    """The engine's preintegration, every argument passed the same way whichever way a test
+    spells it (a static argument given by keyword and the same one left at its default are
+    two keys of the jit cache: the one program would be compiled twice)."""
+    return _pre(
+        gyro,
+        accel,
+        dt,
+        bias,
+        noise,
+        lever,
+        method=method,
+        fast=fast,
+        scheme=scheme,
+        jacobians=jacobians,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("method", "fast", "scheme", "jacobians"))
+def _pre(gyro, accel, dt, bias, noise, lever, *, method, fast, scheme, jacobians):
     return _preintegrate(
         gyro,
         accel,
@@ -232,12 +251,13 @@ def test_fast_path_gradients_equal_generic(scheme):
 
 
 def test_shared_dt_with_batched_windows():
-    """``dt`` ``(T,)`` shared by a batch of windows (both paths)."""
-    g, a, dt, bias, noise = inputs((3,), 40, seed=5)
+    """``dt`` ``(T,)`` shared by a batch of windows (both paths; the shapes of
+    test_fast_path_equals_generic's first cases, whose reference program is compiled once)."""
+    g, a, dt, bias, noise = inputs((5,), 60, seed=5)
     fast = jaximu.preintegrate(g, a, dt, bias, noise)
     ref = pre(g, a, dt, bias, noise, method="sequential", fast=False)
     assert_same(fast, ref, 1e-12)
-    for i in range(3):
+    for i in range(5):
         one = jaximu.preintegrate(g[i], a[i], dt, bias, noise)
         np.testing.assert_allclose(
             fast.cov15[i], one.cov15, rtol=0, atol=1e-13 * np.abs(one.cov15).max()
@@ -291,10 +311,12 @@ def test_fast_path_per_axis_accelerometer_noise(jacobians):
     """A scalar accelerometer density lets the Euler kernel write its noise block as
     ``h σ_a² I`` (``R D Rᵀ`` of a rotation); a density per axis keeps the product
     ``Ev D Evᵀ``: both equal the generic recursion, and the per-axis one differs from the
-    scalar one by as much as the densities differ."""
-    g, a, dt, bias, _ = inputs((3,), 80, seed=11)
-    per_axis = jaximu.ImuNoise(2e-4, jnp.asarray([1e-3, 4e-3, 2e-3]), 2e-5, 3e-3)
-    scalar = jaximu.ImuNoise(2e-4, 2e-3, 2e-5, 3e-3)
+    scalar one by as much as the densities differ. The shapes and the scalar noise are those
+    of test_fast_path_equals_generic's first cases (their programs are compiled once)."""
+    g, a, dt, bias, scalar = inputs((5,), 60, seed=11)
+    per_axis = dataclasses.replace(
+        scalar, accelerometer_noise_density=jnp.asarray([1e-3, 4e-3, 2e-3])
+    )
     for method in ("sequential", "parallel"):
         for noise in (per_axis, scalar):
             assert_same(
