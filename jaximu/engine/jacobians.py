@@ -5,6 +5,7 @@ blocks, and the discrete process noise ``Q_d``.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -191,15 +192,27 @@ def step_jacobians(
         g.shape[:-1],
         names=("state", "gyro", "accel", "gyro_next", "accel_next", "dt", "gravity"),
     )
-    if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
-        return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
     if method == "analytic":
         _require_analytic(att)
-        b = blocks_analytic(
-            scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g, a1 - state.b_a, h
-        )
-        return dense_from_blocks(b)
-    raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
+    elif method != "autodiff":
+        raise ValueError(f"unknown Jacobian method {method!r}; choose 'autodiff' or 'analytic'")
+    return _checked_step_jacobians(
+        state, w0, a0, w1, a1, h, g, scheme=scheme, attitude=att.name, method=method
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("scheme", "attitude", "method"))
+def _checked_step_jacobians(state, w0, a0, w1, a1, h, g, *, scheme, attitude, method):
+    """The arithmetic of :func:`step_jacobians` on its checked inputs, as one program per
+    scheme, form and method (called eagerly, its few hundred operations would each be
+    compiled on their own)."""
+    att = get_attitude(attitude)
+    if method == "autodiff":  # 9 tangents, the rest structural (equal to the dense 27)
+        return dense_from_blocks(blocks_autodiff(scheme, att, state, w0, a0, w1, a1, h, g))
+    b = blocks_analytic(
+        scheme, state.R, w0 - state.b_g, a0 - state.b_a, w1 - state.b_g, a1 - state.b_a, h
+    )
+    return dense_from_blocks(b)
 
 
 def _require_analytic(att: Attitude):

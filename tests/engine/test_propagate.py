@@ -46,9 +46,11 @@ def test_constant_rate_orientation_exact(scheme, attitude):
     rng = np.random.default_rng(1)
     q0 = rot(Rotation.random(random_state=2).as_quat(scalar_first=True)).as_quat(scalar_first=True)
     omega = np.array([0.7, -1.3, 2.1])
-    dt = rng.uniform(0.005, 0.2, size=40)  # varying steps, some large
-    gyro = np.tile(omega, (40, 1))
-    accel = rng.normal(size=(40, 3))
+    # varying steps, some large; 200 of them, the shapes of the constant-acceleration test
+    # below, whose programs (scheme, form) this one compiles
+    dt = rng.uniform(0.005, 0.2, size=200)
+    gyro = np.tile(omega, (200, 1))
+    accel = rng.normal(size=(200, 3))
     states = jaximu.propagate(nav(q0), gyro, accel, dt, scheme, attitude=attitude)
     t = np.cumsum(dt)
     expected = rot(q0) * Rotation.from_rotvec(t[:, None] * omega)
