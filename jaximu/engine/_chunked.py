@@ -119,8 +119,35 @@ def deltas_before(deltas):
     ident = identity_deltas(B, dtype)
     if deltas[0].shape[0] == 1:
         return ident
-    prefix = jax.lax.associative_scan(compose_deltas, tuple(d[:-1] for d in deltas))
+    prefix = prefix_scan(compose_deltas, tuple(d[:-1] for d in deltas), ident)
     return tuple(jnp.concatenate([e, d]) for e, d in zip(ident, prefix))
+
+
+def prefix_scan(combine, elems, identity):
+    """The inclusive prefix of ``elems`` (leaves ``(N, ·)``) under the associative
+    ``combine(earlier, later)``, in ``⌈log2 N⌉`` levels: at level ``d`` every element ``i``
+    becomes ``combine(x[i - 2^d], x[i])``, ``identity`` (leaves ``(1, ·)``, with
+    ``combine(identity, x) = x``) standing in before the first (Hillis–Steele). The levels are
+    one loop whose body is one ``combine`` over all ``N`` elements: traced and compiled once,
+    where ``jax.lax.associative_scan`` (about ``N`` combines in all, not ``N log2 N``) unrolls
+    about ``2 log2 N`` of them into the program (the chunked covariance's composition of 8
+    chunks compiled 2.4× longer that way on the CPU)."""
+    N = jax.tree_util.tree_leaves(elems)[0].shape[0]
+    levels = (N - 1).bit_length()
+
+    def level(d, x):
+        before = jax.tree_util.tree_map(
+            lambda e, y: jax.lax.dynamic_slice_in_dim(
+                jnp.concatenate([jnp.broadcast_to(e, y.shape), y]), N - (1 << d), N
+            ),
+            identity,
+            x,
+        )
+        return combine(before, x)
+
+    if levels < 2:  # one level: no loop
+        return level(0, elems) if levels else elems
+    return jax.lax.fori_loop(0, levels, level, elems)
 
 
 def apply_deltas(q, p, v, g, d):
@@ -260,7 +287,9 @@ def compose_covariance(P0, F, Q, pattern, rotated, save_all, on, start=None, del
             tuple(first(blk.sym(Qn[k], SOA) if k[0] == k[1] else Qn[k]) for k in UPPER),
         )
 
-    _, P_all = jax.lax.associative_scan(combine, elems)  # P_0 (= P0) ... P_C, (C + 1, ...)
+    # P_0 (= P0) ... P_C, (C + 1, ...); (I, 0) before the first
+    zero = tuple(jnp.zeros_like(x[:1]) for x in elems[1])
+    _, P_all = prefix_scan(combine, elems, (tuple(x[:1] for x in elems[0]), zero))
     P = {k: x[-1] for k, x in zip(UPPER, P_all)}
     end = apply_deltas(*start, g, total_deltas(deltas)) if moving else None
     starts = None
