@@ -48,6 +48,7 @@ weighs its residuals with the exact sample-noise covariance, which includes it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -310,6 +311,14 @@ def to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool = True):
         ``R_BS b`` (:func:`bias_to_body`), i.e. ``gyro_B - R_BS b_g = ω_B`` and
         ``accel_B - R_BS b_a = f_B``.
     """
+    return _to_body(pose, gyro, accel, dt, b_g, tangential=bool(tangential))
+
+
+@functools.partial(jax.jit, static_argnames=("tangential",))
+def _to_body(pose: SensorPose, gyro, accel, dt, b_g, *, tangential: bool):
+    """:func:`to_body` as one compiled program: called outside a ``jit`` (the preintegration
+    of a sensor, a test's reference), its few dozen operations would each compile alone, for
+    every new shape."""
     # on components (..., T), stacked once at the end (docs/DESIGN.md, "kernel layout")
     R = pose.R[..., None, :, :]
     gyro_b = matvec_v3(R, V3.of(gyro))
@@ -336,6 +345,7 @@ def lever_of(pose: SensorPose):
     return p
 
 
+@jax.jit
 def bias_to_body(pose: SensorPose, b):
     """``R_BS b`` for a ``(..., 3)`` sensor-frame bias."""
     return matvec(pose.R, b)
@@ -360,6 +370,7 @@ def noise_to_body(pose: SensorPose, noise: ImuNoise) -> ImuNoise:
     return ImuNoise(*(rot(getattr(noise, f.name)) for f in dataclasses.fields(ImuNoise)))
 
 
+@functools.partial(jax.jit, static_argnames=("n",))
 def bias_transform(pose: SensorPose, n: int = 15):
     """``T = blockdiag(I₉, R_BS, R_BS)`` ``(..., n, n)``: error with sensor-frame bias
     errors → error with body-frame ones (``n = 15``, error order ``[θ, p, v, b_g, b_a]``)."""
@@ -368,6 +379,7 @@ def bias_transform(pose: SensorPose, n: int = 15):
     return T.at[..., 9:12, 9:12].set(R).at[..., 12:15, 12:15].set(R)
 
 
+@functools.partial(jax.jit, static_argnames=("inverse",))
 def congruence(T, P, inverse=False):
     """``T P Tᵀ``, or ``Tᵀ P T`` with ``inverse`` (``T`` orthogonal)."""
     Tt = jnp.swapaxes(T, -1, -2)
