@@ -131,7 +131,7 @@ def prefix_scan(combine, elems, identity):
     one loop whose body is one ``combine`` over all ``N`` elements: traced and compiled once,
     where ``jax.lax.associative_scan`` (about ``N`` combines in all, not ``N log2 N``) unrolls
     about ``2 log2 N`` of them into the program (the accelerator's covariance of 256 steps, 8
-    chunks, final and every one stored, took 15 s of compile on the CPU that way, 6 s as a
+    chunks, final and every one stored, took 14–15 s of compile on the CPU that way, 5–6 s as a
     loop)."""
     N = jax.tree_util.tree_leaves(elems)[0].shape[0]
     levels = (N - 1).bit_length()
