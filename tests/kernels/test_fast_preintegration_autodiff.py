@@ -79,8 +79,13 @@ def test_autodiff_fast_path_gradients_equal_generic():
             + jnp.sum(pim.transition[..., 0:9, 9:15] ** 2)
         )
 
+    # The fast path's gradient by reverse mode (what a user's jax.grad runs); the generic
+    # one, the reference, by forward mode: the same vector (to rounding) from a program
+    # about half as costly to compile as the reverse-mode one (7 s of CPU against 14 s),
+    # and its 220 directions run in well under a second at this size.
     grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
+    reference = jax.jit(jax.jacfwd(loss, argnums=(0, 1, 2)), static_argnums=3)
     args = (g, bias.b_g, jnp.asarray(1.7e-4))
-    for x, y in zip(grad(*args, True), grad(*args, False)):
+    for x, y in zip(grad(*args, True), reference(*args, False)):
         assert np.all(np.isfinite(np.asarray(x)))
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-10 * max(np.abs(y).max(), 1e-300))
