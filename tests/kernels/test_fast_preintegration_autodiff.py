@@ -46,7 +46,10 @@ def test_autodiff_fast_path_equals_generic_autodiff(scheme, batch, T, method, kw
         pre(*args, r, method="sequential", fast=False, jacobians="autodiff", scheme=scheme),
         1e-12,
     )
-    if scheme == "midpoint":
+    # The reference is the generic autodiff recursion, the same code in every case: that
+    # it is not VINS-Mono's linearisation is seen once, on the sequential case (the
+    # parallel one would compile the analytic parallel kernel for it: 1.3 s of CPU).
+    if scheme == "midpoint" and method == "sequential":
         vins = pre(*args, r, method=method, fast=True, scheme=scheme)
         diff = np.abs(np.asarray(fast.transition - vins.transition)).max()
         assert diff > 1e-6 * np.abs(np.asarray(vins.transition)).max()
