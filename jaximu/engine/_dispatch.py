@@ -53,7 +53,7 @@ final covariance ran as fast both ways at 1024 float64 steps (0.32 against 0.40 
 twice as fast chunked from 2048 (float32 0.38 against 0.74 ms), run time alone (the chunks
 compile in about 3.5 s against 1 s). The accelerator's: 8 chunks of
 :data:`MIN_CHUNK_STEPS`, from the launch cost measured on an H100 (23–35 µs a covariance
-step at 1 to 1024 lanes) against the composition's ``2 log2 C`` levels, with every
+step at 1 to 1024 lanes) against the composition's ``⌈log2 (C + 1)⌉`` levels, with every
 covariance stored (the chunks run twice) still under half the sequential launches; not
 yet a measured crossover (``benchmarks/chunk_crossover.py``)."""
 
