@@ -81,10 +81,20 @@ def nll_and_gradient(problem: NoiseProblem, u, initial=None, bases: NoiseBases |
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype, bases)
     r = _compiled(_all_residuals, True, ("multiples",))(init, problem.base, multiples=(1,))
-    r = jnp.where(kept[:, None], r / jnp.asarray(d, dtype), 0)
-    f = lambda x: nf.filter_pass(x + jnp.asarray(u0, dtype), r, H, Qb, P0b, kept)[0]  # noqa: E731
-    value, grad = jax.value_and_grad(f)(jnp.asarray(u, dtype))
+    value, grad = scaled_nll_and_gradient(
+        jnp.asarray(u, dtype), jnp.asarray(u0, dtype), r, jnp.asarray(d, dtype), H, Qb, P0b, kept
+    )
     return float(value) + float(np.log(d[np.asarray(kept)]).sum()), np.asarray(grad)
+
+
+@jax.jit
+def scaled_nll_and_gradient(u, u0, r, d, H, Qb, P0b, kept):
+    """``(NLL, ∂NLL/∂u)`` of the filter (:func:`_noise_filter.filter_pass`) at log σ offsets
+    ``u + u0`` ``(D + 3,)``, of the raw residuals ``r`` ``(K, 9)`` scaled by ``d`` ``(K, 9)``
+    (those not ``kept`` ``(K,)`` set to zero), without the ``Σ log d`` of the physical NLL.
+    One program per problem shape, shared by every call (the gradient in reverse mode)."""
+    e = jnp.where(kept[:, None], r / d, 0)
+    return jax.value_and_grad(lambda x: nf.filter_pass(x + u0, e, H, Qb, P0b, kept)[0])(u)
 
 
 def _covariances(u, basis):
