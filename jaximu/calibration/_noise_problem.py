@@ -15,6 +15,7 @@ import numpy as np
 from jaximu.calibration._checks import (
     _apply,
     _compiled,
+    _device,
     _preintegrate_sequential,
 )
 from jaximu.calibration._fit import _unpack
@@ -286,10 +287,10 @@ def noise_problem(
     )
     dtype = base.gyro.dtype
     K0 = base.n_windows
-    flat = lambda x: x.reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
+    flat = lambda x: np.asarray(x).reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
-    noise0 = ImuNoise(*(jnp.asarray(x, dtype) for x in _isotropic(noise)))
+    noise0 = ImuNoise(*(_device(x, dtype) for x in _isotropic(noise)))
     cov, jac, cov15 = _compiled(_long_window_bases, True, ("multiples", "scheme", "fast"))(
         g_c, a_c, flat(base.dt), noise0, multiples, scheme=scheme, fast=False
     )
@@ -412,10 +413,10 @@ def noise_bases(problem: NoiseProblem, per_axis: bool) -> NoiseBases:
     base = problem.base
     dtype = base.gyro.dtype
     K0 = base.n_windows
-    flat = lambda x: x.reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
+    flat = lambda x: np.asarray(x).reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
     init = problem.initial if problem.initial is not None else ImuCalibration.default(dtype=dtype)
     g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
-    noise0 = ImuNoise(*(jnp.asarray(x, dtype) for x in s0))
+    noise0 = ImuNoise(*(_device(x, dtype) for x in s0))
     cov, jac, cov15 = _compiled(
         _long_window_bases, True, ("multiples", "scheme", "fast", "per_axis")
     )(
