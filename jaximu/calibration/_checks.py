@@ -8,7 +8,6 @@ from __future__ import annotations
 import functools
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaximu.calibration._model import CalibrationError
@@ -39,6 +38,13 @@ def _once(fn):
     :func:`calibration_problem` and its checks: run op by op, JAX would compile every
     primitive apart (about 0.1 s each on 2 cores, 12 s of a cold `jaximu calibrate`)."""
     return _compiled(fn, True)
+
+
+def _device(x, dtype=None):
+    """The host array ``x`` on the device (in ``dtype``, cast by numpy): a transfer, where
+    ``jnp.asarray`` compiles a small program for every new shape and dtype (JAX stages it),
+    a few dozen per :func:`calibration_problem` of a new size."""
+    return jax.device_put(np.asarray(x, dtype))
 
 
 def _keyframe_rotations(q):
@@ -91,7 +97,7 @@ def _rotation_fit(x, y, floor):
     U, _, Vt = np.linalg.svd(x.T @ y)
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    theta = np.asarray(_once(so3.log_matrix)(jnp.asarray(R)), np.float64)
+    theta = np.asarray(_once(so3.log_matrix)(_device(R)), np.float64)
     rss_r = float(np.sum((y - x @ R.T) ** 2))
     rss_i = float(np.sum((y - x) ** 2))
     dof = max(3 * len(x) - 6, 1)
@@ -189,7 +195,7 @@ def _initial_rotation(phi_imu, phi_ref, dv_imu, dv_ref, reference_sigma):
             continue
         theta, stat = _rotation_fit(x, y, floor)
         xc, yc = x - x.mean(0), y - y.mean(0)
-        R = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
+        R = np.asarray(_once(so3.exp_matrix)(_device(theta)), np.float64)
         sigma = np.sqrt(
             max(float(np.sum((yc - xc @ R.T) ** 2)) / max(3 * len(x) - 6, 1), floor**2, 1e-300)
         )

@@ -90,18 +90,55 @@ def _optimizer(name, learning_rate):
     return optax.lbfgs(memory_size=20)
 
 
-@functools.partial(jax.jit, static_argnames=("layout", "optimizer", "learning_rate"))
-def _step(z, opt_state, problem, init_vec, *, layout, optimizer, learning_rate):
-    """One optimiser step (module-level jit: compiled once per problem shape and settings)."""
-    opt = _optimizer(optimizer, learning_rate)
+@functools.partial(jax.jit, static_argnames=("layout",))
+def _value_and_grad(z, problem, init_vec, *, layout):
+    """The loss at ``z`` and its gradient (module-level jit: compiled once per problem shape
+    and layout): Adam's every step and L-BFGS's first."""
+    return jax.value_and_grad(_objective)(z, problem, init_vec, layout)
+
+
+@functools.partial(jax.jit, static_argnames=("layout", "learning_rate"))
+def _lbfgs_step(z, opt_state, value, grad, problem, init_vec, *, layout, learning_rate):
+    """One L-BFGS step from ``z`` with the loss's ``value`` and ``grad`` there (its line
+    search's, kept in ``opt_state``, or :func:`_value_and_grad`'s on the first step): the
+    program holds the gradient once, in the line search, not a second time for the start."""
+    opt = _optimizer("lbfgs", learning_rate)
     fn = functools.partial(_objective, problem=problem, init_vec=init_vec, layout=layout)
+    updates, opt_state = opt.update(grad, opt_state, z, value=value, grad=grad, value_fn=fn)
+    return optax.apply_updates(z, updates), opt_state
+
+
+@functools.partial(jax.jit, static_argnames=("learning_rate",))
+def _adam_update(z, opt_state, grad, *, learning_rate):
+    updates, opt_state = _optimizer("adam", learning_rate).update(grad, opt_state, z)
+    return optax.apply_updates(z, updates), opt_state
+
+
+def _step(z, opt_state, problem, init_vec, *, layout, optimizer, learning_rate):
+    """One optimiser step: ``(z_new, opt_state, value, |grad|)``, the loss and its gradient
+    at ``z``. Compiled once per problem shape and settings, in pieces that share the
+    gradient's program (:func:`_value_and_grad`)."""
     if optimizer == "lbfgs":
-        value, grad = optax.value_and_grad_from_state(fn)(z, state=opt_state)
-        updates, opt_state = opt.update(grad, opt_state, z, value=value, grad=grad, value_fn=fn)
+        # the value and gradient the line search found at z (optax.value_and_grad_from_state,
+        # host-side): computed afresh where the state has none (the first step) or a
+        # non-finite one
+        value, grad = optax.tree.get(opt_state, "value"), optax.tree.get(opt_state, "grad")
+        if not np.isfinite(float(value)):
+            value, grad = _value_and_grad(z, problem, init_vec, layout=layout)
+        z_new, opt_state = _lbfgs_step(
+            z,
+            opt_state,
+            value,
+            grad,
+            problem,
+            init_vec,
+            layout=layout,
+            learning_rate=learning_rate,
+        )
     else:
-        value, grad = jax.value_and_grad(fn)(z)
-        updates, opt_state = opt.update(grad, opt_state, z)
-    return optax.apply_updates(z, updates), opt_state, value, jnp.linalg.norm(grad)
+        value, grad = _value_and_grad(z, problem, init_vec, layout=layout)
+        z_new, opt_state = _adam_update(z, opt_state, grad, learning_rate=learning_rate)
+    return z_new, opt_state, value, jnp.linalg.norm(grad)
 
 
 def _quick(problem: CalibrationProblem) -> bool:

@@ -48,8 +48,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaximu.calibration._checks import QUICK_COMPILE
-
 
 def state_space(cov15_basis, bias_jacobian, reference_jacobian, ref_sigma0):
     """The filter's matrices in float64 numpy, scaled.
@@ -179,12 +177,21 @@ def nll_derivatives(p, r, J, H, Qb, P0b, kept, u0, free_idx, tie=None):
     return value, grad, 0.5 * (hess + hess.T)
 
 
+DERIVATIVES_COMPILE = {"xla_backend_optimization_level": 1}
+"""XLA options for :func:`nll_derivatives` of a small problem. Not the calibration's
+``QUICK_COMPILE`` (level 0): the filter's scans of small matrices, forward over reverse once
+per coordinate, run about twice as long there (0.21 s against 0.11 s per evaluation of 80
+windows and 13 coordinates on 2 CPU cores), which over a fit's ten to thirty evaluations
+costs more than the 1 to 1.5 s of compile time level 0 saves; level 1 compiles faster than
+XLA's default and runs as fast."""
+
+
 @functools.cache
 def compiled_derivatives(quick: bool):
-    """:func:`nll_derivatives` jitted, with XLA's quick-compile options when ``quick`` (a
-    small problem: compile time dominates its ten-odd Newton steps)."""
+    """:func:`nll_derivatives` jitted, with :data:`DERIVATIVES_COMPILE` when ``quick`` (a small
+    problem, whose compile time weighs)."""
 
-    return jax.jit(nll_derivatives, compiler_options=QUICK_COMPILE if quick else None)
+    return jax.jit(nll_derivatives, compiler_options=DERIVATIVES_COMPILE if quick else None)
 
 
 @jax.jit

@@ -45,6 +45,7 @@ from jaximu.calibration import _noise_filter as nf
 from jaximu.calibration._checks import (
     QUICK_COMPILE_SAMPLES,
     _compiled,
+    _device,
 )
 from jaximu.calibration._fit import _flatten, _Layout, _n_free, _scale_vector, _unpack
 from jaximu.calibration._model import (
@@ -81,10 +82,20 @@ def nll_and_gradient(problem: NoiseProblem, u, initial=None, bases: NoiseBases |
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     (H, Qb, P0b), kept, d, u0 = _filter_arrays(problem, dtype, bases)
     r = _compiled(_all_residuals, True, ("multiples",))(init, problem.base, multiples=(1,))
-    r = jnp.where(kept[:, None], r / jnp.asarray(d, dtype), 0)
-    f = lambda x: nf.filter_pass(x + jnp.asarray(u0, dtype), r, H, Qb, P0b, kept)[0]  # noqa: E731
-    value, grad = jax.value_and_grad(f)(jnp.asarray(u, dtype))
+    value, grad = scaled_nll_and_gradient(
+        _device(u, dtype), _device(u0, dtype), r, _device(d, dtype), H, Qb, P0b, kept
+    )
     return float(value) + float(np.log(d[np.asarray(kept)]).sum()), np.asarray(grad)
+
+
+@jax.jit
+def scaled_nll_and_gradient(u, u0, r, d, H, Qb, P0b, kept):
+    """``(NLL, ∂NLL/∂u)`` of the filter (:func:`_noise_filter.filter_pass`) at log σ offsets
+    ``u + u0`` ``(D + 3,)``, of the raw residuals ``r`` ``(K, 9)`` scaled by ``d`` ``(K, 9)``
+    (those not ``kept`` ``(K,)`` set to zero), without the ``Σ log d`` of the physical NLL.
+    One program per problem shape, shared by every call (the gradient in reverse mode)."""
+    e = jnp.where(kept[:, None], r / d, 0)
+    return jax.value_and_grad(lambda x: nf.filter_pass(x + u0, e, H, Qb, P0b, kept)[0])(u)
 
 
 def _covariances(u, basis):
@@ -93,9 +104,10 @@ def _covariances(u, basis):
 
 
 @jax.jit
-def _whitened(u, r, basis):
+def _whitened(u, r, s, basis):
+    """``L⁻¹ (r / s)`` (``L Lᵀ`` the covariance of :func:`_covariances`)."""
     L = jnp.linalg.cholesky(_covariances(u, basis))
-    return jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
+    return jax.scipy.linalg.solve_triangular(L, (r / s)[..., None], lower=True)[..., 0]
 
 
 def _bases(problem: NoiseProblem, bases: NoiseBases):
@@ -135,9 +147,7 @@ def length_check(problem: NoiseProblem, calibration, sigmas, bases: NoiseBases |
         calibration, problem.base, multiples=problem.multiples
     )
     w = np.asarray(
-        _whitened(
-            jnp.asarray(u, dtype), r / jnp.asarray(np.exp(logd), dtype), jnp.asarray(basis, dtype)
-        ),
+        _whitened(_device(u, dtype), r, _device(np.exp(logd), dtype), _device(basis, dtype)),
         np.float64,
     )
     out = []
@@ -287,8 +297,8 @@ def _filter_arrays(problem: NoiseProblem, dtype, bases: NoiseBases | None = None
     K0 = problem.base.n_windows
     kept = problem.kept[:K0]
     u0 = bases.u0
-    arrays = tuple(jnp.asarray(x, dtype) for x in (H, Qb, P0b))
-    return arrays, jnp.asarray(kept), d, u0
+    arrays = tuple(_device(x, dtype) for x in (H, Qb, P0b))
+    return arrays, _device(kept), d, u0
 
 
 def fit(problem: NoiseProblem, initial, estimate, steps, tol, bases: NoiseBases | None = None):
@@ -322,7 +332,7 @@ def fit(problem: NoiseProblem, initial, estimate, steps, tol, bases: NoiseBases 
                 u0[members] = 0.0
     K0 = base.n_windows
     const = float(np.log(d[problem.kept[:K0]]).sum())
-    scale = jnp.asarray(d, dtype)
+    scale = _device(d, dtype)
     init_vec = jnp.asarray(_flatten(initial), dtype)
     graph = _compiled(_residuals_and_jacobian, True, ("multiples", "layout"))
     idx = jnp.asarray(free_s, jnp.int32)

@@ -80,6 +80,7 @@ from jaximu.calibration._checks import (
     _apply,
     _check_consistency,
     _compiled,
+    _device,
     _initial_rotation,
     _keyframe_rotations,
     _once,
@@ -429,21 +430,18 @@ def calibration_problem(
     qk, pk, vk = (
         np.asarray(x, np.float64)
         for x in _once(_interp)(
-            jnp.asarray(t[idx] - t0 + td0),
-            jnp.asarray(rt - t0),
-            jnp.asarray(rq),
-            jnp.asarray(rp),
-            jnp.asarray(rv),
+            _device(t[idx] - t0 + td0),
+            _device(rt - t0),
+            _device(rq),
+            _device(rp),
+            _device(rv),
         )
     )
     if not has_v:
         vk = _velocities_from_positions(pk, t[idx], ~inside)
 
     # Raw preintegration (for the whitening and the checks) at the initial calibration.
-    g_c, a_c = (
-        np.asarray(x)
-        for x in _once(_apply)(init, jnp.asarray(win_gyro, dtype), jnp.asarray(win_accel, dtype))
-    )
+    g_c, a_c = _once(_apply)(init, _device(win_gyro, dtype), _device(win_accel, dtype))
     # Run once per problem, so its compile time is what the user waits for: the plain scan
     # (it compiles in a fraction of the time of the side-by-side chunks "auto" picks for a few
     # dozen windows; the inputs are checked above). Small problems compile it at the quick
@@ -452,9 +450,9 @@ def calibration_problem(
     zero3 = jnp.zeros(3, dtype)
     quick = K * W <= QUICK_COMPILE_SAMPLES
     pim = _compiled(_preintegrate_sequential, quick, ("scheme", "fast"))(
-        jnp.asarray(g_c, dtype),
-        jnp.asarray(a_c, dtype),
-        jnp.asarray(win_dt, dtype),
+        g_c,
+        a_c,
+        _device(win_dt, dtype),
         ImuBias(zero3, zero3),
         noise,
         scheme=scheme,
@@ -476,10 +474,8 @@ def calibration_problem(
     if check or extrinsics:
         g = float(np.asarray(init.gravity))
         gW = np.array([0.0, 0.0, -g])
-        R_i, phi_ref = (
-            np.asarray(x, np.float64) for x in _once(_keyframe_rotations)(jnp.asarray(qk))
-        )
-        phi_imu = _rotation_vectors(jnp.asarray(np.asarray(pim.delta_q, np.float64)))
+        R_i, phi_ref = (np.asarray(x, np.float64) for x in _once(_keyframe_rotations)(_device(qk)))
+        phi_imu = _rotation_vectors(_device(pim.delta_q, np.float64))
         dv_imu = np.asarray(pim.delta_v, np.float64)
         dv_ref = np.einsum("kji,kj->ki", R_i, vk[1:] - vk[:-1] - gW * Dt[:, None])
         # the checks judge the windows of the fit only
@@ -497,8 +493,8 @@ def calibration_problem(
                     RuntimeWarning,
                     stacklevel=2,
                 )
-            R0 = np.asarray(_once(so3.exp_matrix)(jnp.asarray(theta)), np.float64)
-            q_BS0 = np.asarray(_once(so3.exp)(jnp.asarray(theta)), np.float64)
+            R0 = np.asarray(_once(so3.exp_matrix)(_device(theta)), np.float64)
+            q_BS0 = np.asarray(_once(so3.exp)(_device(theta)), np.float64)
             found = {
                 "q_BS0": q_BS0,
                 "q_BS0_angle": float(np.linalg.norm(theta)),
@@ -520,16 +516,16 @@ def calibration_problem(
 
     def grp(x):
         x = np.concatenate([x, np.repeat(x[:1], pad, axis=0)]) if pad else x
-        return jnp.asarray(x.reshape((G, C) + x.shape[1:]))
+        return x.reshape((G, C) + x.shape[1:])
 
-    as_d = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    as_d = lambda x: _device(x, dtype)  # noqa: E731
     return CalibrationProblem(
         gyro=as_d(grp(win_gyro)),
         accel=as_d(grp(win_accel)),
         dt=as_d(grp(win_dt)),
         t_start=as_d(grp(t[idx[:-1]] - t0)),
         t_end=as_d(grp(t[idx[1:]] - t0)),
-        window=grp(np.arange(K)),
+        window=_device(grp(np.arange(K))),
         weight=as_d(np.concatenate([kept, np.zeros(pad)]).reshape(G, C)),  # padding: 0
         sqrt_info=as_d(grp(sqrt_info)),
         ref_t=as_d(rt - t0),

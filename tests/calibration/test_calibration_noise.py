@@ -20,6 +20,7 @@ from jaximu import kalibr, so3
 from jaximu import simulate as sim
 from jaximu.calibration import _noise_fit as cn
 from jaximu.calibration import _noise_problem
+from jaximu.calibration._checks import _compiled
 from jaximu.calibration._model import _group_residuals
 from jaximu.errors import InputError
 
@@ -31,6 +32,15 @@ START = jaximu.ImuNoise(5e-3, 5e-2, 5e-4, 5e-2)  # what the fit starts from
 LENGTHS = (0.25, 1.0, 2.5)
 TRAJ = sim.lissajous(attitude_amplitude=(0.8, 0.6, 1.5), attitude_frequency=(0.31, 0.23, 0.13))
 B_G, B_A = np.array([0.003, -0.002, 0.004]), np.array([0.05, -0.08, 0.1])
+
+
+def all_residuals(calib, problem, multiples=(1,)):
+    """:func:`_noise_problem._all_residuals` compiled as the library compiles it (the likelihood
+    and the model check call this one program; eager, each of its operations and scans
+    compiles on its own)."""
+    return _compiled(_noise_problem._all_residuals, True, ("multiples",))(
+        calib, problem, multiples=multiples
+    )
 
 
 def recording(seed, true=TRUE):
@@ -82,7 +92,7 @@ def test_composed_windows_equal_windows_preintegrated_whole(data, problem):
     scheme, whose composition is exact (the midpoint rule pairs samples across a boundary)."""
     init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=B_G, b_a=B_A)
     base = dataclasses.replace(problem.base, scheme="euler")
-    r = np.asarray(_noise_problem._all_residuals(init, base, problem.multiples))
+    r = np.asarray(all_residuals(init, base, problem.multiples))
     for k, length in enumerate(problem.window_lengths):
         whole = cal.calibration_problem(
             *data,
@@ -153,7 +163,7 @@ def test_filter_likelihood_equals_the_dense_joint_gaussian(problem):
     (numpy), at densities and σ away from the starting ones."""
     assert problem.kept.all()
     init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=B_G, b_a=B_A)
-    r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,)))
+    r = np.asarray(all_residuals(init, problem.base))
     f, _ = cn.nll_and_gradient(problem, U, init)
     np.testing.assert_allclose(f, _dense_nll(problem, r, U), rtol=1e-9)
 
@@ -166,7 +176,7 @@ def test_filter_predicts_through_windows_in_a_reference_gap(problem):
     kept[30:45] = False
     gap = dataclasses.replace(problem, kept=kept)
     init = cal.ImuCalibration.default(dtype=jnp.float64, b_g=B_G, b_a=B_A)
-    r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,)))
+    r = np.asarray(all_residuals(init, problem.base))
     f, g = cn.nll_and_gradient(gap, U, init)
     assert np.all(np.isfinite(g))
     np.testing.assert_allclose(f, _dense_nll(problem, r, U, np.flatnonzero(kept[:K0])), rtol=1e-9)
@@ -180,11 +190,10 @@ def test_residual_bias_jacobian_equals_central_differences(problem):
     calibration (zero biases), where the model is linearised."""
     init = cal.ImuCalibration.default(dtype=jnp.float64)
     b0 = np.zeros(6)
-    res = jax.jit(
-        lambda b: _noise_problem._all_residuals(
-            dataclasses.replace(init, b_g=b[:3], b_a=b[3:]), problem.base, (1,)
-        )
-    )
+
+    def res(b):
+        return all_residuals(dataclasses.replace(init, b_g=b[:3], b_a=b[3:]), problem.base)
+
     h = 1e-6
     fd = np.stack(
         [(np.asarray(res(b0 + h * e)) - np.asarray(res(b0 - h * e))) / (2 * h) for e in np.eye(6)],
@@ -220,7 +229,7 @@ def test_innovations_are_white_with_unit_variance_at_the_true_values(problem):
         )
     )
     (H, Qb, P0b), kept, d, _ = cn._filter_arrays(problem, jnp.float64)
-    r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,))) / d
+    r = np.asarray(all_residuals(init, problem.base)) / d
     w = np.asarray(nf.whitened_innovations(jnp.asarray(u), jnp.asarray(r), H, Qb, P0b, kept))
     lo, hi = jaximu.montecarlo.chi2_interval(w.size, 0.999)
     assert lo < np.sum(w * w) < hi
@@ -231,20 +240,26 @@ def test_innovations_are_white_with_unit_variance_at_the_true_values(problem):
 def test_likelihood_gradient_equals_central_differences(problem):
     """d NLL / d log σ for each of the seven σ (four densities, σ_θ, σ_p, σ_v) by autodiff
     through the filter, against central differences of the filter's NLL (float64, step 1e-5:
-    truncation ~1e-10 of the gradient's scale), compiled once for the fourteen values (each
-    eager call of nll_and_gradient compiles its filter again)."""
-    from jaximu.calibration import _noise_filter as nf
-
+    truncation ~1e-10 of the gradient's scale); the fourteen values by the library's one
+    compiled program of the scaled NLL (the value of the filter's forward pass)."""
     f0, g = cn.nll_and_gradient(problem, U)
     assert np.isfinite(f0) and np.all(np.isfinite(g))
-    (H, Qb, P0b), kept, d, u0 = cn._filter_arrays(problem, jnp.float64)
-    init = cal.ImuCalibration.default(dtype=jnp.float64)
-    r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,)))
-    r = jnp.where(kept[:, None], r / d, 0)
-    nll = jax.jit(lambda u: nf.filter_pass(u + u0, r, H, Qb, P0b, kept)[0])
+    nll = scaled_nll(problem)
     h = 1e-5
     fd = np.array([(nll(U + h * e) - nll(U - h * e)) / (2 * h) for e in np.eye(7)])
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+
+
+def scaled_nll(problem, bases=None):
+    """``u ↦`` the filter's NLL of the scaled residuals at the default calibration (without
+    the constant ``Σ log d``), by the program ``nll_and_gradient`` runs."""
+    (H, Qb, P0b), kept, d, u0 = cn._filter_arrays(problem, jnp.float64, bases)
+    init = cal.ImuCalibration.default(dtype=jnp.float64)
+    r = all_residuals(init, problem.base)
+    u0, d = jnp.asarray(u0), jnp.asarray(d)
+    return lambda u: float(
+        cn.scaled_nll_and_gradient(jnp.asarray(u), u0, r, d, H, Qb, P0b, kept)[0]
+    )
 
 
 def test_fit_hessian_equals_central_differences_of_the_gradient(problem):
@@ -255,7 +270,7 @@ def test_fit_hessian_equals_central_differences_of_the_gradient(problem):
 
     (H, Qb, P0b), kept, d, u0 = cn._filter_arrays(problem, jnp.float64)
     init = cal.ImuCalibration.default(dtype=jnp.float64)
-    r = jnp.asarray(np.asarray(_noise_problem._all_residuals(init, problem.base, (1,))) / d)
+    r = jnp.asarray(np.asarray(all_residuals(init, problem.base)) / d)
     J = jnp.asarray(np.random.default_rng(0).normal(size=r.shape + (2,)))
     free = jnp.asarray([0, 2, 3, 5, 6])
     u = jnp.asarray(U)
@@ -447,8 +462,6 @@ def test_per_axis_likelihood_gradient_equals_central_differences(problem, axis_b
     NLL from twelve bases as from four); d NLL / d log σ for each of the twelve per-axis
     densities and the reference's three σ by autodiff through the filter, against central
     differences of the filter's NLL (float64, step 1e-5)."""
-    from jaximu.calibration import _noise_filter as nf
-
     f_iso, _ = cn.nll_and_gradient(problem, U)
     f_tied, _ = cn.nll_and_gradient(
         problem, np.concatenate([np.repeat(U[:4], 3), U[4:]]), bases=axis_bases
@@ -456,10 +469,7 @@ def test_per_axis_likelihood_gradient_equals_central_differences(problem, axis_b
     np.testing.assert_allclose(f_tied, f_iso, rtol=1e-10)
     f0, g = cn.nll_and_gradient(problem, U_AXES, bases=axis_bases)
     assert np.isfinite(f0) and np.all(np.isfinite(g))
-    (H, Qb, P0b), kept, d, u0 = cn._filter_arrays(problem, jnp.float64, axis_bases)
-    init = cal.ImuCalibration.default(dtype=jnp.float64)
-    r = np.asarray(_noise_problem._all_residuals(init, problem.base, (1,))) / d
-    nll = jax.jit(lambda u: nf.filter_pass(u + u0, jnp.asarray(r), H, Qb, P0b, kept)[0])
+    nll = scaled_nll(problem, axis_bases)
     h = 1e-5
     fd = np.array(
         [(nll(U_AXES + h * e) - nll(U_AXES - h * e)) / (2 * h) for e in np.eye(len(U_AXES))]
