@@ -467,7 +467,9 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
         return 0.5 * jnp.sum(r * r)
 
     def body(acc, g):
-        return acc + group(g), None
+        # in the problem's dtype: a calibration in another one (an optimiser's float64 line
+        # search over a float32 problem) must not change the carry's type
+        return acc + group(g).astype(dtype), None
 
     dtype = problem.gyro.dtype
     total, _ = jax.lax.scan(body, jnp.zeros((), dtype), jnp.arange(problem.gyro.shape[0]))

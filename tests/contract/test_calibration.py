@@ -5,6 +5,7 @@ argument outside its domain (the initial calibration's included) before any work
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -170,3 +171,23 @@ def _placeholder_problem():
 
     fields = {f.name: None for f in cal.dataclasses.fields(cal.CalibrationProblem)}
     return cal.CalibrationProblem(**fields)
+
+
+def test_calibration_loss_of_a_float32_problem_takes_a_float64_calibration(cal_inputs):
+    """A float64 calibration (``ImuCalibration.default()`` with x64 on, or L-BFGS's float64
+    line search over a float32 problem) raised JAX's "scan body function carry input and
+    carry output must have equal types": the loss is in the problem's dtype, whatever the
+    calibration's. Reference: the same calibration rounded to float32 first."""
+    t, gyro, accel, ref = cal_inputs
+    g32 = (np.asarray(gyro) + [0.01, -0.02, 0.005]).astype(np.float32)
+    problem = cal.calibration_problem(
+        t, g32, np.asarray(accel, np.float32), ref, ImuNoise.euroc(), keyframe_interval=0.2
+    )
+    calib = cal.ImuCalibration.default()
+    assert calib.b_g.dtype == jnp.float64
+    loss = cal.calibration_loss(problem, calib)
+    rounded = cal.calibration_loss(
+        problem, jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), calib)
+    )
+    assert loss.dtype == jnp.float32
+    np.testing.assert_allclose(float(loss), float(rounded), rtol=1e-5)
