@@ -68,30 +68,38 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-# JAX's persistent compilation cache, private to this process (each xdist worker has its own:
-# JAX writes entries without locking) in a temporary folder removed when pytest ends. After a
-# module's jax.clear_caches() (and where a test builds a graph another test compiled already)
-# the executables are loaded instead of compiled again. Only compilations of at least 1 s are
-# written: writing each of the thousands of small ones costs more than compiling it again
-# (measured: ~5% on tests/geometry/test_sensor.py with everything written, few hits). The `jaximu`
-# commands the tests run as subprocesses get the same folder (JAXIMU_CACHE_DIR), so they
-# never write into the user's ~/.cache; they write with the CLI's own threshold, while the
-# worker that started them waits, so no two writers share the folder at once. A killed
-# worker leaves its folder in the temporary directory. JAXIMU_TEST_XLA_CACHE=off runs the
-# suite without the cache.
-_XLA_CACHE = None
+# JAX's persistent compilation cache, one for the whole run: the pytest that starts first
+# (the xdist controller, or the only process) makes a temporary folder, its workers and child
+# pytests inherit it (JAXIMU_TEST_XLA_CACHE_DIR), and it is removed when that pytest ends. So
+# a program one worker compiled is loaded by the other, and after a module's
+# jax.clear_caches() (or where a test builds a graph another test compiled already) loaded
+# instead of compiled again. A size limit turns on JAX's file lock around every read and
+# write of the folder (jax._src.lru_cache, with the `filelock` package), so two processes never
+# read a half-written entry. Only compilations of at least 1 s are written: writing each of
+# the thousands of small ones costs more than compiling it again (measured: ~5% on
+# tests/geometry/test_sensor.py with everything written, few hits). The `jaximu` commands the
+# tests run as subprocesses get a folder of this process's own (JAXIMU_CACHE_DIR), so they
+# never write into the user's ~/.cache, and they write (with the CLI's own threshold and no
+# lock) while the worker that started them waits, so no two writers share their folder. A
+# killed run leaves its folders in the temporary directory. JAXIMU_TEST_XLA_CACHE=off runs
+# the suite without the cache.
+_CREATED = []  # folders this process made, removed when it ends
 if os.environ.get("JAXIMU_TEST_XLA_CACHE", "").lower() != "off":
-    _XLA_CACHE = tempfile.mkdtemp(prefix="jaximu-tests-xla-")
-    jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+    if "JAXIMU_TEST_XLA_CACHE_DIR" not in os.environ:
+        os.environ["JAXIMU_TEST_XLA_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaximu-tests-xla-")
+        _CREATED.append(os.environ["JAXIMU_TEST_XLA_CACHE_DIR"])
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAXIMU_TEST_XLA_CACHE_DIR"])
+    jax.config.update("jax_compilation_cache_max_size", 1 << 40)  # the lock, not a limit
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    os.environ["JAXIMU_CACHE_DIR"] = _XLA_CACHE
+    _CREATED.append(tempfile.mkdtemp(prefix="jaximu-tests-cli-xla-"))
+    os.environ["JAXIMU_CACHE_DIR"] = _CREATED[-1]
 else:
     os.environ["JAXIMU_CACHE_DIR"] = "off"
 
 
 def pytest_unconfigure(config):
-    if _XLA_CACHE is not None:
-        shutil.rmtree(_XLA_CACHE, ignore_errors=True)
+    for folder in _CREATED:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
