@@ -461,6 +461,8 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
     """
     v = _check_loss_args(problem, calib, velocities)
 
+    dtype = problem.gyro.dtype
+
     @jax.checkpoint
     def group(g):
         r = _window_residuals(problem, calib, v, g)
@@ -471,6 +473,5 @@ def calibration_loss(problem: CalibrationProblem, calib: ImuCalibration, velocit
         # search over a float32 problem) must not change the carry's type
         return acc + group(g).astype(dtype), None
 
-    dtype = problem.gyro.dtype
     total, _ = jax.lax.scan(body, jnp.zeros((), dtype), jnp.arange(problem.gyro.shape[0]))
     return total
