@@ -2,7 +2,8 @@
 
 A causal dilated convolution corrects the raw gyro (and optionally the accelerometer) and
 predicts a per-sample gyro noise density (:class:`Denoiser`, Brossard et al. 2020's network
-in equinox). It is trained through jaximu's own batched preintegration on orientation
+in equinox), on top of the gyro bias tracked from gravity over the whole recording so far
+(:func:`track_gyro_bias`: an EKF on jaximu's propagation, no ground truth). It is trained through jaximu's own batched preintegration on orientation
 increments, with the likelihood of the increment errors under the covariance that jaximu
 propagates from the learned density (:func:`train`), and evaluated on whole sequences
 integrated open loop from the first true attitude (:func:`evaluate_sequence`).
@@ -19,6 +20,7 @@ from jaximu.learning.evaluation import (
     orientation_errors,
 )
 from jaximu.learning.model import CausalConv, Corrected, Denoiser, ModelConfig
+from jaximu.learning.tracking import Tracked, TrackerSettings, track_gyro_bias
 from jaximu.learning.training import TrainConfig, TrainResult, train
 
 __all__ = [
@@ -26,6 +28,9 @@ __all__ = [
     "ModelConfig",
     "Corrected",
     "CausalConv",
+    "track_gyro_bias",
+    "TrackerSettings",
+    "Tracked",
     "Sequence",
     "load_sequence",
     "split",
