@@ -93,7 +93,8 @@ from _pypose_fix import fix_pypose_cumops  # noqa: E402
 def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
     """``(step, args, closure)``: the undecorated step function that
     :func:`jaximu.learning.train` builds for ``seqs`` and ``config``, the arguments of its
-    first call ``(model, ema, opt_state, key, G, A, Q, V)``, and the variables it closes over
+    first call ``((model, offsets), model, opt_state, key, G, A, Q, V, B, ...)`` (the
+    second, the EMA, is the initial model), and the variables it closes over
     (``S``, ``L``, ``dt``, ``cfg``, ...) with the data arguments ``G``, ``A``, ``Q``, ``V``
     added. ``train`` is run up to its first step and
     stopped there; nothing is compiled."""
@@ -117,7 +118,7 @@ def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
             "capture_train_step in benchmarks/learning.py"
         )
     # the undecorated step with its static settings bound; the data are its arguments
-    # (model, ema, opt_state, key, G, A, Q, V, noise, bias_noise, has_v, n_v), passed in
+    # (model, ema, opt_state, key, G, A, Q, V, B, noise, bias_noise, has_v, n_v), passed in
     # rather than closed over (constants folded into the program compile slowly)
     fn = functools.partial(real.__wrapped__, **kw)
     closure = dict(kw, S=args[4].shape[0])
@@ -502,8 +503,12 @@ def check_torch_equivalence(jmodel, closure, integration, T=None, S=2, seed=3):
     g, a, q = closure["G"][:S, :T], closure["A"][:S, :T], closure["Q"][:S, : T + 1]
     dt = closure["dt"]
 
+    # the tracked bias is an input of the step (computed once per recording, outside it): the
+    # check gives both networks the constant one
+    b = jnp.broadcast_to(jnp.asarray(jmodel.config.gyro_bias, g.dtype), g.shape)
+
     def jloss(m):
-        c = m(g, a)
+        c = m(g, a, gyro_bias=b)
         return increment_loss(c, q, dt, cfg.horizons, skip=cfg.skip)[0], c
 
     (lj, cj), gj = eqx.filter_jit(eqx.filter_value_and_grad(jloss, has_aux=True))(jm)
@@ -763,7 +768,7 @@ def main(argv=None):
         sequences=[s.name for s in seqs],
         load_seconds=load_s,
         train_config=config.to_json(),
-        model_config=step_args[0].config.to_json(),
+        model_config=step_args[1].config.to_json(),
         batch=dict(parts=S, samples_per_part=L, samples_per_step=samples),
         repeats=args.repeats,
         warmup=args.warmup,
@@ -803,7 +808,7 @@ def main(argv=None):
                 "PyTorch loss integrates its windows with plain quaternion products"
                 + ("" if pypose_available() else " (pypose is not installed)")
             )
-        check = check_torch_equivalence(step_args[0], closure, integration)
+        check = check_torch_equivalence(step_args[1], closure, integration)
         rel = [check[k] for k in ("gyro_rel", "density_rel", "loss_rel")]
         # a NaN loss is no agreement (and Python's max() would pass over it)
         finite = all(np.isfinite(check[k]) for k in ("loss_jax", "loss_torch"))
@@ -818,15 +823,15 @@ def main(argv=None):
             f"{check['grad_first_layer_rel']:.1e} (max relative differences) -> "
             + ("agree" if ok else f"DIFFER (tolerance {CHECK_RTOL:g})")
         )
-        tmodel = make_torch_model(step_args[0].config)
-        jax_to_torch(step_args[0], tmodel)  # the same initial weights as jaximu's step
+        tmodel = make_torch_model(step_args[1].config)
+        jax_to_torch(step_args[1], tmodel)  # the same initial weights as jaximu's step
         runners["torch step"] = TorchRunner(tmodel, closure, integration, args.seed)
     runners["jaximu step without NLL"] = JaxRunner(compiled_h, step_args, args.seed)
     if use_torch and integration == "pypose" and not args.no_plain:
         # what PyPose's integration costs inside the PyTorch step: the same step with the
         # windows integrated by plain quaternion products
-        tplain = make_torch_model(step_args[0].config)
-        jax_to_torch(step_args[0], tplain)
+        tplain = make_torch_model(step_args[1].config)
+        jax_to_torch(step_args[1], tplain)
         runners["torch step, plain integration"] = TorchRunner(tplain, closure, "plain", args.seed)
 
     say(f"timing the training steps: {args.warmup} warm-up + {args.repeats} alternating rounds")

@@ -18,7 +18,7 @@ from jaximu.learning.model import Denoiser, ModelConfig, check_model
 
 __all__ = ["save", "load", "pretrained", "FORMAT", "PRETRAINED"]
 
-FORMAT = "jaximu.learning.Denoiser/1"
+FORMAT = "jaximu.learning.Denoiser/2"
 """The model file format; a folder of another format is refused by :func:`load`."""
 
 PRETRAINED = {"euroc": pathlib.Path(__file__).parent / "pretrained" / "euroc"}

@@ -9,13 +9,17 @@ Layout is channels-last, ``(batch, time, channel)``: for this network on this pr
 
 Corrected samples, per sample ``k`` (``ω_m``, ``a_m`` raw, ``y`` the network's outputs)::
 
-    ω̂_k = (I + C) ω_m,k - b̄_g + s_g ⊙ y_g,k          C: a learned 3×3 matrix (scale, misalignment)
+    ω̂_k = (I + C) ω_m,k - b̂_g,k + s_g ⊙ y_g,k        C: a learned 3×3 matrix (scale, misalignment)
     â_k = a_m,k - b̄_a + s_a ⊙ y_a,k                  (with the accelerometer head)
     σ_g,k = σ̄_g · exp(3 tanh(y_σ,k / 3))              gyro noise density [rad/s/√Hz]
 
 ``b̄_g``, ``b̄_a`` are the constant biases stored with the model (the training sequences' mean
-ground-truth bias: the "constant bias" baseline), so an untrained network (last layer zero,
-``C = 0``) is that baseline, and training learns what the constant misses.
+ground-truth bias: the "constant bias" baseline). ``b̂_g,k`` is the gyro bias tracked from
+gravity over all samples before ``k`` (:mod:`jaximu.learning.tracking`), starting at ``b̄_g``
+(``bias_tracking=False``: ``b̄_g`` throughout). The network sees 2.5 s of samples; a new
+recording's bias is a property of the whole recording, which only a long-memory estimate
+reads. An untrained network (last layer zero, ``C = 0``) is the tracked (or constant) bias
+alone, and training learns what it misses.
 """
 
 from __future__ import annotations
@@ -27,6 +31,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaximu.geometry.noise import ImuNoise
+from jaximu.learning.tracking import Tracked, TrackerSettings, track_gyro_bias
 
 __all__ = ["ModelConfig", "Corrected", "CausalConv", "Denoiser"]
 
@@ -50,6 +57,15 @@ class ModelConfig:
         bias_sigma, reference_sigma: initial values of the learned residual gyro bias
             ``σ_b`` [rad/s] and the ground truth's attitude noise ``σ_ref`` [rad].
         accel_head: whether the accelerometer is corrected too.
+        bias_tracking: whether the gyro bias is tracked from gravity
+            (:mod:`jaximu.learning.tracking`) instead of held at ``gyro_bias``.
+        gyro_bias_sigma, accel_bias_sigma: the tracker's prior standard deviations of the
+            biases about ``gyro_bias``, ``accel_bias`` [rad/s], [m/s²] (:func:`train` sets them
+            from the training sequences' spread: :func:`jaximu.learning.training.bias_spreads`).
+        accel_density, accel_random_walk: the accelerometer's noise densities [m/s²/√Hz],
+            [m/s³/√Hz] (the datasheet's), for the tracker.
+        velocity_sigma: [m/s] the tracker's bound on the true velocity (``v = 0 ± σ``).
+        update_samples: samples between the tracker's updates.
     """
 
     rate_hz: float = 200.0
@@ -68,6 +84,13 @@ class ModelConfig:
     bias_sigma: float = 1e-3
     reference_sigma: float = 1e-3
     accel_head: bool = False
+    bias_tracking: bool = True
+    gyro_bias_sigma: tuple = (2.5e-3, 2.5e-3, 2.5e-3)
+    accel_bias_sigma: tuple = (0.02, 0.02, 0.02)
+    accel_density: float = 2.0e-3
+    accel_random_walk: float = 3.0e-3
+    velocity_sigma: float = 1.0
+    update_samples: int = 20
 
     def __post_init__(self):
         for name in (
@@ -79,6 +102,8 @@ class ModelConfig:
             "accel_bias",
             "gyro_scale",
             "accel_scale",
+            "gyro_bias_sigma",
+            "accel_bias_sigma",
         ):  # JSON gives lists
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if len(self.channels) != len(self.dilations):
@@ -86,8 +111,38 @@ class ModelConfig:
                 f"ModelConfig: channels {self.channels} and dilations "
                 f"{self.dilations} must have the same length (one per layer)"
             )
+        for name in ("gyro_bias_sigma", "accel_bias_sigma"):
+            v = getattr(self, name)
+            if len(v) != 3 or not all(np.isfinite(x) and x > 0 for x in v):
+                raise ValueError(f"ModelConfig.{name} must be 3 positive numbers, got {v}")
+        if not (np.isfinite(self.velocity_sigma) and self.velocity_sigma > 0):
+            raise ValueError(
+                f"ModelConfig.velocity_sigma must be positive [m/s], got {self.velocity_sigma}"
+            )
+        if int(self.update_samples) != self.update_samples or self.update_samples < 1:
+            raise ValueError(
+                f"ModelConfig.update_samples must be a positive whole number, got "
+                f"{self.update_samples}"
+            )
         if self.kernel < 1 or self.kernel % 2 == 0:
             raise ValueError(f"ModelConfig.kernel must be a positive odd number, got {self.kernel}")
+
+    def tracker(self) -> TrackerSettings:
+        """The gyro-bias tracker's settings (:mod:`jaximu.learning.tracking`)."""
+        return TrackerSettings(
+            self.gyro_bias,
+            self.accel_bias,
+            self.gyro_bias_sigma,
+            self.accel_bias_sigma,
+            ImuNoise(
+                self.gyro_density,
+                self.accel_density,
+                self.gyro_random_walk,
+                self.accel_random_walk,
+            ),
+            velocity_sigma=self.velocity_sigma,
+            update_samples=self.update_samples,
+        )
 
     @property
     def receptive_field(self) -> int:
@@ -238,16 +293,31 @@ class Denoiser(eqx.Module):
         y, z = self.head(x), self.noise_head(jax.lax.stop_gradient(x))
         return y.reshape(lead + y.shape[-2:]), z.reshape(lead + z.shape[-2:])
 
-    def __call__(self, gyro, accel, key=None) -> Corrected:
+    def track(self, gyro, accel) -> Tracked:
+        """The gyro bias ``b̂_g`` at every sample ``(..., T, 3)`` and its standard deviation,
+        tracked from gravity (:func:`jaximu.learning.tracking.track_gyro_bias`), or the
+        constant ``b̄_g`` (standard deviation 0) without ``bias_tracking``."""
+        cfg = self.config
+        dtype = jnp.result_type(gyro, accel)
+        if cfg.bias_tracking:
+            return track_gyro_bias(gyro, accel, 1.0 / cfg.rate_hz, cfg.tracker())
+        b = jnp.broadcast_to(jnp.asarray(cfg.gyro_bias, dtype), jnp.shape(gyro))
+        return Tracked(b, jnp.zeros_like(b))
+
+    def __call__(self, gyro, accel, key=None, gyro_bias=None) -> Corrected:
+        """Corrected samples; ``gyro_bias``: ``(..., T, 3)`` the tracked bias when already
+        computed (:meth:`track`; training passes it, the tracker being fixed)."""
         cfg = self.config
         dtype = jnp.result_type(gyro, accel)
         y, z = self.features(gyro, accel, key)
         y, z = y.astype(dtype), z.astype(dtype)
         C = self.gyro_matrix.astype(dtype)
+        if gyro_bias is None:
+            gyro_bias = self.track(gyro, accel).gyro_bias
         w = (
             gyro
             + gyro @ C.T
-            - jnp.asarray(cfg.gyro_bias, dtype)
+            - jnp.asarray(gyro_bias, dtype)
             + jnp.asarray(cfg.gyro_scale, dtype) * y[..., 0:3]
         )
         a = accel - jnp.asarray(cfg.accel_bias, dtype)
