@@ -77,24 +77,38 @@ def orientation_errors(q_est, q_true):
     return r, aoe, jnp.abs(yaw)
 
 
-def attitude_terms(gyro, density, dt, random_walk):
+def attitude_terms(gyro, density, dt, random_walk, tracked_sigma=None):
     """``(W, B)``, each ``(T, 3, 3)``: the attitude error covariance of an open-loop run from
     a true attitude is ``W_k + B_k Σ_b B_kᵀ`` for a residual gyro bias of covariance
     ``Σ_b``. ``[δθ, δb_g]`` is propagated from zero with the per-sample ``density`` ``(T, 3)``
     and the bias ``random_walk`` (``W``), and ``B_k = ∂δθ_k/∂δb_g`` is the accumulated
-    transition's bias column. The first sample's terms are zero."""
+    transition's bias column. The first sample's terms are zero.
+
+    ``tracked_sigma``: ``(T, 3)`` the standard deviation of the bias that was subtracted at
+    each sample (the tracker's, :meth:`jaximu.learning.Denoiser.track`), or None. Its errors
+    are taken as one error shrinking with the tracker's ``σ`` (``δb_τ = diag(σ_τ) z``,
+    ``z ~ N(0, I)``, fully correlated in time: the tracker's estimate moves slowly), whose
+    covariance ``B'_k B'_kᵀ`` is added to ``W``: ``B'_k`` is ``B_k`` accumulated with each
+    step's bias column scaled by ``σ_τ``."""
     F, Q = rotation_step_blocks(gyro[:-1], density[:-1], dt, random_walk)
     W = accumulate_covariance(F, Q, save_all=True)[..., 0:3, 0:3]
     Phi = transition_products(F)
     z = jnp.zeros((1, 3, 3), gyro.dtype)
+    if tracked_sigma is not None:
+        scaled = F.at[..., 0:3, 3:6].multiply(jnp.asarray(tracked_sigma, gyro.dtype)[:-1, None, :])
+        Bt = transition_products(scaled)[..., 0:3, 3:6]
+        W = W + Bt @ jnp.swapaxes(Bt, -1, -2)
     return jnp.concatenate([z, W], 0), jnp.concatenate([z, Phi[..., 0:3, 3:6]], 0)
 
 
-def attitude_covariance(gyro, density, dt, bias_sigma, random_walk, reference_sigma):
+def attitude_covariance(
+    gyro, density, dt, bias_sigma, random_walk, reference_sigma, tracked_sigma=None
+):
     """``(T, 3, 3)`` covariance of the attitude error at every sample of an open-loop run
-    from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I``), plus the ground
-    truth's own noise ``2 σ_ref² I`` (at the start and at each compared sample)."""
-    W, B = attitude_terms(gyro, density, dt, random_walk)
+    from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I`` and the tracked
+    bias's ``tracked_sigma``), plus the ground truth's own noise ``2 σ_ref² I`` (at the start
+    and at each compared sample)."""
+    W, B = attitude_terms(gyro, density, dt, random_walk, tracked_sigma)
     eye = jnp.eye(3, dtype=gyro.dtype)
     return W + bias_sigma**2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma**2 * eye
 
@@ -168,6 +182,7 @@ def _learned_run(model, gyro, accel, q_true, dt, with_cov=True):
         model.bias_sigma.astype(gyro.dtype),
         cfg.gyro_random_walk,
         model.reference_sigma.astype(gyro.dtype),
+        c.gyro_bias_sigma,
     )
     L = jnp.linalg.cholesky(S)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]

@@ -177,11 +177,14 @@ class Corrected(NamedTuple):
     Attributes:
         gyro: ω̂ [rad/s]; accel: â [m/s²] (the raw samples minus ``b̄_a`` without the head).
         gyro_density: σ_g per sample and axis [rad/s/√Hz].
+        gyro_bias_sigma: the standard deviation of the subtracted gyro bias [rad/s] (the
+            tracker's; zero for the constant bias or a bias given to the call).
     """
 
     gyro: jax.Array
     accel: jax.Array
     gyro_density: jax.Array
+    gyro_bias_sigma: jax.Array
 
 
 class CausalConv(eqx.Module):
@@ -313,7 +316,9 @@ class Denoiser(eqx.Module):
         y, z = y.astype(dtype), z.astype(dtype)
         C = self.gyro_matrix.astype(dtype)
         if gyro_bias is None:
-            gyro_bias = self.track(gyro, accel).gyro_bias
+            gyro_bias, bias_sigma = self.track(gyro, accel)
+        else:
+            bias_sigma = jnp.zeros(jnp.shape(gyro), dtype)
         w = (
             gyro
             + gyro @ C.T
@@ -324,7 +329,7 @@ class Denoiser(eqx.Module):
         if cfg.accel_head:
             a = a + jnp.asarray(cfg.accel_scale, dtype) * y[..., 3:6]
         density = cfg.gyro_density * jnp.exp(3.0 * jnp.tanh(z / 3.0))
-        return Corrected(w, a, density)
+        return Corrected(w, a, density, jnp.asarray(bias_sigma, dtype))
 
 
 def check_model(name: str, model) -> Denoiser:

@@ -45,7 +45,9 @@ def _terms(model, gyro, accel, q_true, dt, start):
     g, d, q = c.gyro[start:], c.gyro_density[start:], q_true[start:]
     qs = integrate_attitude(q[0], g, dt[start:])
     r, _, _ = orientation_errors(qs, q)
-    W, B = attitude_terms(g, d, dt[start:], model.config.gyro_random_walk)
+    W, B = attitude_terms(
+        g, d, dt[start:], model.config.gyro_random_walk, c.gyro_bias_sigma[start:]
+    )
     return NeesTerms(r, W, B, model.reference_sigma.astype(g.dtype))
 
 

@@ -206,6 +206,35 @@ def test_attitude_terms_equal_preintegration_prefixes():
     assert np.all(np.asarray(W[0]) == 0)
 
 
+def test_tracked_bias_term_equals_scipy_differences_of_a_shrinking_bias():
+    """The tracked bias's covariance term ``B'B'ᵀ``: ``B'_k`` is the attitude error at ``k``
+    per unit of a bias error ``diag(σ_τ) z`` that shrinks with the tracker's ``σ_τ``, here
+    central differences of scipy's integration with that error added to the rates."""
+    from jaximu.learning.evaluation import attitude_terms
+
+    rng = np.random.default_rng(5)
+    T = 160
+    gyro = smooth_rates(rng, T, 2.0)
+    tracked = np.stack(
+        [np.linspace(3e-3, 2e-4, T), np.full(T, 1e-3), np.geomspace(2e-3, 1e-4, T)], -1
+    )
+    sigma = np.full(3, 1e-3)
+    W0, _ = attitude_terms(jnp.asarray(gyro), jnp.broadcast_to(sigma, gyro.shape), DT, 0.0)
+    W1, _ = attitude_terms(jnp.asarray(gyro), jnp.broadcast_to(sigma, gyro.shape), DT, 0.0, tracked)
+    eps = 1e-3
+    cols = []
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = eps
+        _, plus = scipy_attitudes(np.array([1.0, 0, 0, 0]), gyro + tracked * e, DT)
+        _, minus = scipy_attitudes(np.array([1.0, 0, 0, 0]), gyro - tracked * e, DT)
+        cols.append(np.stack([(m.inv() * p).as_rotvec() for p, m in zip(plus, minus)]) / (2 * eps))
+    Bt = np.stack(cols, -1)  # (T, 3, 3)
+    expected = np.asarray(W0) + Bt @ np.swapaxes(Bt, -1, -2)
+    got = np.asarray(W1)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
+
+
 def test_bias_sigma_is_set_for_an_average_nees_of_three():
     from jaximu.learning import uncertainty
 
