@@ -64,7 +64,9 @@ class ModelConfig:
             from the training sequences' spread: :func:`jaximu.learning.training.bias_spreads`).
         accel_density, accel_random_walk: the accelerometer's noise densities [m/s²/√Hz],
             [m/s³/√Hz] (the datasheet's), for the tracker.
-        velocity_sigma: [m/s] the tracker's bound on the true velocity (``v = 0 ± σ``).
+        velocity_sigma: [m/s] the tracker's bound on the true velocity (``v = 0 ± σ``): a
+            vehicle that stays near its start (a drone in a room, a handheld device); raise
+            it for one that travels, or set ``bias_tracking=False``.
         update_samples: samples between the tracker's updates.
     """
 
