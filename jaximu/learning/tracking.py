@@ -89,13 +89,12 @@ def _track_one(gyro, accel, dt, s: TrackerSettings, M: int):
     """One recording ``(T, 3)``; ``T`` a multiple of ``M`` (``s.update_samples``)."""
     dtype = gyro.dtype
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    q0 = level_attitude(jnp.mean(accel[:LEVEL_SAMPLES], 0))
+    first = jnp.mean(accel[:LEVEL_SAMPLES], 0)
     zero = jnp.zeros(3, dtype)
-    state = NavState(q0, zero, zero, f(s.gyro_bias), f(s.accel_bias))
+    state = NavState(level_attitude(first), zero, zero, f(s.gyro_bias), f(s.accel_bias))
     # the tilt is uncertain about the two body axes across gravity, the heading not at all
     # (the world's yaw is defined by the first attitude)
-    u = accel[:LEVEL_SAMPLES].mean(0)
-    u = u / jnp.linalg.norm(u)
+    u = first / jnp.linalg.norm(first)
     I3 = jnp.eye(3, dtype=dtype)
     tilt = s.tilt_sigma**2 * (I3 - jnp.outer(u, u))
     P0 = jnp.zeros((15, 15), dtype)
