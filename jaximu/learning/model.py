@@ -68,6 +68,9 @@ class ModelConfig:
             vehicle that stays near its start (a drone in a room, a handheld device); raise
             it for one that travels, or set ``bias_tracking=False``.
         update_samples: samples between the tracker's updates.
+        standstill: whether the tracker takes the bias about the vertical from windows of
+            1 s at rest (:mod:`jaximu.learning.tracking`; a model saved without this
+            setting loads with it off, as it was trained).
     """
 
     rate_hz: float = 200.0
@@ -93,6 +96,7 @@ class ModelConfig:
     accel_random_walk: float = 3.0e-3
     velocity_sigma: float = 1.0
     update_samples: int = 20
+    standstill: bool = True
 
     def __post_init__(self):
         for name in (
@@ -144,6 +148,12 @@ class ModelConfig:
             ),
             velocity_sigma=self.velocity_sigma,
             update_samples=self.update_samples,
+            # 1 s, in whole update blocks
+            standstill_samples=(
+                max(1, round(self.rate_hz / self.update_samples)) * self.update_samples
+                if self.standstill
+                else 0
+            ),
         )
 
     @property
@@ -170,7 +180,8 @@ class ModelConfig:
                 f"unknown model settings {unknown}: the model was written by "
                 "another version of jaximu"
             )
-        return cls(**d)
+        # a model saved before the standstill updates was trained without them
+        return cls(**{"standstill": False, **d})
 
 
 class Corrected(NamedTuple):

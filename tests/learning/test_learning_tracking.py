@@ -83,6 +83,61 @@ def test_tracked_gyro_bias_is_causal_and_batched():
     assert not np.allclose(both[1, k + 20 :], both[0, k + 20 :])
 
 
+def resting(seed, seconds, turn_rate=0.0):
+    """An IMU at rest, tilted so that gravity falls on all three axes, turning about the
+    vertical at ``turn_rate`` [rad/s] (which leaves the specific force unchanged)."""
+    rng = np.random.default_rng(seed)
+    T = int(seconds / DT)
+    u = Rotation.from_euler("xy", [20.0, -30.0], degrees=True).inv().apply([0.0, 0.0, 1.0])
+    gyro = (
+        turn_rate * u
+        + B_G
+        + NOISE.gyroscope_noise_density / np.sqrt(DT) * rng.standard_normal((T, 3))
+    )
+    accel = (
+        9.81 * u
+        + B_A
+        + NOISE.accelerometer_noise_density / np.sqrt(DT) * rng.standard_normal((T, 3))
+    )
+    return gyro, accel, u
+
+
+def test_a_standstill_gives_the_bias_about_the_vertical():
+    """At rest the mean gyro is the bias: each 1-s window updates the bias about the vertical
+    with ``standstill_sigma``, so after ``N`` windows its error is within 3 of the filter's
+    ``standstill_sigma/√N`` (the white noise's own, ``σ_g/√1 s``, is 6× smaller). Without the
+    standstill updates the bias about the vertical is unobservable and keeps most of the
+    prior's error."""
+    gyro, accel, u = resting(4, 10.0)
+    s = settings()
+    on = np.asarray(track_gyro_bias(gyro, accel, DT, s).gyro_bias, np.float64)
+    off = np.asarray(
+        track_gyro_bias(gyro, accel, DT, s._replace(standstill_samples=0)).gyro_bias, np.float64
+    )
+    prior_err = abs(float(u @ (np.asarray(s.gyro_bias) - B_G)))
+    windows = len(gyro) // s.standstill_samples - 1  # the last one updates after the last sample
+    bound = 3 * s.standstill_sigma / np.sqrt(windows)
+    assert bound < 0.5 * prior_err  # the check can tell the update from the prior
+    assert abs(float(u @ (on[-1] - B_G))) < bound, (u @ (on[-1] - B_G), bound)
+    assert abs(float(u @ (off[-1] - B_G))) > 0.5 * prior_err
+
+
+@pytest.mark.parametrize("case", ["turning about the vertical", "rotating"])
+def test_motion_is_no_standstill(case):
+    """A turn about the vertical at 0.05 rad/s leaves the specific force of rest but fails
+    the gate (3 √(σ_b² + standstill_sigma²) ≈ 8e-3 rad/s here); a rotation through the
+    horizontal fails the specific-force test: no window updates the bias, which is then the
+    one tracked without standstill updates."""
+    if case == "rotating":
+        gyro, accel = rotating_in_place(5, 10.0)
+    else:
+        gyro, accel, _ = resting(5, 10.0, turn_rate=0.05)
+    s = settings()
+    on = track_gyro_bias(gyro, accel, DT, s).gyro_bias
+    off = track_gyro_bias(gyro, accel, DT, s._replace(standstill_samples=0)).gyro_bias
+    np.testing.assert_allclose(np.asarray(on), np.asarray(off), rtol=1e-12, atol=0.0)
+
+
 def test_level_attitude_turns_the_specific_force_to_world_up():
     rng = np.random.default_rng(3)
     f = rng.standard_normal((50, 3)) * [1.0, 1.0, 3.0]
@@ -118,3 +173,8 @@ def test_tracker_settings_outside_their_domain_are_refused(kw, name):
 def test_track_gyro_bias_refuses_bad_input_naming_it(gyro, accel, dt, sets, match):
     with pytest.raises(ValueError, match=match):
         track_gyro_bias(gyro, accel, dt, settings() if sets else {"gyro_bias": (0, 0, 0)})
+
+
+def test_a_standstill_window_of_partial_update_blocks_is_refused():
+    with pytest.raises(ValueError, match="settings.standstill_samples must be 0 or a whole"):
+        track_gyro_bias(np.zeros((50, 3)), np.ones((50, 3)), DT, settings(standstill_samples=30))
