@@ -178,3 +178,14 @@ def test_track_gyro_bias_refuses_bad_input_naming_it(gyro, accel, dt, sets, matc
 def test_a_standstill_window_of_partial_update_blocks_is_refused():
     with pytest.raises(ValueError, match="settings.standstill_samples must be 0 or a whole"):
         track_gyro_bias(np.zeros((50, 3)), np.ones((50, 3)), DT, settings(standstill_samples=30))
+
+
+def test_a_model_saved_without_the_standstill_setting_loads_without_standstill_updates():
+    """The standstill window is one second in whole update blocks; a configuration written
+    before the setting existed reads back as it was trained: without standstill updates."""
+    assert ModelConfig(rate_hz=200.0).tracker().standstill_samples == 200
+    assert ModelConfig(rate_hz=100.0, update_samples=20).tracker().standstill_samples == 100
+    assert ModelConfig(standstill=False).tracker().standstill_samples == 0
+    old = {k: v for k, v in ModelConfig().to_json().items() if k != "standstill"}
+    assert ModelConfig.from_json(old).tracker().standstill_samples == 0
+    assert ModelConfig.from_json(ModelConfig().to_json()).standstill
