@@ -124,8 +124,8 @@ def _standstills(gyro, accel, s: TrackerSettings, M: int, K: int):
     n = g.shape[0]
 
     def window(x):  # the mean of the K blocks up to each block (the first K-1: partial)
-        c = jnp.cumsum(x, 0)
-        return (c - jnp.concatenate([jnp.zeros((K,) + x.shape[1:], x.dtype), c[:-K]], 0)) / K
+        c = jnp.concatenate([jnp.zeros((K,) + x.shape[1:], x.dtype), jnp.cumsum(x, 0)], 0)
+        return (c[K:] - c[:n]) / K
 
     w_g, w_a = window(g), window(a)
     spread = jnp.sqrt(jnp.maximum(window(jnp.sum(a * a, -1)) - jnp.sum(w_a * w_a, -1), 0.0))

@@ -138,6 +138,14 @@ def test_motion_is_no_standstill(case):
     np.testing.assert_allclose(np.asarray(on), np.asarray(off), rtol=1e-12, atol=0.0)
 
 
+def test_a_recording_shorter_than_the_standstill_window_has_no_standstill():
+    gyro, accel, _ = resting(6, 0.5)  # 100 samples: half a window
+    s = settings()
+    on = track_gyro_bias(gyro, accel, DT, s).gyro_bias
+    off = track_gyro_bias(gyro, accel, DT, s._replace(standstill_samples=0)).gyro_bias
+    np.testing.assert_allclose(np.asarray(on), np.asarray(off), rtol=1e-12, atol=0.0)
+
+
 def test_level_attitude_turns_the_specific_force_to_world_up():
     rng = np.random.default_rng(3)
     f = rng.standard_normal((50, 3)) * [1.0, 1.0, 3.0]
