@@ -130,6 +130,11 @@ class ModelConfig:
                 f"ModelConfig.update_samples must be a positive whole number, got "
                 f"{self.update_samples}"
             )
+        for name in ("bias_tracking", "standstill", "accel_head"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(
+                    f"ModelConfig.{name} must be True or False, got {getattr(self, name)!r}"
+                )
         if self.kernel < 1 or self.kernel % 2 == 0:
             raise ValueError(f"ModelConfig.kernel must be a positive odd number, got {self.kernel}")
 

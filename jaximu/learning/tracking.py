@@ -220,6 +220,26 @@ def track_gyro_bias(gyro, accel, dt: float, settings: TrackerSettings) -> Tracke
         raise ValueError(f"dt must be the sampling interval in seconds (> 0), got {dt}")
     dtype = jnp.result_type(gyro, accel, float)
     gyro, accel = gyro.astype(dtype), accel.astype(dtype)
+    for name in (
+        "velocity_sigma",
+        "tilt_sigma",
+        "gravity",
+        "standstill_accel_std",
+        "standstill_gravity_tolerance",
+        "standstill_sigma",
+    ):
+        v = getattr(settings, name)
+        if not (np.ndim(v) == 0 and np.isfinite(v) and v > 0):
+            raise ValueError(f"settings.{name} must be a positive number, got {v!r}")
+    for name in ("gyro_bias_sigma", "accel_bias_sigma"):
+        v = np.asarray(getattr(settings, name), float)
+        if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
+            raise ValueError(f"settings.{name} must be 3 positive numbers, got {v.tolist()}")
+    if int(settings.update_samples) != settings.update_samples or settings.update_samples < 1:
+        raise ValueError(
+            f"settings.update_samples must be a positive whole number, got "
+            f"{settings.update_samples}"
+        )
     M = int(settings.update_samples)
     W = int(settings.standstill_samples)
     if W < 0 or W % M:

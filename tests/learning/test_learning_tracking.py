@@ -162,6 +162,7 @@ def test_level_attitude_turns_the_specific_force_to_world_up():
         ({"accel_bias_sigma": (0.03, 0.03)}, "accel_bias_sigma"),
         ({"velocity_sigma": float("nan")}, "velocity_sigma"),
         ({"update_samples": 0}, "update_samples"),
+        ({"standstill": "yes"}, "standstill"),
     ],
 )
 def test_tracker_settings_outside_their_domain_are_refused(kw, name):
@@ -183,9 +184,25 @@ def test_track_gyro_bias_refuses_bad_input_naming_it(gyro, accel, dt, sets, matc
         track_gyro_bias(gyro, accel, dt, settings() if sets else {"gyro_bias": (0, 0, 0)})
 
 
-def test_a_standstill_window_of_partial_update_blocks_is_refused():
-    with pytest.raises(ValueError, match="settings.standstill_samples must be 0 or a whole"):
-        track_gyro_bias(np.zeros((50, 3)), np.ones((50, 3)), DT, settings(standstill_samples=30))
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"standstill_samples": 30}, "settings.standstill_samples must be 0 or a whole"),
+        ({"standstill_sigma": 0.0}, "settings.standstill_sigma must be a positive number"),
+        ({"standstill_accel_std": float("nan")}, "settings.standstill_accel_std must be"),
+        ({"velocity_sigma": -1.0}, "settings.velocity_sigma must be a positive number"),
+        ({"update_samples": 0}, "settings.update_samples must be a positive whole number"),
+    ],
+)
+def test_tracker_settings_given_directly_are_checked_naming_the_field(kw, match):
+    with pytest.raises(ValueError, match=match):
+        track_gyro_bias(np.zeros((50, 3)), np.ones((50, 3)), DT, settings(**kw))
+
+
+def test_tracker_settings_with_a_bad_prior_sigma_are_refused():
+    bad = settings()._replace(gyro_bias_sigma=(1e-3, -1e-3, 1e-3))
+    with pytest.raises(ValueError, match="settings.gyro_bias_sigma must be 3 positive numbers"):
+        track_gyro_bias(np.zeros((50, 3)), np.ones((50, 3)), DT, bad)
 
 
 def test_a_model_saved_without_the_standstill_setting_loads_without_standstill_updates():
