@@ -26,7 +26,7 @@ must pass a 3σ gate on its prior and ``standstill_sigma``. A window that passes
 bias about the vertical only, ``u·(ω̄ - b̂) = 0 ± standstill_sigma``: the horizontal axes
 keep the gravity tracking, which a resting drone's running motors do not fool as they do a
 mean (on EuRoC the means at rest differ from the estimated biases by 1-2e-3 rad/s about the
-horizontal axes, 1-2e-4 about the vertical). What the specific force cannot tell from rest
+IMU's y and z axes, 1-2e-4 about its x, which is near the vertical). What the specific force cannot tell from rest
 is a turn about the vertical slower than the gate (``3 √(σ_b² + standstill_sigma²)``, about
 ``4e-3 rad/s`` on EuRoC before a first standstill): its rate is then taken for bias, one
 window at a time.
