@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry.noise import ImuNoise
-from jaximu.learning.tracking import Tracked, TrackerSettings, track_gyro_bias
+from jaximu.learning.tracking import Tracked, TrackerSettings, check_settings, track_gyro_bias
 
 __all__ = ["ModelConfig", "Corrected", "CausalConv", "Denoiser"]
 
@@ -117,19 +117,9 @@ class ModelConfig:
                 f"ModelConfig: channels {self.channels} and dilations "
                 f"{self.dilations} must have the same length (one per layer)"
             )
-        for name in ("gyro_bias_sigma", "accel_bias_sigma"):
-            v = getattr(self, name)
-            if len(v) != 3 or not all(np.isfinite(x) and x > 0 for x in v):
-                raise ValueError(f"ModelConfig.{name} must be 3 positive numbers, got {v}")
-        if not (np.isfinite(self.velocity_sigma) and self.velocity_sigma > 0):
-            raise ValueError(
-                f"ModelConfig.velocity_sigma must be positive [m/s], got {self.velocity_sigma}"
-            )
-        if int(self.update_samples) != self.update_samples or self.update_samples < 1:
-            raise ValueError(
-                f"ModelConfig.update_samples must be a positive whole number, got "
-                f"{self.update_samples}"
-            )
+        # the tracker's settings, checked where the tracker checks them (before tracker()
+        # divides by update_samples)
+        check_settings(self._tracker(standstill_samples=0), "ModelConfig")
         for name in ("bias_tracking", "standstill", "accel_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(
@@ -140,6 +130,10 @@ class ModelConfig:
 
     def tracker(self) -> TrackerSettings:
         """The gyro-bias tracker's settings (:mod:`jaximu.learning.tracking`)."""
+        per_second = max(1, round(self.rate_hz / self.update_samples))  # 1 s in whole blocks
+        return self._tracker(per_second * self.update_samples if self.standstill else 0)
+
+    def _tracker(self, standstill_samples: int) -> TrackerSettings:
         return TrackerSettings(
             self.gyro_bias,
             self.accel_bias,
@@ -153,12 +147,7 @@ class ModelConfig:
             ),
             velocity_sigma=self.velocity_sigma,
             update_samples=self.update_samples,
-            # 1 s, in whole update blocks
-            standstill_samples=(
-                max(1, round(self.rate_hz / self.update_samples)) * self.update_samples
-                if self.standstill
-                else 0
-            ),
+            standstill_samples=standstill_samples,
         )
 
     @property

@@ -49,7 +49,7 @@ from jaximu.engine.update import ekf_update
 from jaximu.geometry.noise import ImuNoise
 from jaximu.geometry.state import NavState
 
-__all__ = ["TrackerSettings", "Tracked", "track_gyro_bias", "level_attitude"]
+__all__ = ["TrackerSettings", "Tracked", "track_gyro_bias", "level_attitude", "check_settings"]
 
 LEVEL_SAMPLES = 10
 """Samples whose mean specific force gives the first attitude's roll and pitch."""
@@ -188,6 +188,41 @@ def _track_one(gyro, accel, dt, s: TrackerSettings, M: int, K: int):
     return jnp.repeat(b, M, axis=0), jnp.repeat(sd, M, axis=0)
 
 
+_POSITIVE = {
+    "velocity_sigma": "m/s",
+    "tilt_sigma": "rad",
+    "gravity": "m/s²",
+    "standstill_accel_std": "m/s²",
+    "standstill_gravity_tolerance": "m/s²",
+    "standstill_sigma": "rad/s",
+}
+
+
+def check_settings(settings: TrackerSettings, name: str = "settings") -> None:
+    """Raise ``ValueError`` naming ``name.field`` for a field of ``settings`` outside its
+    domain: the standard deviations, ``gravity`` and the standstill thresholds positive and
+    finite, ``update_samples`` a positive whole number, ``standstill_samples`` 0 or a whole
+    number of ``update_samples``. (:class:`jaximu.learning.ModelConfig` checks its tracker's
+    settings with it, under its own name.)"""
+    for field, unit in _POSITIVE.items():
+        v = getattr(settings, field)
+        if not (np.ndim(v) == 0 and np.isfinite(v) and v > 0):
+            raise ValueError(f"{name}.{field} must be a positive number [{unit}], got {v!r}")
+    for field in ("gyro_bias_sigma", "accel_bias_sigma"):
+        v = np.asarray(getattr(settings, field), float)
+        if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
+            raise ValueError(f"{name}.{field} must be 3 positive numbers, got {v.tolist()}")
+    M = settings.update_samples
+    if int(M) != M or M < 1:
+        raise ValueError(f"{name}.update_samples must be a positive whole number, got {M}")
+    W = settings.standstill_samples
+    if int(W) != W or W < 0 or W % M:
+        raise ValueError(
+            f"{name}.standstill_samples must be 0 or a whole number of update_samples "
+            f"({M}), got {W}"
+        )
+
+
 def track_gyro_bias(gyro, accel, dt: float, settings: TrackerSettings) -> Tracked:
     """The gyro bias at every sample, tracked from the raw samples before it.
 
@@ -220,33 +255,8 @@ def track_gyro_bias(gyro, accel, dt: float, settings: TrackerSettings) -> Tracke
         raise ValueError(f"dt must be the sampling interval in seconds (> 0), got {dt}")
     dtype = jnp.result_type(gyro, accel, float)
     gyro, accel = gyro.astype(dtype), accel.astype(dtype)
-    for name in (
-        "velocity_sigma",
-        "tilt_sigma",
-        "gravity",
-        "standstill_accel_std",
-        "standstill_gravity_tolerance",
-        "standstill_sigma",
-    ):
-        v = getattr(settings, name)
-        if not (np.ndim(v) == 0 and np.isfinite(v) and v > 0):
-            raise ValueError(f"settings.{name} must be a positive number, got {v!r}")
-    for name in ("gyro_bias_sigma", "accel_bias_sigma"):
-        v = np.asarray(getattr(settings, name), float)
-        if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
-            raise ValueError(f"settings.{name} must be 3 positive numbers, got {v.tolist()}")
-    if int(settings.update_samples) != settings.update_samples or settings.update_samples < 1:
-        raise ValueError(
-            f"settings.update_samples must be a positive whole number, got "
-            f"{settings.update_samples}"
-        )
-    M = int(settings.update_samples)
-    W = int(settings.standstill_samples)
-    if W < 0 or W % M:
-        raise ValueError(
-            f"settings.standstill_samples must be 0 or a whole number of update_samples "
-            f"({M}), got {settings.standstill_samples}"
-        )
+    check_settings(settings)
+    M, W = int(settings.update_samples), int(settings.standstill_samples)
     # the settings' numbers are arguments of one compiled program per shape, M and K, not
     # constants of a program per call (standstill_samples stays as an off switch)
     return _track(
