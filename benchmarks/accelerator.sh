@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
-# The benchmark tables on an accelerator, as one run of at most 10.5 minutes (an NVIDIA
-# H100 is lent for 15 minutes in all, its start-up included): propagation ~4 (5 at most),
-# preintegration and Monte Carlo (quick: 2000 runs) under 1.5 each, the time chunks'
-# crossover 2.5. Each step has its own time limit, so a slow one cannot take the others'
-# time (a step cut by its limit writes no JSON but the crossover's, written as it goes; the
-# printed lines are in the log).
+# The benchmark tables on an accelerator, as one run of at most 9.2 minutes (an NVIDIA H100
+# is lent for 15 minutes in all, its start-up included, and one command may run 10): a
+# smoke check first (the run stops there if jaximu cannot run on the device), the time
+# chunks' crossover (about 2 minutes), propagation (4), preintegration (about 1.7) and
+# Monte Carlo (quick: 2000 runs, 1). Each step has its own time limit, so a slow one cannot
+# take the others' time; propagation stops starting cases in time to write its JSON (on the
+# H100 its 71 cases take about 6.5 minutes, compile-bound: finish the table in a second
+# call on the warm machine with `python3 benchmarks/propagation.py --first N --out ...`,
+# N the first case not run, as the log says).
 #
 #   bash benchmarks/accelerator.sh          # from the repository root
 #
@@ -13,6 +16,7 @@
 # folder that comes back), copies them and the printed tables there.
 set -u
 cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}  # the device image's Python is python3 (no plain python there)
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 RES=benchmarks/results
 LOG=${OUT:-$RES}/accelerator-run.txt
@@ -22,17 +26,28 @@ run() {  # run LIMIT_S COMMAND...: one step, its output in the log
   local limit=$1; shift
   echo "=== $* (limit ${limit} s)" | tee -a "$LOG"
   timeout "$limit" "$@" 2>&1 | tee -a "$LOG"
-  echo "=== exit ${PIPESTATUS[0]}" | tee -a "$LOG"
+  local rc=${PIPESTATUS[0]}
+  echo "=== exit $rc" | tee -a "$LOG"
+  return "$rc"
 }
-python -c "import jax; print(jax.devices(), jax.__version__)" 2>&1 | tee -a "$LOG"
+# smoke: jaximu imports and runs one covariance on the device, or nothing else is worth the time
+run 60 "$PY" -c "
+import jax, jax.numpy as jnp, jaximu
+print(jax.devices(), jax.__version__, jax.default_backend())
+T = 4096
+out = jaximu.propagate_covariance_final(
+    jaximu.NavState.identity(), jnp.eye(15) * 1e-4, jnp.full((T, 3), 0.1), jnp.tile(jnp.array([0., 0., 9.8]), (T, 1)),
+    0.005, jaximu.ImuNoise.euroc())
+print('ok', jax.tree_util.tree_map(lambda x: x.shape, out))
+" || { echo "smoke failed: stopping" | tee -a "$LOG"; exit 1; }
 # where the time chunks beat sequential launches, by length and batch (the dispatch table's
 # MEAN_CHUNK_STEPS, MEAN_CHUNK_LANES, COV_CHUNK_STEPS, COV_CHUNK_LANES), first: the figures
 # the table still lacks; its budget stops starting cases, a case's compile may overrun it
-run 150 env BUDGET=115 python benchmarks/chunk_crossover.py
-# every row of the table, the one-recording rows (time chunks) among them; no case over 20 s
-run 300 python benchmarks/propagation.py --max-case-s 20
-run 90 python benchmarks/preintegration.py
-run 80 python benchmarks/montecarlo.py --quick
+run 110 env BUDGET=80 "$PY" benchmarks/chunk_crossover.py
+# every row of the table, the one-recording rows (time chunks) among them; no case over 15 s
+run 240 "$PY" benchmarks/propagation.py --max-case-s 15 --deadline 195
+run 110 "$PY" benchmarks/preintegration.py
+run 60 "$PY" benchmarks/montecarlo.py --quick
 if [ -n "${OUT:-}" ]; then
   find "$RES" -newer "$MARK" -name '*.json' -exec cp -v {} "$OUT"/ \;
 fi

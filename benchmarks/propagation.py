@@ -980,6 +980,17 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--out", type=Path, help="JSON output path (default benchmarks/results/...)")
     ap.add_argument(
+        "--first",
+        type=int,
+        default=1,
+        help="start at this case number (the [N/...] printed), to finish a run that was cut",
+    )
+    ap.add_argument(
+        "--deadline",
+        type=float,
+        help="start no case after this many s and write the cases done (a lent device's time)",
+    )
+    ap.add_argument(
         "--devices",
         type=int,
         default=1,
@@ -1044,8 +1055,16 @@ def main(argv=None) -> int:
             f"process after `import jax, jaximu` peaks at {fmt_bytes(idle_rss)} MB."
         )
 
+    if args.first > 1:
+        notes.append(f"cases 1-{args.first - 1} not run here (--first {args.first})")
     results = []
     for i, case in enumerate(cases):
+        if i + 1 < args.first:
+            continue
+        if args.deadline is not None and time.perf_counter() - t_start > args.deadline:
+            print(f"deadline: cases {i + 1}-{len(cases)} not run", file=sys.stderr, flush=True)
+            notes.append(f"cases {i + 1}-{len(cases)} not run (--deadline {args.deadline:g} s)")
+            break
         label = f"[{i + 1}/{len(cases)}] {case['name']} {case['dtype']} {case['B']}×{case['T']}"
         print(label + " ...", end="", file=sys.stderr, flush=True)
         family = {k: v for k, v in case.items() if k not in ("B", "T")}

@@ -35,36 +35,38 @@ MEAN_CHUNK_STEPS = 128
 """From this many steps an accelerator computes the mean in time chunks (each sequential
 step there is a launch), up to :data:`MEAN_CHUNK_LANES` batch elements (docs/DESIGN.md,
 "Dispatch"): 4 chunks of :data:`MIN_CHUNK_STEPS`, so that every state stored, whose chunks
-run twice, still takes half the sequential launches. Set from the launch cost measured on
-an NVIDIA H100 (10–17 µs a step from 1 to 16384 lanes; the chunks' gather and the deltas'
-tree about 0.2 ms at 3125 chunks), not yet from a measured crossover
-(``benchmarks/chunk_crossover.py``)."""
+run twice, still takes half the sequential launches. Measured on an NVIDIA H100
+(``benchmarks/chunk_crossover.py``, run time): one float32 trajectory's final state ran
+1.6× faster chunked at 64 steps and 3.0× at 128, every state stored 2.2× at 128; 64 is not
+taken because every state stored was not measured there."""
 
 MEAN_CHUNK_LANES = ACCELERATOR_LANES // 2
 """Up to this many batch elements the mean's time chunks run on an accelerator: at least 2
 chunks a sequence (:func:`mean_chunks`). A mean step's work per lane is small against its
-launch (an H100's float64 step grew by 0.2 ns a lane), so the launches saved pay for the
-chunks' extra lanes; more elements fill the lanes themselves."""
+launch, so the launches saved pay for the chunks' extra lanes; more elements fill the lanes
+themselves. Measured on an NVIDIA H100 at 200 float32 steps: chunks 3.6× faster at 1024 and
+16384 sequences, 2.1× at 32768."""
 
-COV_CHUNK_STEPS = {"cpu": 2048, "accelerator": 256}
+COV_CHUNK_STEPS = {"cpu": 2048, "accelerator": 128}
 """From this many steps the covariance of a few sequences runs in time chunks
 (``soa_cov_chunked``), by backend (docs/DESIGN.md, "Dispatch"). The CPU's: one trajectory's
 final covariance ran as fast both ways at 1024 float64 steps (0.32 against 0.40 ms) and
 twice as fast chunked from 2048 (float32 0.38 against 0.74 ms), run time alone (the chunks
-compile in about 3.5 s against 1 s). The accelerator's: 8 chunks of
-:data:`MIN_CHUNK_STEPS`, from the launch cost measured on an H100 (23–35 µs a covariance
-step at 1 to 1024 lanes) against the composition's ``⌈log2 (C + 1)⌉`` levels, with every
-covariance stored (the chunks run twice) still under half the sequential launches; not
-yet a measured crossover (``benchmarks/chunk_crossover.py``)."""
+compile in about 3.5 s against 1 s). The accelerator's: 4 chunks of
+:data:`MIN_CHUNK_STEPS`; on an NVIDIA H100 (``benchmarks/chunk_crossover.py``, float64, run
+time) one trajectory's final covariance ran 3.0× faster chunked at 128 steps, 5.6× at 256,
+10× at 512, and every covariance stored 3.9× at 256 and 7.4× at 512 (at 128 not measured:
+its chunks run twice, 64 launches and the composition against 128). The chunks compile
+longer there (6–8.5 s against 2–2.3 s)."""
 
-COV_CHUNK_LANES = {"cpu": 8, "accelerator": 4096}
+COV_CHUNK_LANES = {"cpu": 8, "accelerator": 2048}
 """Up to this many sequences the covariance runs in time chunks, by backend. The CPU: each
 sequence's chunks fill a block of lanes (more sequences fill it themselves). An accelerator:
-at least 16 chunks a sequence. The chunks' lanes do the sequential scan's work and carry
-their transitions' bias columns too (10% more a step on the CPU), and a float64 covariance step on the
-H100 grew by 2.7 ns a lane (1024 × 1000: 35 µs a step, 16384 × 200: 76 µs), so the extra
-work would match the ~30 µs launch saved a step from about 16384 (half as much again a
-lane) to 65536 sequences (12%); 4096 keeps a margin until measured."""
+the chunks' lanes do the sequential scan's work and carry their transitions' bias columns
+too, so their extra lanes cost more as the batch fills the device. On an NVIDIA H100, 256
+float64 steps (``benchmarks/chunk_crossover.py``, final covariance, run time): chunks 4.0×
+faster at 1024 sequences, as fast at 4096 (0.97×), slower at 16384 (0.64×); 2048 lies
+inside the measured win."""
 
 
 class Row(NamedTuple):
