@@ -185,6 +185,36 @@ def nees(r, S):
     return jnp.sum(z * z, -1)
 
 
+def increment_terms(
+    corrected, q_true, dt, horizons=(16, 32), *, with_noise=True, random_walk=0.0, skip: int = 0
+):
+    """For each of ``horizons`` in turn (a generator): ``(r, Phi, Q)``, the rotation residuals
+    ``(..., W, 3)`` of the windows of that many samples and, ``with_noise``, their
+    transitions and noise ``(..., W, 6, 6)`` (None otherwise): what :func:`increment_loss`
+    and the uncertainty's fit (:func:`jaximu.learning.uncertainty.fit_reference_sigma`)
+    read. Arguments as :func:`increment_loss`'s."""
+    w = windows(
+        corrected.gyro,
+        corrected.accel,
+        dt,
+        horizons[0],
+        corrected.gyro_density if with_noise else None,
+        random_walk,
+    )
+    for i, H in enumerate(horizons):
+        if i:
+            w = compose_pairs(w)
+        dq_true = true_increments(q_true, H)
+        W = min(dq_true.shape[-2], w.delta_q.shape[-2])
+        s = -(-skip // (2**i))  # first windows left out
+        r = rotation_residual(dq_true[..., s:W, :], w.delta_q[..., s:W, :])
+        if with_noise:
+            assert w.Phi is not None and w.Q is not None  # formed when a density is given
+            yield r, w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :]
+        else:
+            yield r, None, None
+
+
 def increment_loss(
     corrected,
     q_true,
@@ -210,31 +240,16 @@ def increment_loss(
         ``(loss, nll)``: the Huber loss (horizon ``h`` weighted ``1/2^i``) and the
         likelihood term (``0`` when ``bias_sigma`` is ``None``).
     """
-    H0 = horizons[0]
     with_noise = bias_sigma is not None
-    w = windows(
-        corrected.gyro,
-        corrected.accel,
-        dt,
-        H0,
-        corrected.gyro_density if with_noise else None,
-        random_walk,
-    )
     loss = jnp.zeros((), corrected.gyro.dtype)
     nll = jnp.zeros((), corrected.gyro.dtype)
-    for i, H in enumerate(horizons):
-        if i:
-            w = compose_pairs(w)
-        dq_true = true_increments(q_true, H)
-        W = min(dq_true.shape[-2], w.delta_q.shape[-2])
-        s = -(-skip // (2**i))  # first windows left out
-        r = rotation_residual(dq_true[..., s:W, :], w.delta_q[..., s:W, :])
+    terms = increment_terms(
+        corrected, q_true, dt, horizons, with_noise=with_noise, random_walk=random_walk, skip=skip
+    )
+    for i, (r, Phi, Q) in enumerate(terms):
         loss = loss + weight * huber(r, huber_delta) / 2**i
         if with_noise:
-            assert w.Phi is not None and w.Q is not None  # formed when a density is given
-            S = rotation_covariance(
-                w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :], bias_sigma, reference_sigma
-            )
+            S = rotation_covariance(Phi, Q, bias_sigma, reference_sigma)
             nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S)
     return loss, nll
 

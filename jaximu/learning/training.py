@@ -78,8 +78,10 @@ class TrainConfig:
             (``ModelConfig.accel_head``): Huber (``velocity_delta`` [m/s]) of the
             velocity-increment errors over windows of ``velocity_horizon`` samples
             (:func:`jaximu.learning.losses.velocity_residuals`), weighted.
-        calibrate_uncertainty: set the residual gyro bias ``σ_b`` on the validation parts
-            (:mod:`jaximu.learning.uncertainty`) after training.
+        calibrate_uncertainty: after training, fit the ground truth's attitude noise
+            ``σ_ref`` to the kept network by the likelihood of the training windows, then set
+            the residual gyro bias ``σ_b`` on the validation parts
+            (:mod:`jaximu.learning.uncertainty`).
         recording_offsets: fit, beside the network, one constant gyro offset per training
             recording (summing to zero; dropped after training): what is left of each
             recording's own bias then has a place other than the network, which would
@@ -508,7 +510,21 @@ def train(
         i += 1
     model = best[1]
     if cfg.calibrate_uncertainty:
+        t0 = time.perf_counter()
+        learned_ref = float(model.reference_sigma)
+        ref, short_sb = uncertainty.fit_reference_sigma(
+            model, G[:, :-1], A[:, :-1], Q, dt, cfg.horizons, gyro_bias=B[:, :-1], skip=cfg.skip
+        )
+        model = uncertainty.with_reference_sigma(model, ref)
+        say(
+            f"ground truth's attitude noise σ_ref = {ref:.3g} rad, by the likelihood of the "
+            f"training windows with the kept network (was {learned_ref:.3g}; "
+            f"{time.perf_counter() - t0:.1f} s)"
+        )
         model = _set_bias_sigma(model, sequences, vals, record, say)
+        record["uncertainty"].update(
+            learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
+        )
     _record_windows(model, sequences, vals, record, say)
     wall = time.perf_counter() - t_start
     record["recording_offsets_rad_s"] = {

@@ -1,4 +1,13 @@
-"""The residual gyro bias ``σ_b`` of the learned uncertainty, set on held-out data.
+"""The scalars of the learned uncertainty, set after training: the ground truth's attitude
+noise ``σ_ref`` by the likelihood of the training windows, and the residual gyro bias
+``σ_b`` on held-out data.
+
+The network and its noise head are trained with the likelihood, but the kept weights are
+those of the best validation step, which may come early (the shipped model's: step 25 of an
+exponential average), before the scalars have moved from their initial values.
+:func:`fit_reference_sigma` therefore fits ``σ_ref`` (with a short-horizon ``σ_b``, a
+nuisance parameter there) to the kept network by maximum likelihood of the training
+windows' increments, the same negative log-likelihood as the training loss's.
 
 Over a whole sequence the attitude error of an open-loop run is dominated by the gyro bias
 the correction misses, whose spread shows only across recordings: on the training parts the
@@ -12,20 +21,26 @@ on the others, so the figure reported for a sequence never saw it.
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
+from jaximu.learning.losses import gaussian_nll, increment_terms, rotation_covariance
 
 __all__ = [
     "NeesTerms",
     "nees_terms",
     "average_nees",
     "fit_bias_sigma",
+    "fit_reference_sigma",
     "leave_one_out",
     "with_bias_sigma",
+    "with_reference_sigma",
 ]
 
 
@@ -98,4 +113,72 @@ def with_bias_sigma(model, bias_sigma: float):
         lambda m: m.log_bias_sigma,
         model,
         jnp.asarray(np.log(bias_sigma), model.log_bias_sigma.dtype),
+    )
+
+
+@eqx.filter_jit
+def _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip):
+    c = model(gyro, accel, gyro_bias=gyro_bias)
+    rw = model.config.gyro_random_walk
+    return list(increment_terms(c, q_true, dt, horizons, random_walk=rw, skip=skip))
+
+
+@jax.jit
+def _window_nll(log_sigmas, terms):
+    """The training loss's negative log-likelihood of the windows ``terms`` (per horizon
+    ``(r, Phi, Q)``) with ``(σ_b, σ_ref) = exp(log_sigmas)``."""
+    sb, sr = jnp.exp(log_sigmas[0]), jnp.exp(log_sigmas[1])
+    return sum(gaussian_nll(r, rotation_covariance(Phi, Q, sb, sr)) for r, Phi, Q in terms)
+
+
+@partial(jax.jit, static_argnums=2)
+def _lbfgs(p, terms, steps):
+    """L-BFGS on :func:`_window_nll` from ``p`` (optax's, its zoom line search), one
+    compiled loop: until the gradient's largest entry is under 1e-6 or ``steps`` iterations."""
+    f = lambda q: _window_nll(q, terms)  # noqa: E731
+    opt = optax.lbfgs()
+    value_and_grad = optax.value_and_grad_from_state(f)
+
+    def body(carry):
+        p, state, i = carry
+        value, grad = value_and_grad(p, state=state)
+        updates, state = opt.update(grad, state, p, value=value, grad=grad, value_fn=f)
+        return optax.apply_updates(p, updates), state, i + 1
+
+    def more(carry):
+        _, state, i = carry
+        grad = optax.tree.get(state, "grad")
+        return (i == 0) | ((i < steps) & (jnp.max(jnp.abs(grad)) > 1e-6))
+
+    return jax.lax.while_loop(more, body, (p, opt.init(p), 0))[0]
+
+
+def fit_reference_sigma(
+    model, gyro, accel, q_true, dt, horizons, *, gyro_bias=None, skip: int = 0, steps: int = 100
+) -> tuple[float, float]:
+    """``(σ_ref [rad], σ_b [rad/s])`` maximising the likelihood of the increments of
+    ``model``'s corrected gyro against the ground truth (the negative log-likelihood of
+    :func:`jaximu.learning.losses.increment_loss` at ``horizons``, the network fixed).
+    ``σ_b`` is the residual bias over those short horizons, fitted alongside as a nuisance
+    parameter (the whole-run ``σ_b`` is :func:`fit_bias_sigma`'s).
+
+    Args:
+        gyro, accel: ``(S, T, 3)`` raw samples; q_true: ``(S, T + 1, 4)`` true attitudes.
+        dt: the sample interval [s]; gyro_bias: ``(S, T, 3)`` the tracked bias, or None (the
+            model tracks it).
+        steps: L-BFGS iterations at most, in ``log σ`` (it stops when the gradient vanishes).
+    """
+    terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, tuple(horizons), int(skip))
+    p0 = jnp.stack([model.log_bias_sigma, model.log_reference_sigma]).astype(gyro.dtype)
+    p = _lbfgs(p0, terms, int(steps))
+    sb, sr = np.exp(np.asarray(p, np.float64))
+    return float(sr), float(sb)
+
+
+def with_reference_sigma(model, reference_sigma: float):
+    """``model`` with the ground truth's attitude noise set to ``reference_sigma`` [rad]."""
+    return eqx.tree_at(
+        lambda m: m.log_reference_sigma,
+        model,
+        jnp.asarray(np.log(reference_sigma), model.log_reference_sigma.dtype),
     )

@@ -84,7 +84,12 @@ def test_training_recovers_scale_bias_and_noise_density(trained):
     np.testing.assert_allclose(c0, -M_true @ BIAS, atol=1.5e-3)  # |b| = 4e-2
     density = np.median(np.asarray(c.gyro_density), axis=0)
     np.testing.assert_allclose(density, SIGMA, rtol=0.2)
-    assert float(model.reference_sigma) < 1e-4  # the simulated ground truth is exact
+    # the simulated ground truth is exact: training leaves σ_ref near its start (1e-5), and
+    # the fit to the kept network after training (uncertainty.fit_reference_sigma) gives
+    # the reference's two ends under a quarter of the shortest windows' noise variance (what
+    # it takes is the network's misfit, 14 % when written)
+    assert trained.record["uncertainty"]["learned_reference_sigma"] < 1e-4
+    assert 2 * float(model.reference_sigma) ** 2 < 0.25 * SIGMA**2 * 16 * DT
 
 
 def test_training_beats_the_constant_baseline_on_its_validation(trained):
