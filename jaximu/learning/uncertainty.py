@@ -107,13 +107,14 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
     return out
 
 
+def _with_log(model, where, value: float):
+    """``model`` with the log-parameter ``where(model)`` set to ``log(value)``, in its dtype."""
+    return eqx.tree_at(where, model, jnp.asarray(np.log(value), where(model).dtype))
+
+
 def with_bias_sigma(model, bias_sigma: float):
     """``model`` with its residual gyro bias set to ``bias_sigma`` [rad/s]."""
-    return eqx.tree_at(
-        lambda m: m.log_bias_sigma,
-        model,
-        jnp.asarray(np.log(bias_sigma), model.log_bias_sigma.dtype),
-    )
+    return _with_log(model, lambda m: m.log_bias_sigma, bias_sigma)
 
 
 @eqx.filter_jit
@@ -177,8 +178,4 @@ def fit_reference_sigma(
 
 def with_reference_sigma(model, reference_sigma: float):
     """``model`` with the ground truth's attitude noise set to ``reference_sigma`` [rad]."""
-    return eqx.tree_at(
-        lambda m: m.log_reference_sigma,
-        model,
-        jnp.asarray(np.log(reference_sigma), model.log_reference_sigma.dtype),
-    )
+    return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma)
