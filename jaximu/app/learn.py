@@ -3,6 +3,8 @@
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
+Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation.
+
 Parsing and printing only: the work is :mod:`jaximu.learning`'s. Needs
 ``pip install "jaximu[learning]"`` (equinox).
 """
@@ -15,11 +17,9 @@ import time
 
 import numpy as np
 
+from jaximu.app.common import UsageError, check_outputs
+
 LEARNING_EXTRA = 'the learning commands need equinox: pip install "jaximu[learning]"'
-
-
-class _Usage(ValueError):
-    """A mistake in the command line (reported as one line, exit 2)."""
 
 
 def _learning():
@@ -32,40 +32,29 @@ def _learning():
     return learning
 
 
-def _check_output(path, what, flag):
-    """An output file's folder must exist and the path must not be a folder (checked
-    before any work)."""
-    if path is None:
-        return None
-    p = pathlib.Path(path)
-    if p.is_dir():
-        raise _Usage(f"{flag} {p} is a folder; give a file name")
-    if not p.parent.exists():
-        raise _Usage(f"{flag} {p}: the folder {p.parent} does not exist; create it first")
-    return p
-
-
 def _check_model_out(path):
     p = pathlib.Path(path)
     if p.exists() and not p.is_dir():
-        raise _Usage(f"--out {p} is a file; a model is saved as a folder: give a new name")
+        raise UsageError(f"--out {p} is a file; a model is saved as a folder: give a new name")
     if p.is_dir() and any(p.iterdir()) and not (p / "model.json").is_file():
-        raise _Usage(
+        raise UsageError(
             f"--out {p} is a folder that holds other files, not a jaximu model; give "
             "a new or empty folder (nothing was written)"
         )
     if not p.parent.exists():
-        raise _Usage(f"--out {p}: the folder {p.parent} does not exist; create it first")
+        raise UsageError(f"--out {p}: the folder {p.parent} does not exist; create it first")
     return p
 
 
-def _load_all(learning, dirs):
+def _load_all(learning, args):
+    if args.max_gap is not None and not (np.isfinite(args.max_gap) and args.max_gap > 0):
+        raise UsageError(f"--max-gap must be a positive number of seconds, got {args.max_gap:g}")
     seqs = []
-    for d in dirs:
+    for d in args.dirs:
         p = pathlib.Path(d)
         if not p.exists():
-            raise _Usage(f"sequence folder {p} does not exist")
-        seqs.append(learning.load_sequence(p))
+            raise UsageError(f"sequence folder {p} does not exist")
+        seqs.append(learning.load_sequence(p, max_gap=args.max_gap))
     return seqs
 
 
@@ -73,11 +62,11 @@ def cmd_train(args):
     learning = _learning()
     out = _check_model_out(args.out)
     if args.minutes is not None and not (np.isfinite(args.minutes) and args.minutes > 0):
-        raise _Usage(f"--minutes must be a positive number, got {args.minutes:g}")
+        raise UsageError(f"--minutes must be a positive number, got {args.minutes:g}")
     if args.steps is not None and args.steps < 1:
-        raise _Usage(f"--steps must be a positive integer, got {args.steps}")
+        raise UsageError(f"--steps must be a positive integer, got {args.steps}")
     t0 = time.perf_counter()
-    seqs = _load_all(learning, args.dirs)
+    seqs = _load_all(learning, args)
     cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
     mcfg = learning.ModelConfig(accel_head=args.accel_head)
@@ -88,6 +77,7 @@ def cmd_train(args):
         + ["--out", out.name, "--seed", str(args.seed)]
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
+        + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
     wall = time.perf_counter() - t0
@@ -130,10 +120,11 @@ def _table(rep, windows=None):
 
 def cmd_evaluate(args):
     learning = _learning()
-    json_out = _check_output(args.json, "JSON", "--json")
-    plot_out = _check_output(args.plot, "plot", "--plot")
+    check_outputs(json=args.json, plot=args.plot)  # before any work
+    json_out = None if args.json is None else pathlib.Path(args.json)
+    plot_out = args.plot
     model = learning.load(args.model)
-    seqs = _load_all(learning, args.dirs)
+    seqs = _load_all(learning, args)
     for s in seqs:
         learning.data.check_rate(s, model.config.rate_hz)
     reports, windows = [], []
@@ -237,4 +228,12 @@ def add_parser(sub):
     e.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     e.add_argument("--plot", metavar="FILE", help="plot the orientation error over time")
     e.set_defaults(func=cmd_evaluate)
+    for q in (t, e):
+        q.add_argument(
+            "--max-gap",
+            type=float,
+            metavar="SECONDS",
+            help="the longest ground-truth gap to interpolate the reference across "
+            "(default: 5 × its median interval; motion capture drops frames)",
+        )
     return p

@@ -112,14 +112,16 @@ class GroundTruth:
             v = np.stack([np.interp(t, self.t, self.v[:, j]) for j in range(3)], axis=1)
         return q, p, v
 
-    def velocity(self, t):
-        """Velocity at ``t``: the stored one, or central differences of the positions."""
+    def velocity(self, t, max_gap: float | None = None):
+        """Velocity at ``t``: the stored one, or central differences of the positions
+        (``max_gap``: as in :meth:`interpolate`)."""
         if self.v is not None:
-            return self.interpolate(t)[2]
+            return self.interpolate(t, max_gap)[2]
         t = np.atleast_1d(np.asarray(t, np.float64))
         h = float(np.median(np.diff(self.t)))
         lo, hi = np.maximum(t - h, self.t[0]), np.minimum(t + h, self.t[-1])
-        return (self.interpolate(hi)[1] - self.interpolate(lo)[1]) / (hi - lo)[:, None]
+        p_hi, p_lo = self.interpolate(hi, max_gap)[1], self.interpolate(lo, max_gap)[1]
+        return (p_hi - p_lo) / (hi - lo)[:, None]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -124,7 +124,7 @@ def _continuous(q):
     return q
 
 
-def load_sequence(path, *, name: str | None = None) -> Sequence:
+def load_sequence(path, *, name: str | None = None, max_gap: float | None = None) -> Sequence:
     """Read a sequence folder and put its ground truth on the IMU samples it covers.
 
     Args:
@@ -132,10 +132,14 @@ def load_sequence(path, *, name: str | None = None) -> Sequence:
             with ``imu.csv`` and ``groundtruth.csv`` (full state) or ``groundtruth_pose.txt``
             (pose only: seconds, ``x y z qx qy qz qw``).
         name: the sequence's name (default: the folder's name).
+        max_gap: the longest ground-truth gap [s] an IMU sample may fall in: its attitude
+            is interpolated across (slerp). Default: 5 × the ground truth's median interval
+            (motion capture drops frames; a longer gap is refused, not bridged).
 
     Raises:
         DataError: not a sequence folder, no ground truth, ground truth that does not
-            overlap the IMU, non-finite samples (from the reader, naming the rows).
+            overlap the IMU or has a gap longer than ``max_gap`` inside it, non-finite
+            samples (from the reader, naming the rows).
     """
     path = pathlib.Path(path)
     data = read_euroc(path)
@@ -157,9 +161,16 @@ def load_sequence(path, *, name: str | None = None) -> Sequence:
     if np.any(np.diff(inside) != 1):  # cannot happen for a sorted t, kept as a guard
         raise DataError(f"{path}: IMU samples inside the ground truth are not contiguous")
     t = data.t[lo:hi]
-    q, p, v = gt.interpolate(t)
-    if v is None:
-        v = gt.velocity(t)
+    try:
+        q, p, v = gt.interpolate(t, max_gap=max_gap)
+        if v is None:
+            v = gt.velocity(t, max_gap=max_gap)
+    except DataError as e:  # a gap: name the recording and the way across
+        raise DataError(
+            f"{path}: {e}; every IMU sample needs a reference: bridge gaps up to a longer "
+            "max_gap (`--max-gap SECONDS` on the command line, max_gap= in load_sequence), "
+            "or cut the recording before the gap"
+        ) from None
     b = {}
     for k in ("b_g", "b_a"):
         x = getattr(gt, k)

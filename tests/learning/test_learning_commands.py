@@ -19,8 +19,11 @@ from jaximu.learning import Denoiser, ModelConfig
 TINY = ModelConfig(channels=(4, 4), kernel=3, dilations=(1, 2), bias_tracking=False)
 
 
-def write_sequence(folder, seconds=12.0, rate=200.0, gt_shift=0.0, nan_row=None, seed=0):
-    """A recording in the flat layout (``imu.csv`` + full-state ``groundtruth.csv``)."""
+def write_sequence(
+    folder, seconds=12.0, rate=200.0, gt_shift=0.0, nan_row=None, seed=0, gt_gap=None
+):
+    """A recording in the flat layout (``imu.csv`` + full-state ``groundtruth.csv``);
+    ``gt_gap``: ``(start, stop)`` [s] whose ground-truth rows are left out (a mocap dropout)."""
     rng = np.random.default_rng(seed)
     dt = 1.0 / rate
     T = int(seconds * rate)
@@ -37,10 +40,13 @@ def write_sequence(folder, seconds=12.0, rate=200.0, gt_shift=0.0, nan_row=None,
         for s, g, a in zip(stamps, gyro, accel):
             f.write(f"{s}," + ",".join(f"{x:.17g}" for x in (*g, *a)) + "\n")
     gt_stamps = stamps + int(gt_shift * 1e9)
+    keep = np.ones(T, bool)
+    if gt_gap is not None:
+        keep[int(gt_gap[0] * rate) : int(gt_gap[1] * rate)] = False
     z = np.zeros(3)
     with open(folder / "groundtruth.csv", "w") as f:
         f.write("#timestamp,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bgx,bgy,bgz,bax,bay,baz\n")
-        for s, qq in zip(gt_stamps, q):
+        for s, qq in zip(gt_stamps[keep], q[keep]):
             vals = (*z, *qq, *z, -0.002, 0.021, 0.077, *z)
             f.write(f"{s}," + ",".join(f"{x:.17g}" for x in vals) + "\n")
     return folder
@@ -168,6 +174,41 @@ def test_ground_truth_that_does_not_cover_the_imu(folders, capsys, tmp_path):
     seq = write_sequence(tmp_path / "late", seconds=5.0, gt_shift=100.0)
     code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
     one_line_error(code, err, "does not cover")
+
+
+def test_ground_truth_with_a_gap_is_refused_unless_bridged(folders, capsys, tmp_path):
+    """A 0.2-s mocap dropout (40 rows at 200 Hz, beyond 5 × the median interval): one line
+    naming the folder and ``--max-gap``; with ``--max-gap 0.5`` every IMU sample is
+    evaluated, the reference slerped across the gap."""
+    seq = write_sequence(tmp_path / "gap", seconds=5.0, gt_gap=(2.0, 2.2))
+    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
+    one_line_error(code, err, str(seq), "0.205 s gap", "--max-gap")
+    js = tmp_path / "gap.json"
+    argv = ("learn", "evaluate", str(folders["model"]), str(seq), "--max-gap", "0.5")
+    code, _, err = run(capsys, *argv, "--json", str(js))
+    assert code == 0, err
+    assert json.loads(js.read_text())["sequences"][0]["samples"] == 1000
+    code, _, err = run(capsys, *argv[:-1], "-1")
+    one_line_error(code, err, "--max-gap", "positive")
+
+
+def test_a_plot_format_matplotlib_cannot_write_is_refused_before_any_work(
+    folders, capsys, tmp_path
+):
+    js, bad = tmp_path / "x.json", tmp_path / "errors.txt"
+    code, _, err = run(
+        capsys,
+        "learn",
+        "evaluate",
+        str(folders["model"]),
+        str(folders["seq"]),
+        "--json",
+        str(js),
+        "--plot",
+        str(bad),
+    )
+    one_line_error(code, err, "--plot", ".png")
+    assert not js.exists() and not bad.exists()
 
 
 def test_nan_samples(folders, capsys, tmp_path):
