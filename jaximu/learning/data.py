@@ -14,6 +14,7 @@ import pathlib
 
 import numpy as np
 
+from jaximu.geometry._checks import check_positive
 from jaximu.io import DataError, read_euroc
 
 __all__ = ["Sequence", "load_sequence", "split", "RATE_TOLERANCE"]
@@ -190,6 +191,7 @@ def load_sequence(path, *, name: str | None = None, max_gap: float | None = None
 def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequence]:
     """The first ``train_seconds`` for training and the rest for validation (Brossard's
     split of each training sequence)."""
+    check_positive("train_seconds", train_seconds)
     k = int(np.searchsorted(seq.t, seq.t[0] + train_seconds))
     if k < 2 or len(seq) - k < 2:
         raise DataError(

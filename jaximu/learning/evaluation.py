@@ -25,6 +25,7 @@ import numpy as np
 from jaximu.engine.errorstate import accumulate_covariance, transition_products
 from jaximu.engine.propagate import propagate, propagate_final
 from jaximu.geometry import so3
+from jaximu.geometry._checks import check_int, check_positive, compute_dtype
 from jaximu.geometry.state import NavState
 from jaximu.learning.data import Sequence, check_rate, check_sequence
 from jaximu.learning.losses import rotation_step_blocks
@@ -212,7 +213,7 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     check_model("model", model)
     check_sequence("seq", seq)
     check_rate(seq, model.config.rate_hz)
-    dtype = jnp.result_type(float) if dtype is None else dtype
+    dtype = jnp.result_type(float) if dtype is None else compute_dtype("dtype", dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel, q_true, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt)
     metrics = {}
@@ -259,6 +260,12 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     ``"constant_bias"`` (both sensors minus the stored biases), ``"learned_gyro"`` (the
     learned gyro, the accelerometer minus its constant bias) and ``"learned"`` (both
     corrected; the same as ``"learned_gyro"`` without an accelerometer head)."""
+    check_model("model", model)
+    check_sequence("seq", seq)
+    check_rate(seq, model.config.rate_hz)
+    check_positive("seconds", seconds)
+    start = check_int("start", start, 0)
+    dtype = compute_dtype("dtype", dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)

@@ -32,10 +32,32 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.geometry._checks import (
+    check_int,
+    check_positive,
+    check_vector,
+    float_dtype,
+    to_dtype,
+)
 from jaximu.geometry.noise import ImuNoise
 from jaximu.learning.tracking import Tracked, TrackerSettings, check_settings, track_gyro_bias
 
 __all__ = ["ModelConfig", "Corrected", "CausalConv", "Denoiser"]
+
+
+def _check_numbers(name: str, x, n: int, low: str | None) -> None:
+    """``x``: ``n`` finite numbers (``low``: each "positive" or "non-negative" too)."""
+    try:
+        v = np.asarray(x, np.float64)
+    except (TypeError, ValueError):
+        v = np.full(n + 1, np.nan)
+    ok = v.shape == (n,) and bool(np.all(np.isfinite(v)))
+    if ok and low == "positive":
+        ok = bool(np.all(v > 0))
+    elif ok and low == "non-negative":
+        ok = bool(np.all(v >= 0))
+    if not ok:
+        raise ValueError(f"{name} must be {n} {low + ' ' if low else ''}finite numbers, got {x!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,6 +134,31 @@ class ModelConfig:
             "accel_bias_sigma",
         ):  # JSON gives lists
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        name = "ModelConfig"
+        check_positive(f"{name}.rate_hz", self.rate_hz)
+        for field in ("channels", "dilations"):
+            for i, c in enumerate(getattr(self, field)):
+                check_int(f"{name}.{field}[{i}]", c, 1)
+        if check_positive(f"{name}.dropout", self.dropout, allow_zero=True) >= 1.0:
+            raise ValueError(f"{name}.dropout must be in [0, 1), got {self.dropout!r}")
+        for field, n, low in (
+            ("input_mean", 6, None),
+            ("input_std", 6, "positive"),
+            ("gyro_bias", 3, None),
+            ("accel_bias", 3, None),
+            ("gyro_scale", 3, "non-negative"),
+            ("accel_scale", 3, "non-negative"),
+        ):
+            _check_numbers(f"{name}.{field}", getattr(self, field), n, low)
+        for field in (
+            "gyro_density",
+            "gyro_random_walk",
+            "accel_density",
+            "accel_random_walk",
+            "bias_sigma",
+            "reference_sigma",
+        ):  # densities; the last two are stored as logarithms
+            check_positive(f"{name}.{field}", getattr(self, field))
         if len(self.channels) != len(self.dilations):
             raise ValueError(
                 f"ModelConfig: channels {self.channels} and dilations "
@@ -125,7 +172,8 @@ class ModelConfig:
                 raise ValueError(
                     f"ModelConfig.{name} must be True or False, got {getattr(self, name)!r}"
                 )
-        if self.kernel < 1 or self.kernel % 2 == 0:
+        check_int(f"{name}.kernel", self.kernel, 1, "a positive odd number")
+        if self.kernel % 2 == 0:
             raise ValueError(f"ModelConfig.kernel must be a positive odd number, got {self.kernel}")
 
     def tracker(self) -> TrackerSettings:
@@ -308,7 +356,8 @@ class Denoiser(eqx.Module):
         tracked from gravity (:func:`jaximu.learning.tracking.track_gyro_bias`), or the
         constant ``b̄_g`` (standard deviation 0) without ``bias_tracking``."""
         cfg = self.config
-        dtype = jnp.result_type(gyro, accel)
+        gyro, accel = _samples(gyro, accel)
+        dtype = gyro.dtype
         if cfg.bias_tracking:
             return track_gyro_bias(gyro, accel, 1.0 / cfg.rate_hz, cfg.tracker())
         b = jnp.broadcast_to(jnp.asarray(cfg.gyro_bias, dtype), jnp.shape(gyro))
@@ -318,7 +367,8 @@ class Denoiser(eqx.Module):
         """Corrected samples; ``gyro_bias``: ``(..., T, 3)`` the tracked bias when already
         computed (:meth:`track`; training passes it, the tracker being fixed)."""
         cfg = self.config
-        dtype = jnp.result_type(gyro, accel)
+        gyro, accel = _samples(gyro, accel)
+        dtype = gyro.dtype
         y, z = self.features(gyro, accel, key)
         y, z = y.astype(dtype), z.astype(dtype)
         C = self.gyro_matrix.astype(dtype)
@@ -337,6 +387,21 @@ class Denoiser(eqx.Module):
             a = a + jnp.asarray(cfg.accel_scale, dtype) * y[..., 3:6]
         density = cfg.gyro_density * jnp.exp(3.0 * jnp.tanh(z / 3.0))
         return Corrected(w, a, density, jnp.asarray(bias_sigma, dtype))
+
+
+def _samples(gyro, accel):
+    """``gyro``, ``accel`` as arrays ``(..., T, 3)`` of one shape in their floating dtype
+    (integers: float32, as the engine computes them); anything else raises naming them."""
+    dtype = float_dtype(gyro, accel)
+    g, a = to_dtype("gyro", gyro, dtype), to_dtype("accel", accel, dtype)
+    check_vector("gyro", g)
+    check_vector("accel", a)
+    if g.shape != a.shape:
+        raise ValueError(
+            f"gyro and accel must have one shape (..., T, 3), got {tuple(g.shape)} and "
+            f"{tuple(a.shape)}"
+        )
+    return g, a
 
 
 def check_model(name: str, model) -> Denoiser:

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaximu.geometry._checks import check_bool, check_int, check_positive
 from jaximu.io import DataError
 from jaximu.learning import uncertainty
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
@@ -39,6 +40,25 @@ __all__ = [
     "bias_spreads",
     "normalisation",
 ]
+
+
+_INTEGERS = {
+    "steps": 1,
+    "restart": 1,
+    "offset": 1,
+    "skip": 0,
+    "validate_every": 1,
+    "velocity_horizon": 1,
+}
+_NON_NEGATIVE = (
+    "weight_decay",
+    "gyro_noise",
+    "accel_noise",
+    "gyro_bias_noise",
+    "accel_bias_noise",
+    "nll_weight",
+    "velocity_weight",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,12 +132,29 @@ class TrainConfig:
     recording_offsets: bool = True
 
     def __post_init__(self):
-        object.__setattr__(self, "horizons", tuple(int(h) for h in self.horizons))
-        h = self.horizons
+        name = "TrainConfig"
+        try:
+            horizons = tuple(self.horizons)
+        except TypeError:
+            raise ValueError(
+                f"{name}.horizons must be window lengths in samples, got {self.horizons!r}"
+            ) from None
+        h = tuple(check_int(f"{name}.horizons[{i}]", x, 1) for i, x in enumerate(horizons))
         if not h or any(b != 2 * a for a, b in zip(h, h[1:])):
-            raise ValueError(f"horizons must each be twice the one before, got {h}")
-        if self.steps < 1 or self.validate_every < 1:
-            raise ValueError("steps and validate_every must be positive")
+            raise ValueError(f"{name}.horizons must each be twice the one before, got {h}")
+        object.__setattr__(self, "horizons", h)  # JSON gives a list
+        for field, minimum in _INTEGERS.items():
+            object.__setattr__(
+                self, field, check_int(f"{name}.{field}", getattr(self, field), minimum)
+            )
+        for field in ("learning_rate", "min_learning_rate", "train_seconds", "velocity_delta"):
+            check_positive(f"{name}.{field}", getattr(self, field))
+        for field in _NON_NEGATIVE:
+            check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
+        if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:
+            raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
+        for field in ("calibrate_uncertainty", "recording_offsets"):
+            check_bool(f"{name}.{field}", getattr(self, field))
 
     def to_json(self) -> dict:
         return {

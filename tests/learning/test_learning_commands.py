@@ -240,3 +240,63 @@ def test_the_python_api_names_bad_arguments(folders):
         learning.train([seq, "x"])
     with pytest.raises(ValueError, match="unknown pretrained model"):
         learning.pretrained("kitti")
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(steps=0), r"TrainConfig.steps must be a positive integer, got 0"),
+        (dict(horizons=(16.5, 33)), r"TrainConfig.horizons\[0\] must be a positive integer"),
+        (dict(horizons=(0,)), r"TrainConfig.horizons\[0\] must be a positive integer"),
+        (dict(horizons=(16, 48)), r"TrainConfig.horizons must each be twice"),
+        (dict(learning_rate=-1e-3), r"TrainConfig.learning_rate must be positive"),
+        (dict(train_seconds=float("nan")), r"TrainConfig.train_seconds must be positive"),
+        (dict(gyro_noise=-1.0), r"TrainConfig.gyro_noise must be non-negative"),
+        (dict(ema=1.0), r"TrainConfig.ema must be in \[0, 1\)"),
+        (dict(recording_offsets="no"), r"TrainConfig.recording_offsets must be True or False"),
+    ],
+)
+def test_train_settings_outside_their_domain_are_refused_by_name(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        learning.TrainConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(rate_hz=-200.0), r"ModelConfig.rate_hz must be positive"),
+        (dict(channels=(4, 0), dilations=(1, 2)), r"ModelConfig.channels\[1\] must be a pos"),
+        (dict(dropout=1.5), r"ModelConfig.dropout must be in \[0, 1\)"),
+        (dict(gyro_density=0.0), r"ModelConfig.gyro_density must be positive"),
+        (dict(input_std=(1.0,) * 5), r"ModelConfig.input_std must be 6 positive finite"),
+        (dict(gyro_bias=(0.0, np.nan, 0.0)), r"ModelConfig.gyro_bias must be 3 finite"),
+        (dict(kernel=4), r"ModelConfig.kernel must be a positive odd number"),
+    ],
+)
+def test_model_settings_outside_their_domain_are_refused_by_name(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ModelConfig(**kwargs)
+
+
+def test_the_model_takes_samples_of_one_shape_and_computes_integers_in_float32(folders):
+    model = learning.load(folders["model"])
+    rng = np.random.default_rng(0)
+    g = rng.integers(-2, 3, (50, 3))
+    a = rng.integers(8, 11, (50, 3))
+    c = model(g, a)
+    # integers are samples in rad/s and m/s², computed in float32 (as the engine does),
+    # never truncated: the corrected rate is the float one's
+    assert c.gyro.dtype == np.float32
+    ref = model(g.astype(np.float32), a.astype(np.float32))
+    np.testing.assert_array_equal(np.asarray(c.gyro), np.asarray(ref.gyro))
+    with pytest.raises(ValueError, match=r"gyro must have shape \(\.\.\., T, 3\)"):
+        model(g[:, :2], a)
+    with pytest.raises(ValueError, match="gyro and accel must have one shape"):
+        model(g, a[:-1])
+    with pytest.raises(ValueError, match="accel must be an array of numbers"):
+        model(g, "a")
+    seq = learning.load_sequence(folders["seq"])
+    with pytest.raises(ValueError, match="dtype must be a floating dtype"):
+        learning.evaluate_sequence(model, seq, dtype=np.int32)
+    with pytest.raises(ValueError, match="train_seconds must be positive"):
+        learning.data.split(seq, 0.0)
