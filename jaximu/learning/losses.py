@@ -30,6 +30,7 @@ from jaximu.engine.errorstate import (
 )
 from jaximu.engine.preintegration import preintegrate
 from jaximu.geometry import so3
+from jaximu.geometry._checks import check_int
 from jaximu.geometry.noise import ImuNoise
 from jaximu.schemes.integrators import blocks_analytic
 
@@ -185,6 +186,26 @@ def nees(r, S):
     return jnp.sum(z * z, -1)
 
 
+def _check_horizons(horizons, T: int, skip: int) -> tuple:
+    """``horizons`` as ints, each twice the one before (the windows of one are the pairs of
+    the one before), the longest with at least one window in ``T`` samples after ``skip``."""
+    try:
+        h = tuple(horizons)
+    except TypeError:
+        raise ValueError(f"horizons must be window lengths in samples, got {horizons!r}") from None
+    h = tuple(check_int(f"horizons[{i}]", x, 1) for i, x in enumerate(h))
+    if not h or any(b != 2 * a for a, b in zip(h, h[1:])):
+        raise ValueError(f"horizons must each be twice the one before, got {h}")
+    skip = check_int("skip", skip, 0)
+    H, s = h[-1], -(-skip // 2 ** (len(h) - 1))
+    if T // H - s < 1:
+        raise ValueError(
+            f"horizons: no window of {H} samples fits in {T} samples (after skipping {skip} "
+            f"of {h[0]}); give shorter horizons or more samples"
+        )
+    return h
+
+
 def increment_terms(
     corrected, q_true, dt, horizons=(16, 32), *, with_noise=True, random_walk=0.0, skip: int = 0
 ):
@@ -193,6 +214,7 @@ def increment_terms(
     transitions and noise ``(..., W, 6, 6)`` (None otherwise): what :func:`increment_loss`
     and the uncertainty's fit (:func:`jaximu.learning.uncertainty.fit_reference_sigma`)
     read. Arguments as :func:`increment_loss`'s."""
+    horizons = _check_horizons(horizons, corrected.gyro.shape[-2], skip)
     w = windows(
         corrected.gyro,
         corrected.accel,

@@ -401,6 +401,8 @@ def _samples(gyro, accel):
             f"gyro and accel must have one shape (..., T, 3), got {tuple(g.shape)} and "
             f"{tuple(a.shape)}"
         )
+    if g.shape[-2] < 1:
+        raise ValueError(f"gyro and accel hold no samples (shape {tuple(g.shape)})")
     return g, a
 
 

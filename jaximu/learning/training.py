@@ -402,6 +402,10 @@ def train(
         )
     for i, s in enumerate(sequences):
         check_sequence(f"sequences[{i}]", s)
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if minutes is not None:
+        check_positive("minutes", minutes)
     if not isinstance(cfg, TrainConfig):
         raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
     if model_config is not None and not isinstance(model_config, ModelConfig):

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaximu.geometry._checks import check_positive
 from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
 from jaximu.learning.losses import gaussian_nll, increment_terms, rotation_covariance
 
@@ -107,14 +108,16 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
     return out
 
 
-def _with_log(model, where, value: float):
-    """``model`` with the log-parameter ``where(model)`` set to ``log(value)``, in its dtype."""
+def _with_log(model, where, value: float, name: str):
+    """``model`` with the log-parameter ``where(model)`` set to ``log(value)``, in its dtype
+    (``value`` a positive number, named ``name`` if not)."""
+    value = check_positive(name, value)
     return eqx.tree_at(where, model, jnp.asarray(np.log(value), where(model).dtype))
 
 
 def with_bias_sigma(model, bias_sigma: float):
     """``model`` with its residual gyro bias set to ``bias_sigma`` [rad/s]."""
-    return _with_log(model, lambda m: m.log_bias_sigma, bias_sigma)
+    return _with_log(model, lambda m: m.log_bias_sigma, bias_sigma, "bias_sigma")
 
 
 @eqx.filter_jit
@@ -178,4 +181,4 @@ def fit_reference_sigma(
 
 def with_reference_sigma(model, reference_sigma: float):
     """``model`` with the ground truth's attitude noise set to ``reference_sigma`` [rad]."""
-    return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma)
+    return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma, "reference_sigma")

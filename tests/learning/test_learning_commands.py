@@ -300,3 +300,25 @@ def test_the_model_takes_samples_of_one_shape_and_computes_integers_in_float32(f
         learning.evaluate_sequence(model, seq, dtype=np.int32)
     with pytest.raises(ValueError, match="train_seconds must be positive"):
         learning.data.split(seq, 0.0)
+
+
+def test_training_and_uncertainty_arguments_are_checked_before_any_work(folders):
+    seq = learning.load_sequence(folders["seq"])
+    model = learning.load(folders["model"])
+    cfg = learning.TrainConfig(steps=1, train_seconds=6.0)
+    with pytest.raises(ValueError, match="minutes must be positive"):
+        learning.train([seq], cfg, TINY, minutes=-1.0)
+    with pytest.raises(ValueError, match="seed must be an integer, got 1.5"):
+        learning.train([seq], cfg, TINY, seed=1.5)
+    with pytest.raises(ValueError, match="bias_sigma must be positive"):
+        learning.uncertainty.with_bias_sigma(model, -1.0)
+    with pytest.raises(ValueError, match="reference_sigma must be positive"):
+        learning.uncertainty.with_reference_sigma(model, float("nan"))
+    with pytest.raises(ValueError, match="gyro and accel hold no samples"):
+        model(np.zeros((0, 3)), np.zeros((0, 3)))
+    c = model(seq.gyro[:64], seq.accel[:64])
+    q = seq.q[:65]
+    with pytest.raises(ValueError, match="no window of 128 samples fits in 64 samples"):
+        learning.losses.increment_loss(c, q, 0.005, (64, 128))
+    with pytest.raises(ValueError, match="horizons must each be twice the one before"):
+        learning.losses.increment_loss(c, q, 0.005, (16, 24))
