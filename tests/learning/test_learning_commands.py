@@ -65,19 +65,15 @@ def run(capsys, *argv):
     return code, out.out, out.err
 
 
+def evaluate_with_outputs(capsys, folders, js, plot):
+    """``jaximu learn evaluate`` of the untrained model on the written sequence."""
+    model, seq = str(folders["model"]), str(folders["seq"])
+    return run(capsys, "learn", "evaluate", model, seq, "--json", str(js), "--plot", str(plot))
+
+
 def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys, tmp_path):
     js, png = tmp_path / "eval.json", tmp_path / "eval.png"
-    code, out, err = run(
-        capsys,
-        "learn",
-        "evaluate",
-        str(folders["model"]),
-        str(folders["seq"]),
-        "--json",
-        str(js),
-        "--plot",
-        str(png),
-    )
+    code, out, err = evaluate_with_outputs(capsys, folders, js, png)
     assert code == 0, err
     assert "constant bias" in out and "NEES" in out
     doc = json.loads(js.read_text())
@@ -196,17 +192,7 @@ def test_a_plot_format_matplotlib_cannot_write_is_refused_before_any_work(
     folders, capsys, tmp_path
 ):
     js, bad = tmp_path / "x.json", tmp_path / "errors.txt"
-    code, _, err = run(
-        capsys,
-        "learn",
-        "evaluate",
-        str(folders["model"]),
-        str(folders["seq"]),
-        "--json",
-        str(js),
-        "--plot",
-        str(bad),
-    )
+    code, _, err = evaluate_with_outputs(capsys, folders, js, bad)
     one_line_error(code, err, "--plot", ".png")
     assert not js.exists() and not bad.exists()
 
