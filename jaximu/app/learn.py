@@ -47,8 +47,10 @@ def _check_model_out(path):
 
 
 def _load_all(learning, args):
-    if args.max_gap is not None and not (np.isfinite(args.max_gap) and args.max_gap > 0):
-        raise UsageError(f"--max-gap must be a positive number of seconds, got {args.max_gap:g}")
+    if args.max_gap is not None and not args.max_gap > 0:  # inf: any gap; NaN refused
+        raise UsageError(
+            f"--max-gap must be a positive number of seconds (inf: any gap), got {args.max_gap:g}"
+        )
     seqs = []
     for d in args.dirs:
         p = pathlib.Path(d)
@@ -136,6 +138,15 @@ def cmd_evaluate(args):
             else {}
         )  # velocities measured
         print(_table(rep, win))
+        if rep.metrics["learned"].aoe_mean > rep.metrics["raw"].aoe_mean:
+            # the model's stored bias is its training IMU's: on another kind of IMU it
+            # starts from a bias the recording does not have
+            print(
+                f"  note: the learned correction is worse than the raw gyro on {rep.name}; "
+                "is it an IMU of the model's kind (stored gyro bias "
+                + " ".join(f"{x:.4f}" for x in model.config.gyro_bias)
+                + " rad/s)?"
+            )
         reports.append(rep)
         windows.append(win)
     avg = {

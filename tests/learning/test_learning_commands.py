@@ -4,6 +4,7 @@ the fix, exit code 2, and nothing written or overwritten."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -308,3 +309,19 @@ def test_training_and_uncertainty_arguments_are_checked_before_any_work(folders)
         learning.losses.increment_loss(c, q, 0.005, (64, 128))
     with pytest.raises(ValueError, match="horizons must each be twice the one before"):
         learning.losses.increment_loss(c, q, 0.005, (16, 24))
+
+
+def test_evaluate_notes_a_model_worse_than_the_raw_gyro(folders, capsys, tmp_path):
+    """A model whose stored gyro bias is not the recording's (another kind of IMU) ends
+    worse than the raw gyro: the command says so beside the table."""
+
+    def evaluate_with_bias(name, gyro_bias):
+        cfg = dataclasses.replace(TINY, gyro_bias=gyro_bias)
+        path = learning.save(tmp_path / name, Denoiser(cfg, jax.random.key(0)), {"seed": 0})
+        return run(capsys, "learn", "evaluate", str(path), str(folders["seq"]))
+
+    code, out, err = evaluate_with_bias("other", (0.05, -0.05, 0.0))
+    assert code == 0, err
+    assert "worse than the raw gyro on seq" in out and "0.0500 -0.0500 0.0000" in out
+    code, out, _ = evaluate_with_bias("same", (-0.002, 0.021, 0.077))  # write_sequence's bias
+    assert code == 0 and "worse than the raw gyro" not in out
