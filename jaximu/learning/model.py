@@ -121,7 +121,7 @@ class ModelConfig:
     standstill: bool = True
 
     def __post_init__(self):
-        for name in (
+        for field in (
             "channels",
             "dilations",
             "input_mean",
@@ -133,12 +133,19 @@ class ModelConfig:
             "gyro_bias_sigma",
             "accel_bias_sigma",
         ):  # JSON gives lists
-            object.__setattr__(self, name, tuple(getattr(self, name)))
+            value = getattr(self, field)
+            if isinstance(value, (str, bytes)) or not np.iterable(value):
+                raise ValueError(
+                    f"ModelConfig.{field} must be a sequence of numbers, got {value!r}"
+                )
+            object.__setattr__(self, field, tuple(value))
         name = "ModelConfig"
         check_positive(f"{name}.rate_hz", self.rate_hz)
-        for field in ("channels", "dilations"):
-            for i, c in enumerate(getattr(self, field)):
-                check_int(f"{name}.{field}[{i}]", c, 1)
+        for field in ("channels", "dilations"):  # whole numbers, kept as ints
+            widths = tuple(
+                check_int(f"{name}.{field}[{i}]", c, 1) for i, c in enumerate(getattr(self, field))
+            )
+            object.__setattr__(self, field, widths)
         if check_positive(f"{name}.dropout", self.dropout, allow_zero=True) >= 1.0:
             raise ValueError(f"{name}.dropout must be in [0, 1), got {self.dropout!r}")
         for field, n, low in (

@@ -258,6 +258,7 @@ def test_train_settings_outside_their_domain_are_refused_by_name(kwargs, message
         (dict(input_std=(1.0,) * 5), r"ModelConfig.input_std must be 6 positive finite"),
         (dict(gyro_bias=(0.0, np.nan, 0.0)), r"ModelConfig.gyro_bias must be 3 finite"),
         (dict(kernel=4), r"ModelConfig.kernel must be a positive odd number"),
+        (dict(input_std=5.0), r"ModelConfig.input_std must be a sequence of numbers"),
     ],
 )
 def test_model_settings_outside_their_domain_are_refused_by_name(kwargs, message):
