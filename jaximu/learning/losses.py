@@ -186,16 +186,24 @@ def nees(r, S):
     return jnp.sum(z * z, -1)
 
 
-def _check_horizons(horizons, T: int, skip: int) -> tuple:
-    """``horizons`` as ints, each twice the one before (the windows of one are the pairs of
-    the one before), the longest with at least one window in ``T`` samples after ``skip``."""
+def check_horizons(name: str, horizons) -> tuple:
+    """``horizons`` (named ``name`` in the error) as a tuple of whole numbers of samples,
+    each twice the one before: the windows of one horizon are the pairs of the one before's
+    (:func:`compose_pairs`)."""
     try:
         h = tuple(horizons)
     except TypeError:
-        raise ValueError(f"horizons must be window lengths in samples, got {horizons!r}") from None
-    h = tuple(check_int(f"horizons[{i}]", x, 1) for i, x in enumerate(h))
+        raise ValueError(f"{name} must be window lengths in samples, got {horizons!r}") from None
+    h = tuple(check_int(f"{name}[{i}]", x, 1) for i, x in enumerate(h))
     if not h or any(b != 2 * a for a, b in zip(h, h[1:])):
-        raise ValueError(f"horizons must each be twice the one before, got {h}")
+        raise ValueError(f"{name} must each be twice the one before, got {h}")
+    return h
+
+
+def _check_horizons(horizons, T: int, skip: int) -> tuple:
+    """:func:`check_horizons`, and the longest with at least one window in ``T`` samples
+    after ``skip``."""
+    h = check_horizons("horizons", horizons)
     skip = check_int("skip", skip, 0)
     H, s = h[-1], -(-skip // 2 ** (len(h) - 1))
     if T // H - s < 1:

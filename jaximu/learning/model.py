@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.geometry._checks import (
+    check_array,
     check_int,
     check_positive,
     check_vector,
@@ -43,21 +44,6 @@ from jaximu.geometry.noise import ImuNoise
 from jaximu.learning.tracking import Tracked, TrackerSettings, check_settings, track_gyro_bias
 
 __all__ = ["ModelConfig", "Corrected", "CausalConv", "Denoiser"]
-
-
-def _check_numbers(name: str, x, n: int, low: str | None) -> None:
-    """``x``: ``n`` finite numbers (``low``: each "positive" or "non-negative" too)."""
-    try:
-        v = np.asarray(x, np.float64)
-    except (TypeError, ValueError):
-        v = np.full(n + 1, np.nan)
-    ok = v.shape == (n,) and bool(np.all(np.isfinite(v)))
-    if ok and low == "positive":
-        ok = bool(np.all(v > 0))
-    elif ok and low == "non-negative":
-        ok = bool(np.all(v >= 0))
-    if not ok:
-        raise ValueError(f"{name} must be {n} {low + ' ' if low else ''}finite numbers, got {x!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,8 +141,12 @@ class ModelConfig:
             ("accel_bias", 3, None),
             ("gyro_scale", 3, "non-negative"),
             ("accel_scale", 3, "non-negative"),
-        ):
-            _check_numbers(f"{name}.{field}", getattr(self, field), n, low)
+        ):  # n finite numbers, of a sign where ``low`` says
+            v = check_array(f"{name}.{field}", getattr(self, field), (n,))
+            if (low == "positive" and not np.all(v > 0)) or (
+                low == "non-negative" and np.any(v < 0)
+            ):
+                raise ValueError(f"{name}.{field} must be {n} {low} numbers, got {v.tolist()}")
         for field in (
             "gyro_density",
             "gyro_random_walk",

@@ -29,7 +29,7 @@ from jaximu.io import DataError
 from jaximu.learning import uncertainty
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors, window_errors
-from jaximu.learning.losses import huber, increment_loss, velocity_residuals
+from jaximu.learning.losses import check_horizons, huber, increment_loss, velocity_residuals
 from jaximu.learning.model import Denoiser, ModelConfig
 
 __all__ = [
@@ -133,15 +133,7 @@ class TrainConfig:
 
     def __post_init__(self):
         name = "TrainConfig"
-        try:
-            horizons = tuple(self.horizons)
-        except TypeError:
-            raise ValueError(
-                f"{name}.horizons must be window lengths in samples, got {self.horizons!r}"
-            ) from None
-        h = tuple(check_int(f"{name}.horizons[{i}]", x, 1) for i, x in enumerate(horizons))
-        if not h or any(b != 2 * a for a, b in zip(h, h[1:])):
-            raise ValueError(f"{name}.horizons must each be twice the one before, got {h}")
+        h = check_horizons(f"{name}.horizons", self.horizons)
         object.__setattr__(self, "horizons", h)  # JSON gives a list
         for field, minimum in _INTEGERS.items():
             object.__setattr__(

@@ -29,9 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaximu.geometry._checks import check_positive
+from jaximu.geometry._checks import check_int, check_positive
 from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
-from jaximu.learning.losses import gaussian_nll, increment_terms, rotation_covariance
+from jaximu.learning.losses import (
+    check_horizons,
+    gaussian_nll,
+    increment_terms,
+    rotation_covariance,
+)
 
 __all__ = [
     "NeesTerms",
@@ -172,9 +177,10 @@ def fit_reference_sigma(
             model tracks it).
         steps: L-BFGS iterations at most, in ``log σ`` (it stops when the gradient vanishes).
     """
-    terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, tuple(horizons), int(skip))
+    horizons, skip = check_horizons("horizons", horizons), check_int("skip", skip, 0)
+    terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip)
     p0 = jnp.stack([model.log_bias_sigma, model.log_reference_sigma]).astype(gyro.dtype)
-    p = _lbfgs(p0, terms, int(steps))
+    p = _lbfgs(p0, terms, check_int("steps", steps, 1))
     sb, sr = np.exp(np.asarray(p, np.float64))
     return float(sr), float(sb)
 
