@@ -16,13 +16,16 @@ __all__ = [
     "UsageError",
     "add_input_options",
     "add_output_options",
+    "add_repair_options",
     "add_sensor_options",
+    "add_unit_options",
     "bias_option",
     "check_earth_rate",
     "check_outputs",
     "compute_dtype",
     "detect_format",
     "load_recording",
+    "reader_options",
     "sensor_and_world",
     "start_at_groundtruth",
 ]
@@ -136,15 +139,7 @@ def load_recording(args):
     if not path.exists():
         raise UsageError(f"no such file or directory: {path}")
     fmt = args.format if args.format != "auto" else detect_format(path)
-    repair = {
-        "sort": args.sort,
-        "drop_duplicates": args.drop_duplicates,
-        "drop_nonfinite": args.drop_nonfinite,
-        "allow_gaps": args.allow_gaps,
-        "max_gap": args.max_gap,
-        "check_units": not args.no_unit_check,
-    }
-    units = {"gyro_unit": args.gyro_unit, "accel_unit": args.accel_unit}
+    options = reader_options(args)
     if args.topic is not None and fmt != "rosbag":
         raise UsageError(
             f"--topic names a ROS bag's topic; {path} is read as {fmt}: drop "
@@ -153,7 +148,7 @@ def load_recording(args):
     if args.time_unit is not None and fmt not in ("csv", "npz"):
         raise UsageError(f"--time-unit applies to CSV and NPZ input, not {fmt} (stamps in ns)")
     if fmt in ("euroc", "tumvi"):  # SI by definition; the units flags for other ASL folders
-        data = (io.read_euroc if fmt == "euroc" else io.read_tumvi)(path, **units, **repair)
+        data = (io.read_euroc if fmt == "euroc" else io.read_tumvi)(path, **options)
     elif fmt == "csv":
         cols = [c.strip() for c in args.columns.split(",")]
         if len(cols) != 7:
@@ -165,13 +160,12 @@ def load_recording(args):
             gyro=cols[1:4],
             accel=cols[4:7],
             time_unit=args.time_unit,
-            **units,
-            **repair,
+            **options,
         )
     elif fmt == "npz":
-        data = io.read_npz(path, time_unit=args.time_unit or "s", **units, **repair)
+        data = io.read_npz(path, time_unit=args.time_unit or "s", **options)
     else:
-        data = io.read_rosbag(path, args.topic, **units, **repair)
+        data = io.read_rosbag(path, args.topic, **options)
     print(
         f"read {len(data)} samples over {data.duration:.3f} s at {data.rate_hz:.1f} Hz from "
         f"{data.source} ({fmt})" + ("; with ground truth" if data.ground_truth else "")
@@ -206,26 +200,60 @@ def add_input_options(p, formats=("auto", "euroc", "tumvi", "csv", "npz", "rosba
         help="CSV/NPZ time unit (default: the unit the CSV header states, such as "
         "EuRoC's '#timestamp [ns]', else s)",
     )
-    g.add_argument("--gyro-unit", default="rad/s", choices=["rad/s", "deg/s"])
-    g.add_argument("--accel-unit", default="m/s^2", choices=["m/s^2", "g"])
+    add_unit_options(g)
     g.add_argument("--topic", help="ROS bag: the sensor_msgs/Imu topic (default: the only one)")
     g.add_argument("--start", type=float, default=0.0, help="skip this many seconds (≥ 0)")
     g.add_argument("--duration", type=float, default=None, help="use this many seconds (> 0)")
+    add_repair_options(p)
+
+
+def add_unit_options(g):
+    """``--gyro-unit`` and ``--accel-unit`` on the argument group ``g``."""
+    g.add_argument("--gyro-unit", default="rad/s", choices=["rad/s", "deg/s"])
+    g.add_argument("--accel-unit", default="m/s^2", choices=["m/s^2", "g"])
+
+
+def add_repair_options(p, max_gap: bool = True):
+    """The readers' repairs as flags (:func:`reader_options` reads them back); ``max_gap``:
+    with ``--max-gap``, the IMU's longest interval (``jaximu learn`` has its own, the ground
+    truth's)."""
     r = p.add_argument_group("repairs (off by default: problems are errors)")
     r.add_argument("--sort", action="store_true", help="sort samples by time")
     r.add_argument(
         "--drop-duplicates", action="store_true", help="keep the first of samples with equal stamps"
     )
     r.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/inf")
-    r.add_argument("--allow-gaps", action="store_true", help="keep gaps longer than --max-gap")
-    r.add_argument(
-        "--max-gap", type=float, default=None, help="longest interval [s] (default: 5 × the median)"
-    )
+    gap = "--max-gap" if max_gap else "5 × the median interval"
+    r.add_argument("--allow-gaps", action="store_true", help=f"keep gaps longer than {gap}")
+    if max_gap:
+        r.add_argument(
+            "--max-gap",
+            type=float,
+            default=None,
+            help="longest interval [s] (default: 5 × the median)",
+        )
     r.add_argument(
         "--no-unit-check",
         action="store_true",
         help="skip the rate and magnitude plausibility checks",
     )
+
+
+def reader_options(args, max_gap: bool = True) -> dict:
+    """The readers' keyword options (units and repairs) from the flags of
+    :func:`add_unit_options` and :func:`add_repair_options`."""
+    options = {
+        "gyro_unit": args.gyro_unit,
+        "accel_unit": args.accel_unit,
+        "sort": args.sort,
+        "drop_duplicates": args.drop_duplicates,
+        "drop_nonfinite": args.drop_nonfinite,
+        "allow_gaps": args.allow_gaps,
+        "check_units": not args.no_unit_check,
+    }
+    if max_gap:
+        options["max_gap"] = args.max_gap
+    return options
 
 
 def add_output_options(p, plot_default=None):

@@ -3,7 +3,8 @@
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
-Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation.
+Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation, and
+the readers' units and repairs of the IMU samples (``--sort``, ``--drop-duplicates``, …).
 
 Parsing and printing only: the work is :mod:`jaximu.learning`'s. Needs
 ``pip install "jaximu[learning]"`` (equinox).
@@ -13,11 +14,18 @@ from __future__ import annotations
 
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
 
-from jaximu.app.common import UsageError, check_outputs
+from jaximu.app.common import (
+    UsageError,
+    add_repair_options,
+    add_unit_options,
+    check_outputs,
+    reader_options,
+)
 
 LEARNING_EXTRA = 'the learning commands need equinox: pip install "jaximu[learning]"'
 
@@ -56,7 +64,10 @@ def _load_all(learning, args):
         p = pathlib.Path(d)
         if not p.exists():
             raise UsageError(f"sequence folder {p} does not exist")
-        seqs.append(learning.load_sequence(p, max_gap=args.max_gap))
+        seq = learning.load_sequence(p, max_gap=args.max_gap, **reader_options(args, False))
+        for note in seq.repairs:
+            print(f"repair: {p}: {note}", file=sys.stderr)
+        seqs.append(seq)
     return seqs
 
 
@@ -247,4 +258,6 @@ def add_parser(sub):
             help="the longest ground-truth gap to interpolate the reference across "
             "(default: 5 × its median interval; motion capture drops frames)",
         )
+        add_unit_options(q.add_argument_group("input"))
+        add_repair_options(q, max_gap=False)
     return p

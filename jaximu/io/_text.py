@@ -108,8 +108,10 @@ def _column(header, spec, path):
     raise DataError(f"{path}: no column named {spec!r}; the header has {header}")
 
 
-def _to_ns(text, unit_ns, label):
-    """Exact integer nanoseconds from a decimal string (no float rounding)."""
+def _to_ns(text, unit_ns, label, unit_option=False, unit="ns"):
+    """Exact integer nanoseconds from a decimal string (no float rounding). A stamp that is
+    not one (a fraction of a nanosecond, beyond int64) is refused; the repair named is the
+    reader's ``time_unit`` where it has one (``unit_option``), else the format's ``unit``."""
     try:
         if "_" in text:  # Decimal reads Python's digit separators: "1_0" would be 10
             raise InvalidOperation
@@ -117,22 +119,25 @@ def _to_ns(text, unit_ns, label):
         ns = int(exact.to_integral_value())
     except (InvalidOperation, ValueError, OverflowError):  # text, NaN, inf
         raise DataError(f"{label}: timestamp {text!r} is not a finite number") from None
+    problem = None
     if unit_ns == 1 and exact != ns:
-        raise DataError(
-            f"{label}: timestamp {text!r} is not a whole number of nanoseconds",
-            [Fix("time_unit", phrase="check the time unit ({})")],
-            lead="",
-        )
-    if abs(ns) > np.iinfo(np.int64).max:
-        raise DataError(
-            f"{label}: timestamp {text!r} is beyond int64 nanoseconds",
-            [Fix("time_unit", phrase="check the time unit ({})")],
-            lead="",
-        )
-    return ns
+        problem = f"{label}: timestamp {text!r} is not a whole number of nanoseconds"
+    elif abs(ns) > np.iinfo(np.int64).max:
+        problem = f"{label}: timestamp {text!r} is beyond int64 nanoseconds"
+    if problem is None:
+        return ns
+    if unit_option:
+        raise DataError(problem, [Fix("time_unit", phrase="check the time unit ({})")], lead="")
+    raise DataError(
+        f"{problem}; this file's format stamps in {unit}: write its stamps in {unit}, or "
+        "read it as a CSV in its time unit (jaximu.io.read_csv(..., time_unit=...); "
+        "`--format csv --time-unit UNIT` on the command line)"
+    )
 
 
-def _parse(rows, lines, time_col, value_cols, time_unit, path):
+def _parse(rows, lines, time_col, value_cols, time_unit, path, unit_option=False):
+    """``(stamps [ns] (N,) int64, values (N, len(value_cols)) float64)`` of the text rows;
+    ``unit_option``: the caller took ``time_unit`` from its user (a bad stamp's repair)."""
     width = max([time_col, *value_cols]) + 1
     unit_ns = _TIME_UNITS[time_unit]
     stamps = np.empty(len(rows), np.int64)
@@ -142,7 +147,7 @@ def _parse(rows, lines, time_col, value_cols, time_unit, path):
             raise DataError(
                 f"{path}, line {k}: expected at least {width} columns, got {len(fields)}"
             )
-        stamps[r] = _to_ns(fields[time_col], unit_ns, f"{path}, line {k}")
+        stamps[r] = _to_ns(fields[time_col], unit_ns, f"{path}, line {k}", unit_option, time_unit)
         try:
             values[r] = [_float(fields[c]) for c in value_cols]
         except ValueError:

@@ -72,7 +72,7 @@ def read_csv(
             [Fix("time_unit", stated)],
             api_note=" (or leave it out)",
         )
-    stamps, values = _parse(rows, lines, cols[0], cols[1:], time_unit, path)
+    stamps, values = _parse(rows, lines, cols[0], cols[1:], time_unit, path, True)
     return make(
         stamps,
         values[:, 0:3] * w_scale,

@@ -10,6 +10,7 @@ float64, outside ``jit``.
 from __future__ import annotations
 
 import dataclasses
+import os
 import pathlib
 
 import numpy as np
@@ -35,6 +36,8 @@ class Sequence:
         p, v: ``(N, 3)`` true position [m] and velocity [m/s] in W (velocity differentiated
             from positions when the ground truth has none).
         b_g, b_a: ``(N, 3)`` ground-truth biases, or ``None`` (pose-only ground truth).
+        repairs: what the reader repaired at the caller's request (``sort``,
+            ``drop_duplicates``, …), in words; empty when nothing was.
     """
 
     name: str
@@ -46,6 +49,7 @@ class Sequence:
     v: np.ndarray
     b_g: np.ndarray | None = None
     b_a: np.ndarray | None = None
+    repairs: tuple[str, ...] = ()
 
     def __post_init__(self):
         t = np.asarray(self.t, np.float64)
@@ -114,6 +118,7 @@ class Sequence:
             self.v[s],
             opt(self.b_g),
             opt(self.b_a),
+            self.repairs,
         )
 
 
@@ -125,7 +130,9 @@ def _continuous(q):
     return q
 
 
-def load_sequence(path, *, name: str | None = None, max_gap: float | None = None) -> Sequence:
+def load_sequence(
+    path, *, name: str | None = None, max_gap: float | None = None, **reader_options
+) -> Sequence:
     """Read a sequence folder and put its ground truth on the IMU samples it covers.
 
     Args:
@@ -136,14 +143,28 @@ def load_sequence(path, *, name: str | None = None, max_gap: float | None = None
         max_gap: the longest ground-truth gap [s] an IMU sample may fall in: its attitude
             is interpolated across (slerp). Default: 5 × the ground truth's median interval
             (motion capture drops frames; a longer gap is refused, not bridged).
+        reader_options: :func:`jaximu.io.read_euroc`'s options for the IMU samples: units
+            (``gyro_unit``, ``accel_unit``) and repairs (``sort``, ``drop_duplicates``,
+            ``drop_nonfinite``, ``allow_gaps``, ``check_units``), all off by default. The
+            IMU's longest interval is the reader's default (``max_gap`` here is the ground
+            truth's).
 
     Raises:
         DataError: not a sequence folder, no ground truth, ground truth that does not
-            overlap the IMU or has a gap longer than ``max_gap`` inside it, non-finite
-            samples (from the reader, naming the rows).
+            overlap the IMU or has a gap longer than ``max_gap`` inside it, what the reader
+            refuses (duplicate or unsorted stamps, non-finite samples, gaps; naming the
+            folder, the rows and the option that repairs them).
     """
     path = pathlib.Path(path)
-    data = read_euroc(path)
+    try:
+        data = read_euroc(path, **reader_options)
+    except DataError as e:
+        # The reader names rows and its repairs; name the folder (several are read at once)
+        # and leave out its max_gap, which is the IMU's there and the ground truth's here.
+        named = e.problem.startswith(f"{path}:") or f"{path}{os.sep}" in e.problem
+        problem = e.problem if named else f"{path}: {e.problem}"
+        fixes = [f for f in e.fixes if f.option != "max_gap"]
+        raise DataError(problem, fixes, lead=e.lead, sep=e.sep, api_note=e.api_note) from None
     gt = data.ground_truth
     if gt is None:
         raise DataError(
@@ -185,6 +206,7 @@ def load_sequence(path, *, name: str | None = None, max_gap: float | None = None
         p,
         v,
         **b,
+        repairs=tuple(data.repairs),
     )
 
 

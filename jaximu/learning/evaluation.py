@@ -27,9 +27,11 @@ from jaximu.engine.propagate import propagate, propagate_final
 from jaximu.geometry import so3
 from jaximu.geometry._checks import check_int, check_positive, compute_dtype
 from jaximu.geometry.state import NavState
+from jaximu.io import DataError
 from jaximu.learning.data import Sequence, check_rate, check_sequence
 from jaximu.learning.losses import rotation_step_blocks
 from jaximu.learning.model import check_model
+from jaximu.learning.tracking import LEVEL_SAMPLES
 
 __all__ = [
     "integrate_attitude",
@@ -208,11 +210,18 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
 
     Raises:
         ValueError: ``model`` or ``seq`` of the wrong type; DataError: ``seq`` at another
-            rate than the model's.
+            rate than the model's, or too short for its bias tracker.
     """
     check_model("model", model)
     check_sequence("seq", seq)
     check_rate(seq, model.config.rate_hz)
+    if model.config.bias_tracking and len(seq) < LEVEL_SAMPLES:
+        raise DataError(
+            f"sequence {seq.name!r}: its ground truth covers {len(seq)} IMU samples, and the "
+            f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
+            "attitude on their mean specific force): give a recording whose ground truth "
+            "covers more of it"
+        )
     dtype = jnp.result_type(float) if dtype is None else compute_dtype("dtype", dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel, q_true, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt)

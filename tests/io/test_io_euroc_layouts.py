@@ -223,6 +223,12 @@ def broken(tmp_path, text):
             id="stamp going back",
         ),  # before line 5's
         pytest.param(
+            GOOD.replace("1403637132.90832", "1403637132908320000"),
+            r"groundtruth_pose.txt, line 6: timestamp '1403637132908320000' is beyond int64 "
+            r"nanoseconds; this file's format stamps in s",
+            id="stamp in ns",
+        ),
+        pytest.param(
             ROW.format("-1.156384"),
             r"groundtruth_pose.txt: the quaternion is not a "
             r"\[w, x, y, z\] unit quaternion at line 6: its norm is 1\.5\d*",
@@ -237,3 +243,17 @@ def test_broken_pose_files_name_file_and_line(tmp_path, text, message):
     assert "\n" not in str(e.value)
     with pytest.raises(io.DataError, match=message):  # the same, named explicitly
         io.read_euroc(MH03, groundtruth=path)
+
+
+def test_imu_stamps_in_seconds_name_the_layouts_unit_not_an_option_it_lacks(tmp_path):
+    """An ``imu.csv`` stamped in seconds: the ASL layout's stamps are nanoseconds, and
+    read_euroc has no ``time_unit`` (read_csv has): the message says so and offers no fix."""
+    lines = lines_of(MH03 / "imu.csv")[:40]
+    t, rest = lines[1].split(",", 1)
+    lines[1] = f"{int(t) * 1e-9:.9f},{rest}"
+    write_lines(tmp_path / "imu.csv", lines)
+    with pytest.raises(io.DataError) as e:
+        io.read_euroc(tmp_path, groundtruth=False)
+    assert str(e.value).startswith(f"{tmp_path / 'imu.csv'}, line 2: timestamp '{lines[1][:20]}")
+    assert "format stamps in ns" in str(e.value) and "read_csv" in str(e.value)
+    assert e.value.fixes == ()

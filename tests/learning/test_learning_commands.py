@@ -13,6 +13,7 @@ import pytest
 from test_learning_losses import scipy_attitudes, smooth_rates
 
 from jaximu import cli, learning
+from jaximu.io import DataError
 from jaximu.learning import Denoiser, ModelConfig
 
 # without the bias tracker: the untrained model is then the constant-bias baseline exactly
@@ -198,14 +199,71 @@ def test_a_plot_format_matplotlib_cannot_write_is_refused_before_any_work(
     assert not js.exists() and not bad.exists()
 
 
-def test_nan_samples(folders, capsys, tmp_path):
+def test_nan_samples_are_refused_unless_dropped(folders, capsys, tmp_path):
+    """NaN in row 100 (line 102): one line naming the folder, the line and
+    ``--drop-nonfinite``; with it, the 999 others are evaluated and the repair reported."""
     seq = write_sequence(tmp_path / "nan", seconds=5.0, nan_row=100)
     js = tmp_path / "x.json"
-    code, _, err = run(
-        capsys, "learn", "evaluate", str(folders["model"]), str(seq), "--json", str(js)
-    )
-    one_line_error(code, err, "NaN")
+    argv = ("learn", "evaluate", str(folders["model"]), str(seq), "--json", str(js))
+    code, _, err = run(capsys, *argv)
+    one_line_error(code, err, str(seq), "NaN", "line 102", "--drop-nonfinite")
     assert not js.exists()
+    code, _, err = run(capsys, *argv, "--drop-nonfinite")
+    assert code == 0, err
+    assert json.loads(js.read_text())["sequences"][0]["samples"] == 999
+    assert f"repair: {seq}: dropped 1" in err
+
+
+def edit_imu_rows(folder, edit):
+    """Rewrite ``folder/imu.csv`` with its data rows passed through ``edit``."""
+    path = folder / "imu.csv"
+    header, *rows = path.read_text().splitlines()
+    path.write_text("\n".join([header, *edit(rows)]) + "\n")
+    return folder
+
+
+@pytest.mark.parametrize(
+    "name, edit, needles, flag",
+    [
+        (
+            "dup",
+            lambda r: r[:100] + [r[99]] + r[100:],
+            ("duplicate", "line 102"),
+            "--drop-duplicates",
+        ),
+        ("back", lambda r: r[:99] + [r[100], r[99]] + r[101:], ("backwards", "line 102"), "--sort"),
+        # an IMU gap: its flag here is --allow-gaps, not the command's --max-gap (the ground
+        # truth's)
+        ("imugap", lambda r: r[:300] + r[340:], ("0.205 s after line 301",), "--allow-gaps"),
+    ],
+)
+def test_imu_rows_the_reader_repairs_are_refused_naming_the_folder_and_flag(
+    folders, capsys, tmp_path, name, edit, needles, flag
+):
+    seq = edit_imu_rows(write_sequence(tmp_path / name, seconds=5.0), edit)
+    argv = ("learn", "evaluate", str(folders["model"]), str(seq))
+    code, _, err = run(capsys, *argv)
+    one_line_error(code, err, str(seq), *needles, flag)
+    assert "--max-gap" not in err
+    code, out, err = run(capsys, *argv, flag)
+    assert code == 0, err
+    assert f"repair: {seq}: " in err and "average mean AOE" in out
+    # the same from Python: the keyword load_sequence takes, and the repair recorded
+    option = flag[2:].replace("-", "_")
+    with pytest.raises(DataError, match=f"pass {option}=True") as e:
+        learning.load_sequence(seq)
+    assert str(e.value).startswith(f"{seq}: ")
+    assert learning.load_sequence(seq, **{option: True}).repairs
+
+
+def test_ground_truth_covering_fewer_samples_than_the_tracker_levels_on(capsys, tmp_path):
+    """The shipped model (bias tracking) on a recording whose ground truth covers 8 IMU
+    samples: one line naming the sequence and the 10 the tracker needs, before any work."""
+    seq = write_sequence(tmp_path / "short", seconds=5.0)
+    gt = seq / "groundtruth.csv"
+    gt.write_text("\n".join(gt.read_text().splitlines()[:9]) + "\n")
+    code, _, err = run(capsys, "learn", "evaluate", "euroc", str(seq))
+    one_line_error(code, err, "'short'", "8 IMU samples", "at least 10")
 
 
 def test_the_python_api_names_bad_arguments(folders):
