@@ -137,6 +137,15 @@ def cmd_evaluate(args):
     json_out = None if args.json is None else pathlib.Path(args.json)
     plot_out = args.plot
     model = learning.load(args.model)
+    where = learning.checkpoint
+    print(
+        f"model: {args.model} "
+        + (
+            f"(shipped with jaximu: {where.PRETRAINED[args.model]})"
+            if where.shipped(args.model)
+            else f"(the folder {pathlib.Path(args.model).resolve()})"
+        )
+    )
     seqs = _load_all(learning, args)
     for s in seqs:
         learning.data.check_rate(s, model.config.rate_hz)

@@ -16,7 +16,7 @@ import jax
 from jaximu.io import DataError
 from jaximu.learning.model import Denoiser, ModelConfig, check_model
 
-__all__ = ["save", "load", "pretrained", "FORMAT", "PRETRAINED"]
+__all__ = ["save", "load", "pretrained", "shipped", "FORMAT", "PRETRAINED"]
 
 FORMAT = "jaximu.learning.Denoiser/2"
 """The model file format; a folder of another format is refused by :func:`load`."""
@@ -43,10 +43,14 @@ def save(path, model: Denoiser, record: dict | None = None) -> pathlib.Path:
 def load(path) -> Denoiser:
     """Read a model folder written by :func:`save` (or a name of :data:`PRETRAINED`).
 
+    A model folder that exists under a shipped model's name (``jaximu learn train --out
+    euroc``, as the shipped model's own record has it) is the one read: a path the user
+    wrote wins over the name; :func:`pretrained` reads the shipped one always.
+
     Raises:
         DataError: not a model folder, another format or version, damaged weights.
     """
-    if isinstance(path, str) and path in PRETRAINED:
+    if shipped(path):
         return pretrained(path)
     path = pathlib.Path(path)
     meta_path, weights = path / "model.json", path / "weights.eqx"
@@ -84,9 +88,19 @@ def load(path) -> Denoiser:
     return model
 
 
+def shipped(path) -> bool:
+    """Whether :func:`load` reads ``path`` as a shipped model: a name of :data:`PRETRAINED`
+    with no model folder of that name here."""
+    return (
+        isinstance(path, str)
+        and path in PRETRAINED
+        and not (pathlib.Path(path) / "model.json").is_file()
+    )
+
+
 def record(path) -> dict:
     """The training record saved beside a model (command, seed, data, figures)."""
-    if isinstance(path, str) and path in PRETRAINED:
+    if shipped(path):
         path = PRETRAINED[path]
     return json.loads((pathlib.Path(path) / "model.json").read_text()).get("record", {})
 

@@ -162,6 +162,27 @@ def test_a_model_that_is_not_one(folders, capsys, tmp_path):
     one_line_error(code, err, "weights.eqx", "damaged")
 
 
+def test_a_model_folder_named_like_the_shipped_model_is_the_one_read(
+    folders, capsys, tmp_path, monkeypatch
+):
+    """``--out euroc`` (the shipped model's own command) then ``evaluate euroc`` in that
+    folder reads the user's model, not the shipped one, and says which it read; elsewhere
+    (or a folder ``euroc`` that is no model, such as a dataset's) the name is the shipped
+    model's."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "euroc").mkdir()  # a dataset folder of that name: not a model
+    assert learning.checkpoint.shipped("euroc")
+    assert learning.load("euroc").config == learning.pretrained("euroc").config
+    learning.save("euroc", learning.load(folders["model"]), {"seed": 0})
+    assert not learning.checkpoint.shipped("euroc")
+    assert learning.load("euroc").config == TINY
+    assert learning.checkpoint.record("euroc") == {"seed": 0}
+    assert learning.pretrained("euroc").config != TINY
+    code, out, err = run(capsys, "learn", "evaluate", "euroc", str(folders["seq"]))
+    assert code == 0, err
+    assert out.startswith(f"model: euroc (the folder {tmp_path / 'euroc'})")
+
+
 def test_a_sequence_at_another_rate(folders, capsys, tmp_path):
     seq = write_sequence(tmp_path / "slow", seconds=12.0, rate=100.0)
     code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
