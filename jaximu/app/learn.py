@@ -59,12 +59,22 @@ def _load_all(learning, args):
         raise UsageError(
             f"--max-gap must be a positive number of seconds (inf: any gap), got {args.max_gap:g}"
         )
-    seqs = []
-    for d in args.dirs:
-        p = pathlib.Path(d)
+    paths = [pathlib.Path(d) for d in args.dirs]
+    for p in paths:
         if not p.exists():
             raise UsageError(f"sequence folder {p} does not exist")
-        seq = learning.load_sequence(p, max_gap=args.max_gap, **reader_options(args, False))
+    resolved = [p.resolve() for p in paths]
+    for i, r in enumerate(resolved):
+        if r in resolved[:i]:
+            raise UsageError(f"sequence folder {paths[i]} is given twice: give each once")
+    # a sequence is named by its folder, or by the path given where two folders share a name
+    # (data/a/V1_01_easy and data/b/V1_01_easy): the training record is keyed by name
+    basenames = [p.name for p in paths]
+    seqs = []
+    for p in paths:
+        name = p.name if basenames.count(p.name) == 1 else str(p)
+        options = reader_options(args, False)
+        seq = learning.load_sequence(p, name=name, max_gap=args.max_gap, **options)
         for note in seq.repairs:
             print(f"repair: {p}: {note}", file=sys.stderr)
         seqs.append(seq)

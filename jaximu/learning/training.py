@@ -394,6 +394,15 @@ def train(
         )
     for i, s in enumerate(sequences):
         check_sequence(f"sequences[{i}]", s)
+    names = [s.name for s in sequences]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # the record and the leave-one-out figures are by name; one recording twice
+        # would also be weighted twice
+        raise DataError(
+            f"sequences must have distinct names; {', '.join(map(repr, twice))} is given "
+            "more than once: give each recording once (load_sequence(folder, name=...) "
+            "names two recordings whose folders share a name)"
+        )
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed must be an integer, got {seed!r}")
     if minutes is not None:

@@ -183,6 +183,29 @@ def test_a_model_folder_named_like_the_shipped_model_is_the_one_read(
     assert out.startswith(f"model: euroc (the folder {tmp_path / 'euroc'})")
 
 
+def test_one_folder_twice_is_refused_and_namesakes_are_named_by_their_paths(
+    folders, capsys, tmp_path
+):
+    """The same folder twice (another spelling of it too) is refused before any work; two
+    folders of one name are told apart by the paths given; from Python, two sequences of one
+    name are refused by train (its record and leave-one-out figures are by name)."""
+    seq = folders["seq"]
+    out = tmp_path / "m"
+    code, _, err = run(capsys, "learn", "train", str(seq), f"{seq}/../seq", "--out", str(out))
+    one_line_error(code, err, "given twice")
+    assert not out.exists()
+    twin = write_sequence(tmp_path / "other" / seq.name, seconds=5.0)
+    js = tmp_path / "x.json"
+    code, _, err = run(
+        capsys, "learn", "evaluate", str(folders["model"]), str(seq), str(twin), "--json", str(js)
+    )
+    assert code == 0, err
+    assert [s["name"] for s in json.loads(js.read_text())["sequences"]] == [str(seq), str(twin)]
+    one = learning.load_sequence(twin)
+    with pytest.raises(DataError, match="distinct names; 'seq' is given more than once"):
+        learning.train([one, one])
+
+
 def test_a_sequence_at_another_rate(folders, capsys, tmp_path):
     seq = write_sequence(tmp_path / "slow", seconds=12.0, rate=100.0)
     code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
