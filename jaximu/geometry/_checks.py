@@ -33,17 +33,36 @@ def _first_bad(mask: np.ndarray) -> str:
     return _index(np.argwhere(mask)[0])
 
 
+def dtype_kind(d) -> str:
+    """numpy's kind letter of the dtype ``d``, with JAX's extra floating types (bfloat16 and
+    the float8 family, which numpy files under ``"V"``, raw bytes) as ``"f"``."""
+    k = getattr(d, "kind", "O")
+    if k == "V":
+        try:
+            return "f" if jnp.issubdtype(d, jnp.floating) else k
+        except TypeError:
+            return k
+    return k
+
+
+def _own_kind(x) -> str:
+    """:func:`dtype_kind` of ``x``'s own dtype; ``"f"`` for what has none (Python numbers,
+    lists: cast later, where they fail by name)."""
+    d = getattr(x, "dtype", None)
+    return "f" if d is None else dtype_kind(d)
+
+
 def kind_of(x) -> str:
-    """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ``"U"``, ...): Python
-    scalars and lists by what numpy makes of them; ``"O"`` when it makes nothing of them
-    (a ragged list: left to the casts, which name it)."""
+    """numpy's kind letter of ``x``'s dtype (``"f"``, ``"c"``, ``"b"``, ``"U"``, ...; bfloat16
+    ``"f"``): Python scalars and lists by what numpy makes of them; ``"O"`` when it makes
+    nothing of them (a ragged list: left to the casts, which name it)."""
     d = getattr(x, "dtype", None)
     if d is None:
         try:
             d = np.asarray(x).dtype
         except (TypeError, ValueError):
             return "O"
-    return getattr(d, "kind", "O")
+    return dtype_kind(d)
 
 
 def check_real(name: str, x):
@@ -65,9 +84,7 @@ def _cast(x, dtype, name: str | None = None):
         if kind_of(x) == "b":  # True is not a 1 s step nor a 1 rad/s rate
             raise ValueError(f"{name} must be an array of numbers, got booleans; pass floats")
     try:
-        if name is not None and (
-            isinstance(x, (str, bytes)) or getattr(getattr(x, "dtype", None), "kind", "f") in "USOV"
-        ):
+        if name is not None and (isinstance(x, (str, bytes)) or _own_kind(x) in "USOV"):
             raise TypeError("not numbers")  # "0.01" is text, not a step: never parsed for you
         with np.errstate(over="ignore"):
             return jnp.asarray(x, dtype)
@@ -88,7 +105,7 @@ def to_dtype(name: str, x, dtype):
     y = _cast(x, dtype, name)
     if is_concrete(x) and getattr(x, "dtype", None) != y.dtype:
         src = np.asarray(x)
-        if src.dtype.kind in "fiu":
+        if dtype_kind(src.dtype) in "fiu":
             with np.errstate(over="ignore"):
                 over = np.isfinite(src) & ~np.isfinite(src.astype(y.dtype))
             if over.any():
@@ -155,7 +172,7 @@ def float_dtype(*xs):
             a = x if hasattr(x, "dtype") else np.asarray(x)
         except (TypeError, ValueError):
             return None
-        return a if getattr(a.dtype, "kind", "f") in "iufc" else None
+        return a if dtype_kind(a.dtype) in "iufc" else None
 
     leaves = []
     for x in xs:
@@ -491,7 +508,7 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
             "jax.jit, jax.vmap and jax.grad"
         )
     check_real(name, x)
-    kind = getattr(getattr(x, "dtype", None), "kind", "f")
+    kind = _own_kind(x)
     try:
         if x is None or isinstance(x, (str, bytes)) or kind in "USOV":
             raise TypeError
@@ -507,7 +524,7 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
 def check_array(name: str, x, shape: tuple) -> np.ndarray:
     """A concrete numpy array of exactly ``shape``, finite; named in the error."""
     arr = as_numbers(name, x, None)
-    if arr.shape != tuple(shape) or arr.dtype.kind not in "fiu":
+    if arr.shape != tuple(shape) or dtype_kind(arr.dtype) not in "fiu":
         raise ValueError(
             f"{name} must have shape {tuple(shape)}, got {arr.shape}"
             if arr.shape != tuple(shape)

@@ -40,18 +40,20 @@ def test_gravity_magnitude_must_not_be_negative():
     np.testing.assert_allclose(np.asarray(out.v), [0, 0, 2 * 9.81 * 0.01])
 
 
-def test_half_precision_is_computed_in_float32_not_float16():
-    """float16 samples (a ROS driver's packed output) are integrated in float32: a still IMU
-    with 0.01 m/s² of excess accel climbs by the closed form ½ a t² (float16 loses the
-    increments). The user's arrays are not changed."""
+@pytest.mark.parametrize("half", [np.float16, jnp.bfloat16], ids=["float16", "bfloat16"])
+def test_half_precision_is_computed_in_float32_not_float16(half):
+    """float16 samples (a ROS driver's packed output) and bfloat16 ones (a network's) are
+    integrated in float32: a still IMU with excess accel climbs by the closed form ½ a t²
+    (half precision loses the increments). The user's arrays are not changed. (numpy files
+    bfloat16 under the kind of raw bytes, which the checks once took for text.)"""
     n = 400
-    gyro = np.zeros((n, 3), np.float16)
-    accel = np.tile(np.float16([0, 0, 9.81]), (n, 1))
+    gyro = np.zeros((n, 3), half)
+    accel = np.tile(np.asarray([0, 0, 9.81], half), (n, 1))
     a_excess = float(accel[0, 2]) - 9.81
     before = accel.copy()
-    out = jaximu.propagate_final(NavState.identity((), jnp.float16), gyro, accel, np.float16(0.01))
+    out = jaximu.propagate_final(NavState.identity((), half), gyro, accel, np.asarray(0.01, half))
     assert out.p.dtype == jnp.float32
-    dt = float(np.float16(0.01))
+    dt = float(np.asarray(0.01, half))
     T = n * dt
     np.testing.assert_allclose(float(out.p[2]), 0.5 * a_excess * T * T, rtol=1e-2)
     np.testing.assert_array_equal(accel, before)
