@@ -8,6 +8,7 @@ structure, and the weights fill it.
 from __future__ import annotations
 
 import json
+import os
 import pathlib
 
 import equinox as eqx
@@ -52,6 +53,11 @@ def load(path) -> Denoiser:
     """
     if shipped(path):
         return pretrained(path)
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(
+            f"path must be a model folder (a str or path) or a shipped model's name "
+            f"({', '.join(PRETRAINED)}), got {type(path).__name__} {path!r}"
+        )
     path = pathlib.Path(path)
     meta_path, weights = path / "model.json", path / "weights.eqx"
     if not path.is_dir() or not meta_path.is_file() or not weights.is_file():

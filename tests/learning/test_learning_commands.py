@@ -329,6 +329,8 @@ def test_the_python_api_names_bad_arguments(folders):
         learning.train([seq, "x"])
     with pytest.raises(ValueError, match="unknown pretrained model"):
         learning.pretrained("kitti")
+    with pytest.raises(ValueError, match=r"path must be a model folder .* got NoneType None"):
+        learning.load(None)
 
 
 @pytest.mark.parametrize(
