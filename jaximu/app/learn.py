@@ -70,10 +70,10 @@ def _load_all(learning, args):
     # a sequence is named by its folder, or by the path given where two folders share a name
     # (data/a/V1_01_easy and data/b/V1_01_easy): the training record is keyed by name
     basenames = [p.name for p in paths]
+    options = reader_options(args, max_gap=False)
     seqs = []
     for p in paths:
         name = p.name if basenames.count(p.name) == 1 else str(p)
-        options = reader_options(args, False)
         seq = learning.load_sequence(p, name=name, max_gap=args.max_gap, **options)
         for note in seq.repairs:
             print(f"repair: {p}: {note}", file=sys.stderr)
