@@ -15,6 +15,7 @@ import pathlib
 
 import numpy as np
 
+from jaximu.errors import Fix
 from jaximu.geometry._checks import check_positive
 from jaximu.io import DataError, read_euroc
 
@@ -187,11 +188,17 @@ def load_sequence(
         q, p, v = gt.interpolate(t, max_gap=max_gap)
         if v is None:
             v = gt.velocity(t, max_gap=max_gap)
-    except DataError as e:  # a gap: name the recording and the way across
+    except DataError as e:  # a gap: name the recording and the way across (the repair as
+        # data: the command renders it as its flag, Python as this keyword)
         raise DataError(
-            f"{path}: {e}; every IMU sample needs a reference: bridge gaps up to a longer "
-            "max_gap (`--max-gap SECONDS` on the command line, max_gap= in load_sequence), "
-            "or cut the recording before the gap"
+            f"{path}: {e}; every IMU sample needs a reference",
+            [
+                Fix(
+                    "max_gap",
+                    phrase="bridge the gap with a longer {} or cut the recording before it",
+                )
+            ],
+            lead="",
         ) from None
     b = {}
     for k in ("b_g", "b_a"):

@@ -224,7 +224,10 @@ def test_ground_truth_with_a_gap_is_refused_unless_bridged(folders, capsys, tmp_
     evaluated, the reference slerped across the gap."""
     seq = write_sequence(tmp_path / "gap", seconds=5.0, gt_gap=(2.0, 2.2))
     code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
-    one_line_error(code, err, str(seq), "0.205 s gap", "--max-gap")
+    one_line_error(code, err, str(seq), "0.205 s gap", "a longer --max-gap")
+    with pytest.raises(DataError, match="a longer max_gap or cut the recording") as e:
+        learning.load_sequence(seq)
+    assert [f.option for f in e.value.fixes] == ["max_gap"]
     js = tmp_path / "gap.json"
     argv = ("learn", "evaluate", str(folders["model"]), str(seq), "--max-gap", "0.5")
     code, _, err = run(capsys, *argv, "--json", str(js))
