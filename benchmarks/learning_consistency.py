@@ -26,7 +26,9 @@ decides: the NEES of the orientation increments over consecutive windows of 16, 
 1000 samples of each validation part, each window integrated from the true attitude at its
 start (the windows and covariance of the training loss: :func:`increment_terms`,
 :func:`rotation_covariance` with the model's ``σ_b`` and ``σ_ref``). There the NEES is an
-average over many windows, so a consistent model gives close to 3 on every sequence.
+average over many windows, so a consistent model gives close to 3 on every sequence where
+the windows are many and short (the residual bias, one draw for the whole part, weighs more
+in the few long ones).
 """
 
 from __future__ import annotations
