@@ -59,14 +59,19 @@ BAND = (1.5, 6.0)
 WINDOWS = (16, 32, 200, 1000)
 
 
-def step_blocks(model, seq, start):
-    """The validation part's per-step ``(Φ, Q)`` ``(T-1, 6, 6)`` in float64 (the network
-    runs in float32 on the whole sequence, as the evaluation does)."""
+def corrected_part(model, seq, start):
+    """The model's corrected samples of ``seq`` from ``start`` on, in float64: the network
+    runs in float32 on the whole sequence (the part's first outputs see the samples before
+    it), as the evaluation does; what follows it is in float64."""
     c = model(jnp.asarray(seq.gyro, jnp.float32), jnp.asarray(seq.accel, jnp.float32))
-    g = jnp.asarray(c.gyro, jnp.float64)[start:]
-    d = jnp.asarray(c.gyro_density, jnp.float64)[start:]
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64)[start:], c)
+
+
+def step_blocks(model, c, seq, start):
+    """The validation part's per-step ``(Φ, Q)`` ``(T-1, 6, 6)`` from its corrected samples
+    ``c`` (:func:`corrected_part`)."""
     dt = jnp.asarray(seq.dt, jnp.float64)[start:]
-    F, Q = rotation_step_blocks(g[:-1], d[:-1], dt, model.config.gyro_random_walk)
+    F, Q = rotation_step_blocks(c.gyro[:-1], c.gyro_density[:-1], dt, model.config.gyro_random_walk)
     return np.asarray(F), np.asarray(Q)
 
 
@@ -88,19 +93,17 @@ def simulated_nees(F, Q, terms, bias_sigma, draws, rng):
     return total / (F.shape[0] + 1)
 
 
-def window_nees(model, seq, start, horizons=WINDOWS):
+def window_nees(model, c, seq, start, horizons=WINDOWS):
     """``{H: (average NEES, fraction inside 3σ, windows)}`` of the orientation increments
-    over consecutive windows of ``H`` samples from ``start`` (horizons with no whole window
-    in the part are left out). The network runs in float32 on the whole sequence, as the
-    evaluation does; the windows in float64."""
-    c = model(jnp.asarray(seq.gyro, jnp.float32), jnp.asarray(seq.accel, jnp.float32))
-    c = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64)[start:], c)
+    over consecutive windows of ``H`` samples from ``start``, from the part's corrected
+    samples ``c`` (:func:`corrected_part`); horizons with no whole window in the part are
+    left out."""
     q = jnp.asarray(seq.q, jnp.float64)[start:]
     dt = float(np.mean(seq.dt))
     sb, sr = float(model.bias_sigma), float(model.reference_sigma)
     out = {}
     for H in horizons:
-        if (len(seq) - start) // H < 1:
+        if c.gyro.shape[0] // H < 1:
             continue
         ((r, Phi, Q),) = increment_terms(c, q, dt, (H,), random_walk=model.config.gyro_random_walk)
         e = np.asarray(nees(r, rotation_covariance(Phi, Q, sb, sr)))
@@ -129,8 +132,9 @@ def main(argv=None) -> int:
         f"{'sequence':24s} {'samples':>7s} {'NEES(all)':>9s} {'NEES(LOO)':>9s}   consistent "
         f"model's NEES: 5%    50%    95%  P(in [{BAND[0]:g}, {BAND[1]:g}])"
     )
-    for s, k, t, (_, nees_loo) in zip(seqs, starts, terms, loo):
-        F, Q = step_blocks(model, s, k)
+    parts = [corrected_part(model, s, k) for s, k in zip(seqs, starts)]
+    for s, k, c, t, (_, nees_loo) in zip(seqs, starts, parts, terms, loo):
+        F, Q = step_blocks(model, c, s, k)
         sim = simulated_nees(F, Q, t, sigma, a.draws, rng)
         p = float(np.mean((sim >= BAND[0]) & (sim <= BAND[1])))
         q5, q50, q95 = np.quantile(sim, [0.05, 0.5, 0.95])
@@ -161,8 +165,8 @@ def main(argv=None) -> int:
         "rad): average / fraction inside 3σ / windows"
     )
     print(f"{'sequence':24s} " + " ".join(f"{f'{H} samples':>20s}" for H in WINDOWS))
-    for s, k, row in zip(seqs, starts, rows):
-        w = window_nees(model, s, k)
+    for s, k, c, row in zip(seqs, starts, parts, rows):
+        w = window_nees(model, c, s, k)
         row["window_nees"] = {str(H): v for H, v in w.items()}
         print(
             f"{s.name:24s} "
