@@ -10,6 +10,15 @@
 # N the first case not run, as the log says).
 #
 #   bash benchmarks/accelerator.sh          # from the repository root
+#   bash benchmarks/accelerator.sh studies  # the studies' and the training's tables instead
+#   DATA="d1 d2 ..." bash benchmarks/accelerator.sh studies   # with the training recordings
+#
+# `studies` (one call of at most 9 minutes): the smoke check, then
+# benchmarks/studies_device.py (Monte Carlo at 10^4/10^5/10^6 runs, the filter study, the
+# Monte Carlo route's chunk × unroll sweep, `jaximu calibrate` on the bundled excerpt; each
+# row beside the committed CPU figures), then, when DATA names the training recordings'
+# folders (carried to the device: they are not in the repository), benchmarks/learning.py
+# with the whole `jaximu learn train` (its step against PyTorch where torch is installed).
 #
 # Writes benchmarks/results/{propagation,preintegration,montecarlo,chunk-crossover}-<machine>.json
 # (each script names its file after the device) and, when $OUT is set (the device machine's
@@ -40,6 +49,20 @@ out = jaximu.propagate_covariance_final(
     0.005, jaximu.ImuNoise.euroc())
 print('ok', jax.tree_util.tree_map(lambda x: x.shape, out))
 " || { echo "smoke failed: stopping" | tee -a "$LOG"; exit 1; }
+if [ "${1:-tables}" = studies ]; then
+  CPU_REF=$(ls "$RES"/studies-device-*cpu.json 2>/dev/null | head -n 1)
+  run 300 "$PY" benchmarks/studies_device.py --sweep --deadline 240 \
+    --calibrate tests/data/euroc_v1_02_medium ${CPU_REF:+--cpu "$CPU_REF"}
+  if [ -n "${DATA:-}" ]; then
+    # shellcheck disable=SC2086  # DATA is a list of folders
+    run 170 "$PY" benchmarks/learning.py --data $DATA --quick --full-training --train-minutes 2
+  fi
+  if [ -n "${OUT:-}" ]; then
+    find "$RES" -newer "$MARK" -name '*.json' -exec cp -v {} "$OUT"/ \;
+  fi
+  rm -f "$MARK"
+  exit 0
+fi
 # where the time chunks beat sequential launches, by length and batch (the dispatch table's
 # MEAN_CHUNK_STEPS, MEAN_CHUNK_LANES, COV_CHUNK_STEPS, COV_CHUNK_LANES), first: the figures
 # the table still lacks; its budget stops starting cases, a case's compile may overrun it

@@ -79,7 +79,6 @@ def bench_jaximu(n_runs, dtype, **kw):
             n_runs,
             jax.random.key(0),
             dtype=dtype,
-            chunk_size=min(n_runs, 2048),
             n_keep=0,
             **kw,
         )
@@ -105,11 +104,9 @@ times = np.arange(T + 1) * DT
 args = (sim.circle(5.0, 2.0), times, np.eye(15) * 1e-8, jaximu.ImuNoise.euroc())
 # compile: the same study once (monte_carlo evens its chunks out over the chunks in flight,
 # so the chunk shape depends on n_runs)
-monte_carlo(*args, n_runs, jax.random.key(1), record_every=T, n_keep=0,
-            chunk_size=min(n_runs, 2048))
+monte_carlo(*args, n_runs, jax.random.key(1), record_every=T, n_keep=0)
 t0 = time.perf_counter()
-r = monte_carlo(*args, n_runs, jax.random.key(0), record_every=T, n_keep=0,
-                chunk_size=min(n_runs, 2048))
+r = monte_carlo(*args, n_runs, jax.random.key(0), record_every=T, n_keep=0)
 secs = time.perf_counter() - t0
 # peak RSS of this process's own memory: VmHWM (ru_maxrss would keep the high-water mark of
 # the forked parent's pages across exec: the benchmark's own 1.4 GB)

@@ -307,6 +307,49 @@ def mean_chunks(lanes, steps) -> int:
     return int(max(1, min(-(-ACCELERATOR_LANES // lanes), steps // MIN_CHUNK_STEPS)))
 
 
+# --------------------------------------------------------------------------- Monte Carlo
+
+
+class MonteCarloRoute(NamedTuple):
+    """How a Monte Carlo study's lane kernel (:mod:`jaximu.kernels.montecarlo_lanes`) runs on
+    one kind of device. None of it changes what is computed: run ``i``'s numbers are a
+    function of ``(key, i)`` (docs/DESIGN.md section 6), the statistics equal to rounding."""
+
+    chunk_runs: int  # runs (lanes) of one device call: monte_carlo's default chunk_size
+    unroll: int  # time steps per iteration of the open-loop study's step loop (lax.scan's)
+    filter_unroll: int  # the same for the filter study (each step propagates a covariance)
+    rng_loop: bool  # Threefry's rounds in a fori_loop (True) or written out (rng.threefry2x32)
+
+
+MONTE_CARLO = {
+    # The CPU: one chunk per core, each a scan of 2048 lanes (docs/DESIGN.md section 6: the
+    # generator measured at 2048 lanes × 1000 steps); XLA:CPU has no multi-output fusion, so
+    # the hash's rounds stay a loop whose carry is in memory (written out, every fusion that
+    # reads a word recomputes the chain), and a step is one loop iteration.
+    CPU: MonteCarloRoute(chunk_runs=2048, unroll=1, filter_unroll=1, rng_loop=True),
+    # An accelerator: every loop iteration is a launch and a copy of its predicate to the
+    # host. On an NVIDIA H200 the CPU's route ran 10^5 runs × 1000 steps in 23.1 s: 0.47 s a
+    # chunk of 2048 runs, 0.47 ms a step, the time of the ~16 loop iterations a step then
+    # took (the step's own loop and the hash's two nested loops of rounds), not of the work
+    # (3 G samples/s for the engine's mean). So the rounds are written out (one elementwise
+    # fusion), a chunk fills the device (2^17 lanes: two ACCELERATOR_LANES blocks, 10^5
+    # runs in one call, memory O(chunk · K), 10^6 runs in 8) and each loop iteration of the
+    # open-loop study takes 4 steps. The unroll's compile grows faster than the body: this
+    # route forced on the 2-core CPU (float32, 40 steps, the test suite's XLA flags, a busy
+    # host) compiled its chunk in 4.6 / 5.9 / 6.5 / 24.5 s at 1 / 2 / 4 / 8 steps an
+    # iteration; the filter study's step (a covariance too, ten times the operations) keeps
+    # one. The chunk and the unrolls are not yet measured on a GPU: benchmarks/accelerator.sh
+    # sweeps them (benchmarks/montecarlo.py --sweep).
+    ACCELERATOR: MonteCarloRoute(chunk_runs=1 << 17, unroll=4, filter_unroll=1, rng_loop=False),
+}
+"""The Monte Carlo study's route by backend (:func:`monte_carlo_route`)."""
+
+
+def monte_carlo_route(on=None) -> MonteCarloRoute:
+    """The :class:`MonteCarloRoute` of the backend ``on`` (default :func:`backend`)."""
+    return MONTE_CARLO[on or backend()]
+
+
 # --------------------------------------------------------------------------- preintegration
 
 PREINT_METHODS = ("auto", "sequential", "parallel")

@@ -37,11 +37,11 @@ def _u32(x):
     return jnp.asarray(x, jnp.uint32)
 
 
-def _initial(run, c):
+def _initial(run, c, rng_loop=True):
     """``(q̂, p̂, v̂, δb_g, δb_a)`` of the runs ``run`` as SoA components: ``x̂_0 = x_0 ⊞ ε``,
-    ``δb = b - b̂ = -ε_b``."""
+    ``δb = b - b̂ = -ε_b``. ``rng_loop``: :func:`jaximu.kernels.rng.threefry2x32`'s ``loop``."""
     dtype = c["dt"].dtype
-    z = _rng.normals(c["keys"][_INIT:], run, _u32(0), 8, dtype)[:15]
+    z = _rng.normals(c["keys"][_INIT:], run, _u32(0), 8, dtype, loop=rng_loop)[:15]
     # ε = L0 z as an explicit per-lane sum (a matrix product's summation order depends on
     # the number of lanes; this way a run regenerated alone is bit-identical)
     L0 = c["L0"]
@@ -59,11 +59,13 @@ def _initial(run, c):
     )
 
 
-def _draw(run, j, k, c):
+def _draw(run, j, k, c, rng_loop):
     """The step's 12 normals, materialised: white noise of sample ``j`` (streams 0-2) and the
     bias walk of step ``k`` (streams 3-5), hashed together. (Materialised: XLA:CPU would
     otherwise recompute the hash in every fusion that reads one of its outputs.)"""
-    return _rng.normals_at(c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype, stage=_materialise)
+    return _rng.normals_at(
+        c["keys"], run, [j] * 3 + [k] * 3, c["dt"].dtype, stage=_materialise, loop=rng_loop
+    )
 
 
 def _sample(n, w, a, sd, dbg, dba):
@@ -94,7 +96,7 @@ def _errors(carry, ref):
     return boxminus(truth, est)
 
 
-def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
+def _run_lanes(run, wt, c, *, scheme, seg, mode, filt, unroll=1, rng_loop=True):
     """Propagate the runs ``run`` (``(B,)`` uint32, the lanes) through all segments.
 
     ``seg = (length, count, remainder)``: ``count`` segments of ``length`` steps and one of
@@ -102,18 +104,20 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
     also propagates its covariance and, at the end of each full segment, takes a position
     fix (:func:`jaximu.errorstate.ekf_update`); the errors are recorded after the update.
     ``mode``: ``"stats"`` gives per recorded time the tuple of :func:`_lane_stats` over the
-    lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors.
+    lanes weighted by ``wt``; ``"errors"``: ``(K, B, 15)`` errors. ``unroll`` (steps per
+    iteration of the step loop) and ``rng_loop`` (the hash's rounds in a loop) are the
+    device's route (:data:`jaximu.engine._dispatch.MONTE_CARLO`): the same numbers either way.
     """
     sch = SCHEME_OBJECTS[scheme]
     nxt = sch.uses_next_sample
     L, n_seg, rem = seg
     dtype = c["dt"].dtype
     B = run.shape[0]
-    q, p, v, dbg, dba = _initial(run, c)
+    q, p, v, dbg, dba = _initial(run, c, rng_loop)
     carry = dict(q=q, p=p, v=v, dbg=dbg, dba=dba)
     if nxt:
         w0, a0 = (tuple(x[i] for i in range(3)) for x in (c["w0"], c["a0"]))
-        n0 = _rng.normals(c["keys"][_WHITE : _WHITE + 3], run, _u32(0), 3, dtype)
+        n0 = _rng.normals(c["keys"][_WHITE : _WHITE + 3], run, _u32(0), 3, dtype, loop=rng_loop)
         carry["s"] = _sample(n0, w0, a0, tuple(c["sd0"][i] for i in range(6)), dbg, dba)
     if filt:
         carry["P"] = dense_to_lanes(jnp.broadcast_to(c["P0"], (B, 15, 15)))
@@ -132,13 +136,13 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         out = dict(carry)
         dbg, dba = carry["dbg"], carry["dba"]
         if nxt:  # white noise of sample k+1 (the step's end), walk of step k
-            n = _draw(run, k + 1, k, c)
+            n = _draw(run, k + 1, k, c, rng_loop)
             omega0, f0 = carry["s"]
             dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
             omega1, f1 = _sample(n[:6], w, a, sd, dbg1, dba1)
             out["s"] = (omega1, f1)
         else:
-            n = _draw(run, k, k, c)
+            n = _draw(run, k, k, c, rng_loop)
             omega0, f0 = _sample(n[:6], w, a, sd, dbg, dba)
             omega1, f1 = omega0, f0
             dbg1, dba1 = _walk(n[6:], sw, dbg, dba)
@@ -176,7 +180,9 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         :func:`jaximu.schemes._blocks.kalman_update` (the mathematics of
         :func:`jaximu.errorstate.ekf_update`) on the covariance blocks."""
         ref_p = c["ref"][1][i]
-        nu = _rng.normals(c["keys"][_MEAS : _MEAS + 2], run, i.astype(jnp.uint32), 2, dtype)[:3]
+        nu = _rng.normals(
+            c["keys"][_MEAS : _MEAS + 2], run, i.astype(jnp.uint32), 2, dtype, loop=rng_loop
+        )[:3]
         res = [ref_p[j] - carry["p"][j] + nu[j] * c["meas_sd"][j] for j in range(3)]  # z - p̂
         up = kalman_update(
             dict(zip(UPPER, carry["P"])),
@@ -222,7 +228,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
 
     def segment(carry, i):
         xs = jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, i * L, L, 0), xs_all)
-        carry = jax.lax.scan(step, carry, xs)[0]
+        carry = jax.lax.scan(step, carry, xs, unroll=min(unroll, L))[0]
         return record(carry, i, True)
 
     outs = []
@@ -231,7 +237,7 @@ def _run_lanes(run, wt, c, *, scheme, seg, mode, filt):
         outs.append(out)
     if rem:
         xs = jax.tree_util.tree_map(lambda x: x[n_seg * L :], xs_all)
-        carry = jax.lax.scan(step, carry, xs)[0]
+        carry = jax.lax.scan(step, carry, xs, unroll=min(unroll, rem))[0]
         out = record(carry, jnp.asarray(n_seg), False)[1]
         outs.append(jax.tree_util.tree_map(lambda x: x[None], out))
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x, 0), *outs)
@@ -242,28 +248,34 @@ def _lane_stats(e, wt, W=None, Pb=None, nis=None):
     ``(B, 15)`` errors, and the per-lane NEES: ``|W e|²`` with ``W`` the inverse Cholesky
     factor of the shared covariance, or ``eᵀ P⁻¹ e`` with each lane's own covariance, its 15
     upper blocks ``Pb`` (``(3, 3, B)``; filter study: then also the weighted sum of ``P``
-    and the lanes' NIS)."""
+    and the lanes' NIS). The products are asked for at full precision: on a GPU a float32
+    matrix product may otherwise run in TF32 (10-bit mantissa), and the moments and the
+    NEES would no longer be the CPU's to rounding."""
     n = jnp.sum(wt)
     mean = jnp.sum(e * wt[:, None], 0) / jnp.maximum(n, 1)
     d = (e - mean) * wt[:, None]
+    dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
+    M2 = dot(d.T, d)
     if Pb is None:
-        y = e @ W.T
-        return mean, d.T @ d, jnp.sum(y * y, -1)
+        y = dot(e, W.T)
+        return mean, M2, jnp.sum(y * y, -1)
     eT = e.T
     y = whiten(dict(zip(UPPER, Pb)), [eT[3 * i : 3 * i + 3, None] for i in range(5)], SOA)
     nees = sum(jnp.sum(b * b, (0, 1)) for b in y)
     P_sum = blocks_to_dense({k: jnp.sum(b * wt, -1) for k, b in zip(UPPER, Pb)})
-    return mean, d.T @ d, nees, P_sum, nis
+    return mean, M2, nees, P_sum, nis
 
 
-@functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt"))
-def run_chunk(run, wt, c, *, scheme, seg, mode, filt=False):
+@functools.partial(jax.jit, static_argnames=("scheme", "seg", "mode", "filt", "unroll", "rng_loop"))
+def run_chunk(run, wt, c, *, scheme, seg, mode, filt=False, unroll=1, rng_loop=True):
     """The jitted lane kernel (:func:`_run_lanes`). Every caller gives it at least two lanes:
     a one-lane program rounds differently (:func:`jaximu.montecarlo._lane_errors`), so the
     rule is checked here, at trace time, where a new caller would break it."""
     if run.shape[0] < 2:
         raise AssertionError(f"run_chunk needs at least two lanes, got {run.shape[0]}")
-    return _run_lanes(run, wt, c, scheme=scheme, seg=seg, mode=mode, filt=filt)
+    return _run_lanes(
+        run, wt, c, scheme=scheme, seg=seg, mode=mode, filt=filt, unroll=unroll, rng_loop=rng_loop
+    )
 
 
 @jax.jit

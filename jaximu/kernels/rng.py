@@ -36,24 +36,37 @@ def _rotl(x, r):
     return (x << jnp.uint32(r)) | (x >> jnp.uint32(32 - r))
 
 
-def threefry2x32(k0, k1, c0, c1, rounds: int = 20):
+def threefry2x32(k0, k1, c0, c1, rounds: int = 20, loop: bool = True):
     """The Threefry-2x32 block function: ``(k0, k1)`` key words, ``(c0, c1)`` counter words
     (``uint32`` arrays that broadcast), ``rounds`` a multiple of 4 (Random123's key injection
     after every 4 rounds). Returns two ``uint32`` arrays of the broadcast shape.
 
-    The rounds run in a ``fori_loop`` of two rounds per iteration: the loop carry is in
-    memory, so XLA:CPU, which has no multi-output fusion and would otherwise fuse (and
-    recompute) the whole chain of integer operations into each consumer of either output
-    word, computes each round once.
+    ``loop=True`` (the CPU's route): the rounds run in a ``fori_loop`` of two rounds per
+    iteration: the loop carry is in memory, so XLA:CPU, which has no multi-output fusion and
+    would otherwise fuse (and recompute) the whole chain of integer operations into each
+    consumer of either output word, computes each round once. ``loop=False`` (an
+    accelerator's, :data:`jaximu.engine._dispatch.MONTE_CARLO`): the rounds are written out,
+    one elementwise fusion; on a GPU each iteration of a loop is a launch and a copy of its
+    predicate to the host, and inside a Monte Carlo step the rounds' loops were 15 of them
+    a step. The words are the same either way (integer arithmetic; tested).
     """
     if rounds % 4:
         raise ValueError(f"rounds must be a multiple of 4, got {rounds}")
     k0, k1, c0, c1 = (jnp.asarray(x, jnp.uint32) for x in (k0, k1, c0, c1))
     shape = jnp.broadcast_shapes(k0.shape, k1.shape, c0.shape, c1.shape)
     k2 = k0 ^ k1 ^ jnp.uint32(PARITY)
-    ks = jnp.stack(jnp.broadcast_arrays(k0, k1, k2))
     x0 = jnp.broadcast_to(c0 + k0, shape)
     x1 = jnp.broadcast_to(c1 + k1, shape)
+    if not loop:
+        kt = (k0, k1, k2)  # the key words as they are: no stacked array to index
+        for r in range(rounds):
+            x0 = x0 + x1
+            x1 = _rotl(x1, ROTATIONS[r % 8]) ^ x0
+            if r % 4 == 3:
+                s = r // 4 + 1
+                x0, x1 = x0 + kt[s % 3], x1 + kt[(s + 1) % 3] + jnp.uint32(s)
+        return x0, x1
+    ks = jnp.stack(jnp.broadcast_arrays(k0, k1, k2))
     rot = jnp.asarray(ROTATIONS, jnp.uint32)
 
     def two_rounds(i, x):
@@ -133,7 +146,7 @@ def _stream_words(data, n_streams):
     return jnp.stack([a, b], -1)
 
 
-def normals(keys, run, step, n_pairs: int, dtype, rounds: int = 20):
+def normals(keys, run, step, n_pairs: int, dtype, rounds: int = 20, loop: bool = True):
     """``2 n_pairs`` standard normals for every ``(run, step)``: pair ``j`` comes from stream
     ``j`` (``keys[j]``, from :func:`stream_keys`) at counter ``(run, step)``.
 
@@ -141,24 +154,26 @@ def normals(keys, run, step, n_pairs: int, dtype, rounds: int = 20):
         keys: ``(≥ n_pairs, 2)`` uint32 stream keys.
         run, step: ``uint32`` arrays (broadcast; shape ``S``).
 
+        loop: :func:`threefry2x32`'s.
+
     Returns:
         a list of ``2 n_pairs`` arrays of shape ``S``: pair j's two normals at ``2j, 2j+1``.
     """
-    return normals_at(keys, run, [step] * n_pairs, dtype, rounds)
+    return normals_at(keys, run, [step] * n_pairs, dtype, rounds, loop=loop)
 
 
-def normals_at(keys, run, steps, dtype, rounds: int = 20, stage=None):
+def normals_at(keys, run, steps, dtype, rounds: int = 20, stage=None, loop: bool = True):
     """Like :func:`normals` with one counter per pair: pair ``j`` from stream ``keys[j]`` at
     ``(run, steps[j])``. All pairs are hashed together, in one loop. ``stage``: applied to
     the two ``(n_pairs,) + S`` arrays of first and second normals before they are split
-    (e.g. to materialise them)."""
+    (e.g. to materialise them). ``loop``: :func:`threefry2x32`'s."""
     run = jnp.asarray(run, jnp.uint32)
     steps = [jnp.asarray(s, jnp.uint32) for s in steps]
     n_pairs = len(steps)
     S = jnp.broadcast_shapes(run.shape, *(s.shape for s in steps))
     c1 = jnp.stack([jnp.broadcast_to(s, S) for s in steps])  # (n_pairs,) + S
     k = keys[:n_pairs].reshape((n_pairs, 2) + (1,) * len(S))
-    b0, b1 = threefry2x32(k[:, 0], k[:, 1], run, c1, rounds)
+    b0, b1 = threefry2x32(k[:, 0], k[:, 1], run, c1, rounds, loop)
     z0, z1 = box_muller(b0, b1, dtype)
     if stage is not None:
         z0, z1 = stage((z0, z1))

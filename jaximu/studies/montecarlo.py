@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.engine import _dispatch
 from jaximu.geometry import _checks as val
 from jaximu.geometry import _tolerances
 from jaximu.geometry.noise import ImuNoise
@@ -86,7 +87,7 @@ def monte_carlo(
     b_g0=None,
     b_a0=None,
     record_every: int = 1,
-    chunk_size: int = 2048,
+    chunk_size: int | None = None,
     n_keep: int = 100,
     confidence: float = 0.95,
     progress: bool = False,
@@ -123,7 +124,9 @@ def monte_carlo(
         b_g0, b_a0: true turn-on biases ``(3,)`` [rad/s], [m/s²], finite (default zero).
         record_every: record errors every this many steps (and at the last); an integer ≥ 1.
         chunk_size: the most runs per device call (the lanes of one scan), an integer ≥ 1;
-            memory ``O(chunk · K)``, independent of ``n_runs``. Chunks are made as even as
+            memory ``O(chunk · K)``, independent of ``n_runs``. Default: the device's
+            (:data:`jaximu.engine._dispatch.MONTE_CARLO`: 2048 on a CPU, where each core runs
+            a chunk, 2¹⁷ on an accelerator, which one chunk fills). Chunks are made as even as
             the chunks in flight allow (``_chunk_runs``: no half-idle last round). The
             statistics do not depend on it (to the rounding of the sums). A chunk of one
             run is computed beside an idle lane (a one-lane program rounds differently:
@@ -163,7 +166,10 @@ def monte_carlo(
         raise ValueError(
             f"n_runs must be at most 2**32 (run indices are 32-bit counters), got {n_runs}"
         )
-    chunk_size = val.check_int("chunk_size", chunk_size, 1)
+    route = _dispatch.monte_carlo_route()
+    chunk_size = (
+        route.chunk_runs if chunk_size is None else val.check_int("chunk_size", chunk_size, 1)
+    )
     n_keep = val.check_int("n_keep", n_keep, 0)
     confidence = val.check_fraction("confidence", confidence)
     progress = val.check_bool("progress", progress)
@@ -226,7 +232,9 @@ def monte_carlo(
     acc = _Acc(K, hist_index, edges)
     nees_all = np.zeros((n_runs, K)) if keep_nees else None
     bar = _Progress(n_runs if n_proc == 1 else len(mine) * chunk, progress)
-    kw = dict(scheme=st.scheme, seg=st.seg, mode="stats", filt=st.filt)
+    kw = dict(
+        _route_options(route, st.filt), scheme=st.scheme, seg=st.seg, mode="stats", filt=st.filt
+    )
 
     def inputs(j, i):
         d = j % len(devices)
@@ -325,6 +333,12 @@ def _chunk_runs(n_runs: int, chunk_size: int, slots: int) -> int:
     return max(2, min(chunk_size, n_runs, -(-n_runs // (rounds * slots))))
 
 
+def _route_options(route, filt) -> dict:
+    """The lane kernel's keywords of a :class:`jaximu.engine._dispatch.MonteCarloRoute` for
+    an open-loop (``filt=False``) or a filter study."""
+    return dict(unroll=route.filter_unroll if filt else route.unroll, rng_loop=route.rng_loop)
+
+
 def _in_flight(device) -> int:
     """Chunks run at once on ``device``: the cores this process may use on a CPU device
     (``os.sched_getaffinity``: honours ``taskset`` and a scheduler's CPU set), else one."""
@@ -370,6 +384,7 @@ def _lane_errors(study, run):
         seg=study.seg,
         mode="errors",
         filt=study.filt,
+        **_route_options(_dispatch.monte_carlo_route(), study.filt),
     )
     return e[:, :n]
 

@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 import jaximu
 from jaximu import simulate as sim
+from jaximu.engine import _dispatch
 from jaximu.errorstate import ekf_update, position_jacobian
 from jaximu.kernels import rng as _rng
 from jaximu.state import NavState, boxminus
@@ -47,6 +48,21 @@ def test_threefry_is_jax_random_block_function_and_the_numpy_transcription():
     np.testing.assert_array_equal(np.r_[a, b], ref)
     na, nb = _rng.np_threefry2x32(k[0], k[1], c[:1000], c[1000:])
     np.testing.assert_array_equal(np.r_[na, nb], ref)
+
+
+def test_threefry_rounds_written_out_give_the_loops_words():
+    """The accelerator's hash (rounds written out, no loop) gives jax.random's words, as the
+    CPU's loop does: the route changes no number."""
+    from jax.extend.random import threefry_2x32
+
+    rng = np.random.default_rng(1)
+    k = rng.integers(0, 2**32, 2, dtype=np.uint32)
+    c = rng.integers(0, 2**32, 2000, dtype=np.uint32)
+    ref = np.asarray(threefry_2x32(jnp.asarray(k), jnp.asarray(c)))
+    a, b = jax.jit(lambda c0, c1: _rng.threefry2x32(k[0], k[1], c0, c1, loop=False))(
+        c[:1000], c[1000:]
+    )
+    np.testing.assert_array_equal(np.r_[a, b], ref)
 
 
 @pytest.fixture(scope="module")
@@ -278,6 +294,86 @@ def test_float32_study_agrees_with_float64(setup, study):
     )
 
 
+def _lane_kernel_loops(route, filt, setup):
+    """The number of while loops in the lowered lane kernel of the shared study's set-up
+    under ``route``."""
+    from jaximu.kernels.montecarlo_lanes import run_chunk
+    from jaximu.studies._montecarlo_setup import _prepare
+    from jaximu.studies.montecarlo import _route_options
+
+    traj, times, P0, noise = setup
+    st = _prepare(
+        traj,
+        times,
+        P0,
+        noise,
+        jax.random.key(5),
+        scheme="midpoint",
+        gravity=9.81,
+        b_g0=None,
+        b_a0=None,
+        record_every=25,
+        dtype=jnp.float64,
+        update_every=25 if filt else None,
+    )
+    run = jnp.arange(4, dtype=jnp.uint32)
+    text = run_chunk.lower(
+        run,
+        jnp.ones(4),
+        st.consts,
+        scheme=st.scheme,
+        seg=st.seg,
+        mode="stats",
+        filt=st.filt,
+        **_route_options(route, st.filt),
+    ).as_text()
+    return text.count("stablehlo.while")
+
+
+def test_accelerator_route_runs_no_loop_inside_a_step(setup):
+    """On an accelerator each loop iteration is a launch and a copy of its predicate to the
+    host: the accelerator's route has only the segment loop and the step loop (one study's
+    100 steps in 4 segments of 25), where the CPU's also loops over the hash's rounds inside
+    every step."""
+    for filt in (False, True):
+        assert _lane_kernel_loops(_dispatch.MONTE_CARLO[_dispatch.ACCELERATOR], filt, setup) == 2
+        assert _lane_kernel_loops(_dispatch.MONTE_CARLO[_dispatch.CPU], filt, setup) > 2
+
+
+def test_accelerator_route_gives_the_cpu_routes_statistics(setup, study):
+    """The study through the accelerator's route (its dispatch forced on the CPU: the hash's
+    rounds written out, no staged copies, 4 steps a loop iteration, all 57 runs one chunk)
+    equals the CPU route's (chunks of 15) to float64 rounding: the same draws, run by run,
+    and the statistics of the same runs; its NEES lies in the χ² interval."""
+    from _shared import dispatch_as  # here: the two-process test imports this module
+
+    traj, times, P0, noise = setup
+    with dispatch_as(_dispatch.ACCELERATOR):
+        route = _dispatch.monte_carlo_route()
+        acc = monte_carlo(
+            traj,
+            times,
+            P0,
+            noise,
+            N_RUNS,
+            jax.random.key(5),
+            keep_nees=True,
+            **dict(STUDY, chunk_size=None, n_keep=0),
+        )
+    assert route.chunk_runs >= N_RUNS and acc.settings["chunk_size"] == N_RUNS
+    assert not route.rng_loop and route.unroll > 1
+    # every run's NEES (another draw: a χ²₁₅ spread, ~40%), the moments of the same runs
+    np.testing.assert_allclose(acc.nees, study.nees, rtol=1e-8)
+    np.testing.assert_allclose(acc.nees_mean, study.nees_mean, rtol=1e-8)
+    # errors of ~1e-3 from states of ~5 m, ~2 m/s: rounding relative to the errors' spread
+    scale = np.sqrt(np.diagonal(study.predicted_cov, 0, 1, 2)).max(0)
+    np.testing.assert_allclose(acc.mean_error / scale, study.mean_error / scale, atol=1e-9)
+    cov_scale = np.abs(study.error_cov).max(axis=(1, 2), keepdims=True)
+    np.testing.assert_allclose(acc.error_cov / cov_scale, study.error_cov / cov_scale, atol=1e-6)
+    np.testing.assert_array_equal(acc.nees_hist, study.nees_hist)
+    assert np.all(acc.consistent), (acc.nees_mean, acc.nees_bounds)
+
+
 # --------------------------------------------------------------------------- EKF update
 
 
@@ -404,25 +500,25 @@ def test_ekf_update_gradient_wrt_noise_parameters_matches_finite_differences():
         np.testing.assert_allclose(g[i], fd, rtol=1e-6)
 
 
-def test_filter_study_nees_and_nis_inside_their_bounds_and_a_wrong_model_outside(setup):
+# The filter study the tests below share: position fixes every 20 steps, 400 runs.
+FILTER = dict(update_every=20, measurement=PositionFix(0.01), confidence=0.99, n_keep=0)
+
+
+@pytest.fixture(scope="module")
+def filter_study(setup):
+    traj, times, P0, noise = setup
+    return monte_carlo(traj, times, P0, noise, 400, jax.random.key(11), **FILTER)
+
+
+def test_filter_study_nees_and_nis_inside_their_bounds_and_a_wrong_model_outside(
+    setup, filter_study
+):
     """Position fixes every 20 steps, 400 runs: the average NEES (dof 15 N) and NIS (dof 3 N)
     lie in their 99% intervals at every update (5 updates: family-wise false alarm < 10%
     if independent; they are positively correlated); a filter assuming twice the IMU noise
     is detected (its NEES far below)."""
     traj, times, P0, noise = setup
-    fix = PositionFix(0.01)
-    res = monte_carlo(
-        traj,
-        times,
-        P0,
-        noise,
-        400,
-        jax.random.key(11),
-        update_every=20,
-        measurement=fix,
-        confidence=0.99,
-        n_keep=0,
-    )
+    res = filter_study
     assert res.nees_mean.shape == (5,) and res.nis_mean.shape == (5,)
     assert np.all(res.consistent), (res.nees_mean, res.nees_bounds)
     assert np.all((res.nis_mean > res.nis_bounds[0]) & (res.nis_mean < res.nis_bounds[1])), (
@@ -430,19 +526,24 @@ def test_filter_study_nees_and_nis_inside_their_bounds_and_a_wrong_model_outside
         res.nis_bounds,
     )
     twice = jaximu.ImuNoise(4e-3, 4e-2, 2e-4, 4e-3)
-    wrong = monte_carlo(
-        traj,
-        times,
-        P0,
-        (noise, twice),
-        400,
-        jax.random.key(11),
-        update_every=20,
-        measurement=fix,
-        confidence=0.99,
-        n_keep=0,
-    )
+    wrong = monte_carlo(traj, times, P0, (noise, twice), 400, jax.random.key(11), **FILTER)
     assert np.all(wrong.nees_mean < wrong.nees_bounds[0])
+
+
+def test_accelerator_route_filter_study_gives_the_cpu_routes_statistics(setup, filter_study):
+    """The filter study through the accelerator's route (forced on the CPU; all 400 runs one
+    chunk, the CPU's two of 200): the same NEES, NIS and average covariance per update to
+    float64 rounding (another draw would differ by their sampling spread, ~1e-2)."""
+    from _shared import dispatch_as
+
+    traj, times, P0, noise = setup
+    with dispatch_as(_dispatch.ACCELERATOR):
+        acc = monte_carlo(traj, times, P0, noise, 400, jax.random.key(11), **FILTER)
+    assert acc.settings["chunk_size"] == 400
+    np.testing.assert_allclose(acc.nees_mean, filter_study.nees_mean, rtol=1e-8)
+    np.testing.assert_allclose(acc.nis_mean, filter_study.nis_mean, rtol=1e-8)
+    np.testing.assert_allclose(acc.predicted_cov, filter_study.predicted_cov, rtol=1e-8)
+    assert np.all(acc.consistent), (acc.nees_mean, acc.nees_bounds)
 
 
 def test_filter_study_kernel_calls_no_lapack(setup):
