@@ -17,7 +17,7 @@ def backend() -> str:
     pay there (docs/DESIGN.md, "Dispatch" and "On a GPU"). Under ``jax.default_device(d)``
     (or ``jax_default_device`` set) it is the kind of ``d``: the kernels run where the
     computation does (the setting is part of JAX's jit key, so each kind is traced apart)."""
-    d = jax.config.jax_default_device
+    d = getattr(jax.config, "jax_default_device", None)
     platform = jax.default_backend() if d is None else getattr(d, "platform", d)
     return CPU if platform == "cpu" else ACCELERATOR
 
