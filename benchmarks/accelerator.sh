@@ -55,7 +55,7 @@ if [ "${1:-tables}" = studies ]; then
     --calibrate tests/data/euroc_v1_02_medium ${CPU_REF:+--cpu "$CPU_REF"}
   if [ -n "${DATA:-}" ]; then
     # shellcheck disable=SC2086  # DATA is a list of folders
-    run 170 "$PY" benchmarks/learning.py --data $DATA --quick --full-training --train-minutes 2
+    run 170 "$PY" benchmarks/learning.py --data $DATA --quick --torch-compile --full-training --train-minutes 2
   fi
   if [ -n "${OUT:-}" ]; then
     find "$RES" -newer "$MARK" -name '*.json' -exec cp -v {} "$OUT"/ \;

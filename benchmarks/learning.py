@@ -4,6 +4,7 @@
     python benchmarks/learning.py --data DIR... --quick # fewer repeats (smoke test)
     python benchmarks/learning.py --data DIR... --full-training   # also a whole `train` run
     python benchmarks/learning.py --data DIR... --full-training --train-minutes 3  # cut at 3 min
+    python benchmarks/learning.py --data DIR... --torch-compile   # also torch.compile's step
 
 Workloads, all float32 on the sequence folders given by ``--data`` (the five EuRoC training
 sequences), read with :func:`jaximu.learning.load_sequence`:
@@ -21,7 +22,9 @@ sequences), read with :func:`jaximu.learning.load_sequence`:
    correction, the noise head), eager, ``torch.set_num_threads(2)``, the configured-horizon
    increment Huber loss with the first horizon's windows integrated by PyPose's
    ``pp.module.IMUPreintegrator`` (a plain PyTorch quaternion product when PyPose is not
-   installed, or with ``--torch-integration plain``), and ``torch.optim.AdamW``; on batches
+   installed, or with ``--torch-integration plain``), and ``torch.optim.AdamW``; on the GPU
+   when JAX runs on one (``--torch-device``), eager and, with ``--torch-compile``, with its
+   forward and loss through ``torch.compile``; on batches
    of the same size with its own random offsets and noise. Before timing, a converter copies
    a JAX model's weights into the PyTorch model and the corrected gyro, the noise density,
    the loss and a gradient are compared on a small batch (float32).
@@ -403,7 +406,7 @@ def torch_increment_loss(
         ops, dq = _Quat, plain_windows(gyro, dt, H0)
     else:
         ops, dq = _PyPose, pypose_windows(integrator, gyro, accel, dt, H0)
-    loss = torch.zeros((), dtype=gyro.dtype)
+    loss = torch.zeros((), dtype=gyro.dtype, device=gyro.device)
     for i, H in enumerate(horizons):
         if i:
             W2 = dq.shape[-2] // 2
@@ -422,18 +425,22 @@ def torch_increment_loss(
 class TorchRunner:
     """The PyTorch training step: random offsets and input noise as ``train``'s step draws
     them, forward, the Huber increment loss, backward, AdamW (weight decay on the
-    convolution weights, as ``train``'s mask)."""
+    convolution weights, as ``train``'s mask). ``device``: where PyTorch runs (``"cuda"``
+    on a GPU); ``compiled``: the forward and loss through ``torch.compile``."""
 
-    def __init__(self, tmodel, closure, integration, seed=0):
+    def __init__(self, tmodel, closure, integration, seed=0, device="cpu", compiled=False):
         import torch
 
         cfg = closure["cfg"]
         self.torch = torch
-        self.model = tmodel
-        self.G, self.A, self.Q = (torch.from_numpy(np.array(closure[k])) for k in "GAQ")
+        self.device = device
+        self.model = tmodel.to(device)
+        self.G, self.A, self.Q = (torch.from_numpy(np.array(closure[k])).to(device) for k in "GAQ")
         self.S, self.L, self.dt, self.cfg = closure["S"], closure["L"], closure["dt"], cfg
-        self.noise = torch.tensor([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3)
-        self.bias_noise = torch.tensor([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3)
+        self.noise = torch.tensor([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, device=device)
+        self.bias_noise = torch.tensor(
+            [cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3, device=device
+        )
         decay = [p for n, p in tmodel.named_parameters() if p.ndim == 3]
         rest = [p for n, p in tmodel.named_parameters() if p.ndim != 3]
         self.opt = torch.optim.AdamW(
@@ -448,14 +455,22 @@ class TorchRunner:
             import pypose as pp
 
             self.integrator = pp.module.IMUPreintegrator(gravity=9.81, prop_cov=False, reset=True)
-        self.gen = torch.Generator().manual_seed(seed)
+        self.gen = torch.Generator(device=device).manual_seed(seed)
         self.loss = None
+
+        def forward_loss(x, q):
+            w, a, _ = self.model(x[..., :3].contiguous(), x[..., 3:].contiguous())
+            return torch_increment_loss(
+                w, a, q, self.dt, cfg.horizons, skip=cfg.skip, integrator=self.integrator
+            )
+
+        self.forward_loss = torch.compile(forward_loss) if compiled else forward_loss
 
     def __call__(self):
         torch = self.torch
-        S, L = self.S, self.L
-        offs = torch.randint(0, self.cfg.offset, (S,), generator=self.gen)
-        idx = offs[:, None] + torch.arange(L)[None, :]
+        S, L, dev = self.S, self.L, self.device
+        offs = torch.randint(0, self.cfg.offset, (S,), generator=self.gen, device=dev)
+        idx = offs[:, None] + torch.arange(L, device=dev)[None, :]
 
         def take(X, i):
             return torch.gather(X, 1, i[..., None].expand(-1, -1, X.shape[-1]))
@@ -463,16 +478,13 @@ class TorchRunner:
         x = torch.cat([take(self.G, idx), take(self.A, idx)], -1)
         x = (
             x
-            + self.noise * torch.randn(x.shape, generator=self.gen)
-            + self.bias_noise * torch.randn((S, 1, 6), generator=self.gen)
+            + self.noise * torch.randn(x.shape, generator=self.gen, device=dev)
+            + self.bias_noise * torch.randn((S, 1, 6), generator=self.gen, device=dev)
         )
         q = take(self.Q, torch.cat([idx, idx[:, -1:] + 1], 1))
         self.model.train()
         self.opt.zero_grad(set_to_none=True)
-        w, a, _ = self.model(x[..., :3].contiguous(), x[..., 3:].contiguous())
-        loss = torch_increment_loss(
-            w, a, q, self.dt, self.cfg.horizons, skip=self.cfg.skip, integrator=self.integrator
-        )
+        loss = self.forward_loss(x, q)
         loss.backward()
         self.opt.step()
         self.loss = loss.item()
@@ -697,6 +709,17 @@ def main(argv=None):
     )
     ap.add_argument("--no-torch", action="store_true", help="leave the PyTorch rows out")
     ap.add_argument(
+        "--torch-device",
+        default=None,
+        help="where the PyTorch step runs (default: cuda when JAX runs on a GPU and torch "
+        "sees one, else cpu)",
+    )
+    ap.add_argument(
+        "--torch-compile",
+        action="store_true",
+        help="also time the PyTorch step with its forward and loss through torch.compile",
+    )
+    ap.add_argument(
         "--torch-integration",
         choices=("auto", "pypose", "plain"),
         default="auto",
@@ -825,7 +848,17 @@ def main(argv=None):
         )
         tmodel = make_torch_model(step_args[1].config)
         jax_to_torch(step_args[1], tmodel)  # the same initial weights as jaximu's step
-        runners["torch step"] = TorchRunner(tmodel, closure, integration, args.seed)
+        tdev = args.torch_device or (
+            "cuda" if jax.default_backend() == "gpu" and torch.cuda.is_available() else "cpu"
+        )
+        doc["torch_device"] = tdev
+        runners["torch step"] = TorchRunner(tmodel, closure, integration, args.seed, tdev)
+        if args.torch_compile:
+            tcomp = make_torch_model(step_args[1].config)
+            jax_to_torch(step_args[1], tcomp)
+            runners["torch step, torch.compile"] = TorchRunner(
+                tcomp, closure, integration, args.seed, tdev, compiled=True
+            )
     runners["jaximu step without NLL"] = JaxRunner(compiled_h, step_args, args.seed)
     if use_torch and integration == "pypose" and not args.no_plain:
         # what PyPose's integration costs inside the PyTorch step: the same step with the
@@ -859,6 +892,10 @@ def main(argv=None):
         ratios["jaximu step vs torch"] = ratio(times, "jaximu step", "torch step")
         ratios["jaximu step without NLL vs torch"] = ratio(
             times, "jaximu step without NLL", "torch step"
+        )
+    if "torch step, torch.compile" in steps:
+        ratios["jaximu step without NLL vs torch.compile"] = ratio(
+            times, "jaximu step without NLL", "torch step, torch.compile"
         )
     if "torch step, plain integration" in steps:
         ratios["jaximu step without NLL vs torch, plain integration"] = ratio(
