@@ -195,13 +195,17 @@ def check_vector(name: str, x, dim: int = 3, time_axis: bool = True):
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
 
 
-def check_finite(name: str, x):
+def check_finite(name: str, x, fix: str = ""):
+    """On concrete ``x``: a ``ValueError`` naming ``name`` and the first NaN or inf's index
+    (and ``fix``, appended) if it holds one."""
     if is_concrete(x):
         arr = np.asarray(x)
         bad = ~np.isfinite(arr)
         if bad.any():
+            where = f", first at index {_first_bad(bad)}" if arr.ndim else f": it is {arr}"
             raise ValueError(
-                f"{name} contains non-finite values (NaN or inf), first at index {_first_bad(bad)}"
+                f"{name} contains non-finite values (NaN or inf){where}"
+                + (f" ({int(bad.sum())} in all); {fix}" if fix else "")
             )
 
 
@@ -395,7 +399,7 @@ def batch_shape(*shapes, names=None, noise=None):
 
 
 def _number(name, x):
-    if isinstance(x, (bool, np.bool_)) or np.ndim(x) != 0:
+    if isinstance(x, (bool, np.bool_, str, bytes)) or np.ndim(x) != 0:  # text: never parsed
         raise ValueError(f"{name} must be a number, got {x!r}")
     try:
         return float(x)
@@ -521,8 +525,9 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
         ) from None
 
 
-def check_array(name: str, x, shape: tuple) -> np.ndarray:
-    """A concrete numpy array of exactly ``shape``, finite; named in the error."""
+def check_array(name: str, x, shape: tuple, fix: str = "pass finite numbers") -> np.ndarray:
+    """A concrete numpy array of exactly ``shape``, finite; named in the error (with
+    ``fix`` for a NaN or inf)."""
     arr = as_numbers(name, x, None)
     if arr.shape != tuple(shape) or dtype_kind(arr.dtype) not in "fiu":
         raise ValueError(
@@ -530,5 +535,5 @@ def check_array(name: str, x, shape: tuple) -> np.ndarray:
             if arr.shape != tuple(shape)
             else f"{name} must be numeric, got {arr.dtype}"
         )
-    check_finite(name, arr)
+    check_finite(name, arr, fix)
     return arr

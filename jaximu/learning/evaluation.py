@@ -24,6 +24,7 @@ import numpy as np
 
 from jaximu.engine.errorstate import accumulate_covariance, transition_products
 from jaximu.engine.propagate import propagate, propagate_final
+from jaximu.errors import Fix, InputError
 from jaximu.geometry import so3
 from jaximu.geometry._checks import check_int, check_positive, compute_dtype
 from jaximu.geometry.state import NavState
@@ -275,12 +276,27 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     check_positive("seconds", seconds)
     start = check_int("start", start, 0)
     dtype = compute_dtype("dtype", dtype)
+    if start > len(seq) - 2:
+        raise InputError(
+            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
+            [Fix("start", 0)],
+            lead="pass a smaller one, e.g.",
+        )
+    n = int(round(seconds * seq.rate_hz))
+    span = (len(seq) - 1 - start) / seq.rate_hz
+    if n < 1 or n > len(seq) - 1 - start:
+        what = "shorter than one sample interval" if n < 1 else "longer than"
+        raise InputError(
+            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
+            f"{seq.name!r} from sample {start} on",
+            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
+            lead="pass",
+        )
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
     a0 = accel - jnp.asarray(model.config.accel_bias, dtype)
-    n = int(round(seconds * seq.rate_hz))
     s = slice(start, None)
     out = {}
     for name, (g, a) in (

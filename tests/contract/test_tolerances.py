@@ -108,8 +108,12 @@ def test_a_covariance_of_mixed_units_is_judged_per_axis(dtype):
         _tolerances.check_covariance("P0", cross.astype(dtype), dtype)
     with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the variance"):
         jaximu.propagate_covariance_final(
-            NavState.identity((), dtype), neg.astype(dtype), np.zeros((1, 3), dtype),
-            np.array([[0, 0, 9.81]], dtype), 0.01, ImuNoise.euroc(),
+            NavState.identity((), dtype),
+            neg.astype(dtype),
+            np.zeros((1, 3), dtype),
+            np.array([[0, 0, 9.81]], dtype),
+            0.01,
+            ImuNoise.euroc(),
         )
 
 

@@ -1,0 +1,296 @@
+"""The learning package's bad inputs: the denoiser, the gyro-bias tracker, the settings, the
+model files and the evaluation. Each bad input is refused before any work with a
+``ValueError`` that names the argument as the user wrote it, the offending value (or its
+index) and the fix; nothing is left on disk. The property tests (hypothesis) draw finite
+inputs, whose outputs must be finite, and inputs with one non-finite value, which must be
+refused naming the argument and the index the value was put at (the reference: where the
+test put it).
+
+Compile cost: one tiny model (2 layers of 4 channels) on 40 samples, float32, one shape for
+every call; the refusals compile nothing.
+"""
+
+from __future__ import annotations
+
+import re
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _shared import fast_settings
+from hypothesis import given
+from hypothesis import strategies as st
+
+from jaximu import learning
+from jaximu.errors import InputError
+from jaximu.geometry.noise import ImuNoise
+from jaximu.io import DataError
+from jaximu.learning import Denoiser, ModelConfig, TrainConfig, track_gyro_bias
+
+T = 40
+DT = 0.005
+CFG = ModelConfig(channels=(4, 4), kernel=3, dilations=(1, 2), update_samples=20)
+MODEL = Denoiser(CFG, jax.random.key(0))
+SETTINGS = CFG.tracker()
+
+
+def samples(seed=0, T=T):
+    """Rates of 0.1 rad/s and gravity along a tilted direction, float32."""
+    rng = np.random.default_rng(seed)
+    g = 0.1 * rng.standard_normal((T, 3))
+    a = np.array([0.5, -0.3, 9.79]) + 0.05 * rng.standard_normal((T, 3))
+    return g.astype(np.float32), a.astype(np.float32)
+
+
+def sequence(T=60):
+    g, a = samples(1, T)
+    t = np.arange(T) * DT
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (T, 1))
+    z = np.zeros((T, 3))
+    return learning.Sequence("short", t, g, a, q, z, z)
+
+
+def diverged():
+    """The model with one NaN weight, as a diverged training leaves it."""
+    w = MODEL.layers[1].weight
+    return eqx.tree_at(lambda m: m.layers[1].weight, MODEL, w.at[1, 2, 3].set(jnp.nan))
+
+
+# --------------------------------------------------------------------------- NaN in, refused
+
+
+@pytest.mark.parametrize("call", ["model", "track", "tracker"])
+def test_a_nan_sample_is_refused_naming_its_index(call):
+    g, a = samples()
+    g[17, 1] = np.nan
+    fn = {
+        "model": lambda: MODEL(g, a),
+        "track": lambda: MODEL.track(g, a),
+        "tracker": lambda: track_gyro_bias(g, a, DT, SETTINGS),
+    }[call]
+    with pytest.raises(ValueError, match=r"^gyro contains non-finite .* index \[17, 1\].*drop"):
+        fn()
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            dict(gyro_bias=(np.nan, 0.0, 0.0)),
+            r"settings\.gyro_bias contains non-finite values .* index \[0\]",
+        ),
+        (
+            dict(noise=ImuNoise(np.nan, 2e-3, 2e-5, 3e-3)),
+            r"settings\.noise\.gyroscope_noise_density contains non-finite values .*: it is nan",
+        ),
+        (
+            dict(noise=ImuNoise(-1.7e-4, 2e-3, 2e-5, 3e-3)),
+            r"settings\.noise\.gyroscope_noise_density must be non-negative, got -0\.00017.*"
+            r"magnitude",
+        ),
+        (
+            dict(gyro_bias=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))),
+            r"settings\.gyro_bias must have shape \(3,\), got \(2, 3\)",
+        ),
+        (dict(accel_bias=(0.0, 0.0)), r"settings\.accel_bias must have shape \(3,\), got \(2,\)"),
+        (dict(update_samples=2.5), r"settings\.update_samples must be a positive integer"),
+        (dict(gravity=-9.81), r"settings\.gravity must be positive and finite, got -9\.81"),
+    ],
+)
+def test_tracker_settings_outside_their_domain_are_refused_naming_the_field(change, message):
+    g, a = samples()
+    with pytest.raises(ValueError, match=message):
+        track_gyro_bias(g, a, DT, SETTINGS._replace(**change))
+
+
+def test_a_dead_accelerometer_is_refused_naming_accel_and_its_recording():
+    g, a = samples()
+    g2 = np.stack([g, g])
+    a2 = np.stack([a, np.zeros_like(a)])
+    with pytest.raises(
+        ValueError, match=r"^accel of recording \[1\]: its first 10 samples .*0 m/s²"
+    ):
+        track_gyro_bias(g2, a2, DT, SETTINGS)
+    with pytest.raises(ValueError, match=r"^accel: .* dead or disconnected"):
+        MODEL(g, np.zeros_like(a))
+
+
+@pytest.mark.parametrize(
+    "dt, message",
+    [
+        (np.full(T, DT), r"dt must be one sampling interval .* got an array of shape \(40,\)"),
+        (-DT, r"dt must be positive and finite, got -0\.005"),
+        (np.nan, r"dt must be positive and finite, got nan"),
+        ("0.005", r"dt must be a number, got '0\.005'"),
+    ],
+)
+def test_the_tracker_takes_one_sampling_interval(dt, message):
+    g, a = samples()
+    with pytest.raises(ValueError, match=message):
+        track_gyro_bias(g, a, dt, SETTINGS)
+
+
+@pytest.mark.parametrize(
+    "bias, message",
+    [
+        (np.zeros((T + 1, 3)), r"gyro_bias must have gyro's shape \(40, 3\) .* got \(41, 3\)"),
+        (np.zeros((T, 2)), r"gyro_bias must have gyro's shape \(40, 3\) .* got \(40, 2\)"),
+        (np.full((T, 3), np.inf), r"gyro_bias contains non-finite values .* index \[0, 0\]"),
+        ("0", r"gyro_bias must be an array of numbers"),
+    ],
+)
+def test_a_given_gyro_bias_is_checked_against_the_samples(bias, message):
+    g, a = samples()
+    with pytest.raises(ValueError, match=message):
+        MODEL(g, a, gyro_bias=bias)
+
+
+def test_a_constant_given_gyro_bias_is_subtracted_as_given():
+    g, a = samples()
+    b = np.array([1e-3, -2e-3, 3e-3], np.float32)
+    per_sample = MODEL(g, a, gyro_bias=np.broadcast_to(b, g.shape)).gyro
+    np.testing.assert_array_equal(np.asarray(MODEL(g, a, gyro_bias=b).gyro), per_sample)
+    zero = MODEL(g, a, gyro_bias=np.zeros(3)).gyro  # untrained: the raw gyro exactly
+    np.testing.assert_allclose(np.asarray(per_sample), np.asarray(zero) - b, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- a diverged model
+
+
+def test_a_model_with_a_nan_weight_is_refused_by_every_use(tmp_path):
+    bad = diverged()
+    g, a = samples()
+    named = r"model's weights hold 1 non-finite values .* model\.layers\[1\]\.weight\[1, 2, 3\]"
+    with pytest.raises(ValueError, match=named + r".*retrain"):
+        bad(g, a)
+    with pytest.raises(ValueError, match=named):
+        learning.save(tmp_path / "m", bad)
+    assert not (tmp_path / "m").exists()  # nothing written
+    with pytest.raises(ValueError, match=named):
+        learning.evaluate_sequence(bad, sequence())
+    with pytest.raises(ValueError, match=named):
+        learning.evaluation.window_errors(bad, sequence(), 0.1)
+    # a folder whose weights file holds the NaN (written by an older jaximu)
+    learning.save(tmp_path / "m", MODEL)
+    eqx.tree_serialise_leaves(tmp_path / "m" / "weights.eqx", bad)
+    with pytest.raises(DataError, match=r"weights\.eqx: " + named):
+        learning.load(tmp_path / "m")
+
+
+# --------------------------------------------------------------------------- settings
+
+
+def test_a_minimum_learning_rate_above_the_learning_rate_is_refused():
+    with pytest.raises(
+        InputError,
+        match=r"min_learning_rate = 0\.01 exceeds learning_rate = "
+        r"0\.003.*pass at most learning_rate, e\.g\. min_learning_rate=0\.0003",
+    ):
+        TrainConfig(min_learning_rate=0.01, learning_rate=0.003)
+    TrainConfig(min_learning_rate=0.003, learning_rate=0.003)  # a constant rate
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(kernel=0), r"^ModelConfig\.kernel must be a positive odd number, got 0$"),
+        (dict(kernel=4), r"^ModelConfig\.kernel .* got 4; pass kernel=5"),
+        (dict(accel_head="yes"), r"^ModelConfig\.accel_head must be True or False"),
+        (dict(gyro_bias=((0, 0, 0), (0, 0, 0))), r"ModelConfig\.gyro_bias must have shape"),
+    ],
+)
+def test_model_settings_name_the_field_they_fail_on(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ModelConfig(**kwargs)
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def test_windows_longer_than_the_recording_are_refused_naming_seconds():
+    seq = sequence(60)  # 0.295 s
+    with pytest.raises(
+        InputError,
+        match=r"seconds = 1\.0: a window longer than the 0\.295 s "
+        r"of sequence 'short'.*pass seconds between 0\.005 and 0\.295",
+    ):
+        learning.evaluation.window_errors(MODEL, seq, 1.0)
+    with pytest.raises(InputError, match=r"seconds = 0\.001: a window shorter than one sample"):
+        learning.evaluation.window_errors(MODEL, seq, 0.001)
+    with pytest.raises(InputError, match=r"start = 59 leaves no step"):
+        learning.evaluation.window_errors(MODEL, seq, 0.1, start=59)
+    out = learning.evaluation.window_errors(MODEL, seq, 0.1)
+    assert all(np.isfinite(v).all() for v in out.values())
+
+
+# --------------------------------------------------------------------------- properties
+
+
+def finite_samples(data):
+    """Rates within ±5 rad/s and a specific force of 5 to 15 m/s² along a random direction
+    with ±2 m/s² on each sample (a moving vehicle), drawn by hypothesis."""
+    seed = data.draw(st.integers(0, 2**32 - 1), label="seed")
+    rng = np.random.default_rng(seed)
+    g = rng.uniform(-5, 5, (T, 3))
+    u = rng.standard_normal(3)
+    f = u / np.linalg.norm(u) * rng.uniform(5, 15)
+    a = f + rng.uniform(-2, 2, (T, 3))
+    return g.astype(np.float32), a.astype(np.float32)
+
+
+def assert_finite(out):
+    for leaf in jax.tree_util.tree_leaves(out):
+        assert np.isfinite(np.asarray(leaf)).all()
+
+
+@fast_settings(8)
+@given(st.data())
+def test_finite_samples_give_finite_corrections_and_biases(data):
+    g, a = finite_samples(data)
+    assert_finite(MODEL(g, a))
+    assert_finite(track_gyro_bias(g, a, DT, SETTINGS))
+
+
+@fast_settings(12)
+@given(st.data())
+def test_a_non_finite_sample_anywhere_is_refused_naming_it_and_its_index(data):
+    g, a = finite_samples(data)
+    name = data.draw(st.sampled_from(["gyro", "accel"]), label="argument")
+    i = data.draw(st.integers(0, T - 1), label="sample")
+    j = data.draw(st.integers(0, 2), label="axis")
+    value = data.draw(st.sampled_from([np.nan, np.inf, -np.inf]), label="value")
+    (g if name == "gyro" else a)[i, j] = value
+    fn = data.draw(st.sampled_from(["model", "tracker"]), label="function")
+    where = re.escape(f"[{i}, {j}]")
+    with pytest.raises(ValueError, match=rf"^{name} contains non-finite .* index {where}"):
+        if fn == "model":
+            MODEL(g, a)
+        else:
+            track_gyro_bias(g, a, DT, SETTINGS)
+
+
+@fast_settings(25)
+@given(
+    st.sampled_from(list(learning.tracking._POSITIVE)),
+    st.sampled_from([0.0, -1.0, np.nan, np.inf, -np.inf]),
+)
+def test_a_tracker_setting_outside_its_domain_is_refused_by_name(field, value):
+    g, a = samples()
+    with pytest.raises(ValueError, match=rf"^settings\.{field} must be positive and finite"):
+        track_gyro_bias(g, a, DT, SETTINGS._replace(**{field: value}))
+
+
+@fast_settings(25)
+@given(
+    st.floats(1e-6, 1.0),
+    st.floats(1e-6, 1.0),
+)
+def test_the_learning_rates_are_accepted_exactly_when_they_anneal_downwards(lr, low):
+    if low <= lr:
+        cfg = TrainConfig(learning_rate=lr, min_learning_rate=low)
+        assert (cfg.learning_rate, cfg.min_learning_rate) == (lr, low)  # as given
+    else:
+        with pytest.raises(InputError, match=r"TrainConfig\.min_learning_rate = .* exceeds"):
+            TrainConfig(learning_rate=lr, min_learning_rate=low)
