@@ -525,6 +525,34 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
         ) from None
 
 
+TIMES_FIX = "repair the stamps (the readers' sort, drop_duplicates, drop_nonfinite options)"
+"""The repair of a recording's bad stamps, as :func:`check_times`'s ``fix``."""
+
+
+def check_times(name: str, t, minimum: int = 2, fix: str = "") -> np.ndarray:
+    """Sample times ``t`` as a float64 numpy array: 1-D, at least ``minimum`` of them,
+    finite and strictly increasing (a recording of zero duration, repeated stamps and a NaN
+    stamp refused); a ``ValueError`` names ``name``, the first offending index and value,
+    and ``fix`` (appended)."""
+    arr = as_numbers(name, t)
+    tail = f"; {fix}" if fix else ""
+    if arr.ndim != 1 or len(arr) < minimum:
+        raise ValueError(
+            f"{name} must be a 1-D array of at least {minimum} sample times, got shape "
+            f"{arr.shape}{tail}"
+        )
+    check_finite(name, arr, fix)
+    step = np.diff(arr)
+    if np.any(step <= 0):
+        i = int(np.argmax(step <= 0))
+        span = f" (all {len(arr)} stamps {arr[0]:g}: zero duration)" if arr[-1] == arr[0] else ""
+        raise ValueError(
+            f"{name} must increase strictly; {name}[{i + 1}] = {arr[i + 1]:.12g} ≤ "
+            f"{name}[{i}] = {arr[i]:.12g}{span}{tail}"
+        )
+    return arr
+
+
 def check_array(name: str, x, shape: tuple, fix: str = "pass finite numbers") -> np.ndarray:
     """A concrete numpy array of exactly ``shape``, finite; named in the error (with
     ``fix`` for a NaN or inf)."""
