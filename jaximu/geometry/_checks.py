@@ -205,8 +205,34 @@ def check_finite(name: str, x, fix: str = ""):
             where = f", first at index {_first_bad(bad)}" if arr.ndim else f": it is {arr}"
             raise ValueError(
                 f"{name} contains non-finite values (NaN or inf){where}"
-                + (f" ({int(bad.sum())} in all); {fix}" if fix else "")
+                + (f" ({int(bad.sum())} in all)" if fix and arr.ndim else "")
+                + (f"; {fix}" if fix else "")
             )
+
+
+def check_sign(name: str, x, dtype, *, strict: bool = False, unit: str = "", fix: str = ""):
+    """``x`` as a ``dtype`` array (any shape; traced values pass, shape-checked by the
+    caller), finite and ``≥ 0`` (``> 0`` with ``strict``) on eager calls; else a
+    ``ValueError`` naming ``name``, the first offending value and its index, and ``fix``
+    (default: why a sign matters for a standard deviation or a density)."""
+    y = to_dtype(name, x, dtype)
+    check_finite(name, y, fix or "pass finite numbers")
+    if is_concrete(y):
+        arr = np.asarray(y)
+        bad = ~(arr > 0) if strict else arr < 0
+        if bad.any():
+            i = tuple(np.argwhere(bad)[0]) if arr.ndim else ()
+            where = _first_bad(bad) if arr.ndim else ""
+            kind = "positive" if strict else "non-negative"
+            raise ValueError(
+                f"{name} must be {kind}{f' [{unit}]' if unit else ''}, got {name}{where} = "
+                f"{arr[i]:g}; "
+                + (
+                    fix
+                    or "a standard deviation or density is σ ≥ 0, whose sign would be lost in σ²"
+                )
+            )
+    return y
 
 
 def check_imu(gyro, accel, dt, dtype, allow_intervals=False):

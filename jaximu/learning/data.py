@@ -220,6 +220,7 @@ def load_sequence(
 def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequence]:
     """The first ``train_seconds`` for training and the rest for validation (Brossard's
     split of each training sequence)."""
+    check_sequence("seq", seq)
     check_positive("train_seconds", train_seconds)
     k = int(np.searchsorted(seq.t, seq.t[0] + train_seconds))
     if k < 2 or len(seq) - k < 2:

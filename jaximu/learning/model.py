@@ -38,6 +38,7 @@ from jaximu.geometry._checks import (
     check_bool,
     check_finite,
     check_int,
+    check_key,
     check_output,
     check_positive,
     check_vector,
@@ -256,6 +257,9 @@ class CausalConv(eqx.Module):
     dilation: int = eqx.field(static=True)
 
     def __init__(self, c_in: int, c_out: int, kernel: int, dilation: int, key, zero=False):
+        c_in, c_out = check_int("c_in", c_in, 1), check_int("c_out", c_out, 1)
+        kernel, dilation = check_int("kernel", kernel, 1), check_int("dilation", dilation, 1)
+        key = check_key("key", key)
         bound = 1.0 / np.sqrt(c_in * kernel)  # PyTorch's default for Conv1d
         kw, kb = jax.random.split(key)
         shape = (kernel, c_in, c_out)
@@ -304,7 +308,11 @@ class Denoiser(eqx.Module):
     config: ModelConfig = eqx.field(static=True)
 
     def __init__(self, config: ModelConfig, key):
-        keys = jax.random.split(key, len(config.channels) + 1)
+        if not isinstance(config, ModelConfig):
+            raise ValueError(
+                f"config must be a jaximu.learning.ModelConfig, got {type(config).__name__}"
+            )
+        keys = jax.random.split(check_key("key", key), len(config.channels) + 1)
         widths = (6,) + tuple(config.channels)
         self.layers = tuple(
             CausalConv(widths[i], widths[i + 1], config.kernel, d, keys[i])

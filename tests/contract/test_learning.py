@@ -294,3 +294,75 @@ def test_the_learning_rates_are_accepted_exactly_when_they_anneal_downwards(lr, 
     else:
         with pytest.raises(InputError, match=r"TrainConfig\.min_learning_rate = .* exceeds"):
             TrainConfig(learning_rate=lr, min_learning_rate=low)
+
+
+# --------------------------------------------------------------------------- the evaluation's parts
+
+Q = np.tile([1.0, 0.0, 0.0, 0.0], (T, 1))
+DENSITY = np.full((T, 3), 1.7e-4)
+INTERVALS = np.full(T - 1, DT)
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (
+            lambda: learning.integrate_attitude(2 * Q[0], samples()[0], INTERVALS),
+            r"^q0 is not a unit",
+        ),
+        (
+            lambda: learning.integrate_attitude(Q[0], samples()[0], np.full(T, DT)),
+            r"^dt must be a scalar or have shape \(\.\.\., T-1\) = \(\.\.\., 39\).* got \(40,\)",
+        ),
+        (lambda: learning.integrate_attitude(Q[0], samples()[0], -DT), r"^dt must be positive"),
+        (lambda: learning.orientation_errors(Q * np.nan, Q), r"^q_est contains non-finite"),
+        (lambda: learning.orientation_errors(Q, 2 * Q), r"^q_true is not a unit quaternion"),
+        (
+            lambda: learning.orientation_errors(Q[:3], Q[:4]),
+            r"batch shapes .* q_est \(3,\), q_true \(4,\)",
+        ),
+        (
+            lambda: learning.attitude_covariance(samples()[0], -DENSITY, DT, 1e-3, 2e-5, 1e-3),
+            r"^density must be non-negative .* density\[0, 0\] = -0\.00017.*lost in σ²",
+        ),
+        (
+            lambda: learning.attitude_covariance(samples()[0], DENSITY, DT, np.nan, 2e-5, 1e-3),
+            r"^bias_sigma contains non-finite values \(NaN or inf\): it is nan",
+        ),
+        (
+            lambda: learning.attitude_covariance(samples()[0], DENSITY, DT, 1e-3, 2e-5, 0.0),
+            r"^reference_sigma must be positive \[rad\], got reference_sigma = 0",
+        ),
+        (
+            lambda: learning.attitude_covariance(samples()[0], DENSITY[1:], DT, 1e-3, 2e-5, 1e-3),
+            r"^density must have gyro's shape \(40, 3\), got \(39, 3\)",
+        ),
+        (
+            lambda: learning.attitude_covariance(
+                samples()[0], DENSITY, DT, 1e-3, 2e-5, 1e-3, DENSITY[:, :2]
+            ),
+            r"^tracked_sigma must have gyro's shape \(40, 3\)",
+        ),
+        (lambda: learning.CausalConv(2, 3, 0, 1, jax.random.key(0)), r"^kernel must be a pos"),
+        (lambda: learning.Denoiser(CFG, 0), r"^key must be a jax\.random key"),
+        (lambda: learning.split("seq.csv"), r"^seq must be a jaximu\.learning\.Sequence"),
+    ],
+)
+def test_the_evaluations_parts_refuse_bad_input_by_name(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_the_evaluations_parts_take_lists_and_one_sample():
+    """Python lists are numbers as the arrays are; one sample is the start attitude (no
+    step); the covariance of a still gyro at a constant density grows by σ² per second
+    about each axis, plus the reference's 2 σ_ref² (the closed form)."""
+    g = np.zeros((T, 3))
+    q = np.asarray(learning.integrate_attitude(Q[0].tolist(), g.tolist(), DT))
+    np.testing.assert_allclose(q, Q, atol=1e-7)
+    one = learning.integrate_attitude(Q[0], g[:1], INTERVALS[:0])
+    np.testing.assert_array_equal(np.asarray(one), Q[:1])
+    S = np.asarray(learning.attitude_covariance(g.tolist(), DENSITY, DT, 0.0, 0.0, 1e-3))
+    k = np.arange(T)
+    want = 1.7e-4**2 * k * DT + 2 * 1e-3**2
+    np.testing.assert_allclose(S[:, 0, 0], want, rtol=1e-5)
