@@ -31,6 +31,7 @@ from jaximu.geometry._checks import (
     check_finite,
     check_imu,
     check_int,
+    check_output,
     check_positive,
     check_sign,
     check_vector,
@@ -330,7 +331,11 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
     a, y = _plain_run(g0, q_true, dt)
     metrics["constant_bias"], aoe["constant_bias"] = _metrics(a, y), np.degrees(np.asarray(a))
-    a, y, e, s3 = _learned_run(model, gyro, accel, q_true, dt)
+    a, y, e, s3 = check_output(
+        "evaluate_sequence",
+        _learned_run(model, gyro, accel, q_true, dt),
+        f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
+    )
     metrics["learned"], aoe["learned"] = _metrics(a, y), np.degrees(np.asarray(a))
     e = np.asarray(e, np.float64)
     return SequenceReport(
@@ -401,8 +406,12 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
         ("learned_gyro", (c.gyro, a0)),
         ("learned", (c.gyro, c.accel)),
     ):
-        dv, dp = _window_run(
-            g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s], cast(seq.dt)[s], n
+        dv, dp = check_output(
+            "window_errors",
+            _window_run(
+                g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s], cast(seq.dt)[s], n
+            ),
+            f"the dead reckoning of sequence {seq.name!r} overflows {dtype.name}",
         )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out

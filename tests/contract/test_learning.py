@@ -366,3 +366,81 @@ def test_the_evaluations_parts_take_lists_and_one_sample():
     k = np.arange(T)
     want = 1.7e-4**2 * k * DT + 2 * 1e-3**2
     np.testing.assert_allclose(S[:, 0, 0], want, rtol=1e-5)
+
+
+def evaluation_inputs(data):
+    """Finite inputs of the evaluation's parts, drawn by hypothesis: unit quaternions,
+    rates within ±5 rad/s, densities and standard deviations within their domains."""
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1), label="seed"))
+    q = rng.standard_normal((T, 4))
+    return {
+        "q0": q[0] / np.linalg.norm(q[0]),
+        "q_est": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "q_true": np.roll(q, 1, 0) / np.linalg.norm(np.roll(q, 1, 0), axis=1, keepdims=True),
+        "gyro": rng.uniform(-5, 5, (T, 3)),
+        "density": rng.uniform(0, 1e-2, (T, 3)),
+        "bias_sigma": rng.uniform(0, 1e-2),
+        "random_walk": rng.uniform(0, 1e-3),
+        "reference_sigma": rng.uniform(1e-4, 1e-2),
+        "tracked_sigma": rng.uniform(0, 1e-2, (T, 3)),
+    }
+
+
+EVALUATION_CALLS = {
+    "integrate_attitude": (
+        ("q0", "gyro"),
+        lambda x: learning.integrate_attitude(x["q0"], x["gyro"], DT),
+    ),
+    "orientation_errors": (
+        ("q_est", "q_true"),
+        lambda x: learning.orientation_errors(x["q_est"], x["q_true"]),
+    ),
+    "attitude_covariance": (
+        ("gyro", "density", "bias_sigma", "random_walk", "reference_sigma", "tracked_sigma"),
+        lambda x: learning.attitude_covariance(
+            x["gyro"],
+            x["density"],
+            DT,
+            x["bias_sigma"],
+            x["random_walk"],
+            x["reference_sigma"],
+            x["tracked_sigma"],
+        ),
+    ),
+}
+
+
+@fast_settings(6)
+@given(st.data())
+def test_finite_inputs_give_finite_attitudes_errors_and_covariances(data):
+    x = evaluation_inputs(data)
+    for _, call in EVALUATION_CALLS.values():
+        assert_finite(call(x))
+
+
+@fast_settings(20)
+@given(st.data())
+def test_a_non_finite_or_out_of_domain_argument_of_the_evaluation_is_refused_by_name(data):
+    x = evaluation_inputs(data)
+    fn = data.draw(st.sampled_from(sorted(EVALUATION_CALLS)), label="function")
+    names, call = EVALUATION_CALLS[fn]
+    name = data.draw(st.sampled_from(names), label="argument")
+    spoil = (
+        ["nan", "inf"]
+        + (["unit"] if name.startswith("q") else [])
+        + (["negative"] if name not in ("gyro",) and not name.startswith("q") else [])
+    )
+    kind = data.draw(st.sampled_from(spoil), label="kind")
+    v = np.array(x[name], np.float64)
+    if kind == "unit":
+        v = 1.5 * v
+    elif kind == "negative":
+        v = -np.abs(v) - 1e-3
+    else:
+        v.flat[data.draw(st.integers(0, v.size - 1), label="index")] = {
+            "nan": np.nan,
+            "inf": np.inf,
+        }[kind]
+    x[name] = v
+    with pytest.raises(ValueError, match=rf"^{name} "):
+        call(x)
