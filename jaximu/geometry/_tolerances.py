@@ -164,8 +164,10 @@ def check_covariance(name: str, P, dtype, *, fix: str = ""):
 
 def check_variances(name: str, P, dtype, *, fix: str = ""):
     """The variances (diagonal) of ``(..., n, n)`` ``P`` are not negative beyond
-    :func:`rounding_tolerance` of ``dtype`` times the matrix's largest entry (the check of
-    :func:`check_covariance` for callers that read only the variances)."""
+    :func:`rounding_tolerance` of ``dtype`` times the matrix's largest entry: for covariances
+    the library computed and a writer stores (a propagation's ``F P Fᵀ + Q`` in float32 may
+    round a variance of a direction it shrank to slightly below zero), not for a user's
+    input, whose negative variance :func:`check_covariance` refuses always."""
     arr = np.asarray(P, np.float64)
     if arr.size == 0:
         return

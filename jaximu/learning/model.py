@@ -376,8 +376,11 @@ class Denoiser(eqx.Module):
         return Tracked(b, jnp.zeros_like(b))
 
     def __call__(self, gyro, accel, key=None, gyro_bias=None) -> Corrected:
-        """Corrected samples; ``gyro_bias``: ``(..., T, 3)`` the tracked bias when already
-        computed (:meth:`track`; training passes it, the tracker being fixed)."""
+        """Corrected samples; ``gyro``, ``accel``: ``(..., T, 3)`` finite; ``gyro_bias``:
+        ``(..., T, 3)`` the tracked bias when already computed (:meth:`track`; training
+        passes it, the tracker being fixed), or any finite shape that broadcasts to
+        ``gyro``'s without changing it (``(3,)``: one bias). On eager calls the weights,
+        the samples and the outputs are checked finite, each named in the error."""
         cfg = self.config
         check_weights("model", self)
         gyro, accel = _samples(gyro, accel)
