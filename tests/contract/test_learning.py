@@ -444,3 +444,27 @@ def test_a_non_finite_or_out_of_domain_argument_of_the_evaluation_is_refused_by_
     x[name] = v
     with pytest.raises(ValueError, match=rf"^{name} "):
         call(x)
+
+
+def test_the_losses_check_the_ground_truth_against_the_samples():
+    g, a = samples()
+    c = MODEL(g, a)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (T + 1, 1))
+    v = np.zeros((T + 1, 3))
+    loss = learning.losses.increment_loss
+    with pytest.raises(ValueError, match=r"^q_true must have shape \(\.\.\., T \+ 1, 4\) = "):
+        loss(c, q[:-1], DT, (8, 16))
+    with pytest.raises(ValueError, match=r"^q_true contains non-finite .* index \[3, 0\]"):
+        loss(c, np.where(np.arange(T + 1)[:, None] == 3, np.nan, q), DT, (8, 16))
+    with pytest.raises(ValueError, match=r"^dt must be positive \[s\], got dt = -0\.005"):
+        loss(c, q, -DT, (8, 16))
+    with pytest.raises(ValueError, match=r"^dt must be one sampling interval"):
+        loss(c, q, np.full(T, DT), (8, 16))
+    with pytest.raises(ValueError, match=r"^corrected must be the model's output"):
+        loss((g, a), q, DT, (8, 16))
+    residuals = learning.losses.velocity_residuals
+    with pytest.raises(ValueError, match=r"^H = 50: no window of 50 samples fits in the 40"):
+        residuals(c.gyro, c.accel, q, v, DT, 50)
+    with pytest.raises(ValueError, match=r"^v_true must have shape \(\.\.\., T \+ 1, 3\)"):
+        residuals(c.gyro, c.accel, q, v[:, :2], DT, 8)
+    assert np.isfinite(np.asarray(loss(c, q, DT, (8, 16))[0]))
