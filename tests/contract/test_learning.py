@@ -468,3 +468,16 @@ def test_the_losses_check_the_ground_truth_against_the_samples():
     with pytest.raises(ValueError, match=r"^v_true must have shape \(\.\.\., T \+ 1, 3\)"):
         residuals(c.gyro, c.accel, q, v[:, :2], DT, 8)
     assert np.isfinite(np.asarray(loss(c, q, DT, (8, 16))[0]))
+
+
+def test_the_uncertainty_fits_refuse_a_diverged_model_and_a_start_past_the_end():
+    bad = diverged()
+    u = learning.uncertainty
+    with pytest.raises(ValueError, match=r"^model's weights hold 1 non-finite"):
+        u.with_bias_sigma(bad, 1e-3)
+    with pytest.raises(ValueError, match=r"^model's weights hold 1 non-finite"):
+        u.nees_terms(bad, sequence())
+    with pytest.raises(ValueError, match=r"^start = 59 leaves no step of the 60 samples"):
+        u.nees_terms(MODEL, sequence(), 59)
+    with pytest.raises(ValueError, match=r"^seq must be a jaximu\.learning\.Sequence"):
+        u.nees_terms(MODEL, "seq")
