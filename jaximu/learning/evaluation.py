@@ -290,23 +290,6 @@ def _plain_run(gyro, q_true, dt):
     return aoe, aye
 
 
-def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:
-    """Everything :func:`evaluate_sequence` checks before its work, for a command to check
-    each of its sequences before the first is evaluated: ``model`` a
-    :class:`jaximu.learning.Denoiser` with finite weights, ``seq`` (named ``name``) a
-    :class:`Sequence` at its rate, long enough for its bias tracker."""
-    check_model("model", model)
-    check_sequence(name, seq)
-    check_rate(seq, model.config.rate_hz)
-    if model.config.bias_tracking and len(seq) < LEVEL_SAMPLES:
-        raise DataError(
-            f"sequence {seq.name!r}: its ground truth covers {len(seq)} IMU samples, and the "
-            f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
-            "attitude on their mean specific force): give a recording whose ground truth "
-            "covers more of it"
-        )
-
-
 def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     """Integrate ``seq`` whole from its first true attitude three ways — raw gyro, raw gyro
     minus the model's constant bias, the learned correction — and measure each.
@@ -415,3 +398,20 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
         )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out
+
+
+def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:
+    """Everything :func:`evaluate_sequence` checks before its work, for a command to check
+    each of its sequences before the first is evaluated: ``model`` a
+    :class:`jaximu.learning.Denoiser` with finite weights, ``seq`` (named ``name``) a
+    :class:`Sequence` at its rate, long enough for its bias tracker."""
+    check_model("model", model)
+    check_sequence(name, seq)
+    check_rate(seq, model.config.rate_hz)
+    if model.config.bias_tracking and len(seq) < LEVEL_SAMPLES:
+        raise DataError(
+            f"sequence {seq.name!r}: its ground truth covers {len(seq)} IMU samples, and the "
+            f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
+            "attitude on their mean specific force): give a recording whose ground truth "
+            "covers more of it"
+        )
