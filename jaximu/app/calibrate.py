@@ -148,6 +148,14 @@ def cmd_calibrate(args):
         initial = cal.ImuCalibration.default(
             dtype=dtype, q_BS=np.asarray(pose.q), p_BS=np.asarray(pose.p)
         )
+    if noise_fit:  # too few windows: said before any work, from the windows d can hold
+        from jaximu.calibration._noise_fit import check_window_count
+        from jaximu.calibration._noise_problem import check_window_span
+
+        shortest = float(np.min(lengths))
+        check_window_span(float(np.max(lengths)), d.duration, shortest)
+        fits = int(np.floor(d.duration / shortest * (1 + 1e-9))) if shortest > 0 else 0
+        check_window_count(estimate, fits, shortest, d.duration)
     noise = yaml_noise or _noise(args.noise)
     kw = (
         {"window_lengths": lengths}

@@ -115,10 +115,14 @@ FLAGS = {
     "noise": "--noise",
 }
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
-API_ONLY_OPTIONS = frozenset({"measurement", "path", "model", "extrinsics"})
+API_ONLY_OPTIONS = frozenset(
+    {"measurement", "path", "model", "extrinsics", "kernel", "min_learning_rate", "start"}
+)
 """Options the library's fixes may name that have no flag (rendered as keywords):
-``monte_carlo``'s ``measurement`` (the command builds it from ``--fix-sigma``) and
-``MonteCarloResult.save``'s ``path`` (``--save`` is checked by the command first)."""
+``monte_carlo``'s ``measurement`` (the command builds it from ``--fix-sigma``),
+``MonteCarloResult.save``'s ``path`` (``--save`` is checked by the command first), the
+learning settings' ``kernel`` and ``min_learning_rate`` and ``window_errors``' ``start``
+(no command sets them)."""
 
 
 def flag_of(fix) -> str:

@@ -157,8 +157,8 @@ def cmd_evaluate(args):
         )
     )
     seqs = _load_all(learning, args)
-    for s in seqs:
-        learning.data.check_rate(s, model.config.rate_hz)
+    for s in seqs:  # every sequence before the first table
+        learning.evaluation.check_evaluable(model, s)
     reports, windows = [], []
     for s in seqs:
         rep = learning.evaluate_sequence(model, s)

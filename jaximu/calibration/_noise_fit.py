@@ -220,20 +220,40 @@ def _check_identifiable(problem: NoiseProblem, estimate, s0):
                     )
                 ],
             )
-    if not names:  # the fields alone (densities fixed): any windows will do
-        return
     K0 = problem.base.n_windows
     n_fit = int(problem.kept[:K0].sum())
-    W = problem.window_lengths[0]
-    if n_fit < MIN_WINDOWS:
+    check_window_count(names, n_fit, problem.window_lengths[0], problem.span)
+
+
+def check_window_count(estimate, n_fit: int, shortest: float, span: float):
+    """Refuse ``n_fit`` windows of the ``shortest`` length [s] (of a recording of ``span``
+    [s]) when they are too few for the densities ``estimate`` names: :data:`MIN_WINDOWS`,
+    and :data:`MIN_WINDOWS_PER_AXIS` for a density per axis (the fields alone, densities
+    fixed: any windows will do). The command calls it before any work, with the windows
+    the recording can hold (an upper bound of those in the fit)."""
+    per_axis = [n for n in PER_AXIS_FIELDS if n in estimate]
+    if per_axis and n_fit < MIN_WINDOWS_PER_AXIS:
         raise InputError(
-            f"the recording holds {n_fit} windows of {W:g} s in the fit; estimating noise "
-            f"needs at least {MIN_WINDOWS}: white noise, random walk and the reference's "
+            f"the recording holds {n_fit} windows of {shortest:g} s in the fit; a density per "
+            f"axis needs at least {MIN_WINDOWS_PER_AXIS} (three values where the isotropic "
+            f"fit has one): {', '.join(per_axis)} cannot be identified",
+            [
+                Fix(
+                    "window_lengths",
+                    phrase=f"a shortest length ≤ {span / MIN_WINDOWS_PER_AXIS:.3g}"
+                    " s in {} (or a longer recording, or the isotropic names in estimate)",
+                )
+            ],
+        )
+    if any(n in NOISE_FIELDS for n in estimate) and n_fit < MIN_WINDOWS:
+        raise InputError(
+            f"the recording holds {n_fit} windows of {shortest:g} s in the fit; estimating "
+            f"noise needs at least {MIN_WINDOWS}: white noise, random walk and the reference's "
             "noise separate through how consecutive windows' residuals correlate",
             [
                 Fix(
                     "window_lengths",
-                    phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS:.3g}"
+                    phrase=f"a shortest length ≤ {span / MIN_WINDOWS:.3g}"
                     " s in {} (or a longer recording)",
                 )
             ],
@@ -270,21 +290,8 @@ def _check_per_axis(problem: NoiseProblem, estimate):
         return
     K0 = problem.base.n_windows
     n_fit = int(problem.kept[:K0].sum())
-    if n_fit < MIN_WINDOWS_PER_AXIS:
-        W = problem.window_lengths[0]
-        raise InputError(
-            f"the recording holds {n_fit} windows of {W:g} s in the fit; a density per "
-            f"axis needs at least {MIN_WINDOWS_PER_AXIS} (three values where the isotropic "
-            f"fit has one): {', '.join(PER_AXIS_FIELDS[i] for i in named)} cannot be "
-            "identified",
-            [
-                Fix(
-                    "window_lengths",
-                    phrase=f"a shortest length ≤ {problem.span / MIN_WINDOWS_PER_AXIS:.3g}"
-                    " s in {} (or a longer recording, or the isotropic names in estimate)",
-                )
-            ],
-        )
+    per_axis = [PER_AXIS_FIELDS[i] for i in named]
+    check_window_count(per_axis, n_fit, problem.window_lengths[0], problem.span)
 
 
 def _filter_arrays(problem: NoiseProblem, dtype, bases: NoiseBases | None = None):

@@ -139,7 +139,12 @@ def _check_lengths(window_lengths, period):
         lengths = np.asarray(window_lengths, np.float64)
     except (TypeError, ValueError):
         lengths = None
-    if lengths is None or lengths.ndim != 1 or not np.all(np.isfinite(lengths) & (lengths > 0)):
+    if (
+        lengths is None
+        or lengths.ndim != 1
+        or lengths.size == 0
+        or not np.all(np.isfinite(lengths) & (lengths > 0))
+    ):
         raise InputError(
             f"window_lengths must be window lengths in seconds, positive, got {window_lengths!r}",
             [Fix("window_lengths", (0.25, 1, 4))],
@@ -148,7 +153,7 @@ def _check_lengths(window_lengths, period):
     W = int(round(lengths[0] / period))
     if W < 1:
         raise InputError(
-            f"window_lengths: the shortest, {lengths[0]:g} s, is shorter than one "
+            f"the shortest window length, {lengths[0]:g} s, is shorter than one "
             f"sample interval ({period:.3g} s)",
             [Fix("window_lengths", phrase=f"{{}} of {period:.3g} s or longer")],
         )
@@ -157,11 +162,28 @@ def _check_lengths(window_lengths, period):
     bad = np.abs(ratio - m) > 1e-3 * ratio
     if bad.any():
         raise InputError(
-            f"window_lengths: {lengths[bad][0]:g} s is not a whole multiple of the shortest "
+            f"the window length {lengths[bad][0]:g} s is not a whole multiple of the shortest "
             f"length {W * period:g} s: a longer window is composed of whole base windows",
             [Fix("window_lengths", (0.25, 1, 4))],
         )
     return W, tuple(sorted({int(x) for x in m}))
+
+
+def check_window_span(longest: float, span: float, shortest: float):
+    """Refuse window lengths whose longest exceeds ``span`` [s], the time the recording and
+    the reference share (or that the base windows cover), naming ``window_lengths``."""
+    if longest > span * (1 + 1e-9):
+        raise InputError(
+            f"the longest window length, {longest:g} s, is longer than the {span:.4g} s "
+            "the recording and the reference share (no window of it fits)",
+            [
+                Fix(
+                    "window_lengths",
+                    phrase=f"lengths of {shortest:g} … {span:.3g} s in {{}} (or a longer "
+                    "recording)",
+                )
+            ],
+        )
 
 
 def _unit_noises(noise0, dtype, per_axis=False):
@@ -256,11 +278,16 @@ def noise_problem(
             "p_BS first, then pass the rotated samples",
             [Fix("extrinsics", False)],
         )
-    t_np = val.as_numbers("t", t)
-    if t_np.ndim != 1 or len(t_np) < 3:
-        raise ValueError(f"t must have shape (N,) with N ≥ 3, got {t_np.shape}")
+    t_np = val.check_times("t", t, 3, val.TIMES_FIX)
     period = float(np.median(np.diff(t_np)))
     W, multiples = _check_lengths(window_lengths, period)
+    if not isinstance(reference, Reference):
+        raise ValueError(
+            f"reference must be a jaximu.calibration.Reference, got {type(reference).__name__}"
+        )
+    rt = val.check_times("reference.t", reference.t, 2, val.TIMES_FIX)
+    shared = min(t_np[-1], rt[-1]) - max(t_np[0], rt[0])  # an upper bound: before any work
+    check_window_span(max(multiples) * W * period, shared, W * period)
     velocity = reference.v is not None
     if not velocity:  # central differences at the reference's own rate
         rp = val.as_numbers("reference.p", reference.p)
@@ -287,6 +314,7 @@ def noise_problem(
     )
     dtype = base.gyro.dtype
     K0 = base.n_windows
+    check_window_span(max(multiples) * W * period, K0 * W * period, W * period)
     flat = lambda x: np.asarray(x).reshape((-1,) + x.shape[2:])[:K0]  # noqa: E731
     init = initial if initial is not None else ImuCalibration.default(dtype=dtype)
     g_c, a_c = _compiled(_apply, True)(init, flat(base.gyro), flat(base.accel))
@@ -333,8 +361,8 @@ def noise_problem(
     for k, m in enumerate(multiples):
         if not kept[_length_slice(multiples, K0, k)].any():
             raise CalibrationError(
-                f"no window of {m * W * period:g} s lies between the "
-                "reference's gaps: pass shorter window_lengths"
+                f"no window of {m * W * period:g} s lies between the reference's gaps",
+                [Fix("window_lengths", phrase="shorter lengths in {}")],
             )
     return NoiseProblem(
         base=base,

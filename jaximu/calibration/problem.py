@@ -340,10 +340,7 @@ def calibration_problem(
             f"t, gyro, accel hold {len(t)} samples; a calibration needs at least "
             "two keyframe windows of samples"
         )
-    val.check_finite("t", t)
-    if np.any(np.diff(t) <= 0):
-        i = int(np.argmax(np.diff(t) <= 0))
-        raise ValueError(f"IMU times must increase strictly; t[{i + 1}] <= t[{i}]")
+    val.check_times("t", t, 3, val.TIMES_FIX)
     val.check_finite("gyro", gyro_np)
     val.check_finite("accel", accel_np)
     noise = check_noise(noise, dtype)
@@ -359,10 +356,7 @@ def calibration_problem(
     M = len(rt) if rt.ndim else 0
     if rt.ndim != 1 or rq.shape != (M, 4) or rp.shape != (M, 3) or M < 2:
         raise ValueError("reference t, q, p must have shapes (M,), (M, 4), (M, 3) with M ≥ 2")
-    val.check_finite("reference.t", rt)  # a NaN time passes the order test below
-    if np.any(np.diff(rt) <= 0):
-        i = int(np.argmax(np.diff(rt) <= 0))
-        raise ValueError(f"reference times must increase strictly; t[{i + 1}] <= t[{i}]")
+    val.check_times("reference.t", rt, 2, val.TIMES_FIX)  # a NaN time would pass an order test
     for name, x in (("reference.q", rq), ("reference.p", rp)):
         val.check_finite(name, x)
     _tolerances.check_unit_norm(

@@ -95,8 +95,8 @@ structured_update = blk.structured_update
 
 def _check_cov(P0, dtype, name: str = "P0", n: int = 15):
     """Shape and finiteness of ``P0``, and (eager calls) its symmetry and semi-definiteness
-    relative to each matrix's own scale (:func:`jaximu.geometry._tolerances.check_covariance`: 60 ε
-    of the computation dtype times its largest entry). ``name``: the argument in the
+    judged per axis (:func:`jaximu.geometry._tolerances.check_covariance`: no negative variance,
+    60 ε of the computation dtype on ``D^-½ P0 D^-½``, ``D`` its variances). ``name``: the argument in the
     messages; ``n``: the matrix size (15 for the error state)."""
     P0 = val.to_dtype(name, P0, dtype)
     if P0.ndim < 2 or P0.shape[-2:] != (n, n):

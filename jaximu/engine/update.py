@@ -57,7 +57,7 @@ def ekf_update(state: NavState, P, residual, H, R):
         state: the estimate :class:`NavState` (fields ``batch + (·)``; ``q`` unit, never
             normalised for you; finite).
         P: ``batch + (15, 15)`` its error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
-            positive semi-definite (relative to its largest entry, as
+            positive semi-definite (judged per axis, as
             :func:`propagate_covariance`'s ``P0``), finite.
         residual: ``batch + (m,)`` ``ν = z - h(x̂)`` (e.g. ``z - p̂`` for a position fix),
             finite.

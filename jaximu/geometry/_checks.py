@@ -195,14 +195,44 @@ def check_vector(name: str, x, dim: int = 3, time_axis: bool = True):
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
 
 
-def check_finite(name: str, x):
+def check_finite(name: str, x, fix: str = ""):
+    """On concrete ``x``: a ``ValueError`` naming ``name`` and the first NaN or inf's index
+    (and ``fix``, appended) if it holds one."""
     if is_concrete(x):
         arr = np.asarray(x)
         bad = ~np.isfinite(arr)
         if bad.any():
+            where = f", first at index {_first_bad(bad)}" if arr.ndim else f": it is {arr}"
             raise ValueError(
-                f"{name} contains non-finite values (NaN or inf), first at index {_first_bad(bad)}"
+                f"{name} contains non-finite values (NaN or inf){where}"
+                + (f" ({int(bad.sum())} in all)" if fix and arr.ndim else "")
+                + (f"; {fix}" if fix else "")
             )
+
+
+def check_sign(name: str, x, dtype, *, strict: bool = False, unit: str = "", fix: str = ""):
+    """``x`` as a ``dtype`` array (any shape; traced values pass, shape-checked by the
+    caller), finite and ``≥ 0`` (``> 0`` with ``strict``) on eager calls; else a
+    ``ValueError`` naming ``name``, the first offending value and its index, and ``fix``
+    (default: why a sign matters for a standard deviation or a density)."""
+    y = to_dtype(name, x, dtype)
+    check_finite(name, y, fix or "pass finite numbers")
+    if is_concrete(y):
+        arr = np.asarray(y)
+        bad = ~(arr > 0) if strict else arr < 0
+        if bad.any():
+            i = tuple(np.argwhere(bad)[0]) if arr.ndim else ()
+            where = _first_bad(bad) if arr.ndim else ""
+            kind = "positive" if strict else "non-negative"
+            raise ValueError(
+                f"{name} must be {kind}{f' [{unit}]' if unit else ''}, got {name}{where} = "
+                f"{arr[i]:g}; "
+                + (
+                    fix
+                    or "a standard deviation or density is σ ≥ 0, whose sign would be lost in σ²"
+                )
+            )
+    return y
 
 
 def check_imu(gyro, accel, dt, dtype, allow_intervals=False):
@@ -395,7 +425,7 @@ def batch_shape(*shapes, names=None, noise=None):
 
 
 def _number(name, x):
-    if isinstance(x, (bool, np.bool_)) or np.ndim(x) != 0:
+    if isinstance(x, (bool, np.bool_, str, bytes)) or np.ndim(x) != 0:  # text: never parsed
         raise ValueError(f"{name} must be a number, got {x!r}")
     try:
         return float(x)
@@ -521,8 +551,37 @@ def as_numbers(name: str, x, dtype=np.float64) -> np.ndarray:
         ) from None
 
 
-def check_array(name: str, x, shape: tuple) -> np.ndarray:
-    """A concrete numpy array of exactly ``shape``, finite; named in the error."""
+TIMES_FIX = "repair the stamps (the readers' sort, drop_duplicates, drop_nonfinite options)"
+"""The repair of a recording's bad stamps, as :func:`check_times`'s ``fix``."""
+
+
+def check_times(name: str, t, minimum: int = 2, fix: str = "") -> np.ndarray:
+    """Sample times ``t`` as a float64 numpy array: 1-D, at least ``minimum`` of them,
+    finite and strictly increasing (a recording of zero duration, repeated stamps and a NaN
+    stamp refused); a ``ValueError`` names ``name``, the first offending index and value,
+    and ``fix`` (appended)."""
+    arr = as_numbers(name, t)
+    tail = f"; {fix}" if fix else ""
+    if arr.ndim != 1 or len(arr) < minimum:
+        raise ValueError(
+            f"{name} must be a 1-D array of at least {minimum} sample times, got shape "
+            f"{arr.shape}{tail}"
+        )
+    check_finite(name, arr, fix)
+    step = np.diff(arr)
+    if np.any(step <= 0):
+        i = int(np.argmax(step <= 0))
+        span = f" (all {len(arr)} stamps {arr[0]:g}: zero duration)" if arr[-1] == arr[0] else ""
+        raise ValueError(
+            f"{name} must increase strictly; {name}[{i + 1}] = {arr[i + 1]:.12g} ≤ "
+            f"{name}[{i}] = {arr[i]:.12g}{span}{tail}"
+        )
+    return arr
+
+
+def check_array(name: str, x, shape: tuple, fix: str = "pass finite numbers") -> np.ndarray:
+    """A concrete numpy array of exactly ``shape``, finite; named in the error (with
+    ``fix`` for a NaN or inf)."""
     arr = as_numbers(name, x, None)
     if arr.shape != tuple(shape) or dtype_kind(arr.dtype) not in "fiu":
         raise ValueError(
@@ -530,5 +589,5 @@ def check_array(name: str, x, shape: tuple) -> np.ndarray:
             if arr.shape != tuple(shape)
             else f"{name} must be numeric, got {arr.dtype}"
         )
-    check_finite(name, arr)
+    check_finite(name, arr, fix)
     return arr

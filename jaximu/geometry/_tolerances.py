@@ -102,60 +102,72 @@ def _scale(arr):
     return np.where(s > 0, s, 1.0)
 
 
+def axis_scales(arr):
+    """Per axis of each matrix of ``(..., n, n)`` ``arr``: its own standard deviation
+    ``√P_ii`` ``(..., n)``; an axis without a positive variance takes the matrix's largest
+    entry's square root (its cross terms must then be rounding of that scale)."""
+    d = np.diagonal(arr, axis1=-2, axis2=-1)
+    big = np.sqrt(_scale(arr)[..., 0])
+    return np.where(d > 0, np.sqrt(np.where(d > 0, d, 1.0)), big)
+
+
 def check_covariance(name: str, P, dtype, *, fix: str = ""):
-    """On concrete ``P`` (``(..., n, n)``, finite): each matrix symmetric and positive
-    semi-definite within :func:`rounding_tolerance` of ``dtype`` times its own largest
-    entry, so a covariance of 1e-12 and one of 1e12 are held to the same relative rounding
-    (and each matrix of a batch to its own scale). A ``ValueError`` names ``name``, the
-    offending entry or eigenvalue, the tolerance, and the repair (``fix``, appended)."""
+    """On concrete ``P`` (``(..., n, n)``, finite): each matrix has no negative variance (a
+    negative diagonal is never rounding: ``A Aᵀ``'s diagonal is a sum of squares), and is
+    symmetric and positive semi-definite within :func:`rounding_tolerance` of ``dtype``
+    judged per axis, on ``D^-½ P D^-½`` (``D`` its variances): a covariance of mixed units
+    (1e-4 rad² beside 1e-10 (rad/s)²) holds each entry to the rounding of its own axes, and
+    one of 1e-12 and one of 1e12 to the same relative rounding. A ``ValueError`` names
+    ``name``, the offending entry or eigenvalue, the tolerance, and the repair (``fix``,
+    appended)."""
     if not is_concrete(P):
         return
     arr = np.asarray(P, np.float64)
     if arr.size == 0:
         return
-    scale = _scale(arr)
-    rel = arr / scale  # relative tests; no overflow for entries near the float64 maximum
     tol = rounding_tolerance(dtype)
     nb = arr.ndim - 2
     tail = f"; {fix}" if fix else ""
+    diag = np.diagonal(arr, axis1=-2, axis2=-1)
+    if (diag < 0).any():
+        i = tuple(np.argwhere(diag < 0)[0])
+        k = i + (i[-1],)
+        raise ValueError(
+            f"{name} is not positive semi-definite: the variance {name}{_index(k)} = "
+            f"{arr[k]:.3g} is negative ({int((diag < 0).sum())} in all); variances are "
+            f"σ² ≥ 0, and a negative one is never rounding{tail}"
+        )
+    s = axis_scales(arr)
+    rel = arr / s[..., :, None] / s[..., None, :]  # relative, per axis; no overflow
     asym = np.abs(rel - np.swapaxes(rel, -1, -2))
     if asym.max() > tol:
         i = np.unravel_index(int(np.argmax(asym)), asym.shape)
         j = i[:-2] + (i[-1], i[-2])
-        s = float(scale[i[:-2]].squeeze())
+        scale = float(s[i[:-1]] * s[i[:-2] + (i[-2],)])
         raise ValueError(
             f"{name} is not symmetric: {name}{_index(i)} = {arr[i]:.6g} but "
-            f"{name}{_index(j)} = {arr[j]:.6g}, a difference of {asym[i]:.2g} of its largest "
-            f"entry {s:.3g} (beyond the rounding allowance {tol:.2g}, {ROUNDING} ε of "
-            f"{np.dtype(dtype).name}); set both, e.g. {name} = ({name} + {name}ᵀ) / 2{tail}"
-        )
-    diag = np.diagonal(rel, axis1=-2, axis2=-1)
-    if diag.min() < -tol:
-        i = np.unravel_index(int(np.argmin(diag)), diag.shape)
-        s = float(scale[i[:-1]].squeeze())
-        raise ValueError(
-            f"{name} is not positive semi-definite: the variance "
-            f"{name}{_index(i + (i[-1],))} = {arr[i + (i[-1],)]:.3g} is negative ({-diag[i]:.2g} "
-            f"of its largest entry {s:.3g}, beyond the rounding allowance {tol:.2g}); "
-            f"variances are σ² ≥ 0{tail}"
+            f"{name}{_index(j)} = {arr[j]:.6g}, a difference of {asym[i]:.2g} of "
+            f"√({name}_ii {name}_jj) = {scale:.3g} (beyond the rounding allowance {tol:.2g}, "
+            f"{ROUNDING} ε of {np.dtype(dtype).name}); set both, e.g. "
+            f"{name} = ({name} + {name}ᵀ) / 2{tail}"
         )
     lam = np.linalg.eigvalsh(0.5 * (rel + np.swapaxes(rel, -1, -2)))[..., 0]
     if lam.min() < -tol:
         b = np.unravel_index(int(np.argmin(lam)), lam.shape) if nb else ()
-        s = float(scale[b].squeeze())
         raise ValueError(
             f"{name} is not positive semi-definite{f' (batch index {_index(b)})' if nb else ''}"
-            f": its smallest eigenvalue is "
-            f"{lam[b] * s:.3g}, {-lam[b]:.2g} of its largest entry {s:.3g} (beyond the "
-            f"rounding allowance {tol:.2g}): the cross terms exceed what the variances "
-            f"allow{tail}"
+            f": the smallest eigenvalue of its correlation matrix D^-½ {name} D^-½ (D its "
+            f"variances) is {lam[b]:.3g} (beyond the rounding allowance {tol:.2g}): the "
+            f"cross terms exceed what the variances allow{tail}"
         )
 
 
 def check_variances(name: str, P, dtype, *, fix: str = ""):
     """The variances (diagonal) of ``(..., n, n)`` ``P`` are not negative beyond
-    :func:`rounding_tolerance` of ``dtype`` times the matrix's largest entry (the check of
-    :func:`check_covariance` for callers that read only the variances)."""
+    :func:`rounding_tolerance` of ``dtype`` times the matrix's largest entry: for covariances
+    the library computed and a writer stores (a propagation's ``F P Fᵀ + Q`` in float32 may
+    round a variance of a direction it shrank to slightly below zero), not for a user's
+    input, whose negative variance :func:`check_covariance` refuses always."""
     arr = np.asarray(P, np.float64)
     if arr.size == 0:
         return

@@ -165,24 +165,29 @@ def _check_dt(dt):
         )
 
 
-def check_noise(noise, dtype):
-    """Types, shapes, finiteness and signs of the four densities."""
+def check_noise(noise, dtype, name: str = "noise"):
+    """Types, shapes, finiteness and signs of the four densities; ``name``: the argument as
+    the user wrote it (``settings.noise`` for a field of a settings record)."""
     if not isinstance(noise, ImuNoise):
-        raise ValueError(f"noise must be a jaximu.ImuNoise, got {type(noise).__name__}")
+        raise ValueError(f"{name} must be a jaximu.ImuNoise, got {type(noise).__name__}")
     fields = {}
-    for name in (
+    for density in (
         "gyroscope_noise_density",
         "accelerometer_noise_density",
         "gyroscope_random_walk",
         "accelerometer_random_walk",
     ):
-        x = val.to_dtype(f"noise.{name}", getattr(noise, name), dtype)
+        field = f"{name}.{density}"
+        x = val.to_dtype(field, getattr(noise, density), dtype)
         if x.ndim > 0 and x.shape[-1] != 3:
             raise ValueError(
-                f"noise.{name} must be a scalar or have shape (..., 3), got {tuple(x.shape)}"
+                f"{field} must be a scalar or have shape (..., 3), got {tuple(x.shape)}"
             )
-        val.check_finite(f"noise.{name}", x)
+        val.check_finite(field, x)
         if val.is_concrete(x) and np.any(np.asarray(x) < 0):
-            raise ValueError(f"noise.{name} must be non-negative, got {np.asarray(x)}")
-        fields[name] = x
+            raise ValueError(
+                f"{field} must be non-negative, got {np.asarray(x)}: a density is σ, "
+                "its sign would be lost in σ²; pass its magnitude"
+            )
+        fields[density] = x
     return ImuNoise(**fields)

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax
 
 from jaximu.io import DataError
-from jaximu.learning.model import Denoiser, ModelConfig, check_model
+from jaximu.learning.model import Denoiser, ModelConfig, check_model, check_weights
 
 __all__ = ["save", "load", "pretrained", "shipped", "FORMAT", "PRETRAINED"]
 
@@ -27,7 +27,9 @@ PRETRAINED = {"euroc": pathlib.Path(__file__).parent / "pretrained" / "euroc"}
 
 
 def save(path, model: Denoiser, record: dict | None = None) -> pathlib.Path:
-    """Write ``model`` to the folder ``path`` (created; its two files replaced)."""
+    """Write ``model`` to the folder ``path`` (created; its two files replaced). A model
+    whose weights are not finite (a diverged training) is refused before anything is
+    written."""
     check_model("model", model)
     path = pathlib.Path(path)
     if path.exists() and not path.is_dir():
@@ -91,6 +93,10 @@ def load(path) -> Denoiser:
             f"{weights} does not hold this model's weights ({type(e).__name__}: "
             f"{e}); the file is damaged or from another model"
         ) from None
+    try:
+        check_weights("model", model)
+    except ValueError as e:
+        raise DataError(f"{weights}: {e}") from None
     return model
 
 

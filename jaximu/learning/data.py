@@ -16,7 +16,7 @@ import pathlib
 import numpy as np
 
 from jaximu.errors import Fix
-from jaximu.geometry._checks import check_positive
+from jaximu.geometry._checks import TIMES_FIX, as_numbers, check_positive, check_times
 from jaximu.io import DataError, read_euroc
 
 __all__ = ["Sequence", "load_sequence", "split", "RATE_TOLERANCE"]
@@ -53,9 +53,7 @@ class Sequence:
     repairs: tuple[str, ...] = ()
 
     def __post_init__(self):
-        t = np.asarray(self.t, np.float64)
-        if t.ndim != 1 or len(t) < 2:
-            raise ValueError(f"Sequence.t must have shape (N,) with N ≥ 2, got {t.shape}")
+        t = check_times("Sequence.t", self.t, 2, TIMES_FIX)
         N = len(t)
         for name, width in (
             ("gyro", 3),
@@ -69,7 +67,7 @@ class Sequence:
             x = getattr(self, name)
             if x is None and name in ("b_g", "b_a"):
                 continue
-            x = np.asarray(x, np.float64)
+            x = as_numbers(f"Sequence.{name}", x)
             if x.shape != (N, width):
                 raise ValueError(
                     f"Sequence.{name} must have shape ({N}, {width}) (one row per "
@@ -79,8 +77,6 @@ class Sequence:
             if len(bad):
                 raise ValueError(f"Sequence.{name} has NaN or inf at rows {bad[:5].tolist()}")
             object.__setattr__(self, name, x)
-        if not np.all(np.diff(t) > 0):
-            raise ValueError("Sequence.t must increase strictly")
         qn = np.linalg.norm(self.q, axis=1)
         if np.any(np.abs(qn - 1) > 1e-6):
             raise ValueError(
@@ -220,6 +216,7 @@ def load_sequence(
 def split(seq: Sequence, train_seconds: float = 80.0) -> tuple[Sequence, Sequence]:
     """The first ``train_seconds`` for training and the rest for validation (Brossard's
     split of each training sequence)."""
+    check_sequence("seq", seq)
     check_positive("train_seconds", train_seconds)
     k = int(np.searchsorted(seq.t, seq.t[0] + train_seconds))
     if k < 2 or len(seq) - k < 2:

@@ -24,8 +24,22 @@ import numpy as np
 
 from jaximu.engine.errorstate import accumulate_covariance, transition_products
 from jaximu.engine.propagate import propagate, propagate_final
+from jaximu.errors import Fix, InputError
 from jaximu.geometry import so3
-from jaximu.geometry._checks import check_int, check_positive, compute_dtype
+from jaximu.geometry._checks import (
+    batch_shape,
+    check_finite,
+    check_imu,
+    check_int,
+    check_output,
+    check_positive,
+    check_sign,
+    check_vector,
+    compute_dtype,
+    float_dtype,
+    to_dtype,
+)
+from jaximu.geometry._tolerances import check_unit_norm
 from jaximu.geometry.state import NavState
 from jaximu.io import DataError
 from jaximu.learning.data import Sequence, check_rate, check_sequence
@@ -48,20 +62,54 @@ CHI2_3_3SIGMA = 14.156
 """``χ²`` quantile of 3 degrees of freedom at 99.73 % (the 3σ probability of one dimension)."""
 
 
+def _quaternions(name: str, q, dtype):
+    """``q`` ``(..., 4)`` as ``dtype``: finite unit ``[w, x, y, z]`` quaternions (eager)."""
+    q = to_dtype(name, q, dtype)
+    check_vector(name, q, 4, time_axis=False)
+    check_finite(name, q, "pass finite unit quaternions")
+    check_unit_norm(name, q, dtype)
+    return q
+
+
+def _intervals(name: str, dt, T: int, dtype, gyro):
+    """``dt``: a scalar or ``(..., T-1)`` intervals between ``T`` samples, positive and
+    finite (the engine's check, :func:`jaximu.geometry._checks.check_imu`)."""
+    d = to_dtype(name, dt, dtype)
+    if d.ndim and d.shape[-1] != T - 1:
+        raise ValueError(
+            f"{name} must be a scalar or have shape (..., T-1) = (..., {T - 1}), one interval "
+            f"per step between the T = {T} samples of gyro, got {tuple(d.shape)}"
+        )
+    steps = gyro[..., :-1, :]
+    return check_imu(steps, jnp.zeros_like(steps), dt, dtype)[2]
+
+
 def integrate_attitude(q0, gyro, dt):
     """Attitude at every sample by the engine's exact-exponential Euler step.
 
     Args:
-        q0: ``(..., 4)`` attitude at sample 0; gyro: ``(..., T, 3)`` [rad/s];
-        dt: ``(..., T-1)`` intervals [s] (step k from sample k to k+1 holds sample k).
+        q0: ``(..., 4)`` unit attitude ``[w, x, y, z]`` at sample 0, finite;
+        gyro: ``(..., T, 3)`` [rad/s], finite, ``T ≥ 1``;
+        dt: scalar or ``(..., T-1)`` intervals [s], positive (step k from sample k to k+1
+            holds sample k).
 
     Returns:
         ``(..., T, 4)``: ``q0`` first, then the attitude after each step.
     """
-    dtype = gyro.dtype
-    batch = gyro.shape[:-2]
+    dtype = float_dtype(q0, gyro, dt)
+    gyro = to_dtype("gyro", gyro, dtype)
+    check_vector("gyro", gyro)
+    if gyro.shape[-2] < 1:
+        raise ValueError(f"gyro holds no samples (shape {tuple(gyro.shape)}); pass T ≥ 1")
+    check_finite("gyro", gyro, "repair or drop those samples")
+    q0 = _quaternions("q0", q0, dtype)
+    batch = jnp.broadcast_shapes(q0.shape[:-1], gyro.shape[:-2])
+    q0 = jnp.broadcast_to(q0, batch + (4,))
+    if gyro.shape[-2] == 1:  # no step
+        return q0[..., None, :]
+    dt = _intervals("dt", dt, gyro.shape[-2], dtype, gyro)
     z = jnp.zeros(batch + (3,), dtype)
-    state = NavState(jnp.asarray(q0, dtype), z, z, z, z)
+    state = NavState(q0, z, z, z, z)
     g = gyro[..., :-1, :]
     out = propagate(state, g, jnp.zeros_like(g), dt)
     return jnp.concatenate([state.q[..., None, :], out.q], axis=-2)
@@ -70,7 +118,11 @@ def integrate_attitude(q0, gyro, dt):
 def orientation_errors(q_est, q_true):
     """``(r, aoe, aye)``: ``r = Log(R_trueᵀ R̂)`` ``(..., 3)`` [rad], its angle [rad] and the
     absolute yaw (ZYX Euler, about the world's z) of the world-frame error ``R̂ R_trueᵀ``
-    [rad]."""
+    [rad]. ``q_est``, ``q_true``: ``(..., 4)`` finite unit ``[w, x, y, z]`` quaternions whose
+    batch axes broadcast."""
+    dtype = float_dtype(q_est, q_true)
+    q_est, q_true = _quaternions("q_est", q_est, dtype), _quaternions("q_true", q_true, dtype)
+    batch_shape(q_est.shape[:-1], q_true.shape[:-1], names=("q_est", "q_true"))
     r = so3.log(so3.quat_mul(so3.quat_conj(q_true), q_est))
     aoe = jnp.linalg.norm(r, axis=-1)
     # the yaw of the world-frame error R̂ R_trueᵀ: the heading error about gravity. (The
@@ -110,7 +162,46 @@ def attitude_covariance(
     """``(T, 3, 3)`` covariance of the attitude error at every sample of an open-loop run
     from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I`` and the tracked
     bias's ``tracked_sigma``), plus the ground truth's own noise ``2 σ_ref² I`` (at the start
-    and at each compared sample)."""
+    and at each compared sample).
+
+    Args:
+        gyro: ``(T, 3)`` [rad/s]; density: ``(T, 3)`` [rad/s/√Hz] ``≥ 0``; dt: scalar or
+            ``(T-1,)`` [s] ``> 0``; bias_sigma [rad/s], random_walk [rad/s²/√Hz]: ``≥ 0``;
+            reference_sigma [rad] ``> 0``; tracked_sigma: ``(T, 3)`` [rad/s] ``≥ 0`` or None.
+            All finite (checked on eager calls; shapes always).
+    """
+    dtype = float_dtype(gyro, density, dt, bias_sigma, random_walk, reference_sigma)
+    gyro = to_dtype("gyro", gyro, dtype)
+    if gyro.ndim != 2 or gyro.shape[-1] != 3 or gyro.shape[0] < 1:
+        raise ValueError(f"gyro must have shape (T, 3) with T ≥ 1, got {tuple(gyro.shape)}")
+    check_finite("gyro", gyro, "repair or drop those samples")
+    T = gyro.shape[0]
+    density = check_sign("density", density, dtype, unit="rad/s/√Hz")
+    if density.shape != (T, 3):
+        raise ValueError(f"density must have gyro's shape ({T}, 3), got {tuple(density.shape)}")
+    bias_sigma = check_sign("bias_sigma", bias_sigma, dtype, unit="rad/s")
+    random_walk = check_sign("random_walk", random_walk, dtype, unit="rad/s²/√Hz")
+    reference_sigma = check_sign(
+        "reference_sigma",
+        reference_sigma,
+        dtype,
+        strict=True,
+        unit="rad",
+        fix="σ_ref > 0 keeps the first sample's covariance invertible",
+    )
+    for name, x in (("bias_sigma", bias_sigma), ("reference_sigma", reference_sigma)):
+        if x.ndim:
+            raise ValueError(f"{name} must be one number, got shape {tuple(x.shape)}")
+    if random_walk.ndim and random_walk.shape != (3,):
+        raise ValueError(f"random_walk must be a number or (3,), got {tuple(random_walk.shape)}")
+    if tracked_sigma is not None:
+        tracked_sigma = check_sign("tracked_sigma", tracked_sigma, dtype, unit="rad/s")
+        if tracked_sigma.shape != (T, 3):
+            raise ValueError(
+                f"tracked_sigma must have gyro's shape ({T}, 3) (Corrected.gyro_bias_sigma), "
+                f"got {tuple(tracked_sigma.shape)}"
+            )
+    dt = _intervals("dt", dt, T, dtype, gyro) if T > 1 else to_dtype("dt", dt, dtype)
     W, B = attitude_terms(gyro, density, dt, random_walk, tracked_sigma)
     eye = jnp.eye(3, dtype=gyro.dtype)
     return W + bias_sigma**2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma**2 * eye
@@ -212,16 +303,7 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
         ValueError: ``model`` or ``seq`` of the wrong type; DataError: ``seq`` at another
             rate than the model's, or too short for its bias tracker.
     """
-    check_model("model", model)
-    check_sequence("seq", seq)
-    check_rate(seq, model.config.rate_hz)
-    if model.config.bias_tracking and len(seq) < LEVEL_SAMPLES:
-        raise DataError(
-            f"sequence {seq.name!r}: its ground truth covers {len(seq)} IMU samples, and the "
-            f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
-            "attitude on their mean specific force): give a recording whose ground truth "
-            "covers more of it"
-        )
+    check_evaluable(model, seq)
     dtype = jnp.result_type(float) if dtype is None else compute_dtype("dtype", dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel, q_true, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt)
@@ -232,7 +314,11 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
     a, y = _plain_run(g0, q_true, dt)
     metrics["constant_bias"], aoe["constant_bias"] = _metrics(a, y), np.degrees(np.asarray(a))
-    a, y, e, s3 = _learned_run(model, gyro, accel, q_true, dt)
+    a, y, e, s3 = check_output(
+        "evaluate_sequence",
+        _learned_run(model, gyro, accel, q_true, dt),
+        f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
+    )
     metrics["learned"], aoe["learned"] = _metrics(a, y), np.degrees(np.asarray(a))
     e = np.asarray(e, np.float64)
     return SequenceReport(
@@ -275,12 +361,27 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     check_positive("seconds", seconds)
     start = check_int("start", start, 0)
     dtype = compute_dtype("dtype", dtype)
+    if start > len(seq) - 2:
+        raise InputError(
+            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
+            [Fix("start", 0)],
+            lead="pass a smaller one, e.g.",
+        )
+    n = int(round(seconds * seq.rate_hz))
+    span = (len(seq) - 1 - start) / seq.rate_hz
+    if n < 1 or n > len(seq) - 1 - start:
+        what = "shorter than one sample interval" if n < 1 else "longer than"
+        raise InputError(
+            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
+            f"{seq.name!r} from sample {start} on",
+            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
+            lead="pass",
+        )
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
     a0 = accel - jnp.asarray(model.config.accel_bias, dtype)
-    n = int(round(seconds * seq.rate_hz))
     s = slice(start, None)
     out = {}
     for name, (g, a) in (
@@ -288,8 +389,29 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
         ("learned_gyro", (c.gyro, a0)),
         ("learned", (c.gyro, c.accel)),
     ):
-        dv, dp = _window_run(
-            g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s], cast(seq.dt)[s], n
+        dv, dp = check_output(
+            "window_errors",
+            _window_run(
+                g[s], a[s], cast(seq.q)[s], cast(seq.p)[s], cast(seq.v)[s], cast(seq.dt)[s], n
+            ),
+            f"the dead reckoning of sequence {seq.name!r} overflows {dtype.name}",
         )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out
+
+
+def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:
+    """Everything :func:`evaluate_sequence` checks before its work, for a command to check
+    each of its sequences before the first is evaluated: ``model`` a
+    :class:`jaximu.learning.Denoiser` with finite weights, ``seq`` (named ``name``) a
+    :class:`Sequence` at its rate, long enough for its bias tracker."""
+    check_model("model", model)
+    check_sequence(name, seq)
+    check_rate(seq, model.config.rate_hz)
+    if model.config.bias_tracking and len(seq) < LEVEL_SAMPLES:
+        raise DataError(
+            f"sequence {seq.name!r}: its ground truth covers {len(seq)} IMU samples, and the "
+            f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
+            "attitude on their mean specific force): give a recording whose ground truth "
+            "covers more of it"
+        )

@@ -30,7 +30,8 @@ from jaximu.engine.errorstate import (
 )
 from jaximu.engine.preintegration import preintegrate
 from jaximu.geometry import so3
-from jaximu.geometry._checks import check_int
+from jaximu.geometry._checks import check_finite, check_int, check_sign, to_dtype
+from jaximu.geometry._tolerances import check_unit_norm
 from jaximu.geometry.noise import ImuNoise
 from jaximu.schemes.integrators import blocks_analytic
 
@@ -200,6 +201,37 @@ def check_horizons(name: str, horizons) -> tuple:
     return h
 
 
+def _check_truth(name: str, x, T: int, width: int, dtype):
+    """``x``: the ground truth ``(..., T + 1, width)`` at the ``T`` samples and after the
+    last step, finite (unit quaternions for ``width`` 4), as ``dtype``."""
+    x = to_dtype(name, x, dtype)
+    if x.ndim < 2 or x.shape[-2:] != (T + 1, width):
+        raise ValueError(
+            f"{name} must have shape (..., T + 1, {width}) = (..., {T + 1}, {width}): the "
+            f"truth at the T = {T} samples and after the last step, got {tuple(x.shape)}"
+        )
+    check_finite(name, x, "pass finite ground truth")
+    if width == 4:
+        check_unit_norm(name, x, dtype)
+    return x
+
+
+def _check_corrected(corrected) -> None:
+    if not hasattr(corrected, "gyro_density"):
+        raise ValueError(
+            "corrected must be the model's output (jaximu.learning.Corrected), got "
+            f"{type(corrected).__name__}"
+        )
+
+
+def _check_step(dt, dtype):
+    """``dt``: the sampling interval, one positive finite number (traced values pass)."""
+    d = check_sign("dt", dt, dtype, strict=True, unit="s", fix="pass the sampling interval")
+    if d.ndim:
+        raise ValueError(f"dt must be one sampling interval [s], got shape {tuple(d.shape)}")
+    return d
+
+
 def _check_horizons(horizons, T: int, skip: int) -> tuple:
     """:func:`check_horizons`, and the longest with at least one window in ``T`` samples
     after ``skip``."""
@@ -222,7 +254,11 @@ def increment_terms(
     transitions and noise ``(..., W, 6, 6)`` (None otherwise): what :func:`increment_loss`
     and the uncertainty's fit (:func:`jaximu.learning.uncertainty.fit_reference_sigma`)
     read. Arguments as :func:`increment_loss`'s."""
-    horizons = _check_horizons(horizons, corrected.gyro.shape[-2], skip)
+    _check_corrected(corrected)
+    T = corrected.gyro.shape[-2]
+    horizons = _check_horizons(horizons, T, skip)
+    q_true = _check_truth("q_true", q_true, T, 4, corrected.gyro.dtype)
+    dt = _check_step(dt, corrected.gyro.dtype)
     w = windows(
         corrected.gyro,
         corrected.accel,
@@ -270,6 +306,7 @@ def increment_loss(
         ``(loss, nll)``: the Huber loss (horizon ``h`` weighted ``1/2^i``) and the
         likelihood term (``0`` when ``bias_sigma`` is ``None``).
     """
+    _check_corrected(corrected)
     with_noise = bias_sigma is not None
     loss = jnp.zeros((), corrected.gyro.dtype)
     nll = jnp.zeros((), corrected.gyro.dtype)
@@ -293,6 +330,14 @@ def velocity_residuals(gyro, accel, q_true, v_true, dt, H: int, gravity=9.81):
         gyro, accel: ``(..., T, 3)`` corrected samples; q_true, v_true: ``(..., T + 1, ·)``
             true attitude and velocity at the samples and after the last step.
     """
+    H = check_int("H", H, 1)
+    T = jnp.shape(gyro)[-2]
+    dtype = jnp.result_type(gyro)
+    q_true = _check_truth("q_true", q_true, T, 4, dtype)
+    v_true = _check_truth("v_true", v_true, T, 3, dtype)
+    dt = _check_step(dt, dtype)
+    if H > T:
+        raise ValueError(f"H = {H}: no window of {H} samples fits in the {T} samples; pass H ≤ {T}")
     w = windows(gyro, accel, dt, H)
     W = w.delta_v.shape[-2]
     q0 = q_true[..., 0 : W * H : H, :]

@@ -32,12 +32,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaximu.errors import Fix, InputError
 from jaximu.geometry._checks import (
     check_array,
+    check_bool,
+    check_finite,
     check_int,
+    check_key,
+    check_output,
     check_positive,
     check_vector,
     float_dtype,
+    is_concrete,
     to_dtype,
 )
 from jaximu.geometry.noise import ImuNoise
@@ -164,14 +170,16 @@ class ModelConfig:
         # the tracker's settings, checked where the tracker checks them (before tracker()
         # divides by update_samples)
         check_settings(self._tracker(standstill_samples=0), "ModelConfig")
-        for name in ("bias_tracking", "standstill", "accel_head"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(
-                    f"ModelConfig.{name} must be True or False, got {getattr(self, name)!r}"
-                )
-        check_int(f"{name}.kernel", self.kernel, 1, "a positive odd number")
-        if self.kernel % 2 == 0:
-            raise ValueError(f"ModelConfig.kernel must be a positive odd number, got {self.kernel}")
+        for field in ("bias_tracking", "standstill", "accel_head"):
+            check_bool(f"{name}.{field}", getattr(self, field))
+        kernel = check_int(f"{name}.kernel", self.kernel, 1, "a positive odd number")
+        if kernel % 2 == 0:
+            raise InputError(
+                f"{name}.kernel must be a positive odd number (a causal convolution's "
+                f"taps), got {self.kernel!r}",
+                [Fix("kernel", kernel + 1)],
+            )
+        object.__setattr__(self, "kernel", kernel)
 
     def tracker(self) -> TrackerSettings:
         """The gyro-bias tracker's settings (:mod:`jaximu.learning.tracking`)."""
@@ -249,6 +257,9 @@ class CausalConv(eqx.Module):
     dilation: int = eqx.field(static=True)
 
     def __init__(self, c_in: int, c_out: int, kernel: int, dilation: int, key, zero=False):
+        c_in, c_out = check_int("c_in", c_in, 1), check_int("c_out", c_out, 1)
+        kernel, dilation = check_int("kernel", kernel, 1), check_int("dilation", dilation, 1)
+        key = check_key("key", key)
         bound = 1.0 / np.sqrt(c_in * kernel)  # PyTorch's default for Conv1d
         kw, kb = jax.random.split(key)
         shape = (kernel, c_in, c_out)
@@ -297,7 +308,11 @@ class Denoiser(eqx.Module):
     config: ModelConfig = eqx.field(static=True)
 
     def __init__(self, config: ModelConfig, key):
-        keys = jax.random.split(key, len(config.channels) + 1)
+        if not isinstance(config, ModelConfig):
+            raise ValueError(
+                f"config must be a jaximu.learning.ModelConfig, got {type(config).__name__}"
+            )
+        keys = jax.random.split(check_key("key", key), len(config.channels) + 1)
         widths = (6,) + tuple(config.channels)
         self.layers = tuple(
             CausalConv(widths[i], widths[i + 1], config.kernel, d, keys[i])
@@ -361,11 +376,28 @@ class Denoiser(eqx.Module):
         return Tracked(b, jnp.zeros_like(b))
 
     def __call__(self, gyro, accel, key=None, gyro_bias=None) -> Corrected:
-        """Corrected samples; ``gyro_bias``: ``(..., T, 3)`` the tracked bias when already
-        computed (:meth:`track`; training passes it, the tracker being fixed)."""
+        """Corrected samples; ``gyro``, ``accel``: ``(..., T, 3)`` finite; ``gyro_bias``:
+        ``(..., T, 3)`` the tracked bias when already computed (:meth:`track`; training
+        passes it, the tracker being fixed), or any finite shape that broadcasts to
+        ``gyro``'s without changing it (``(3,)``: one bias). On eager calls the weights,
+        the samples and the outputs are checked finite, each named in the error."""
         cfg = self.config
+        check_weights("model", self)
         gyro, accel = _samples(gyro, accel)
         dtype = gyro.dtype
+        if gyro_bias is not None:
+            gyro_bias = to_dtype("gyro_bias", gyro_bias, dtype)
+            try:
+                fits = jnp.broadcast_shapes(gyro_bias.shape, gyro.shape) == gyro.shape
+            except ValueError:
+                fits = False
+            if not fits or gyro_bias.ndim < 1 or gyro_bias.shape[-1] != 3:
+                raise ValueError(
+                    f"gyro_bias must have gyro's shape {tuple(gyro.shape)} (a bias per sample, "
+                    f"as model.track(gyro, accel) gives) or (3,), got {tuple(gyro_bias.shape)}; "
+                    "leave it out to track the bias"
+                )
+            check_finite("gyro_bias", gyro_bias, "pass finite biases [rad/s]")
         y, z = self.features(gyro, accel, key)
         y, z = y.astype(dtype), z.astype(dtype)
         C = self.gyro_matrix.astype(dtype)
@@ -373,17 +405,13 @@ class Denoiser(eqx.Module):
             gyro_bias, bias_sigma = self.track(gyro, accel)
         else:
             bias_sigma = jnp.zeros(jnp.shape(gyro), dtype)
-        w = (
-            gyro
-            + gyro @ C.T
-            - jnp.asarray(gyro_bias, dtype)
-            + jnp.asarray(cfg.gyro_scale, dtype) * y[..., 0:3]
-        )
+        w = gyro + gyro @ C.T - gyro_bias + jnp.asarray(cfg.gyro_scale, dtype) * y[..., 0:3]
         a = accel - jnp.asarray(cfg.accel_bias, dtype)
         if cfg.accel_head:
             a = a + jnp.asarray(cfg.accel_scale, dtype) * y[..., 3:6]
         density = cfg.gyro_density * jnp.exp(3.0 * jnp.tanh(z / 3.0))
-        return Corrected(w, a, density, jnp.asarray(bias_sigma, dtype))
+        out = Corrected(w, a, density, jnp.asarray(bias_sigma, dtype))
+        return check_output("Denoiser", out, "gyro or accel too large")
 
 
 def _samples(gyro, accel):
@@ -400,16 +428,41 @@ def _samples(gyro, accel):
         )
     if g.shape[-2] < 1:
         raise ValueError(f"gyro and accel hold no samples (shape {tuple(g.shape)})")
+    fix = "repair or drop those samples (the readers' drop_nonfinite=True)"
+    check_finite("gyro", g, fix)
+    check_finite("accel", a, fix)
     return g, a
 
 
+def check_weights(name: str, model) -> None:
+    """On a concrete model: every weight finite; else a ``ValueError`` naming ``name``, the
+    first non-finite weight's place and how many there are (a training that diverged)."""
+    leaves = jax.tree_util.tree_leaves_with_path(eqx.filter(model, eqx.is_inexact_array))
+    if not is_concrete([x for _, x in leaves]):
+        return
+    for path, x in leaves:
+        bad = ~np.isfinite(np.asarray(x))
+        if bad.any():
+            where = jax.tree_util.keystr(path) + (
+                "[" + ", ".join(str(int(k)) for k in np.argwhere(bad)[0]) + "]" if bad.ndim else ""
+            )
+            n = int(sum(int((~np.isfinite(np.asarray(y))).sum()) for _, y in leaves))
+            raise ValueError(
+                f"{name}'s weights hold {n} non-finite values (NaN or inf), first in "
+                f"{name}{where}: its training diverged; retrain it (a lower "
+                "TrainConfig.learning_rate) or use another model"
+            )
+
+
 def check_model(name: str, model) -> Denoiser:
-    """``model`` must be a :class:`Denoiser` (named ``name`` in the message)."""
+    """``model`` must be a :class:`Denoiser` (named ``name`` in the message) whose weights
+    are finite (:func:`check_weights`)."""
     if not isinstance(model, Denoiser):
         raise ValueError(
             f"{name} must be a jaximu.learning.Denoiser (from train, load or "
             f"pretrained), got {type(model).__name__}"
         )
+    check_weights(name, model)
     return model
 
 

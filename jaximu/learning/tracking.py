@@ -46,7 +46,18 @@ import numpy as np
 
 from jaximu.engine.errorstate import propagate_covariance_final
 from jaximu.engine.update import ekf_update
-from jaximu.geometry.noise import ImuNoise
+from jaximu.geometry._checks import (
+    check_array,
+    check_finite,
+    check_int,
+    check_output,
+    check_positive,
+    check_unbatched_noise,
+    float_dtype,
+    is_concrete,
+    to_dtype,
+)
+from jaximu.geometry.noise import ImuNoise, check_noise
 from jaximu.geometry.state import NavState
 
 __all__ = ["TrackerSettings", "Tracked", "track_gyro_bias", "level_attitude", "check_settings"]
@@ -200,26 +211,53 @@ _POSITIVE = {
 
 def check_settings(settings: TrackerSettings, name: str = "settings") -> None:
     """Raise ``ValueError`` naming ``name.field`` for a field of ``settings`` outside its
-    domain: the standard deviations, ``gravity`` and the standstill thresholds positive and
-    finite, ``update_samples`` a positive whole number, ``standstill_samples`` 0 or a whole
-    number of ``update_samples``. (:class:`jaximu.learning.ModelConfig` checks its tracker's
-    settings with it, under its own name.)"""
+    domain: the prior biases 3 finite numbers, the standard deviations, ``gravity`` and the
+    standstill thresholds positive and finite, the noise densities finite and non-negative
+    (:func:`jaximu.geometry.noise.check_noise`), ``update_samples`` a positive whole number,
+    ``standstill_samples`` 0 or a whole number of ``update_samples``.
+    (:class:`jaximu.learning.ModelConfig` checks its tracker's settings with it, under its
+    own name.)"""
+    if not isinstance(settings, TrackerSettings):
+        raise ValueError(
+            f"{name} must be a jaximu.learning.TrackerSettings (or model.config.tracker()), "
+            f"got {type(settings).__name__}"
+        )
     for field, unit in _POSITIVE.items():
-        v = getattr(settings, field)
-        if not (np.ndim(v) == 0 and np.isfinite(v) and v > 0):
-            raise ValueError(f"{name}.{field} must be a positive number [{unit}], got {v!r}")
+        check_positive(f"{name}.{field}", getattr(settings, field), hint=f" [{unit}]")
+    for field in ("gyro_bias", "accel_bias"):
+        check_array(f"{name}.{field}", getattr(settings, field), (3,))
     for field in ("gyro_bias_sigma", "accel_bias_sigma"):
-        v = np.asarray(getattr(settings, field), float)
-        if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
+        v = check_array(f"{name}.{field}", getattr(settings, field), (3,))
+        if not np.all(v > 0):
             raise ValueError(f"{name}.{field} must be 3 positive numbers, got {v.tolist()}")
-    M = settings.update_samples
-    if int(M) != M or M < 1:
-        raise ValueError(f"{name}.update_samples must be a positive whole number, got {M}")
-    W = settings.standstill_samples
-    if int(W) != W or W < 0 or W % M:
+    noise = check_noise(settings.noise, jnp.result_type(float), f"{name}.noise")
+    check_unbatched_noise(noise, "the tracker")
+    M = check_int(f"{name}.update_samples", settings.update_samples, 1)
+    W = check_int(f"{name}.standstill_samples", settings.standstill_samples, 0)
+    if W % M:
         raise ValueError(
             f"{name}.standstill_samples must be 0 or a whole number of update_samples "
             f"({M}), got {W}"
+        )
+
+
+def _check_level(accel, gravity: float) -> None:
+    """The first attitude is levelled on the mean specific force of the first
+    :data:`LEVEL_SAMPLES`: refuse (naming ``accel`` and the recording) a mean that is no
+    direction, below ``1e-3 · gravity`` (an accelerometer that reads zeros)."""
+    if not is_concrete(accel):
+        return
+    first = np.asarray(accel, np.float64)[..., :LEVEL_SAMPLES, :].mean(-2)
+    norm = np.linalg.norm(first, axis=-1)
+    bad = ~(norm > 1e-3 * gravity)
+    if bad.any():
+        i = tuple(np.argwhere(bad)[0]) if bad.ndim else ()
+        at = f" of recording {[int(k) for k in i]}" if i else ""
+        raise ValueError(
+            f"accel{at}: its first {LEVEL_SAMPLES} samples average to a specific force of "
+            f"{norm[i]:.3g} m/s² (gravity is {gravity:g}), so no level attitude can be taken "
+            "from them (a dead or disconnected accelerometer reads zeros); pass the "
+            "accelerometer's samples in m/s², from where it reads gravity"
         )
 
 
@@ -227,39 +265,38 @@ def track_gyro_bias(gyro, accel, dt: float, settings: TrackerSettings) -> Tracke
     """The gyro bias at every sample, tracked from the raw samples before it.
 
     Args:
-        gyro, accel: ``(..., T, 3)`` raw samples [rad/s], [m/s²] at a constant interval;
-            leading axes are independent recordings.
-        dt: the sampling interval [s].
-        settings: :class:`TrackerSettings`.
+        gyro, accel: ``(..., T, 3)`` raw samples [rad/s], [m/s²] at a constant interval,
+            finite, ``T ≥ 10``; leading axes are independent recordings. The first 10
+            samples' mean specific force must be a direction (not zeros).
+        dt: the sampling interval [s], one positive number.
+        settings: :class:`TrackerSettings` (:func:`check_settings`).
 
     Returns:
         :class:`Tracked`, ``(..., T, 3)`` each, in the samples' dtype; not differentiated
         (the tracker is a fixed estimator, not a learned one).
     """
-    if not isinstance(settings, TrackerSettings):
-        raise ValueError(
-            f"settings must be a jaximu.learning.TrackerSettings (or model.config.tracker()), "
-            f"got {type(settings).__name__}"
-        )
-    gyro, accel = jnp.asarray(gyro), jnp.asarray(accel)
+    check_settings(settings)
+    dtype = float_dtype(gyro, accel)
+    gyro, accel = to_dtype("gyro", gyro, dtype), to_dtype("accel", accel, dtype)
     if gyro.ndim < 2 or gyro.shape[-1] != 3 or gyro.shape != accel.shape:
         raise ValueError(
-            f"gyro and accel must have one shape (..., T, 3), got {gyro.shape} and {accel.shape}"
+            f"gyro and accel must have one shape (..., T, 3), got {tuple(gyro.shape)} and "
+            f"{tuple(accel.shape)}"
         )
     if gyro.shape[-2] < LEVEL_SAMPLES:
         raise ValueError(
             f"gyro and accel need at least {LEVEL_SAMPLES} samples (the first attitude is "
             f"levelled on their mean specific force), got {gyro.shape[-2]}"
         )
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be the sampling interval in seconds (> 0), got {dt}")
-    dtype = jnp.result_type(gyro, accel, float)
-    gyro, accel = gyro.astype(dtype), accel.astype(dtype)
-    check_settings(settings)
+    check_sampling_interval("dt", dt)
+    fix = "repair or drop those samples (the readers' drop_nonfinite=True)"
+    check_finite("gyro", gyro, fix)
+    check_finite("accel", accel, fix)
+    _check_level(accel, float(settings.gravity))
     M, W = int(settings.update_samples), int(settings.standstill_samples)
     # the settings' numbers are arguments of one compiled program per shape, M and K, not
     # constants of a program per call (standstill_samples stays as an off switch)
-    return _track(
+    out = _track(
         gyro,
         accel,
         dt,
@@ -267,6 +304,19 @@ def track_gyro_bias(gyro, accel, dt: float, settings: TrackerSettings) -> Tracke
         M,
         max(W // M, 1),
     )
+    return check_output("track_gyro_bias", out, "the samples or the settings' scales")
+
+
+def check_sampling_interval(name: str, dt) -> float:
+    """``dt`` as a ``float``: one sampling interval [s], positive and finite (a constant
+    rate); an array of intervals is refused naming ``name``, with the fix."""
+    if np.ndim(dt) != 0 and not isinstance(dt, (str, bytes)):
+        raise ValueError(
+            f"{name} must be one sampling interval in seconds (the samples are at a constant "
+            f"rate), got an array of shape {np.shape(dt)}; pass its median, e.g. "
+            f"{name}=float(np.median(intervals))"
+        )
+    return check_positive(name, dt, hint=" (the sampling interval [s])")
 
 
 @partial(jax.jit, static_argnums=(4, 5))

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaximu.errors import Fix, InputError
 from jaximu.geometry._checks import check_bool, check_int, check_positive
 from jaximu.io import DataError
 from jaximu.learning import uncertainty
@@ -141,6 +142,14 @@ class TrainConfig:
             )
         for field in ("learning_rate", "min_learning_rate", "train_seconds", "velocity_delta"):
             check_positive(f"{name}.{field}", getattr(self, field))
+        if self.min_learning_rate > self.learning_rate:
+            raise InputError(
+                f"{name}.min_learning_rate = {self.min_learning_rate!r} exceeds "
+                f"learning_rate = {self.learning_rate!r}: the cosine annealing runs from "
+                "learning_rate down to min_learning_rate",
+                [Fix("min_learning_rate", float(f"{self.learning_rate / 10:.3g}"))],
+                lead="pass at most learning_rate, e.g.",
+            )
         for field in _NON_NEGATIVE:
             check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
         if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:

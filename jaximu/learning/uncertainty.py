@@ -30,6 +30,7 @@ import numpy as np
 import optax
 
 from jaximu.geometry._checks import check_int, check_positive
+from jaximu.learning.data import check_sequence
 from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
 from jaximu.learning.losses import (
     check_horizons,
@@ -37,6 +38,7 @@ from jaximu.learning.losses import (
     increment_terms,
     rotation_covariance,
 )
+from jaximu.learning.model import check_model
 
 __all__ = [
     "NeesTerms",
@@ -75,6 +77,11 @@ def _terms(model, gyro, accel, q_true, dt, start):
 def nees_terms(model, seq, start: int = 0, dtype=jnp.float32) -> NeesTerms:
     """The NEES terms of ``seq`` integrated from its sample ``start`` (the network sees the
     samples before it as context)."""
+    check_model("model", model)
+    check_sequence("seq", seq)
+    start = check_int("start", start, 0)
+    if start > len(seq) - 2:
+        raise ValueError(f"start = {start} leaves no step of the {len(seq)} samples of seq")
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     return _terms(model, cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt), start)
 
@@ -116,6 +123,7 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
 def _with_log(model, where, value: float, name: str):
     """``model`` with the log-parameter ``where(model)`` set to ``log(value)``, in its dtype
     (``value`` a positive number, named ``name`` if not)."""
+    check_model("model", model)
     value = check_positive(name, value)
     return eqx.tree_at(where, model, jnp.asarray(np.log(value), where(model).dtype))
 
@@ -177,6 +185,7 @@ def fit_reference_sigma(
             model tracks it).
         steps: L-BFGS iterations at most, in ``log σ`` (it stops when the gradient vanishes).
     """
+    check_model("model", model)
     horizons, skip = check_horizons("horizons", horizons), check_int("skip", skip, 0)
     terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip)
     p0 = jnp.stack([model.log_bias_sigma, model.log_reference_sigma]).astype(gyro.dtype)

@@ -112,18 +112,7 @@ def _prepare(
         )
     val.check_choice("scheme", scheme, SCHEMES)
     dtype = val.compute_dtype("dtype", dtype) if dtype is not None else jnp.result_type(float)
-    times = val.as_numbers("times", times)
-    if times.ndim != 1 or len(times) < 2:
-        raise ValueError(
-            f"times must be a 1-D array of at least 2 sample times, got shape {times.shape}"
-        )
-    val.check_finite("times", times)
-    if np.any(np.diff(times) <= 0):
-        i = int(np.argmax(np.diff(times) <= 0))
-        raise ValueError(
-            f"times must increase strictly; times[{i + 1}] = {times[i + 1]:g} ≤ "
-            f"times[{i}] = {times[i]:g}"
-        )
+    times = val.check_times("times", times)
     if filt and record_every > len(times) - 1:
         raise InputError(
             f"update_every = {record_every} is more than the {len(times) - 1} "

@@ -106,7 +106,7 @@ def monte_carlo(
         times: ``(T+1,)`` sample times [s], finite and strictly increasing, at least 2; T
             steps (the samples are the interval ends).
         P0: ``(15, 15)`` initial error covariance ``[dθ, dp, dv, db_g, db_a]``, symmetric
-            positive semi-definite (judged relative to its scale, as
+            positive semi-definite (judged per axis, as
             :func:`jaximu.propagate_covariance`). A singular ``P0`` is allowed (``0``: an
             exactly known start): the NEES is NaN at the recorded times where the predicted
             covariance is still singular (``MonteCarloResult.nees_mean``); an open-loop

@@ -191,3 +191,31 @@ def test_calibration_loss_of_a_float32_problem_takes_a_float64_calibration(cal_i
     )
     assert loss.dtype == jnp.float32
     np.testing.assert_allclose(float(loss), float(rounded), rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(window_lengths=()), r"window_lengths must be window lengths in seconds.* got \(\)"),
+        (dict(t="zero"), r"t must increase strictly; t\[1\] = 0 ≤ t\[0\] = 0 .*zero duration"),
+        (dict(t="nan"), r"t contains non-finite values .* index \[7\].*drop_nonfinite"),
+        (
+            dict(window_lengths=(0.1, 0.4, 1.2)),
+            r"the longest window length, 1\.2 s, is longer than the 0\.59 s the recording "
+            r"and the reference share.*pass lengths of 0\.1 … 0\.59 s in window_lengths",
+        ),
+    ],
+)
+def test_the_noise_problem_refuses_windows_and_stamps_by_name_before_any_work(
+    cal_inputs, change, message
+):
+    """An empty window_lengths raised IndexError, equal stamps OverflowError, a NaN stamp
+    "cannot convert float NaN to integer", and windows longer than the recording "no window
+    lies between the reference's gaps" (it has none)."""
+    t, gyro, accel, ref = cal_inputs  # 0.59 s at 100 Hz
+    kw = dict(window_lengths=(0.05, 0.1)) | change
+    t = {"zero": np.zeros_like(t), "nan": np.where(np.arange(len(t)) == 7, np.nan, t)}.get(
+        kw.pop("t", None), t
+    )
+    with pytest.raises(ValueError, match=message):
+        cal.calibration_problem(t, gyro, accel, ref, ImuNoise.euroc(), **kw)

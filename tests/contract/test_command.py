@@ -384,6 +384,28 @@ def test_library_fixes_render_as_flags_in_calibrate(capsys):
     assert "--keyframe-interval ≥ 0.005" in line, line
 
 
+@pytest.mark.parametrize(
+    "argv, fragments",
+    [
+        (  # 0.3 s against the default 0.25, 1, 4 s windows: too short, not a gap
+            ("--duration", "0.3"),
+            ("the longest window length, 4 s, is longer than the 0.295 s", "in --window-lengths"),
+        ),
+        (  # 6 s of windows of 2 s: 16 are needed
+            ("--window-lengths", "2"),
+            ("holds 2 windows of 2 s", "at least 16", "≤ 0.3", "s in --window-lengths"),
+        ),
+    ],
+)
+def test_calibrate_noise_windows_the_recording_cannot_hold_are_refused_before_the_work(
+    capsys, argv, fragments
+):
+    line, out = error_line(capsys, "calibrate", EUROC, "--estimate", "noise", *argv)
+    for fragment in fragments:
+        assert fragment in line, line
+    assert "window_lengths" not in line and "compiling" not in out and "calibrating" not in out
+
+
 def test_the_library_fix_for_update_every_renders_as_the_filter_flag():
     e = InputError("update_every too large", [Fix("update_every", 5)], lead="pass at most")
     assert e.render(cli.flag_of).endswith("pass at most --filter 5")

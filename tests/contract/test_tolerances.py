@@ -64,8 +64,7 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     with pytest.raises(
         ValueError,
         match=r"P0 is not positive semi-definite: the variance "
-        r"P0\[4, 4\] = -.* is negative \(0\.0001 of its "
-        r"largest entry",
+        r"P0\[4, 4\] = -.* is negative \(1 in all\); variances are σ² ≥ 0",
     ):
         _tolerances.check_covariance("P0", neg.astype(dtype), dtype)
     asym = P.copy()
@@ -76,15 +75,46 @@ def test_the_same_relative_defect_is_refused_at_every_scale(scale, dtype):
     # [1.01, 1]] (numpy's eigvalsh is the reference)
     bad = np.eye(15) * scale
     bad[2, 3] = bad[3, 2] = 1.01 * scale
-    lam = np.linalg.eigvalsh(bad)[0]
-    np.testing.assert_allclose(lam, -0.01 * scale, rtol=1e-9)
+    lam = np.linalg.eigvalsh(correlation(bad))[0]
+    np.testing.assert_allclose(lam, -0.01, rtol=1e-9)
     with pytest.raises(
         ValueError,
-        match=r"P0 is not positive semi-definite: its smallest "
-        r"eigenvalue is .*, 0\.0099 of its largest entry",
+        match=r"P0 is not positive semi-definite: the smallest eigenvalue of its "
+        r"correlation matrix",
     ) as e:
         _tolerances.check_covariance("P0", bad.astype(dtype), dtype)
     assert f"{lam:.3g}" in str(e.value)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_a_covariance_of_mixed_units_is_judged_per_axis(dtype):
+    """Variances of 1e-4 beside gyro-bias variances of 1e-12 (rad/s)²: a
+    negative variance is refused however small beside the largest entry (-1e-10 is 1e-6 of
+    it, inside float32's rounding of that entry), and a cross term beyond what its own two
+    variances allow (correlation 1.5, numpy's eigenvalue of the correlation matrix the
+    reference) is refused though it is 1.5e-8 of the largest entry."""
+    P = np.diag([1e-4] * 9 + [1e-12] * 6)
+    _tolerances.check_covariance("P0", P.astype(dtype), dtype)
+    neg = P.copy()
+    neg[9, 9] = -1e-10
+    assert -1e-10 / np.abs(P).max() > -EPS60[np.float32]  # hidden by a largest-entry scale
+    with pytest.raises(ValueError, match=r"the variance P0\[9, 9\] = -1e-10 is negative"):
+        _tolerances.check_covariance("P0", neg.astype(dtype), dtype)
+    cross = P.copy()
+    cross[10, 11] = cross[11, 10] = 1.5e-12
+    assert np.linalg.eigvalsh(correlation(cross))[0] < -0.4
+    assert np.linalg.eigvalsh(cross)[0] > -EPS60[np.float32] * np.abs(P).max()
+    with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the smallest"):
+        _tolerances.check_covariance("P0", cross.astype(dtype), dtype)
+    with pytest.raises(ValueError, match=r"P0 is not positive semi-definite: the variance"):
+        jaximu.propagate_covariance_final(
+            NavState.identity((), dtype),
+            neg.astype(dtype),
+            np.zeros((1, 3), dtype),
+            np.array([[0, 0, 9.81]], dtype),
+            0.01,
+            ImuNoise.euroc(),
+        )
 
 
 def test_each_matrix_of_a_batch_is_judged_at_its_own_scale():

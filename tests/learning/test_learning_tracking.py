@@ -188,10 +188,10 @@ def test_track_gyro_bias_refuses_bad_input_naming_it(gyro, accel, dt, sets, matc
     "kw, match",
     [
         ({"standstill_samples": 30}, "settings.standstill_samples must be 0 or a whole"),
-        ({"standstill_sigma": 0.0}, "settings.standstill_sigma must be a positive number"),
+        ({"standstill_sigma": 0.0}, "settings.standstill_sigma must be positive and finite"),
         ({"standstill_accel_std": float("nan")}, "settings.standstill_accel_std must be"),
-        ({"velocity_sigma": -1.0}, "settings.velocity_sigma must be a positive number"),
-        ({"update_samples": 0}, "settings.update_samples must be a positive whole number"),
+        ({"velocity_sigma": -1.0}, "settings.velocity_sigma must be positive and finite"),
+        ({"update_samples": 0}, "settings.update_samples must be a positive integer"),
     ],
 )
 def test_tracker_settings_given_directly_are_checked_naming_the_field(kw, match):
