@@ -169,7 +169,17 @@ def calibrate(
             f"noise's {NOISE_FIELDS} (a density per axis: {PER_AXIS_FIELDS})"
         )
     if not estimate:
-        raise ValueError("estimate names no field")
+        raise ValueError(
+            f"estimate names no field, got {estimate!r}; pass at least one of {FIELDS} or "
+            f"the noise's {NOISE_FIELDS}, e.g. estimate=('b_g', 'b_a')"
+        )
+    twice = sorted({n for n in estimate if estimate.count(n) > 1})
+    if twice:
+        unique = tuple(dict.fromkeys(estimate))
+        raise ValueError(
+            f"estimate names {', '.join(map(repr, twice))} more than once, got {estimate!r}; "
+            f"name each field once: estimate={unique!r}"
+        )
     if isinstance(problem, NoiseProblem):
         if optimizer != "lm":
             raise InputError(

@@ -124,7 +124,13 @@ def allan_deviation(y, dt: float, taus=None, points_per_decade: int = 10):
         with np.errstate(over="ignore"):
             ms = np.maximum(1, np.round(taus / dt))
         if np.any(2 * ms >= n):
-            raise ValueError("every τ must be shorter than half the recording")
+            i = int(np.argmax(2 * ms >= n))
+            longest = (n - 1) // 2 * dt
+            raise ValueError(
+                f"every τ must be shorter than half the recording: taus[{i}] = {taus[i]:g} s, "
+                f"and the {n} samples of {dt:g} s hold clusters of at most {longest:g} s; "
+                f"pass taus up to {longest:g} s (or a longer recording)"
+            )
         ms = ms.astype(int)
     # Overflow (|y| or dt near the float64 limits) is reported below, not warned about.
     with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):

@@ -60,6 +60,11 @@ def test_allan_names_a_traced_input_and_a_wrong_fit():
         ({"taus": [0.01, 0.01]}, r"taus must be strictly increasing"),
         ({"taus": ["0.1"]}, r"taus must be an array of numbers"),
         ({"points_per_decade": "10"}, r"points_per_decade must be a positive number"),
+        (
+            {"taus": [0.01, 10.0]},
+            r"taus\[1\] = 10 s, and the .* samples of 0\.005 s hold clusters of at most "
+            r"[0-9.]+ s; pass taus up to",
+        ),
     ],
 )
 def test_allan_deviation_refuses_what_it_would_alter(kwargs, message):

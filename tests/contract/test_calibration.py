@@ -62,6 +62,15 @@ def test_calibrate_refuses_estimate_given_as_a_string():
         cal.calibrate(cal.CalibrationProblem(*[None] * 13), estimate="b_g,b_a")
     with pytest.raises(ValueError, match=r"estimate must be a tuple of field names .*NoneType"):
         cal.calibrate(None, estimate=None)
+    with pytest.raises(ValueError, match=r"estimate names no field, got \(\); pass at least"):
+        cal.calibrate(None, estimate=())
+    # a field named twice would be estimated once: refused, naming the repair
+    with pytest.raises(
+        ValueError,
+        match=r"estimate names 'b_g' more than once, got \('b_g', 'b_a', 'b_g'\); name each "
+        r"field once: estimate=\('b_g', 'b_a'\)",
+    ):
+        cal.calibrate(None, estimate=("b_g", "b_a", "b_g"))
 
 
 def test_calibration_loss_names_its_arguments(cal_inputs):
