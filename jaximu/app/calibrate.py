@@ -76,7 +76,14 @@ def _estimate(text, cal):
         "noise": cal.NOISE_FIELDS,
         "noise_per_axis": cal.PER_AXIS_FIELDS + ("reference_sigma",),
     }
-    for s in (s.strip() for s in text.split(",")):
+    given = [s.strip() for s in text.split(",") if s.strip()]
+    twice = sorted({s for s in given if given.count(s) > 1})
+    if twice:
+        raise UsageError(
+            f"--estimate names {', '.join(twice)} more than once, got {text!r}; name each "
+            f"field once: --estimate {','.join(dict.fromkeys(given))}"
+        )
+    for s in given:
         if s in aliases:
             names += [n for n in aliases[s] if n not in names]
         elif s and s not in names:

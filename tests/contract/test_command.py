@@ -303,7 +303,11 @@ def test_the_command_names_the_flag_before_the_work(argv, msg, capsys):
 
 @pytest.mark.parametrize(
     "estimate, fragment",
-    [("", "no field in --estimate"), ("foo", "unknown field(s) ['foo'] in --estimate")],
+    [
+        ("", "no field in --estimate"),
+        ("foo", "unknown field(s) ['foo'] in --estimate"),
+        ("b_g,b_a,b_g", "--estimate names b_g more than once, got 'b_g,b_a,b_g'; name each "),
+    ],
 )
 def test_calibrate_estimate_is_checked_before_the_recording_is_read(capsys, estimate, fragment):
     """An empty --estimate reached the library after the recording was read and the problem
