@@ -294,9 +294,10 @@ def test_float32_study_agrees_with_float64(setup, study):
     )
 
 
-def _lane_kernel_loops(route, filt, setup):
-    """The number of while loops in the lowered lane kernel of the shared study's set-up
-    under ``route``."""
+def _lowered_chunk(setup, key, *, scheme, record_every, dtype, route=None, **filt):
+    """The HLO text of the lane kernel of a 4-run chunk of the shared set-up (``filt``: the
+    filter study's ``update_every`` and ``measurement``; ``route``: a
+    :class:`jaximu.engine._dispatch.MonteCarloRoute`, default the CPU's)."""
     from jaximu.kernels.montecarlo_lanes import run_chunk
     from jaximu.studies._montecarlo_setup import _prepare
     from jaximu.studies.montecarlo import _route_options
@@ -307,19 +308,19 @@ def _lane_kernel_loops(route, filt, setup):
         times,
         P0,
         noise,
-        jax.random.key(5),
-        scheme="midpoint",
+        jax.random.key(key),
+        scheme=scheme,
         gravity=9.81,
         b_g0=None,
         b_a0=None,
-        record_every=25,
-        dtype=jnp.float64,
-        update_every=25 if filt else None,
+        record_every=record_every,
+        dtype=dtype,
+        **filt,
     )
-    run = jnp.arange(4, dtype=jnp.uint32)
-    text = run_chunk.lower(
-        run,
-        jnp.ones(4),
+    route = _dispatch.MONTE_CARLO[_dispatch.CPU] if route is None else route
+    return run_chunk.lower(
+        jnp.arange(4, dtype=jnp.uint32),
+        jnp.ones(4, dtype),
         st.consts,
         scheme=st.scheme,
         seg=st.seg,
@@ -327,6 +328,15 @@ def _lane_kernel_loops(route, filt, setup):
         filt=st.filt,
         **_route_options(route, st.filt),
     ).as_text()
+
+
+def _lane_kernel_loops(route, filt, setup):
+    """The number of while loops in the lowered lane kernel of the shared study's set-up
+    under ``route``."""
+    kw = dict(update_every=25) if filt else {}
+    text = _lowered_chunk(
+        setup, 5, scheme="midpoint", record_every=25, dtype=jnp.float64, route=route, **kw
+    )
     return text.count("stablehlo.while")
 
 
@@ -552,34 +562,15 @@ def test_filter_study_kernel_calls_no_lapack(setup):
     chunk in flight per core (the pool's threads running the chunks) two chunks deadlocked
     (seen with the dense update: 4096 runs in chunks of 2048 on 2 cores never returned).
     The update and the NEES run unrolled on the lanes instead."""
-    from jaximu.studies.montecarlo import _prepare, run_chunk
-
-    traj, times, P0, noise = setup
-    st = _prepare(
-        traj,
-        times,
-        P0,
-        noise,
-        jax.random.key(0),
+    hlo = _lowered_chunk(
+        setup,
+        0,
         scheme="euler",
-        gravity=9.81,
-        b_g0=None,
-        b_a0=None,
         record_every=1,
         dtype=jnp.float32,
         update_every=20,
         measurement=PositionFix(0.01),
     )
-    run = jnp.arange(4, dtype=jnp.uint32)
-    hlo = run_chunk.lower(
-        run,
-        jnp.ones(4, jnp.float32),
-        st.consts,
-        scheme=st.scheme,
-        seg=st.seg,
-        mode="stats",
-        filt=True,
-    ).as_text()
     assert "while" in hlo  # the lowered study (its scans), not an empty text
     assert "custom_call" not in hlo, [ln for ln in hlo.splitlines() if "custom_call" in ln][:3]
 
