@@ -154,7 +154,9 @@ class Sequence:
     def stamps(self) -> tuple[np.ndarray, np.ndarray]:
         """``(τ, q)``: where the evaluation compares: the ground truth's own stamps and
         attitudes (:attr:`gt_t`, :attr:`gt_q`), or the samples' when it has none."""
-        return (self.t, self.q) if self.gt_t is None else (self.gt_t, self.gt_q)
+        if self.gt_t is None or self.gt_q is None:
+            return self.t, self.q
+        return self.gt_t, self.gt_q
 
     def slice(self, start: int, stop: int | None = None, suffix: str = "") -> Sequence:
         """Samples ``start:stop`` as a new sequence (times kept)."""
@@ -162,7 +164,7 @@ class Sequence:
         opt = lambda x: None if x is None else x[s]  # noqa: E731
         t = self.t[s]
         gt = {}
-        if self.gt_t is not None:
+        if self.gt_t is not None and self.gt_q is not None:
             inside = (self.gt_t >= t[0]) & (self.gt_t <= t[-1])
             gt = dict(gt_t=self.gt_t[inside], gt_q=self.gt_q[inside])
             if not inside.any():  # no row of its own inside: the samples' references
