@@ -1,6 +1,7 @@
 """``jaximu learn``: train a gyro denoiser on sequences with ground truth, and evaluate one.
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
+                     [--accel-head] [--no-bias-tracking]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
 Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
@@ -100,7 +101,7 @@ def cmd_train(args):
     seqs = _load_all(learning, args)
     cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
-    mcfg = learning.ModelConfig(accel_head=args.accel_head)
+    mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
     result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
     record = dict(result.record)
     record["command"] = "jaximu learn train " + " ".join(
@@ -108,6 +109,7 @@ def cmd_train(args):
         + ["--out", out.name, "--seed", str(args.seed)]
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
+        + (["--no-bias-tracking"] if args.no_bias_tracking else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
@@ -279,6 +281,13 @@ def add_parser(sub):
         help="also correct the accelerometer, "
         "trained on velocity increments (sequences with ground-truth velocity)",
     )
+    t.add_argument(
+        "--no-bias-tracking",
+        action="store_true",
+        help="no gyro-bias tracker: the network corrects the training recordings' constant "
+        "bias alone (for a vehicle whose velocity does not stay near zero, or to measure "
+        "the network on its own)",
+    )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(
         "evaluate",
@@ -290,7 +299,9 @@ def add_parser(sub):
         "AOE/AYE (mean and RMSE) at the ground truth's own stamps (never across a "
         "motion-capture dropout) and the learned uncertainty's NEES.",
     )
-    e.add_argument("model", metavar="MODEL", help="a model folder, or 'euroc' (shipped)")
+    e.add_argument(
+        "model", metavar="MODEL", help="a model folder, or a shipped model: 'euroc' or 'tumvi'"
+    )
     e.add_argument("dirs", nargs="+", metavar="DIR", help="sequence folders")
     e.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     e.add_argument("--plot", metavar="FILE", help="plot the orientation error over time")

@@ -200,8 +200,9 @@ def _stack(parts, biases, length):
     q = np.stack([s.q[:length] for s in parts])
     v = np.stack([s.v[:length] for s in parts])
     b = np.stack([x[:length] for x in biases])
+    ref = np.stack([s.has_reference[:length] for s in parts])
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(g), f(a), f(q), f(v), f(b)
+    return f(g), f(a), f(q), f(v), f(b), jnp.asarray(ref)
 
 
 def _tracked_biases(model, sequences):
@@ -218,22 +219,31 @@ def _tracked_biases(model, sequences):
 
 def _validation_arrays(seqs, vals, biases, context):
     """Each validation part with ``context`` samples before it, padded to one length:
-    ``(gyro, accel, q, tracked bias, mask)`` ``(S, N, ·)``; the mask is True on the
-    validation samples. ``biases``: each whole sequence's tracked gyro bias."""
+    ``(gyro, accel, q, tracked bias, run, compare)`` ``(S, N, ·)``: ``run`` is True on the
+    validation samples from the first with a reference on (the integration's), ``compare``
+    on those with a reference (not in a motion-capture dropout). ``biases``: each whole
+    sequence's tracked gyro bias."""
     pieces = []
     for s, v, b in zip(seqs, vals, biases):
         k = len(s) - len(v)
         lo = max(0, k - context)
         pieces.append((s.slice(lo), b[lo:], k - lo))
     N = max(len(p) for p, _, _ in pieces)
-    G, A, Q, B, M = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 3, 1))
+    G, A, Q, B, M, C = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 3, 1, 1))
     for i, (p, b, c0) in enumerate(pieces):
         n = len(p)
         G[i, :n], A[i, :n], Q[i, :n], B[i, :n] = p.gyro, p.accel, p.q, b
         G[i, n:], A[i, n:], Q[i, n:], B[i, n:] = p.gyro[-1], p.accel[-1], p.q[-1], b[-1]
-        M[i, c0:n] = 1.0
+        ref = p.has_reference[c0:]
+        if not ref.any():
+            raise DataError(
+                f"sequence {p.name!r}: its validation part has no sample with ground truth "
+                "(all inside dropouts): give a longer recording or another train_seconds"
+            )
+        M[i, c0 + int(np.argmax(ref)) : n] = 1.0
+        C[i, c0:n, 0] = ref
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(G), f(A), f(Q), f(B), jnp.asarray(M[..., 0] > 0)
+    return f(G), f(A), f(Q), f(B), jnp.asarray(M[..., 0] > 0), jnp.asarray(C[..., 0] > 0)
 
 
 def _schedule(cfg: TrainConfig):
@@ -269,10 +279,11 @@ OFFSET_UNIT = 1e-3
 in the parameters: bias-sized steps need bias-sized units)."""
 
 
-def _loss(params, g, a, b, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
+def _loss(params, g, a, b, q, v, ref, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
     """The training loss of one step and its ``(rotation, nll)`` parts (``has_v``: 1 for the
     parts whose ground truth has velocities, ``n_v`` their number, at least 1; ``b`` the
-    tracked gyro bias; ``params``: the model and the training recordings' offsets)."""
+    tracked gyro bias; ``ref`` where the ground truth has a reference; ``params``: the model
+    and the training recordings' offsets)."""
     model, offsets = params
     mcfg = model.config
     if cfg.recording_offsets:  # each recording's own constant, apart from the network
@@ -287,6 +298,7 @@ def _loss(params, g, a, b, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float
         reference_sigma=model.reference_sigma,
         random_walk=mcfg.gyro_random_walk,
         skip=cfg.skip,
+        reference=ref,
     )
     total = rot + cfg.nll_weight * nll
     if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
@@ -312,6 +324,7 @@ def _step(
     Q,
     V,
     B,
+    R,
     noise,
     bias_noise,
     has_v,
@@ -334,7 +347,18 @@ def _step(
     x = x + noise * jax.random.normal(k_w, x.shape) + shift
     b = cut(B, L) + shift[..., :3]
     (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
-        params, x[..., :3], x[..., 3:], b, cut(Q, L + 1), cut(V, L + 1), k_drop, has_v, n_v, cfg, dt
+        params,
+        x[..., :3],
+        x[..., 3:],
+        b,
+        cut(Q, L + 1),
+        cut(V, L + 1),
+        cut(R, L + 1),
+        k_drop,
+        has_v,
+        n_v,
+        cfg,
+        dt,
     )
     updates, opt_state = _optimizer(cfg, params).update(
         grads, opt_state, eqx.filter(params, eqx.is_array)
@@ -350,7 +374,7 @@ def _step(
 
 
 @eqx.filter_jit
-def _validate(model, vG, vA, vQ, vB, vM, *, dt: float):
+def _validate(model, vG, vA, vQ, vB, vM, vC, *, dt: float):
     """Mean AOE [rad] of each validation part, integrated from its first true attitude:
     the rates before it (the network's context) are zeroed, so the attitude stays at
     that true attitude until the validation part starts."""
@@ -360,7 +384,7 @@ def _validate(model, vG, vA, vQ, vB, vM, *, dt: float):
     gyro = jnp.where(vM[..., None], c.gyro, 0.0)
     steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
     _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
-    return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
+    return jnp.sum(jnp.where(vC, aoe, 0.0), 1) / jnp.sum(vC, 1)
 
 
 def train(
@@ -449,12 +473,12 @@ def train(
     # learned, it biases every other recording (validation mean AOE 0.59-0.63° against the
     # tracker's own 0.52°).
     settled = [np.broadcast_to(b[len(t) - 1], b.shape) for b, t in zip(biases, trains)]
-    G, A, Q, V, B = _stack(trains, settled, shortest)
+    G, A, Q, V, B, R = _stack(trains, settled, shortest)
     # velocities of ground truth that has them (a pose-only one's are differenced
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
-    vG, vA, vQ, vB, vM = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
+    vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
     say(
         f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
         f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
@@ -484,7 +508,7 @@ def train(
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
     # arguments, not constants folded into the program
-    data, vdata = (G, A, Q, V, B, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM)
+    data, vdata = (G, A, Q, V, B, R, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM, vC)
     params, ema, opt_state, loss, parts = step(params, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
@@ -492,7 +516,7 @@ def train(
     untrained = np.degrees(np.asarray(validate(model, *vdata)))  # the tracked bias alone
     t_val_first = time.perf_counter() - t0
     vB_constant = jnp.broadcast_to(jnp.asarray(mcfg.gyro_bias, jnp.float32), vB.shape)
-    baseline = np.degrees(np.asarray(validate(model, vG, vA, vQ, vB_constant, vM)))
+    baseline = np.degrees(np.asarray(validate(model, vG, vA, vQ, vB_constant, vM, vC)))
     record["validation_constant_bias_deg"] = [float(x) for x in baseline]
     record["validation_untrained_deg"] = [float(x) for x in untrained]
     say(
@@ -555,7 +579,15 @@ def train(
         t0 = time.perf_counter()
         learned_ref = float(model.reference_sigma)
         ref, short_sb = uncertainty.fit_reference_sigma(
-            model, G[:, :-1], A[:, :-1], Q, dt, cfg.horizons, gyro_bias=B[:, :-1], skip=cfg.skip
+            model,
+            G[:, :-1],
+            A[:, :-1],
+            Q,
+            dt,
+            cfg.horizons,
+            gyro_bias=B[:, :-1],
+            skip=cfg.skip,
+            reference=R,
         )
         model = uncertainty.with_reference_sigma(model, ref)
         say(
