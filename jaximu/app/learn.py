@@ -1,7 +1,7 @@
 """``jaximu learn``: train a gyro denoiser on sequences with ground truth, and evaluate one.
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
-                     [--accel-head] [--no-bias-tracking]
+                     [--accel-head] [--no-bias-tracking] [--leave-one-out]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
 Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
@@ -97,9 +97,17 @@ def cmd_train(args):
         raise UsageError(f"--minutes must be a positive number, got {args.minutes:g}")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {args.steps}")
+    if args.leave_one_out and len(args.dirs) < 2:
+        raise UsageError(
+            "--leave-one-out needs two sequence folders or more (each is validated by "
+            "models trained on the others): give more folders or leave the flag out"
+        )
     t0 = time.perf_counter()
     seqs = _load_all(learning, args)
-    cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
+    settings = {} if args.steps is None else {"steps": args.steps}
+    if args.leave_one_out:
+        settings["selection"] = "leave_one_out"
+    cfg = learning.TrainConfig(**settings)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
     mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
     result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
@@ -110,6 +118,7 @@ def cmd_train(args):
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
         + (["--no-bias-tracking"] if args.no_bias_tracking else [])
+        + (["--leave-one-out"] if args.leave_one_out else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
@@ -289,6 +298,13 @@ def add_parser(sub):
         help="no gyro-bias tracker: the network corrects the training recordings' constant "
         "bias alone (for a vehicle whose velocity does not stay near zero, or to measure "
         "the network on its own)",
+    )
+    t.add_argument(
+        "--leave-one-out",
+        action="store_true",
+        help="choose the kept step by leaving each recording out in turn (a model trained "
+        "on the others, the left-out one integrated whole) instead of by the later seconds "
+        "of the same recordings; trains one model per folder, plus the final one",
     )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(

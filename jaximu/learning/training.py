@@ -102,6 +102,12 @@ class TrainConfig:
             ``σ_ref`` to the kept network by the likelihood of the training windows, then set
             the residual gyro bias ``σ_b`` on the validation parts
             (:mod:`jaximu.learning.uncertainty`).
+        selection: how the kept step is chosen: ``"validation"``, the lowest mean AOE on
+            the validation parts (the later seconds of the training recordings, which share
+            their bias), or ``"leave_one_out"``: each recording left out in turn and
+            integrated whole by a model trained on the others, the step with the lowest
+            mean over these folds kept of the model trained on all (the number of recordings
+            plus one trainings; no recording chooses a model trained on it).
         recording_offsets: fit, beside the network, one constant gyro offset per training
             recording (summing to zero; dropped after training): what is left of each
             recording's own bias then has a place other than the network, which would
@@ -130,6 +136,7 @@ class TrainConfig:
     velocity_weight: float = 1e3
     ema: float = 0.98
     recording_offsets: bool = True
+    selection: str = "validation"
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -147,6 +154,10 @@ class TrainConfig:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
         for field in ("calibrate_uncertainty", "recording_offsets"):
             check_bool(f"{name}.{field}", getattr(self, field))
+        if self.selection not in ("validation", "leave_one_out"):
+            raise ValueError(
+                f"{name}.selection must be 'validation' or 'leave_one_out', got {self.selection!r}"
+            )
 
     def to_json(self) -> dict:
         return {
@@ -435,9 +446,27 @@ def train(
         raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
     if model_config is not None and not isinstance(model_config, ModelConfig):
         raise ValueError(f"model_config must be a ModelConfig, got {type(model_config).__name__}")
-    rate = sequences[0].rate_hz
     for s in sequences:
-        check_rate(s, rate, f"sequence {sequences[0].name!r}")
+        check_rate(s, sequences[0].rate_hz, f"sequence {sequences[0].name!r}")
+    if cfg.selection == "leave_one_out":
+        if len(sequences) < 2:
+            raise DataError(
+                "TrainConfig(selection='leave_one_out') needs two recordings or more (each "
+                f"is validated by models trained on the others); got {len(sequences)}: give "
+                "more recordings or selection='validation'"
+            )
+        return _leave_one_out(list(sequences), cfg, model_config, seed, minutes, say)
+    return _fit(list(sequences), cfg, model_config, seed, minutes, say)
+
+
+def _fit(
+    sequences, cfg, model_config, seed, minutes, say, held_out=None, keep_step=None
+) -> TrainResult:
+    """:func:`train` once its arguments are checked. ``held_out``: a recording validated
+    whole instead of the validation parts (a fold of :func:`_leave_one_out`); ``keep_step``:
+    ``(step, score)``, keep the weights of that step (0: untrained) and stop there, with no
+    choice by validation."""
+    rate = sequences[0].rate_hz
     trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
     g_bias, a_bias = constant_biases(trains)
     g_sigma, a_sigma = bias_spreads(trains)
@@ -478,11 +507,18 @@ def train(
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
-    vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
+    if held_out is not None:  # validated whole, from its first true attitude
+        vals = (held_out,)
+        vG, vA, vQ, vB, vM, vC = _validation_arrays(
+            vals, vals, _tracked_biases(model, vals), mcfg.receptive_field
+        )
+    else:
+        vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
     say(
         f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
-        f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
-        f"({sum(len(v) for v in vals)} samples: "
+        f"of each ({sum(len(s) for s in trains)} samples); validating on "
+        + ("the recording left out " if held_out is not None else "the rest ")
+        + f"({sum(len(v) for v in vals)} samples: "
         + ", ".join(f"{v.name} {v.seconds:.1f} s" for v in vals)
         + ")"
     )
@@ -530,12 +566,18 @@ def train(
         )
     # the untrained network is a candidate: a network that only hurts on validation is not kept
     best = (float(untrained.mean()), model, 0)
+    if keep_step is not None:  # chosen without these recordings' validation parts
+        best = (keep_step[1], model, 0)
     run_time = 0.0
     compile_time = t_first + t_val_first
     i = 1
     cut_short = False
     while True:
-        if i % cfg.validate_every == 0 or i == cfg.steps:
+        if keep_step is not None and i >= keep_step[0]:
+            if i == keep_step[0]:  # (step 0, the untrained network, is kept already)
+                best = (keep_step[1], ema, i)
+            break
+        if keep_step is None and (i % cfg.validate_every == 0 or i == cfg.steps):
             t0 = time.perf_counter()
             aoe = np.degrees(np.asarray(validate(ema, *vdata)))
             run_time += time.perf_counter() - t0
@@ -595,11 +637,12 @@ def train(
             f"training windows with the kept network (was {learned_ref:.3g}; "
             f"{time.perf_counter() - t0:.1f} s)"
         )
-        model = _set_bias_sigma(model, sequences, vals, record, say)
+        model = uncertainty.set_bias_sigma(model, sequences, vals, record, say)
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
         )
-    _record_windows(model, sequences, vals, record, say)
+    if held_out is None:
+        _record_windows(model, sequences, vals, record, say)
     wall = time.perf_counter() - t_start
     record["recording_offsets_rad_s"] = {
         s.name: [float(x) for x in OFFSET_UNIT * (o - params[1].mean(0))]
@@ -624,6 +667,43 @@ def train(
     return TrainResult(model, record)
 
 
+def _leave_one_out(sequences, cfg, model_config, seed, minutes, say) -> TrainResult:
+    """Leave-one-recording-out model selection: each recording is left out in turn, a model
+    trained on the others (the same recipe and seed, its biases and normalisation theirs)
+    and the left-out recording integrated whole at every validation; the step with the
+    lowest mean over the folds (0: the untrained network) is the one kept of the model
+    trained on all. No recording ever judges a model trained on it."""
+    fold_cfg = dataclasses.replace(cfg, selection="validation", calibrate_uncertainty=False)
+    folds = []
+    for i, s in enumerate(sequences):
+        others = sequences[:i] + sequences[i + 1 :]
+        say(f"fold {i + 1}/{len(sequences)}: {s.name} left out")
+        r = _fit(others, fold_cfg, model_config, seed, minutes, lambda x: None, held_out=s)
+        rec = r.record
+        aoe = [rec["validation_untrained_deg"][0]]
+        aoe += [h["validation_aoe_mean_deg"][0] for h in rec["history"]]
+        steps = [0] + [h["step"] for h in rec["history"]]
+        folds.append({"left_out": s.name, "trained_on": rec["sequences"], "steps": steps})
+        folds[-1]["aoe_mean_deg"] = aoe
+        say(f"  {s.name}: " + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, aoe)))
+    steps = min((f["steps"] for f in folds), key=len)  # (a fold cut short by minutes)
+    mean = [float(np.mean([f["aoe_mean_deg"][j] for f in folds])) for j in range(len(steps))]
+    j = int(np.argmin(mean))
+    say(
+        "leave-one-out: mean AOE of the left-out recordings by step "
+        + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, mean))
+        + f"; keeping step {steps[j]} of the model trained on all"
+    )
+    result = _fit(sequences, cfg, model_config, seed, minutes, say, keep_step=(steps[j], mean[j]))
+    result.record["leave_one_out"] = {
+        "folds": folds,
+        "steps": steps,
+        "mean_aoe_deg": mean,
+        "chosen_step": steps[j],
+    }
+    return result
+
+
 def _record_windows(model, sequences, vals, record, say):
     """Dead-reckoning errors over 1-s and 5-s windows of the validation parts with ground
     truth velocities: what the accelerometer correction is judged by."""
@@ -642,31 +722,3 @@ def _record_windows(model, sequences, vals, record, say):
                 f"[m/s] / |δp| [m]: "
                 + ", ".join(f"{k} {a:.3f} / {b:.3f}" for k, (a, b) in mean.items())
             )
-
-
-def _set_bias_sigma(model, sequences, vals, record, say):
-    """Set ``σ_b`` on the validation parts (:mod:`jaximu.learning.uncertainty`) and record
-    each sequence's NEES with ``σ_b`` set on the other sequences."""
-    terms = [uncertainty.nees_terms(model, s, len(s) - len(v)) for s, v in zip(sequences, vals)]
-    sigma = uncertainty.fit_bias_sigma(terms)
-    loo = uncertainty.leave_one_out(terms)
-    record["uncertainty"] = {
-        "bias_sigma": sigma,
-        "learned_bias_sigma": float(model.bias_sigma),
-        "reference_sigma": float(model.reference_sigma),
-        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
-    }
-    achieved = float(np.mean([uncertainty.average_nees(t, sigma) for t in terms]))
-    say(
-        f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
-        f"NEES {achieved:.2f}"
-        + ("" if achieved > 2.9 else ": below 3 with no residual bias at all")
-        + "); "
-        + (
-            "each sequence's NEES with σ_b set on the others: "
-            + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
-            if len(vals) > 1
-            else "one sequence: no leave-one-out NEES"
-        )
-    )
-    return uncertainty.with_bias_sigma(model, sigma)

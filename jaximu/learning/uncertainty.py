@@ -47,6 +47,7 @@ __all__ = [
     "leave_one_out",
     "with_bias_sigma",
     "with_reference_sigma",
+    "set_bias_sigma",
 ]
 
 
@@ -206,3 +207,32 @@ def fit_reference_sigma(
 def with_reference_sigma(model, reference_sigma: float):
     """``model`` with the ground truth's attitude noise set to ``reference_sigma`` [rad]."""
     return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma, "reference_sigma")
+
+
+def set_bias_sigma(model, sequences, vals, record, say):
+    """``model`` with ``σ_b`` set on the validation parts ``vals`` of ``sequences``
+    (:func:`fit_bias_sigma`, after training); writes ``record["uncertainty"]`` with each
+    sequence's NEES with ``σ_b`` set on the other sequences, and says so."""
+    terms = [nees_terms(model, s, len(s) - len(v)) for s, v in zip(sequences, vals)]
+    sigma = fit_bias_sigma(terms)
+    loo = leave_one_out(terms)
+    record["uncertainty"] = {
+        "bias_sigma": sigma,
+        "learned_bias_sigma": float(model.bias_sigma),
+        "reference_sigma": float(model.reference_sigma),
+        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
+    }
+    achieved = float(np.mean([average_nees(t, sigma) for t in terms]))
+    say(
+        f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
+        f"NEES {achieved:.2f}"
+        + ("" if achieved > 2.9 else ": below 3 with no residual bias at all")
+        + "); "
+        + (
+            "each sequence's NEES with σ_b set on the others: "
+            + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
+            if len(vals) > 1
+            else "one sequence: no leave-one-out NEES"
+        )
+    )
+    return with_bias_sigma(model, sigma)

@@ -439,3 +439,12 @@ def test_evaluate_notes_a_model_worse_than_the_raw_gyro(folders, capsys, tmp_pat
     assert "worse than the raw gyro on seq" in out and "0.0500 -0.0500 0.0000" in out
     code, out, _ = evaluate_with_bias("same", (-0.002, 0.021, 0.077))  # write_sequence's bias
     assert code == 0 and "worse than the raw gyro" not in out
+
+
+def test_leave_one_out_with_one_folder_is_refused_before_any_work(folders, capsys, tmp_path):
+    out = tmp_path / "m"
+    code, _, err = run(
+        capsys, "learn", "train", str(folders["seq"]), "--out", str(out), "--leave-one-out"
+    )
+    one_line_error(code, err, "--leave-one-out needs two sequence folders", "leave the flag out")
+    assert not out.exists()
