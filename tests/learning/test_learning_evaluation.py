@@ -118,3 +118,21 @@ def test_a_sequence_starting_in_a_dropout_is_refused_naming_the_fix():
     model = Denoiser(ModelConfig(**SMALL, bias_tracking=False), jax.random.key(0))
     with pytest.raises(learning.data.DataError, match="starts inside a ground-truth gap"):
         evaluate_sequence(model, seq.slice(start))
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(reference=np.ones(5, bool)), r"Sequence.reference must be \(10,\) booleans"),
+        (dict(reference=np.ones(10)), r"Sequence.reference must be \(10,\) booleans"),
+        (dict(gt_t=np.arange(3) * 0.1), "gt_t and Sequence.gt_q are given together"),
+        (dict(gt_t=np.arange(3) * 0.1, gt_q=np.ones((2, 4))), r"gt_q \(M, 4\)"),
+        (dict(gt_t=[0.0, 0.5, 0.9], gt_q=np.ones((3, 4))), r"inside \[t\[0\], t\[-1\]\]"),
+        (dict(gt_t=[0.0, 0.2, 0.1], gt_q=np.ones((3, 4))), "increase strictly"),
+    ],
+)
+def test_a_sequences_reference_and_stamps_are_checked_naming_the_field(kw, match):
+    t = np.arange(10) * 0.05
+    z, q = np.zeros((10, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (10, 1))
+    with pytest.raises(ValueError, match=match):
+        learning.Sequence("s", t, z, z, q, z, z, **kw)
