@@ -127,8 +127,14 @@ class Sequence:
                     f"Sequence.gt_t must increase strictly inside [t[0], t[-1]] = "
                     f"[{t[0]:.6f}, {t[-1]:.6f}] s, got [{gt_t[0]:.6f}, {gt_t[-1]:.6f}] s"
                 )
+            qn = np.linalg.norm(gt_q, axis=1)
+            if np.any(np.abs(qn - 1) > 1e-6):
+                raise ValueError(
+                    f"Sequence.gt_q must hold unit quaternions [w, x, y, z]; |q| = "
+                    f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them"
+                )
             object.__setattr__(self, "gt_t", gt_t)
-            object.__setattr__(self, "gt_q", gt_q / np.linalg.norm(gt_q, axis=1, keepdims=True))
+            object.__setattr__(self, "gt_q", gt_q)
 
     def __len__(self):
         return len(self.t)
@@ -276,7 +282,7 @@ def load_sequence(
         repairs=tuple(data.repairs),
         reference=None if reference.all() else reference,
         gt_t=gt.t[rows] - t[0],
-        gt_q=gt.q[rows],
+        gt_q=gt.q[rows] / np.linalg.norm(gt.q[rows], axis=1, keepdims=True),  # files round
     )
 
 

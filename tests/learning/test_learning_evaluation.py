@@ -129,6 +129,7 @@ def test_a_sequence_starting_in_a_dropout_is_refused_naming_the_fix():
         (dict(gt_t=np.arange(3) * 0.1, gt_q=np.ones((2, 4))), r"gt_q \(M, 4\)"),
         (dict(gt_t=[0.0, 0.5, 0.9], gt_q=np.ones((3, 4))), r"inside \[t\[0\], t\[-1\]\]"),
         (dict(gt_t=[0.0, 0.2, 0.1], gt_q=np.ones((3, 4))), "increase strictly"),
+        (dict(gt_t=[0.0, 0.1, 0.2], gt_q=np.ones((3, 4))), "gt_q must hold unit quaternions"),
     ],
 )
 def test_a_sequences_reference_and_stamps_are_checked_naming_the_field(kw, match):
