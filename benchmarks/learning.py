@@ -121,7 +121,7 @@ def capture_train_step(seqs, config: TrainConfig, seed: int = 0):
             "capture_train_step in benchmarks/learning.py"
         )
     # the undecorated step with its static settings bound; the data are its arguments
-    # (model, ema, opt_state, key, G, A, Q, V, B, noise, bias_noise, has_v, n_v), passed in
+    # (model, ema, opt_state, key, G, A, Q, V, B, R, noise, bias_noise, has_v, n_v), passed in
     # rather than closed over (constants folded into the program compile slowly)
     fn = functools.partial(real.__wrapped__, **kw)
     closure = dict(kw, S=args[4].shape[0])

@@ -105,7 +105,9 @@ def window_nees(model, c, seq, start, horizons=WINDOWS):
     for H in horizons:
         if c.gyro.shape[0] // H < 1:
             continue
-        ((r, Phi, Q),) = increment_terms(c, q, dt, (H,), random_walk=model.config.gyro_random_walk)
+        ((r, Phi, Q, _),) = increment_terms(
+            c, q, dt, (H,), random_walk=model.config.gyro_random_walk
+        )
         e = np.asarray(nees(r, rotation_covariance(Phi, Q, sb, sr)))
         out[H] = (float(e.mean()), float(np.mean(e <= CHI2_3_3SIGMA)), int(e.size))
     return out

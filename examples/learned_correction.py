@@ -27,8 +27,11 @@ def report(model, seq):
     for key, label in (
         ("raw", "raw gyro"),
         ("constant_bias", "minus the constant bias"),
+        ("tracker", "minus the tracked bias alone"),
         ("learned", "learned correction"),
     ):
+        if key not in rep.metrics:  # a model without the tracker
+            continue
         m = rep.metrics[key]
         print(
             f"  {label:26} mean AOE {m.aoe_mean:6.2f}°  RMSE {m.aoe_rmse:6.2f}°  "

@@ -1,9 +1,11 @@
 """``jaximu learn``: train a gyro denoiser on sequences with ground truth, and evaluate one.
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
+                     [--accel-head] [--no-bias-tracking] [--leave-one-out]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
-Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation, and
+Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
+IMU samples (samples in longer gaps, motion-capture dropouts, have no reference), and
 the readers' units and repairs of the IMU samples (``--sort``, ``--drop-duplicates``, …).
 
 Parsing and printing only: the work is :mod:`jaximu.learning`'s. Needs
@@ -77,6 +79,13 @@ def _load_all(learning, args):
         seq = learning.load_sequence(p, name=name, max_gap=args.max_gap, **options)
         for note in seq.repairs:
             print(f"repair: {p}: {note}", file=sys.stderr)
+        if seq.reference is not None:
+            gaps = np.diff(seq.stamps()[0])
+            print(
+                f"{seq.name}: {np.sum(~seq.reference)} IMU samples fall in ground-truth "
+                f"dropouts (the longest {gaps.max():.2f} s): no reference there, no error "
+                "measured across them"
+            )
         seqs.append(seq)
     return seqs
 
@@ -88,11 +97,19 @@ def cmd_train(args):
         raise UsageError(f"--minutes must be a positive number, got {args.minutes:g}")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {args.steps}")
+    if args.leave_one_out and len(args.dirs) < 2:
+        raise UsageError(
+            "--leave-one-out needs two sequence folders or more (each is validated by "
+            "models trained on the others): give more folders or leave the flag out"
+        )
     t0 = time.perf_counter()
     seqs = _load_all(learning, args)
-    cfg = learning.TrainConfig() if args.steps is None else learning.TrainConfig(steps=args.steps)
+    settings = {} if args.steps is None else {"steps": args.steps}
+    if args.leave_one_out:
+        settings["selection"] = "leave_one_out"
+    cfg = learning.TrainConfig(**settings)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
-    mcfg = learning.ModelConfig(accel_head=args.accel_head)
+    mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
     result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
     record = dict(result.record)
     record["command"] = "jaximu learn train " + " ".join(
@@ -100,6 +117,8 @@ def cmd_train(args):
         + ["--out", out.name, "--seed", str(args.seed)]
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
+        + (["--no-bias-tracking"] if args.no_bias_tracking else [])
+        + (["--leave-one-out"] if args.leave_one_out else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
@@ -112,17 +131,26 @@ def cmd_train(args):
     return 0
 
 
+METHODS = (
+    ("raw", "raw gyro"),
+    ("constant_bias", "constant bias"),
+    ("tracker", "tracker alone"),
+    ("learned", "learned"),
+)
+"""The rows of the table: the tracked bias alone is the model with its network's correction
+zeroed, printed beside the model so that what the network adds shows."""
+
+
 def _table(rep, windows=None):
     m = rep.metrics
     lines = [
-        f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s",
+        f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s, compared at "
+        f"{len(rep.t)} ground-truth stamps",
         f"  {'':16}{'AOE mean':>10}{'AOE RMSE':>10}{'AYE mean':>10}{'AYE RMSE':>10}  [deg]",
     ]
-    for key, label in (
-        ("raw", "raw gyro"),
-        ("constant_bias", "constant bias"),
-        ("learned", "learned"),
-    ):
+    for key, label in METHODS:
+        if key not in m:  # a model without the tracker: no tracker row
+            continue
         x = m[key]
         lines.append(
             f"  {label:16}{x.aoe_mean:10.2f}{x.aoe_rmse:10.2f}{x.aye_mean:10.2f}{x.aye_rmse:10.2f}"
@@ -168,9 +196,11 @@ def cmd_evaluate(args):
             else {}
         )  # velocities measured
         print(_table(rep, win))
-        if rep.metrics["learned"].aoe_mean > rep.metrics["raw"].aoe_mean:
+        m = rep.metrics
+        if m["learned"].aoe_mean > m["raw"].aoe_mean < m["constant_bias"].aoe_mean:
             # the model's stored bias is its training IMU's: on another kind of IMU it
-            # starts from a bias the recording does not have
+            # starts from a bias the recording does not have (a calibrated IMU's model
+            # stores none, and the stored bias then moves nothing)
             print(
                 f"  note: the learned correction is worse than the raw gyro on {rep.name}; "
                 "is it an IMU of the model's kind (stored gyro bias "
@@ -181,7 +211,8 @@ def cmd_evaluate(args):
         windows.append(win)
     avg = {
         k: float(np.mean([r.metrics[k].aoe_mean for r in reports]))
-        for k in ("raw", "constant_bias", "learned")
+        for k, _ in METHODS
+        if k in reports[0].metrics
     }
     print("average mean AOE [deg]: " + ", ".join(f"{k} {v:.2f}" for k, v in avg.items()))
     if json_out is not None:
@@ -191,7 +222,10 @@ def cmd_evaluate(args):
             "sequences": seqs_json,
             "average_aoe_mean_deg": avg,
             "conventions": {
-                "aoe_mean": "mean over the sequence of the geodesic angle of R_gt^T R_est (AirIMU)",
+                "aoe_mean": "mean over the ground truth's stamps of the geodesic angle of "
+                "R_gt^T R_est (AirIMU)",
+                "tracker": "the tracked gyro bias alone: the model with its network's "
+                "correction zeroed",
                 "aoe_rmse": "its RMSE (Brossard)",
                 "aye": "|yaw| (ZYX Euler) of the world-frame error R_est R_gt^T",
                 "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
@@ -212,6 +246,8 @@ def cmd_evaluate(args):
             fig, axes = plt.subplots(n, 1, figsize=(10, 2.6 * n), squeeze=False)
             for ax, r in zip(axes[:, 0], reports):
                 ax.plot(r.t, r.aoe["constant_bias"], color="0.6", label="constant bias")
+                if "tracker" in r.aoe:
+                    ax.plot(r.t, r.aoe["tracker"], color="C1", label="tracker alone")
                 ax.plot(r.t, r.aoe["learned"], color="C0", label="learned")
                 ax.fill_between(
                     r.t, 0, r.sigma3, color="C0", alpha=0.15, label="learned 3σ (3 √trace S)"
@@ -256,15 +292,34 @@ def add_parser(sub):
         help="also correct the accelerometer, "
         "trained on velocity increments (sequences with ground-truth velocity)",
     )
+    t.add_argument(
+        "--no-bias-tracking",
+        action="store_true",
+        help="no gyro-bias tracker: the network corrects the training recordings' constant "
+        "bias alone (for a vehicle whose velocity does not stay near zero, or to measure "
+        "the network on its own)",
+    )
+    t.add_argument(
+        "--leave-one-out",
+        action="store_true",
+        help="choose the kept step by leaving each recording out in turn (a model trained "
+        "on the others, the left-out one integrated whole) instead of by the later seconds "
+        "of the same recordings; trains one model per folder, plus the final one",
+    )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(
         "evaluate",
-        help="integrate whole sequences raw, with the constant bias and with the model",
+        help="integrate whole sequences raw, with the constant bias, with the tracker alone "
+        "and with the model",
         description="Integrate each whole sequence from its first true "
-        "attitude at the IMU rate three ways and print AOE/AYE (mean and "
-        "RMSE) and the learned uncertainty's NEES.",
+        "attitude at the IMU rate: raw, minus the constant bias, minus the tracked bias "
+        "alone (the model with its network's correction zeroed) and with the model; print "
+        "AOE/AYE (mean and RMSE) at the ground truth's own stamps (never across a "
+        "motion-capture dropout) and the learned uncertainty's NEES.",
     )
-    e.add_argument("model", metavar="MODEL", help="a model folder, or 'euroc' (shipped)")
+    e.add_argument(
+        "model", metavar="MODEL", help="a model folder, or a shipped model: 'euroc' or 'tumvi'"
+    )
     e.add_argument("dirs", nargs="+", metavar="DIR", help="sequence folders")
     e.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     e.add_argument("--plot", metavar="FILE", help="plot the orientation error over time")
@@ -274,8 +329,9 @@ def add_parser(sub):
             "--max-gap",
             type=float,
             metavar="SECONDS",
-            help="the longest ground-truth gap to interpolate the reference across "
-            "(default: 5 × its median interval; motion capture drops frames)",
+            help="the longest ground-truth gap to interpolate the reference at the IMU "
+            "samples across (default: 5 × its median interval); samples in longer gaps "
+            "(motion-capture dropouts) have no reference: training leaves them out",
         )
         add_unit_options(q.add_argument_group("input"))
         add_repair_options(q, max_gap=False)

@@ -22,7 +22,9 @@ __all__ = ["save", "load", "pretrained", "shipped", "FORMAT", "PRETRAINED"]
 FORMAT = "jaximu.learning.Denoiser/2"
 """The model file format; a folder of another format is refused by :func:`load`."""
 
-PRETRAINED = {"euroc": pathlib.Path(__file__).parent / "pretrained" / "euroc"}
+PRETRAINED = {
+    name: pathlib.Path(__file__).parent / "pretrained" / name for name in ("euroc", "tumvi")
+}
 """Models shipped with the package, by name."""
 
 
@@ -119,7 +121,9 @@ def record(path) -> dict:
 
 def pretrained(name: str = "euroc") -> Denoiser:
     """A model shipped with the package: ``"euroc"``, trained on the EuRoC MAV training
-    sequences (ADIS16448 at 200 Hz; its ``model.json`` records the command, seed and data)."""
+    sequences (ADIS16448 at 200 Hz), or ``"tumvi"``, trained on TUM-VI's rooms 1, 3 and 5
+    (BMI160, 512_16 export, about 200 Hz); each ``model.json`` records the command, seed
+    and data."""
     if name not in PRETRAINED:
         raise ValueError(f"unknown pretrained model {name!r}; choose one of {sorted(PRETRAINED)}")
     return load(PRETRAINED[name])

@@ -3,8 +3,12 @@
 :func:`load_sequence` reads a sequence folder in any layout :func:`jaximu.io.read_euroc`
 reads (EuRoC's ASL ``mav0/``, or the flat ``imu.csv`` with ``groundtruth.csv`` full state or
 ``groundtruth_pose.txt`` pose only), keeps the IMU samples the ground truth covers, and
-interpolates the ground truth at them (slerp for the attitude). Everything here is numpy,
-float64, outside ``jit``.
+interpolates the ground truth at them (slerp for the attitude). Motion capture drops frames:
+a sample inside a ground-truth gap longer than ``max_gap`` keeps its IMU sample (the
+integration runs through it) but has no reference (:attr:`Sequence.reference` is False there:
+training leaves its windows out), and the ground truth's own rows are kept beside
+(:attr:`Sequence.gt_t`, :attr:`Sequence.gt_q`): the evaluation compares at those stamps, so no
+error is ever computed across a dropout. Everything here is numpy, float64, outside ``jit``.
 """
 
 from __future__ import annotations
@@ -15,9 +19,9 @@ import pathlib
 
 import numpy as np
 
-from jaximu.errors import Fix
 from jaximu.geometry._checks import TIMES_FIX, as_numbers, check_positive, check_times
 from jaximu.io import DataError, read_euroc
+from jaximu.io._common import _max_gap, in_gap
 
 __all__ = ["Sequence", "load_sequence", "split", "RATE_TOLERANCE"]
 
@@ -39,6 +43,13 @@ class Sequence:
         b_g, b_a: ``(N, 3)`` ground-truth biases, or ``None`` (pose-only ground truth).
         repairs: what the reader repaired at the caller's request (``sort``,
             ``drop_duplicates``, …), in words; empty when nothing was.
+        reference: ``(N,)`` booleans: whether the ground truth at the sample is interpolated
+            between rows at most ``max_gap`` apart (False inside a motion-capture dropout:
+            ``q``, ``p``, ``v`` there are slerped across it and not to be compared with);
+            ``None``: every sample has one.
+        gt_t, gt_q: ``(M,)`` the ground truth's own stamps [s] on ``t``'s clock (inside
+            ``[t[0], t[-1]]``) and ``(M, 4)`` its attitudes there, where the evaluation
+            compares; ``None``: the samples' ``t`` and ``q``.
     """
 
     name: str
@@ -51,6 +62,9 @@ class Sequence:
     b_g: np.ndarray | None = None
     b_a: np.ndarray | None = None
     repairs: tuple[str, ...] = ()
+    reference: np.ndarray | None = None
+    gt_t: np.ndarray | None = None
+    gt_q: np.ndarray | None = None
 
     def __post_init__(self):
         t = check_times("Sequence.t", self.t, 2, TIMES_FIX)
@@ -84,6 +98,39 @@ class Sequence:
                 f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them"
             )
         object.__setattr__(self, "t", t)
+        if self.reference is not None:
+            ref = np.asarray(self.reference)
+            if ref.shape != (N,) or ref.dtype != np.bool_:
+                raise ValueError(
+                    f"Sequence.reference must be ({N},) booleans (one per time in t), got "
+                    f"{ref.dtype} {ref.shape}"
+                )
+            object.__setattr__(self, "reference", ref)
+        if (self.gt_t is None) != (self.gt_q is None):
+            raise ValueError("Sequence.gt_t and Sequence.gt_q are given together or not at all")
+        if self.gt_t is not None:
+            gt_t, gt_q = np.asarray(self.gt_t, np.float64), np.asarray(self.gt_q, np.float64)
+            M = len(gt_t) if gt_t.ndim == 1 else -1
+            if M < 1 or gt_q.shape != (M, 4):
+                raise ValueError(
+                    f"Sequence.gt_t must be (M,) and gt_q (M, 4) with M ≥ 1, got {gt_t.shape} "
+                    f"and {gt_q.shape}"
+                )
+            if not (np.isfinite(gt_t).all() and np.isfinite(gt_q).all()):
+                raise ValueError("Sequence.gt_t and gt_q must be finite")
+            if np.any(np.diff(gt_t) <= 0) or gt_t[0] < t[0] or gt_t[-1] > t[-1]:
+                raise ValueError(
+                    f"Sequence.gt_t must increase strictly inside [t[0], t[-1]] = "
+                    f"[{t[0]:.6f}, {t[-1]:.6f}] s, got [{gt_t[0]:.6f}, {gt_t[-1]:.6f}] s"
+                )
+            qn = np.linalg.norm(gt_q, axis=1)
+            if np.any(np.abs(qn - 1) > 1e-6):
+                raise ValueError(
+                    f"Sequence.gt_q must hold unit quaternions [w, x, y, z]; |q| = "
+                    f"{qn[np.argmax(np.abs(qn - 1))]:.6g}: normalise them"
+                )
+            object.__setattr__(self, "gt_t", gt_t)
+            object.__setattr__(self, "gt_q", gt_q)
 
     def __len__(self):
         return len(self.t)
@@ -101,10 +148,29 @@ class Sequence:
     def seconds(self) -> float:
         return float(self.t[-1] - self.t[0])
 
+    @property
+    def has_reference(self) -> np.ndarray:
+        """``(N,)`` booleans: :attr:`reference`, all True when it is ``None``."""
+        return np.ones(len(self), bool) if self.reference is None else self.reference
+
+    def stamps(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(τ, q)``: where the evaluation compares: the ground truth's own stamps and
+        attitudes (:attr:`gt_t`, :attr:`gt_q`), or the samples' when it has none."""
+        if self.gt_t is None or self.gt_q is None:
+            return self.t, self.q
+        return self.gt_t, self.gt_q
+
     def slice(self, start: int, stop: int | None = None, suffix: str = "") -> Sequence:
         """Samples ``start:stop`` as a new sequence (times kept)."""
         s = slice(start, stop)
         opt = lambda x: None if x is None else x[s]  # noqa: E731
+        t = self.t[s]
+        gt = {}
+        if self.gt_t is not None and self.gt_q is not None:
+            inside = (self.gt_t >= t[0]) & (self.gt_t <= t[-1])
+            gt = dict(gt_t=self.gt_t[inside], gt_q=self.gt_q[inside])
+            if not inside.any():  # no row of its own inside: the samples' references
+                gt = {}
         return Sequence(
             self.name + suffix,
             self.t[s],
@@ -116,6 +182,8 @@ class Sequence:
             opt(self.b_g),
             opt(self.b_a),
             self.repairs,
+            opt(self.reference),
+            **gt,
         )
 
 
@@ -137,9 +205,11 @@ def load_sequence(
             with ``imu.csv`` and ``groundtruth.csv`` (full state) or ``groundtruth_pose.txt``
             (pose only: seconds, ``x y z qx qy qz qw``).
         name: the sequence's name (default: the folder's name).
-        max_gap: the longest ground-truth gap [s] an IMU sample may fall in: its attitude
-            is interpolated across (slerp). Default: 5 × the ground truth's median interval
-            (motion capture drops frames; a longer gap is refused, not bridged).
+        max_gap: the longest ground-truth gap [s] across which the reference at the IMU
+            samples is interpolated (slerp). Default: 5 × the ground truth's median interval.
+            Motion capture drops frames: a sample inside a longer gap has no reference
+            (:attr:`Sequence.reference`), and the sequence starts and ends at samples that
+            have one.
         reader_options: :func:`jaximu.io.read_euroc`'s options for the IMU samples: units
             (``gyro_unit``, ``accel_unit``) and repairs (``sort``, ``drop_duplicates``,
             ``drop_nonfinite``, ``allow_gaps``, ``check_units``), all off by default. The
@@ -148,11 +218,12 @@ def load_sequence(
 
     Raises:
         DataError: not a sequence folder, no ground truth, ground truth that does not
-            overlap the IMU or has a gap longer than ``max_gap`` inside it, what the reader
+            overlap the IMU, what the reader
             refuses (duplicate or unsorted stamps, non-finite samples, gaps; naming the
             folder, the rows and the option that repairs them).
     """
     path = pathlib.Path(path)
+    max_gap = _max_gap(max_gap)
     try:
         data = read_euroc(path, **reader_options)
     except DataError as e:
@@ -176,30 +247,25 @@ def load_sequence(
             f"not cover the IMU samples ({data.t[0]:.3f} to {data.t[-1]:.3f} s); "
             "check that both files are of the same recording"
         )
-    lo, hi = inside[0], inside[-1] + 1
     if np.any(np.diff(inside) != 1):  # cannot happen for a sorted t, kept as a guard
         raise DataError(f"{path}: IMU samples inside the ground truth are not contiguous")
+    # a sample inside a dropout (a gap longer than max_gap) has no reference; the
+    # sequence starts and ends at samples that have one (the start is the first true attitude)
+    across, _, _ = in_gap(gt.t, data.t[inside], max_gap)
+    kept = inside[~across]
+    if len(kept) < 2:
+        raise DataError(f"{path}: no two IMU samples fall outside the ground truth's gaps")
+    lo, hi = kept[0], kept[-1] + 1
     t = data.t[lo:hi]
-    try:
-        q, p, v = gt.interpolate(t, max_gap=max_gap)
-        if v is None:
-            v = gt.velocity(t, max_gap=max_gap)
-    except DataError as e:  # a gap: name the recording and the way across (the repair as
-        # data: the command renders it as its flag, Python as this keyword)
-        raise DataError(
-            f"{path}: {e}; every IMU sample needs a reference",
-            [
-                Fix(
-                    "max_gap",
-                    phrase="bridge the gap with a longer {} or cut the recording before it",
-                )
-            ],
-            lead="",
-        ) from None
+    reference = ~across[lo - inside[0] : hi - inside[0]]
+    q, p, v = gt.interpolate(t, max_gap=np.inf)
+    if v is None:
+        v = gt.velocity(t, max_gap=np.inf)
     b = {}
     for k in ("b_g", "b_a"):
         x = getattr(gt, k)
         b[k] = None if x is None else np.stack([np.interp(t, gt.t, x[:, j]) for j in range(3)], 1)
+    rows = (gt.t >= t[0]) & (gt.t <= t[-1])
     return Sequence(
         name or path.name,
         t - t[0],
@@ -210,6 +276,9 @@ def load_sequence(
         v,
         **b,
         repairs=tuple(data.repairs),
+        reference=None if reference.all() else reference,
+        gt_t=gt.t[rows] - t[0],
+        gt_q=gt.q[rows] / np.linalg.norm(gt.q[rows], axis=1, keepdims=True),  # files round
     )
 
 

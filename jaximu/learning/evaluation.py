@@ -2,8 +2,9 @@
 
 Metrics (both conventions of the field, named):
 
-* **AOE**, absolute orientation error: the geodesic angle of ``R_gtᵀ R̂`` at every sample,
-  in degrees; its **mean** over the sequence (AirIMU's ``evaluate_state.py``) and its
+* **AOE**, absolute orientation error: the geodesic angle of ``R_gtᵀ R̂`` at every stamp of
+  the ground truth (the attitude integrated at the IMU rate, carried from the sample before
+  each stamp to it; a motion-capture dropout has no stamps, so no error spans it), in degrees; its **mean** over the sequence (AirIMU's ``evaluate_state.py``) and its
   **RMSE** (Brossard's).
 * **AYE**: the same for the yaw alone: the heading part (ZYX Euler yaw, about the world's z)
   of the world-frame error ``R̂ R_gtᵀ``.
@@ -55,6 +56,7 @@ __all__ = [
     "SequenceReport",
     "evaluate_sequence",
     "window_errors",
+    "stamp_steps",
     "CHI2_3_3SIGMA",
 ]
 
@@ -223,10 +225,12 @@ class SequenceReport:
 
     Attributes:
         name, samples, seconds: the sequence.
-        metrics: ``{"raw", "constant_bias", "learned"}`` → :class:`Metrics`.
+        metrics: ``{"raw", "constant_bias", "tracker", "learned"}`` → :class:`Metrics`
+            (``"tracker"``: the tracked bias alone, for a model that tracks it).
         nees_orientation: the learned covariance's average NEES (3 when consistent).
         inside_3sigma: fraction of samples with ``NEES ≤ 14.16``.
-        t: ``(T,)`` [s]; aoe: ``{method: (T,) degrees}``; sigma3: ``(T,)`` the learned 3σ
+        t: ``(M,)`` the comparison stamps [s] (the ground truth's own); aoe: ``{method:
+            (M,) degrees}``; sigma3: ``(M,)`` the learned 3σ
             bound of the angle [deg] (``3 √trace S``), for plots.
     """
 
@@ -261,11 +265,18 @@ def _metrics(aoe, aye):
     )
 
 
+def _at_stamps(q, gyro, k, h):
+    """The integrated attitude at the ground truth's stamps: ``q_k ⊗ Exp(ω_k h)`` for the
+    sample ``k`` before each stamp and the time ``h`` from it (the sample is held over its
+    interval, as the integration holds it)."""
+    return so3.quat_mul(q[k], so3.exp(gyro[k] * h[:, None]))
+
+
 @partial(jax.jit, static_argnames=("with_cov",))
-def _learned_run(model, gyro, accel, q_true, dt, with_cov=True):
+def _learned_run(model, gyro, accel, q0, dt, k, h, q_ref, with_cov=True):
     c = model(gyro, accel)
-    q = integrate_attitude(q_true[0], c.gyro, dt)
-    r, aoe, aye = orientation_errors(q, q_true)
+    q = _at_stamps(integrate_attitude(q0, c.gyro, dt), c.gyro, k, h)
+    r, aoe, aye = orientation_errors(q, q_ref)
     if not with_cov:
         return aoe, aye, None, None
     cfg = model.config
@@ -277,22 +288,39 @@ def _learned_run(model, gyro, accel, q_true, dt, with_cov=True):
         cfg.gyro_random_walk,
         model.reference_sigma.astype(gyro.dtype),
         c.gyro_bias_sigma,
-    )
+    )[k]  # the sample's before the stamp (within one interval)
     L = jnp.linalg.cholesky(S)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
     return aoe, aye, jnp.sum(z * z, -1), 3.0 * jnp.sqrt(jnp.trace(S, axis1=-2, axis2=-1))
 
 
 @jax.jit
-def _plain_run(gyro, q_true, dt):
-    q = integrate_attitude(q_true[0], gyro, dt)
-    _, aoe, aye = orientation_errors(q, q_true)
+def _plain_run(gyro, q0, dt, k, h, q_ref):
+    q = _at_stamps(integrate_attitude(q0, gyro, dt), gyro, k, h)
+    _, aoe, aye = orientation_errors(q, q_ref)
     return aoe, aye
 
 
+@jax.jit
+def _tracked_gyro(model, gyro, accel):
+    return gyro - model.track(gyro, accel).gyro_bias
+
+
+def stamp_steps(seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    """``(k, h)``: for each of the sequence's comparison stamps (:meth:`Sequence.stamps`),
+    the sample before it and the time from that sample [s] (float64)."""
+    tau, _ = seq.stamps()
+    k = np.clip(np.searchsorted(seq.t, tau, side="right") - 1, 0, len(seq) - 2)
+    return k, tau - seq.t[k]
+
+
 def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
-    """Integrate ``seq`` whole from its first true attitude three ways — raw gyro, raw gyro
-    minus the model's constant bias, the learned correction — and measure each.
+    """Integrate ``seq`` whole from its first true attitude at the IMU rate — raw gyro, raw
+    gyro minus the model's constant bias, minus the tracked bias alone (``"tracker"``, the
+    model with its network's correction zeroed; only for a model that tracks its bias), the
+    learned correction — and compare each with the ground truth at its own stamps
+    (:meth:`Sequence.stamps`: a motion-capture dropout has none, so no error is measured
+    across it).
 
     Args:
         model: a trained :class:`jaximu.learning.Denoiser`.
@@ -301,22 +329,29 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
 
     Raises:
         ValueError: ``model`` or ``seq`` of the wrong type; DataError: ``seq`` at another
-            rate than the model's, or too short for its bias tracker.
+            rate than the model's, too short for its bias tracker, or starting at a sample
+            with no reference.
     """
     check_evaluable(model, seq)
     dtype = jnp.result_type(float) if dtype is None else compute_dtype("dtype", dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    gyro, accel, q_true, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt)
+    gyro, accel, q0, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q[0]), cast(seq.dt)
+    k, h = stamp_steps(seq)
+    tau, q_ref = seq.stamps()
+    where = (q0, dt, jnp.asarray(k), cast(h), cast(q_ref))
     metrics = {}
     aoe = {}
-    a, y = _plain_run(gyro, q_true, dt)
+    a, y = _plain_run(gyro, *where)
     metrics["raw"], aoe["raw"] = _metrics(a, y), np.degrees(np.asarray(a))
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
-    a, y = _plain_run(g0, q_true, dt)
+    a, y = _plain_run(g0, *where)
     metrics["constant_bias"], aoe["constant_bias"] = _metrics(a, y), np.degrees(np.asarray(a))
+    if model.config.bias_tracking:
+        a, y = _plain_run(_tracked_gyro(model, gyro, accel), *where)
+        metrics["tracker"], aoe["tracker"] = _metrics(a, y), np.degrees(np.asarray(a))
     a, y, e, s3 = check_output(
         "evaluate_sequence",
-        _learned_run(model, gyro, accel, q_true, dt),
+        _learned_run(model, gyro, accel, *where),
         f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
     )
     metrics["learned"], aoe["learned"] = _metrics(a, y), np.degrees(np.asarray(a))
@@ -328,7 +363,7 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
         metrics,
         float(e.mean()),
         float(np.mean(e <= CHI2_3_3SIGMA)),
-        np.asarray(seq.t),
+        np.asarray(tau),
         aoe,
         np.degrees(np.asarray(s3)),
     )
@@ -404,7 +439,8 @@ def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:
     """Everything :func:`evaluate_sequence` checks before its work, for a command to check
     each of its sequences before the first is evaluated: ``model`` a
     :class:`jaximu.learning.Denoiser` with finite weights, ``seq`` (named ``name``) a
-    :class:`Sequence` at its rate, long enough for its bias tracker."""
+    :class:`Sequence` at its rate, long enough for its bias tracker, starting at a sample
+    with a reference."""
     check_model("model", model)
     check_sequence(name, seq)
     check_rate(seq, model.config.rate_hz)
@@ -414,4 +450,10 @@ def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:
             f"model's bias tracker needs at least {LEVEL_SAMPLES} (it levels the first "
             "attitude on their mean specific force): give a recording whose ground truth "
             "covers more of it"
+        )
+    if not seq.has_reference[0]:
+        raise DataError(
+            f"sequence {seq.name!r} starts inside a ground-truth gap, with no true attitude "
+            "to start from: slice it from its first sample with a reference "
+            "(seq.slice(int(np.argmax(seq.has_reference))))"
         )

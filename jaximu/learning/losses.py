@@ -144,6 +144,15 @@ def compose_pairs(w: Windows) -> Windows:
     return Windows(dq, dv, Phi, Q)
 
 
+def window_references(reference, H: int):
+    """``(..., W)`` whether each window of ``H`` samples has a reference at both ends, from
+    ``reference`` ``(..., T + 1)`` (per sample, as ``q_true``; a window's true increment reads
+    the ground truth at its two ends only)."""
+    n = (reference.shape[-1] - 1) // H
+    ends = reference[..., 0 : n * H + 1 : H]
+    return ends[..., :-1] & ends[..., 1:]
+
+
 def true_increments(q, H: int, start: int = 0):
     """``(..., W, 4)`` true ``ΔR`` of consecutive windows of ``H`` samples from ``start``,
     from the attitudes ``q`` ``(..., T, 4)``: ``q_{k}⁻¹ q_{k+H}``."""
@@ -157,10 +166,21 @@ def rotation_residual(dq_true, dq_hat):
     return so3.log(so3.quat_mul(so3.quat_conj(dq_true), dq_hat))
 
 
-def huber(r, delta: float):
-    """Brossard's loss on residuals ``r``: ``δ²·SmoothL1(r/δ)`` per component, averaged."""
+def _mean(x, weights):
+    """The mean of ``x`` ``(..., W)`` over everything, or weighted by ``weights`` (same shape:
+    1 for a window with a reference at both ends, 0 for one without)."""
+    if weights is None:
+        return jnp.mean(x)
+    w = jnp.broadcast_to(weights.astype(x.dtype), x.shape)
+    return jnp.sum(w * x) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def huber(r, delta: float, weights=None):
+    """Brossard's loss on residuals ``r``: ``δ²·SmoothL1(r/δ)`` per component, averaged
+    (over the windows of ``weights`` ``(..., W)`` when given)."""
     x = jnp.abs(r) / delta
-    return delta * delta * jnp.mean(jnp.where(x < 1.0, 0.5 * x * x, x - 0.5))
+    per = jnp.mean(jnp.where(x < 1.0, 0.5 * x * x, x - 0.5), -1)
+    return delta * delta * _mean(per, weights)
 
 
 def rotation_covariance(Phi, Q, bias_sigma, reference_sigma):
@@ -172,12 +192,13 @@ def rotation_covariance(Phi, Q, bias_sigma, reference_sigma):
     return P + 2.0 * reference_sigma**2 * eye
 
 
-def gaussian_nll(r, S):
-    """``½ rᵀ S⁻¹ r + ½ log det S`` averaged over the windows (3-dim residuals)."""
+def gaussian_nll(r, S, weights=None):
+    """``½ rᵀ S⁻¹ r + ½ log det S`` averaged over the windows (3-dim residuals; over those
+    of ``weights`` ``(..., W)`` when given)."""
     L = jnp.linalg.cholesky(S)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), -1)
-    return jnp.mean(0.5 * jnp.sum(z * z, -1) + 0.5 * logdet)
+    return _mean(0.5 * jnp.sum(z * z, -1) + 0.5 * logdet, weights)
 
 
 def nees(r, S):
@@ -247,13 +268,23 @@ def _check_horizons(horizons, T: int, skip: int) -> tuple:
 
 
 def increment_terms(
-    corrected, q_true, dt, horizons=(16, 32), *, with_noise=True, random_walk=0.0, skip: int = 0
+    corrected,
+    q_true,
+    dt,
+    horizons=(16, 32),
+    *,
+    with_noise=True,
+    random_walk=0.0,
+    skip: int = 0,
+    reference=None,
 ):
-    """For each of ``horizons`` in turn (a generator): ``(r, Phi, Q)``, the rotation residuals
-    ``(..., W, 3)`` of the windows of that many samples and, ``with_noise``, their
-    transitions and noise ``(..., W, 6, 6)`` (None otherwise): what :func:`increment_loss`
-    and the uncertainty's fit (:func:`jaximu.learning.uncertainty.fit_reference_sigma`)
-    read. Arguments as :func:`increment_loss`'s."""
+    """For each of ``horizons`` in turn (a generator): ``(r, Phi, Q, m)``, the rotation
+    residuals ``(..., W, 3)`` of the windows of that many samples, with ``with_noise`` their
+    transitions and noise ``(..., W, 6, 6)`` (None otherwise), and ``m`` ``(..., W)`` whether
+    each window has a reference at both ends (None without ``reference``): what
+    :func:`increment_loss` and the uncertainty's fit
+    (:func:`jaximu.learning.uncertainty.fit_reference_sigma`) read. Arguments as
+    :func:`increment_loss`'s."""
     _check_corrected(corrected)
     T = corrected.gyro.shape[-2]
     horizons = _check_horizons(horizons, T, skip)
@@ -274,11 +305,12 @@ def increment_terms(
         W = min(dq_true.shape[-2], w.delta_q.shape[-2])
         s = -(-skip // (2**i))  # first windows left out
         r = rotation_residual(dq_true[..., s:W, :], w.delta_q[..., s:W, :])
+        m = None if reference is None else window_references(reference, H)[..., s:W]
         if with_noise:
             assert w.Phi is not None and w.Q is not None  # formed when a density is given
-            yield r, w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :]
+            yield r, w.Phi[..., s:W, :, :], w.Q[..., s:W, :, :], m
         else:
-            yield r, None, None
+            yield r, None, None, m
 
 
 def increment_loss(
@@ -293,6 +325,7 @@ def increment_loss(
     reference_sigma=None,
     random_walk=0.0,
     skip: int = 0,
+    reference=None,
 ):
     """Brossard's loss over ``horizons`` (each twice the previous) plus the NLL.
 
@@ -301,6 +334,9 @@ def increment_loss(
         q_true: ``(..., T + 1, 4)`` true attitude at the samples and after the last step.
         horizons: window lengths [samples], each twice the one before (``(16, 32)``).
         skip: windows of the first horizon to leave out at the start (the network's warm-up).
+        reference: ``(..., T + 1)`` booleans, whether the ground truth has a reference at
+            each sample (:attr:`jaximu.learning.Sequence.reference`), or None (everywhere):
+            a window without one at both ends is left out of both terms.
 
     Returns:
         ``(loss, nll)``: the Huber loss (horizon ``h`` weighted ``1/2^i``) and the
@@ -311,13 +347,20 @@ def increment_loss(
     loss = jnp.zeros((), corrected.gyro.dtype)
     nll = jnp.zeros((), corrected.gyro.dtype)
     terms = increment_terms(
-        corrected, q_true, dt, horizons, with_noise=with_noise, random_walk=random_walk, skip=skip
+        corrected,
+        q_true,
+        dt,
+        horizons,
+        with_noise=with_noise,
+        random_walk=random_walk,
+        skip=skip,
+        reference=reference,
     )
-    for i, (r, Phi, Q) in enumerate(terms):
-        loss = loss + weight * huber(r, huber_delta) / 2**i
+    for i, (r, Phi, Q, m) in enumerate(terms):
+        loss = loss + weight * huber(r, huber_delta, m) / 2**i
         if with_noise:
             S = rotation_covariance(Phi, Q, bias_sigma, reference_sigma)
-            nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S)
+            nll = nll + gaussian_nll(jax.lax.stop_gradient(r), S, m)
     return loss, nll
 
 

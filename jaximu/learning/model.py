@@ -473,3 +473,16 @@ def constant_bias(config: ModelConfig, gyro, accel):
         gyro - jnp.asarray(config.gyro_bias, dtype),
         accel - jnp.asarray(config.accel_bias, dtype),
     )
+
+
+def without_network(model: Denoiser) -> Denoiser:
+    """``model`` with its network's correction zeroed (the corrections' head and the matrix
+    ``C``): the tracked bias alone (or the constant bias without ``bias_tracking``), its
+    learned noise density and uncertainty kept: what the network adds is the difference."""
+    check_model("model", model)
+    zero = jnp.zeros_like
+    return eqx.tree_at(
+        lambda m: (m.head.weight, m.head.bias, m.gyro_matrix),
+        model,
+        (zero(model.head.weight), zero(model.head.bias), zero(model.gyro_matrix)),
+    )

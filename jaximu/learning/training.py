@@ -103,6 +103,12 @@ class TrainConfig:
             ``σ_ref`` to the kept network by the likelihood of the training windows, then set
             the residual gyro bias ``σ_b`` on the validation parts
             (:mod:`jaximu.learning.uncertainty`).
+        selection: how the kept step is chosen: ``"validation"``, the lowest mean AOE on
+            the validation parts (the later seconds of the training recordings, which share
+            their bias), or ``"leave_one_out"``: each recording left out in turn and
+            integrated whole by a model trained on the others, the step with the lowest
+            mean over these folds kept of the model trained on all (the number of recordings
+            plus one trainings; no recording chooses a model trained on it).
         recording_offsets: fit, beside the network, one constant gyro offset per training
             recording (summing to zero; dropped after training): what is left of each
             recording's own bias then has a place other than the network, which would
@@ -131,6 +137,7 @@ class TrainConfig:
     velocity_weight: float = 1e3
     ema: float = 0.98
     recording_offsets: bool = True
+    selection: str = "validation"
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -156,6 +163,10 @@ class TrainConfig:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
         for field in ("calibrate_uncertainty", "recording_offsets"):
             check_bool(f"{name}.{field}", getattr(self, field))
+        if self.selection not in ("validation", "leave_one_out"):
+            raise ValueError(
+                f"{name}.selection must be 'validation' or 'leave_one_out', got {self.selection!r}"
+            )
 
     def to_json(self) -> dict:
         return {
@@ -209,8 +220,9 @@ def _stack(parts, biases, length):
     q = np.stack([s.q[:length] for s in parts])
     v = np.stack([s.v[:length] for s in parts])
     b = np.stack([x[:length] for x in biases])
+    ref = np.stack([s.has_reference[:length] for s in parts])
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(g), f(a), f(q), f(v), f(b)
+    return f(g), f(a), f(q), f(v), f(b), jnp.asarray(ref)
 
 
 def _tracked_biases(model, sequences):
@@ -227,22 +239,31 @@ def _tracked_biases(model, sequences):
 
 def _validation_arrays(seqs, vals, biases, context):
     """Each validation part with ``context`` samples before it, padded to one length:
-    ``(gyro, accel, q, tracked bias, mask)`` ``(S, N, ·)``; the mask is True on the
-    validation samples. ``biases``: each whole sequence's tracked gyro bias."""
+    ``(gyro, accel, q, tracked bias, run, compare)`` ``(S, N, ·)``: ``run`` is True on the
+    validation samples from the first with a reference on (the integration's), ``compare``
+    on those with a reference (not in a motion-capture dropout). ``biases``: each whole
+    sequence's tracked gyro bias."""
     pieces = []
     for s, v, b in zip(seqs, vals, biases):
         k = len(s) - len(v)
         lo = max(0, k - context)
         pieces.append((s.slice(lo), b[lo:], k - lo))
     N = max(len(p) for p, _, _ in pieces)
-    G, A, Q, B, M = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 3, 1))
+    G, A, Q, B, M, C = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 3, 1, 1))
     for i, (p, b, c0) in enumerate(pieces):
         n = len(p)
         G[i, :n], A[i, :n], Q[i, :n], B[i, :n] = p.gyro, p.accel, p.q, b
         G[i, n:], A[i, n:], Q[i, n:], B[i, n:] = p.gyro[-1], p.accel[-1], p.q[-1], b[-1]
-        M[i, c0:n] = 1.0
+        ref = p.has_reference[c0:]
+        if not ref.any():
+            raise DataError(
+                f"sequence {p.name!r}: its validation part has no sample with ground truth "
+                "(all inside dropouts): give a longer recording or another train_seconds"
+            )
+        M[i, c0 + int(np.argmax(ref)) : n] = 1.0
+        C[i, c0:n, 0] = ref
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(G), f(A), f(Q), f(B), jnp.asarray(M[..., 0] > 0)
+    return f(G), f(A), f(Q), f(B), jnp.asarray(M[..., 0] > 0), jnp.asarray(C[..., 0] > 0)
 
 
 def _schedule(cfg: TrainConfig):
@@ -278,10 +299,11 @@ OFFSET_UNIT = 1e-3
 in the parameters: bias-sized steps need bias-sized units)."""
 
 
-def _loss(params, g, a, b, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
+def _loss(params, g, a, b, q, v, ref, k_drop, has_v, n_v, cfg: TrainConfig, dt: float):
     """The training loss of one step and its ``(rotation, nll)`` parts (``has_v``: 1 for the
     parts whose ground truth has velocities, ``n_v`` their number, at least 1; ``b`` the
-    tracked gyro bias; ``params``: the model and the training recordings' offsets)."""
+    tracked gyro bias; ``ref`` where the ground truth has a reference; ``params``: the model
+    and the training recordings' offsets)."""
     model, offsets = params
     mcfg = model.config
     if cfg.recording_offsets:  # each recording's own constant, apart from the network
@@ -296,6 +318,7 @@ def _loss(params, g, a, b, q, v, k_drop, has_v, n_v, cfg: TrainConfig, dt: float
         reference_sigma=model.reference_sigma,
         random_walk=mcfg.gyro_random_walk,
         skip=cfg.skip,
+        reference=ref,
     )
     total = rot + cfg.nll_weight * nll
     if mcfg.accel_head:  # velocity increments: the gyro enters without its gradient
@@ -321,6 +344,7 @@ def _step(
     Q,
     V,
     B,
+    R,
     noise,
     bias_noise,
     has_v,
@@ -343,7 +367,18 @@ def _step(
     x = x + noise * jax.random.normal(k_w, x.shape) + shift
     b = cut(B, L) + shift[..., :3]
     (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
-        params, x[..., :3], x[..., 3:], b, cut(Q, L + 1), cut(V, L + 1), k_drop, has_v, n_v, cfg, dt
+        params,
+        x[..., :3],
+        x[..., 3:],
+        b,
+        cut(Q, L + 1),
+        cut(V, L + 1),
+        cut(R, L + 1),
+        k_drop,
+        has_v,
+        n_v,
+        cfg,
+        dt,
     )
     updates, opt_state = _optimizer(cfg, params).update(
         grads, opt_state, eqx.filter(params, eqx.is_array)
@@ -359,7 +394,7 @@ def _step(
 
 
 @eqx.filter_jit
-def _validate(model, vG, vA, vQ, vB, vM, *, dt: float):
+def _validate(model, vG, vA, vQ, vB, vM, vC, *, dt: float):
     """Mean AOE [rad] of each validation part, integrated from its first true attitude:
     the rates before it (the network's context) are zeroed, so the attitude stays at
     that true attitude until the validation part starts."""
@@ -369,7 +404,7 @@ def _validate(model, vG, vA, vQ, vB, vM, *, dt: float):
     gyro = jnp.where(vM[..., None], c.gyro, 0.0)
     steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
     _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
-    return jnp.sum(jnp.where(vM, aoe, 0.0), 1) / jnp.sum(vM, 1)
+    return jnp.sum(jnp.where(vC, aoe, 0.0), 1) / jnp.sum(vC, 1)
 
 
 def train(
@@ -420,9 +455,27 @@ def train(
         raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
     if model_config is not None and not isinstance(model_config, ModelConfig):
         raise ValueError(f"model_config must be a ModelConfig, got {type(model_config).__name__}")
-    rate = sequences[0].rate_hz
     for s in sequences:
-        check_rate(s, rate, f"sequence {sequences[0].name!r}")
+        check_rate(s, sequences[0].rate_hz, f"sequence {sequences[0].name!r}")
+    if cfg.selection == "leave_one_out":
+        if len(sequences) < 2:
+            raise DataError(
+                "TrainConfig(selection='leave_one_out') needs two recordings or more (each "
+                f"is validated by models trained on the others); got {len(sequences)}: give "
+                "more recordings or selection='validation'"
+            )
+        return _leave_one_out(list(sequences), cfg, model_config, seed, minutes, say)
+    return _fit(list(sequences), cfg, model_config, seed, minutes, say)
+
+
+def _fit(
+    sequences, cfg, model_config, seed, minutes, say, held_out=None, keep_step=None
+) -> TrainResult:
+    """:func:`train` once its arguments are checked. ``held_out``: a recording validated
+    whole instead of the validation parts (a fold of :func:`_leave_one_out`); ``keep_step``:
+    ``(step, score)``, keep the weights of that step (0: untrained) and stop there, with no
+    choice by validation."""
+    rate = sequences[0].rate_hz
     trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
     g_bias, a_bias = constant_biases(trains)
     g_sigma, a_sigma = bias_spreads(trains)
@@ -458,16 +511,23 @@ def train(
     # learned, it biases every other recording (validation mean AOE 0.59-0.63° against the
     # tracker's own 0.52°).
     settled = [np.broadcast_to(b[len(t) - 1], b.shape) for b, t in zip(biases, trains)]
-    G, A, Q, V, B = _stack(trains, settled, shortest)
+    G, A, Q, V, B, R = _stack(trains, settled, shortest)
     # velocities of ground truth that has them (a pose-only one's are differenced
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
-    vG, vA, vQ, vB, vM = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
+    if held_out is not None:  # validated whole, from its first true attitude
+        vals = (held_out,)
+        vG, vA, vQ, vB, vM, vC = _validation_arrays(
+            vals, vals, _tracked_biases(model, vals), mcfg.receptive_field
+        )
+    else:
+        vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
     say(
         f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
-        f"of each ({sum(len(s) for s in trains)} samples); validating on the rest "
-        f"({sum(len(v) for v in vals)} samples: "
+        f"of each ({sum(len(s) for s in trains)} samples); validating on "
+        + ("the recording left out " if held_out is not None else "the rest ")
+        + f"({sum(len(v) for v in vals)} samples: "
         + ", ".join(f"{v.name} {v.seconds:.1f} s" for v in vals)
         + ")"
     )
@@ -493,7 +553,7 @@ def train(
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
     # arguments, not constants folded into the program
-    data, vdata = (G, A, Q, V, B, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM)
+    data, vdata = (G, A, Q, V, B, R, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM, vC)
     params, ema, opt_state, loss, parts = step(params, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
@@ -501,7 +561,7 @@ def train(
     untrained = np.degrees(np.asarray(validate(model, *vdata)))  # the tracked bias alone
     t_val_first = time.perf_counter() - t0
     vB_constant = jnp.broadcast_to(jnp.asarray(mcfg.gyro_bias, jnp.float32), vB.shape)
-    baseline = np.degrees(np.asarray(validate(model, vG, vA, vQ, vB_constant, vM)))
+    baseline = np.degrees(np.asarray(validate(model, vG, vA, vQ, vB_constant, vM, vC)))
     record["validation_constant_bias_deg"] = [float(x) for x in baseline]
     record["validation_untrained_deg"] = [float(x) for x in untrained]
     say(
@@ -515,12 +575,18 @@ def train(
         )
     # the untrained network is a candidate: a network that only hurts on validation is not kept
     best = (float(untrained.mean()), model, 0)
+    if keep_step is not None:  # chosen without these recordings' validation parts
+        best = (keep_step[1], model, 0)
     run_time = 0.0
     compile_time = t_first + t_val_first
     i = 1
     cut_short = False
     while True:
-        if i % cfg.validate_every == 0 or i == cfg.steps:
+        if keep_step is not None and i >= keep_step[0]:
+            if i == keep_step[0]:  # (step 0, the untrained network, is kept already)
+                best = (keep_step[1], ema, i)
+            break
+        if keep_step is None and (i % cfg.validate_every == 0 or i == cfg.steps):
             t0 = time.perf_counter()
             aoe = np.degrees(np.asarray(validate(ema, *vdata)))
             run_time += time.perf_counter() - t0
@@ -564,7 +630,15 @@ def train(
         t0 = time.perf_counter()
         learned_ref = float(model.reference_sigma)
         ref, short_sb = uncertainty.fit_reference_sigma(
-            model, G[:, :-1], A[:, :-1], Q, dt, cfg.horizons, gyro_bias=B[:, :-1], skip=cfg.skip
+            model,
+            G[:, :-1],
+            A[:, :-1],
+            Q,
+            dt,
+            cfg.horizons,
+            gyro_bias=B[:, :-1],
+            skip=cfg.skip,
+            reference=R,
         )
         model = uncertainty.with_reference_sigma(model, ref)
         say(
@@ -572,11 +646,12 @@ def train(
             f"training windows with the kept network (was {learned_ref:.3g}; "
             f"{time.perf_counter() - t0:.1f} s)"
         )
-        model = _set_bias_sigma(model, sequences, vals, record, say)
+        model = uncertainty.set_bias_sigma(model, sequences, vals, record, say)
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
         )
-    _record_windows(model, sequences, vals, record, say)
+    if held_out is None:
+        _record_windows(model, sequences, vals, record, say)
     wall = time.perf_counter() - t_start
     record["recording_offsets_rad_s"] = {
         s.name: [float(x) for x in OFFSET_UNIT * (o - params[1].mean(0))]
@@ -601,6 +676,43 @@ def train(
     return TrainResult(model, record)
 
 
+def _leave_one_out(sequences, cfg, model_config, seed, minutes, say) -> TrainResult:
+    """Leave-one-recording-out model selection: each recording is left out in turn, a model
+    trained on the others (the same recipe and seed, its biases and normalisation theirs)
+    and the left-out recording integrated whole at every validation; the step with the
+    lowest mean over the folds (0: the untrained network) is the one kept of the model
+    trained on all. No recording ever judges a model trained on it."""
+    fold_cfg = dataclasses.replace(cfg, selection="validation", calibrate_uncertainty=False)
+    folds = []
+    for i, s in enumerate(sequences):
+        others = sequences[:i] + sequences[i + 1 :]
+        say(f"fold {i + 1}/{len(sequences)}: {s.name} left out")
+        r = _fit(others, fold_cfg, model_config, seed, minutes, lambda x: None, held_out=s)
+        rec = r.record
+        aoe = [rec["validation_untrained_deg"][0]]
+        aoe += [h["validation_aoe_mean_deg"][0] for h in rec["history"]]
+        steps = [0] + [h["step"] for h in rec["history"]]
+        folds.append({"left_out": s.name, "trained_on": rec["sequences"], "steps": steps})
+        folds[-1]["aoe_mean_deg"] = aoe
+        say(f"  {s.name}: " + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, aoe)))
+    steps = min((f["steps"] for f in folds), key=len)  # (a fold cut short by minutes)
+    mean = [float(np.mean([f["aoe_mean_deg"][j] for f in folds])) for j in range(len(steps))]
+    j = int(np.argmin(mean))
+    say(
+        "leave-one-out: mean AOE of the left-out recordings by step "
+        + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, mean))
+        + f"; keeping step {steps[j]} of the model trained on all"
+    )
+    result = _fit(sequences, cfg, model_config, seed, minutes, say, keep_step=(steps[j], mean[j]))
+    result.record["leave_one_out"] = {
+        "folds": folds,
+        "steps": steps,
+        "mean_aoe_deg": mean,
+        "chosen_step": steps[j],
+    }
+    return result
+
+
 def _record_windows(model, sequences, vals, record, say):
     """Dead-reckoning errors over 1-s and 5-s windows of the validation parts with ground
     truth velocities: what the accelerometer correction is judged by."""
@@ -619,31 +731,3 @@ def _record_windows(model, sequences, vals, record, say):
                 f"[m/s] / |δp| [m]: "
                 + ", ".join(f"{k} {a:.3f} / {b:.3f}" for k, (a, b) in mean.items())
             )
-
-
-def _set_bias_sigma(model, sequences, vals, record, say):
-    """Set ``σ_b`` on the validation parts (:mod:`jaximu.learning.uncertainty`) and record
-    each sequence's NEES with ``σ_b`` set on the other sequences."""
-    terms = [uncertainty.nees_terms(model, s, len(s) - len(v)) for s, v in zip(sequences, vals)]
-    sigma = uncertainty.fit_bias_sigma(terms)
-    loo = uncertainty.leave_one_out(terms)
-    record["uncertainty"] = {
-        "bias_sigma": sigma,
-        "learned_bias_sigma": float(model.bias_sigma),
-        "reference_sigma": float(model.reference_sigma),
-        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
-    }
-    achieved = float(np.mean([uncertainty.average_nees(t, sigma) for t in terms]))
-    say(
-        f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
-        f"NEES {achieved:.2f}"
-        + ("" if achieved > 2.9 else ": below 3 with no residual bias at all")
-        + "); "
-        + (
-            "each sequence's NEES with σ_b set on the others: "
-            + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
-            if len(vals) > 1
-            else "one sequence: no leave-one-out NEES"
-        )
-    )
-    return uncertainty.with_bias_sigma(model, sigma)

@@ -49,6 +49,7 @@ __all__ = [
     "leave_one_out",
     "with_bias_sigma",
     "with_reference_sigma",
+    "set_bias_sigma",
 ]
 
 
@@ -76,14 +77,19 @@ def _terms(model, gyro, accel, q_true, dt, start):
 
 def nees_terms(model, seq, start: int = 0, dtype=jnp.float32) -> NeesTerms:
     """The NEES terms of ``seq`` integrated from its sample ``start`` (the network sees the
-    samples before it as context)."""
+    samples before it as context), at the samples with a reference
+    (:attr:`jaximu.learning.Sequence.reference`)."""
     check_model("model", model)
     check_sequence("seq", seq)
     start = check_int("start", start, 0)
     if start > len(seq) - 2:
         raise ValueError(f"start = {start} leaves no step of the {len(seq)} samples of seq")
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    return _terms(model, cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt), start)
+    t = _terms(model, cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt), start)
+    if seq.reference is None:
+        return t
+    keep = np.flatnonzero(seq.has_reference[start:])  # no error inside a mocap dropout
+    return NeesTerms(t.r[keep], t.W[keep], t.B[keep], t.reference_sigma)
 
 
 def average_nees(t: NeesTerms, bias_sigma: float) -> float:
@@ -134,18 +140,19 @@ def with_bias_sigma(model, bias_sigma: float):
 
 
 @eqx.filter_jit
-def _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip):
+def _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip, reference):
     c = model(gyro, accel, gyro_bias=gyro_bias)
     rw = model.config.gyro_random_walk
-    return list(increment_terms(c, q_true, dt, horizons, random_walk=rw, skip=skip))
+    terms = increment_terms(c, q_true, dt, horizons, random_walk=rw, skip=skip, reference=reference)
+    return list(terms)
 
 
 @jax.jit
 def _window_nll(log_sigmas, terms):
     """The training loss's negative log-likelihood of the windows ``terms`` (per horizon
-    ``(r, Phi, Q)``) with ``(σ_b, σ_ref) = exp(log_sigmas)``."""
+    ``(r, Phi, Q, m)``) with ``(σ_b, σ_ref) = exp(log_sigmas)``."""
     sb, sr = jnp.exp(log_sigmas[0]), jnp.exp(log_sigmas[1])
-    return sum(gaussian_nll(r, rotation_covariance(Phi, Q, sb, sr)) for r, Phi, Q in terms)
+    return sum(gaussian_nll(r, rotation_covariance(Phi, Q, sb, sr), m) for r, Phi, Q, m in terms)
 
 
 @partial(jax.jit, static_argnums=2)
@@ -171,7 +178,17 @@ def _lbfgs(p, terms, steps):
 
 
 def fit_reference_sigma(
-    model, gyro, accel, q_true, dt, horizons, *, gyro_bias=None, skip: int = 0, steps: int = 100
+    model,
+    gyro,
+    accel,
+    q_true,
+    dt,
+    horizons,
+    *,
+    gyro_bias=None,
+    skip: int = 0,
+    steps: int = 100,
+    reference=None,
 ) -> tuple[float, float]:
     """``(σ_ref [rad], σ_b [rad/s])`` maximising the likelihood of the increments of
     ``model``'s corrected gyro against the ground truth (the negative log-likelihood of
@@ -184,10 +201,12 @@ def fit_reference_sigma(
         dt: the sample interval [s]; gyro_bias: ``(S, T, 3)`` the tracked bias, or None (the
             model tracks it).
         steps: L-BFGS iterations at most, in ``log σ`` (it stops when the gradient vanishes).
+        reference: ``(S, T + 1)`` booleans, where the ground truth has a reference (None:
+            everywhere); windows without one at both ends are left out.
     """
     check_model("model", model)
     horizons, skip = check_horizons("horizons", horizons), check_int("skip", skip, 0)
-    terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip)
+    terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip, reference)
     p0 = jnp.stack([model.log_bias_sigma, model.log_reference_sigma]).astype(gyro.dtype)
     p = _lbfgs(p0, terms, check_int("steps", steps, 1))
     sb, sr = np.exp(np.asarray(p, np.float64))
@@ -197,3 +216,32 @@ def fit_reference_sigma(
 def with_reference_sigma(model, reference_sigma: float):
     """``model`` with the ground truth's attitude noise set to ``reference_sigma`` [rad]."""
     return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma, "reference_sigma")
+
+
+def set_bias_sigma(model, sequences, vals, record, say):
+    """``model`` with ``σ_b`` set on the validation parts ``vals`` of ``sequences``
+    (:func:`fit_bias_sigma`, after training); writes ``record["uncertainty"]`` with each
+    sequence's NEES with ``σ_b`` set on the other sequences, and says so."""
+    terms = [nees_terms(model, s, len(s) - len(v)) for s, v in zip(sequences, vals)]
+    sigma = fit_bias_sigma(terms)
+    loo = leave_one_out(terms)
+    record["uncertainty"] = {
+        "bias_sigma": sigma,
+        "learned_bias_sigma": float(model.bias_sigma),
+        "reference_sigma": float(model.reference_sigma),
+        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
+    }
+    achieved = float(np.mean([average_nees(t, sigma) for t in terms]))
+    say(
+        f"residual gyro bias σ_b = {sigma:.3g} rad/s, set on the validation parts (average "
+        f"NEES {achieved:.2f}"
+        + ("" if achieved > 2.9 else ": below 3 with no residual bias at all")
+        + "); "
+        + (
+            "each sequence's NEES with σ_b set on the others: "
+            + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
+            if len(vals) > 1
+            else "one sequence: no leave-one-out NEES"
+        )
+    )
+    return with_bias_sigma(model, sigma)

@@ -218,23 +218,29 @@ def test_ground_truth_that_does_not_cover_the_imu(folders, capsys, tmp_path):
     one_line_error(code, err, "does not cover")
 
 
-def test_ground_truth_with_a_gap_is_refused_unless_bridged(folders, capsys, tmp_path):
-    """A 0.2-s mocap dropout (40 rows at 200 Hz, beyond 5 × the median interval): one line
-    naming the folder and ``--max-gap``; with ``--max-gap 0.5`` every IMU sample is
-    evaluated, the reference slerped across the gap."""
+def test_ground_truth_with_a_gap_is_compared_only_where_it_has_rows(folders, capsys, tmp_path):
+    """A 0.2-s mocap dropout (40 rows at 200 Hz, beyond 5 × the median interval) is not
+    refused: every IMU sample is integrated, the samples inside it have no reference, and
+    the errors are measured at the 960 rows the ground truth has; ``--max-gap 0.5`` bridges
+    it for the reference at the samples (the comparison stays at the rows)."""
     seq = write_sequence(tmp_path / "gap", seconds=5.0, gt_gap=(2.0, 2.2))
-    code, _, err = run(capsys, "learn", "evaluate", str(folders["model"]), str(seq))
-    one_line_error(code, err, str(seq), "0.205 s gap", "a longer --max-gap")
-    with pytest.raises(DataError, match="a longer max_gap or cut the recording") as e:
-        learning.load_sequence(seq)
-    assert [f.option for f in e.value.fixes] == ["max_gap"]
     js = tmp_path / "gap.json"
-    argv = ("learn", "evaluate", str(folders["model"]), str(seq), "--max-gap", "0.5")
-    code, _, err = run(capsys, *argv, "--json", str(js))
+    argv = ("learn", "evaluate", str(folders["model"]), str(seq), "--json", str(js))
+    code, out, err = run(capsys, *argv)
     assert code == 0, err
+    assert "40 IMU samples fall in ground-truth dropouts (the longest 0.2" in out
+    assert "compared at 960 ground-truth stamps" in out
     assert json.loads(js.read_text())["sequences"][0]["samples"] == 1000
-    code, _, err = run(capsys, *argv[:-1], "-1")
+    loaded = learning.load_sequence(seq)
+    assert np.sum(~loaded.has_reference) == 40 and len(loaded.stamps()[0]) == 960
+    code, out, err = run(capsys, *argv, "--max-gap", "0.5")
+    assert code == 0, err
+    assert "dropouts" not in out and "compared at 960" in out
+    assert learning.load_sequence(seq, max_gap=0.5).reference is None
+    code, _, err = run(capsys, *argv, "--max-gap", "-1")
     one_line_error(code, err, "--max-gap", "positive")
+    with pytest.raises(ValueError, match="max_gap"):
+        learning.load_sequence(seq, max_gap=-1.0)
 
 
 def test_a_plot_format_matplotlib_cannot_write_is_refused_before_any_work(
@@ -433,3 +439,12 @@ def test_evaluate_notes_a_model_worse_than_the_raw_gyro(folders, capsys, tmp_pat
     assert "worse than the raw gyro on seq" in out and "0.0500 -0.0500 0.0000" in out
     code, out, _ = evaluate_with_bias("same", (-0.002, 0.021, 0.077))  # write_sequence's bias
     assert code == 0 and "worse than the raw gyro" not in out
+
+
+def test_leave_one_out_with_one_folder_is_refused_before_any_work(folders, capsys, tmp_path):
+    out = tmp_path / "m"
+    code, _, err = run(
+        capsys, "learn", "train", str(folders["seq"]), "--out", str(out), "--leave-one-out"
+    )
+    one_line_error(code, err, "--leave-one-out needs two sequence folders", "leave the flag out")
+    assert not out.exists()

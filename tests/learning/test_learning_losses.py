@@ -130,6 +130,25 @@ def test_increment_loss_gradient_equals_central_differences(model64):
         np.testing.assert_allclose(auto, fd, rtol=2e-5, atol=1e-9 * np.abs(fd).max())
 
 
+def test_windows_without_a_reference_at_both_ends_are_left_out_of_the_loss(model64):
+    """A dropout over the second half (its attitudes replaced by random ones): the masked
+    loss of the 256 samples is the loss of the first 128 alone, both terms."""
+    rng = np.random.default_rng(7)
+    seq, _ = make_sequence(rng, T=257)
+    q = seq.q.copy()
+    q[129:] = Rotation.random(128, random_state=8).as_quat()[:, [3, 0, 1, 2]]
+    reference = jnp.asarray(np.arange(257) <= 128)
+    g, a = jnp.asarray(seq.gyro[:256]), jnp.asarray(seq.accel[:256])
+    c = model64(g, a)
+    kw = dict(bias_sigma=model64.bias_sigma, reference_sigma=model64.reference_sigma)
+    masked = losses.increment_loss(c, jnp.asarray(q), DT, (16, 32), reference=reference, **kw)
+    half = type(c)(*(x[:128] for x in c))
+    cut = losses.increment_loss(half, jnp.asarray(q[:129]), DT, (16, 32), **kw)
+    np.testing.assert_allclose(np.asarray(masked), np.asarray(cut), rtol=1e-12)
+    unmasked = losses.increment_loss(c, jnp.asarray(q), DT, (16, 32), **kw)
+    assert float(unmasked[0]) > 10 * float(cut[0])  # the random attitudes would count
+
+
 def test_window_rotation_covariance_equals_preintegration_covariance():
     """Per-sample densities that are constant equal preintegrate's 9×9 rotation block (the
     engine's own recursion, a separate code path), and a per-sample density is the sum of

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from test_learning_losses import DT, scipy_attitudes, smooth_rates
 
 from jaximu import learning
@@ -144,3 +145,43 @@ def test_pretrained_model_loads_and_corrects_at_its_rate():
     out = model(jnp.asarray(x), jnp.asarray(x + [9.81, 0, 0]))
     assert np.all(np.isfinite(np.asarray(out.gyro)))
     assert Denoiser is type(model)
+
+
+def test_leave_one_out_never_lets_a_recording_choose_its_own_model():
+    """Three recordings with different gyro biases, each left out in turn: a fold's model is
+    trained on the other two only (their constant bias: the untrained network of a fold
+    integrates the left-out recording whole minus the others' mean bias, which scipy
+    integrates here apart), and the kept step is the one with the lowest mean over the
+    folds, taken from the model trained on all."""
+    biases = ([0.01, -0.02, 0.015], [0.03, 0.01, -0.02], [-0.02, 0.02, 0.01])
+    seqs = []
+    for i, b in enumerate(biases):
+        s, _ = simulated(10 + i, seconds=5.0)
+        gyro = s.gyro - BIAS + np.asarray(b)
+        bg = np.tile(b, (len(s), 1))
+        seqs.append(Sequence(f"rec{i}", s.t, gyro, s.accel, s.q, s.p, s.v, bg, 0 * bg))
+    cfg = TrainConfig(
+        steps=2, validate_every=1, train_seconds=3.0, horizons=(16, 32), selection="leave_one_out"
+    )
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+    result = learning.train(seqs, cfg, mcfg, seed=0, log=None)
+    loo = result.record["leave_one_out"]
+    names = [s.name for s in seqs]
+    for f, s, b in zip(loo["folds"], seqs, biases):
+        assert f["left_out"] == s.name and s.name not in f["trained_on"]
+        assert sorted(f["trained_on"] + [s.name]) == names
+        others = np.mean([x for x in biases if x is not b], 0)
+        _, Rs = scipy_attitudes(s.q[0], s.gyro - others, DT)
+        est = Rotation.concatenate(Rs)
+        truth = Rotation.from_quat(np.roll(s.q, -1, axis=-1))
+        aoe = np.degrees((truth.inv() * est).magnitude()).mean()
+        assert aoe > 1.0  # the others' bias is not this recording's: a real error
+        np.testing.assert_allclose(f["aoe_mean_deg"][0], aoe, rtol=2e-3)
+    mean = np.mean([f["aoe_mean_deg"] for f in loo["folds"]], 0)
+    np.testing.assert_allclose(loo["mean_aoe_deg"], mean, rtol=1e-12)
+    assert loo["steps"] == [0, 1, 2]
+    assert loo["chosen_step"] == result.record["best_step"] == int(np.argmin(mean))
+    with pytest.raises(ValueError, match="TrainConfig.selection must be 'validation' or"):
+        TrainConfig(selection="leave-one-out")
+    with pytest.raises(learning.data.DataError, match="needs two recordings or more"):
+        learning.train(seqs[:1], cfg, mcfg, log=None)
