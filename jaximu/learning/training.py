@@ -504,6 +504,7 @@ def _fit(
     key = jax.random.key(seed)
     key, k_init = jax.random.split(key)
     model = Denoiser(mcfg, k_init)
+    t_tracker = time.perf_counter()
     biases = _tracked_biases(model, sequences)
     # The network learns what the bias leaves; it is shown each training part's bias as the
     # tracker ends it (its most informed estimate before the validation part, constant over
@@ -523,6 +524,9 @@ def _fit(
         )
     else:
         vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
+    # each stage's own time, for a device where one of them could dominate (the steps' time
+    # is theirs: they are waited for before a validation is timed)
+    seconds = dict(tracker_and_data=time.perf_counter() - t_tracker, steps=0.0, validation=0.0)
     say(
         f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
         f"of each ({sum(len(s) for s in trains)} samples); validating on "
@@ -577,7 +581,6 @@ def _fit(
     best = (float(untrained.mean()), model, 0)
     if keep_step is not None:  # chosen without these recordings' validation parts
         best = (keep_step[1], model, 0)
-    run_time = 0.0
     compile_time = t_first + t_val_first
     i = 1
     cut_short = False
@@ -588,8 +591,11 @@ def _fit(
             break
         if keep_step is None and (i % cfg.validate_every == 0 or i == cfg.steps):
             t0 = time.perf_counter()
+            jax.block_until_ready(loss)
+            t1 = time.perf_counter()
             aoe = np.degrees(np.asarray(validate(ema, *vdata)))
-            run_time += time.perf_counter() - t0
+            seconds["steps"] += t1 - t0
+            seconds["validation"] += time.perf_counter() - t1
             mean_aoe = float(aoe.mean())
             record["history"].append(
                 {
@@ -623,9 +629,10 @@ def _fit(
         params, ema, opt_state, loss, parts = step(params, ema, opt_state, k, *data)
         if i % 10 == 0:
             jax.block_until_ready(loss)
-        run_time += time.perf_counter() - t0
+        seconds["steps"] += time.perf_counter() - t0
         i += 1
     model = best[1]
+    t_after = time.perf_counter()
     if cfg.calibrate_uncertainty:
         t0 = time.perf_counter()
         learned_ref = float(model.reference_sigma)
@@ -652,6 +659,8 @@ def _fit(
         )
     if held_out is None:
         _record_windows(model, sequences, vals, record, say)
+    seconds["uncertainty_and_windows"] = time.perf_counter() - t_after
+    seconds.update(first_step=t_first, first_validation=t_val_first)
     wall = time.perf_counter() - t_start
     record["recording_offsets_rad_s"] = {
         s.name: [float(x) for x in OFFSET_UNIT * (o - params[1].mean(0))]
@@ -667,11 +676,14 @@ def _fit(
             "compile_seconds": compile_time,
             "first_step_seconds": t_first,
             "samples_per_step": int(G.shape[0] * L),
+            "stage_seconds": seconds,
         }
     )
     say(
         f"best model: step {best[2]} (validation mean AOE {best[0]:.2f}°); wall {wall:.0f} s, of "
-        f"which compile ≈ {compile_time:.1f} s"
+        f"which compile ≈ {compile_time:.1f} s; the steps {seconds['steps']:.1f} s, the "
+        f"validations {seconds['validation']:.1f} s, the tracker and data "
+        f"{seconds['tracker_and_data']:.1f} s (before the wall's start)"
     )
     return TrainResult(model, record)
 

@@ -98,6 +98,18 @@ def test_training_beats_the_constant_baseline_on_its_validation(trained):
     assert r["validation_aoe_mean_deg"] < 0.5 * min(r["validation_constant_bias_deg"])
 
 
+def test_training_record_times_its_stages_apart_within_the_wall(trained):
+    """The stages' times (first step and validation with their compiles, the steps, the
+    validations, the uncertainty's fits) are disjoint intervals of the wall time, so they
+    add up to at most it; the tracker and data are timed before it."""
+    r = trained.record
+    s = r["stage_seconds"]
+    inside = ("first_step", "first_validation", "steps", "validation", "uncertainty_and_windows")
+    assert all(s[k] > 0 for k in inside + ("tracker_and_data",)), s
+    assert sum(s[k] for k in inside) <= r["wall_seconds"], (s, r["wall_seconds"])
+    assert s["first_step"] + s["first_validation"] == pytest.approx(r["compile_seconds"])
+
+
 def test_save_and_load_give_the_same_outputs(tmp_path, trained):
     path = learning.save(tmp_path / "model", trained.model, trained.record)
     back = learning.load(path)
