@@ -1021,6 +1021,7 @@ def main(argv=None):
             wall_s=wall,
             train_wall_s=rec["wall_seconds"],
             compile_s=rec["compile_seconds"],
+            stage_s=rec["stage_seconds"],
             steps_run=rec["steps_run"],
             cut_short=rec["cut_short"],
             best_step=rec["best_step"],
