@@ -109,18 +109,20 @@ class Sequence:
         if (self.gt_t is None) != (self.gt_q is None):
             raise ValueError("Sequence.gt_t and Sequence.gt_q are given together or not at all")
         if self.gt_t is not None:
-            gt_t, gt_q = np.asarray(self.gt_t, np.float64), np.asarray(self.gt_q, np.float64)
-            M = len(gt_t) if gt_t.ndim == 1 else -1
-            if M < 1 or gt_q.shape != (M, 4):
+            # the stamps as any recording's: 1-D, finite, strictly increasing
+            gt_t = check_times("Sequence.gt_t", self.gt_t, 1, TIMES_FIX)
+            gt_q = np.asarray(self.gt_q, np.float64)
+            M = len(gt_t)
+            if gt_q.shape != (M, 4):
                 raise ValueError(
                     f"Sequence.gt_t must be (M,) and gt_q (M, 4) with M ≥ 1, got {gt_t.shape} "
                     f"and {gt_q.shape}"
                 )
-            if not (np.isfinite(gt_t).all() and np.isfinite(gt_q).all()):
+            if not np.isfinite(gt_q).all():
                 raise ValueError("Sequence.gt_t and gt_q must be finite")
-            if np.any(np.diff(gt_t) <= 0) or gt_t[0] < t[0] or gt_t[-1] > t[-1]:
+            if gt_t[0] < t[0] or gt_t[-1] > t[-1]:
                 raise ValueError(
-                    f"Sequence.gt_t must increase strictly inside [t[0], t[-1]] = "
+                    f"Sequence.gt_t must lie inside [t[0], t[-1]] = "
                     f"[{t[0]:.6f}, {t[-1]:.6f}] s, got [{gt_t[0]:.6f}, {gt_t[-1]:.6f}] s"
                 )
             qn = np.linalg.norm(gt_q, axis=1)
