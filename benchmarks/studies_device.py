@@ -69,8 +69,7 @@ def study(n_runs, reps, **kw):
     noise = jaximu.ImuNoise.euroc()
 
     def call(seed):
-        res = monte_carlo(*args, noise, n_runs, jax.random.key(seed), n_keep=0, **kw)
-        return res
+        return monte_carlo(*args, noise, n_runs, jax.random.key(seed), n_keep=0, **kw)
 
     t0 = time.perf_counter()
     res = call(0)
@@ -118,10 +117,11 @@ def sweep(n_runs, deadline, say):
             )
             kw = dict(record_every=100) if funroll == 1 else dict(update_every=10)
             first, best, res = study(n_runs, 1, dtype=jnp.float32, **kw)
-            case = "open loop" if funroll == 1 else f"filter (filter_unroll {funroll})"
-            rows.append(row(f"sweep {case}", n_runs, first, best, res, chunk=chunk, unroll=unroll))
+            case = "open loop" if funroll == 1 else "filter"
+            steps = unroll if funroll == 1 else funroll  # steps a loop iteration of this study
+            rows.append(row(f"sweep {case}", n_runs, first, best, res, chunk=chunk, unroll=steps))
             say(
-                f"sweep {case:>26}: chunk {chunk:>6} unroll {unroll}: first {first:6.2f} s, "
+                f"sweep {case:>9}: chunk {chunk:>6} unroll {steps}: first {first:6.2f} s, "
                 f"run {best:6.3f} s = {n_runs * T / best / 1e6:9.1f} M samples/s"
             )
     finally:
