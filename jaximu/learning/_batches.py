@@ -4,6 +4,8 @@ and the validation parts padded to one batch (:func:`jaximu.learning.train`)."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -55,41 +57,88 @@ def _stack(parts, biases, length):
 
 
 def _tracked_biases(model, sequences):
-    """Each whole sequence's tracked gyro bias ``(N_i, 3)`` (numpy). The tracker is fixed,
-    not learned: it runs once, on all sequences padded to one length in one program (it is
-    causal: the padding changes nothing before it)."""
+    """Each whole sequence's tracked gyro bias ``(N_i, 3)`` and its standard deviation
+    (numpy, [rad/s]). The tracker is fixed, not learned: it runs once, on all sequences
+    padded to one length in one program (it is causal: the padding changes nothing before
+    it)."""
     N = max(len(s) for s in sequences)
     pad = lambda x: np.concatenate([x, np.repeat(x[-1:], N - len(x), 0)])  # noqa: E731
     g = jnp.asarray(np.stack([pad(s.gyro) for s in sequences]), jnp.float32)
     a = jnp.asarray(np.stack([pad(s.accel) for s in sequences]), jnp.float32)
-    b = np.asarray(model.track(g, a).gyro_bias)
-    return [b[i, : len(s)] for i, s in enumerate(sequences)]
+    b, sigma = (np.asarray(x) for x in model.track(g, a))
+    return [b[i, : len(s)] for i, s in enumerate(sequences)], [
+        sigma[i, : len(s)] for i, s in enumerate(sequences)
+    ]
 
 
-def _validation_arrays(seqs, vals, biases, context):
-    """Each validation part with ``context`` samples before it, padded to one length:
-    ``(gyro, accel, q, tracked bias, run, compare)`` ``(S, N, ·)``: ``run`` is True on the
-    validation samples from the first with a reference on (the integration's), ``compare``
-    on those with a reference (not in a motion-capture dropout). ``biases``: each whole
-    sequence's tracked gyro bias."""
+class ValidationBatch(NamedTuple):
+    """The validation parts, each with ``context`` samples before it (the network's
+    receptive field), padded to one length ``N`` by repeating each part's last sample, in
+    one batch ``(S, N, ·)`` float32: one program validates them all, whatever their
+    lengths.
+
+    Attributes:
+        gyro, accel: raw samples [rad/s], [m/s²]; q: true attitudes ``[w, x, y, z]``;
+        p, v: true positions [m] and velocities [m/s] (world);
+        dt: the interval [s] from each sample to the next (the last one repeated);
+        bias, bias_sigma: the tracked gyro bias of the whole sequence and its standard
+            deviation [rad/s];
+        run: True on the samples integrated, from the first validation sample with a
+            reference on (to the part's end);
+        compare: True on the validation samples with a reference (not in a dropout);
+        start: ``(S,)`` int32, the index of each part's first validation sample;
+        length: ``(S,)`` int32, each row's samples before the padding.
+    """
+
+    gyro: jnp.ndarray
+    accel: jnp.ndarray
+    q: jnp.ndarray
+    p: jnp.ndarray
+    v: jnp.ndarray
+    dt: jnp.ndarray
+    bias: jnp.ndarray
+    bias_sigma: jnp.ndarray
+    run: jnp.ndarray
+    compare: jnp.ndarray
+    start: jnp.ndarray
+    length: jnp.ndarray
+
+
+def _validation_arrays(seqs, vals, tracked, context) -> ValidationBatch:
+    """The :class:`ValidationBatch` of the validation parts ``vals`` of ``seqs``;
+    ``tracked``: each whole sequence's ``(bias, sigma)`` lists (:func:`_tracked_biases`)."""
+    biases, sigmas = tracked
     pieces = []
-    for s, v, b in zip(seqs, vals, biases):
+    for s, v, b, sb in zip(seqs, vals, biases, sigmas):
         k = len(s) - len(v)
         lo = max(0, k - context)
-        pieces.append((s.slice(lo), b[lo:], k - lo))
-    N = max(len(p) for p, _, _ in pieces)
-    G, A, Q, B, M, C = (np.zeros((len(pieces), N, c)) for c in (3, 3, 4, 3, 1, 1))
-    for i, (p, b, c0) in enumerate(pieces):
+        pieces.append((s.slice(lo), b[lo:], sb[lo:], k - lo))
+    S, N = len(pieces), max(len(p) for p, _, _, _ in pieces)
+    widths = dict(gyro=3, accel=3, q=4, p=3, v=3, dt=1, bias=3, bias_sigma=3)
+    out = {name: np.zeros((S, N, c)) for name, c in widths.items()}
+    run, compare = np.zeros((S, N), bool), np.zeros((S, N), bool)
+    start, length = np.zeros(S, np.int32), np.zeros(S, np.int32)
+    for i, (p, b, sb, c0) in enumerate(pieces):
         n = len(p)
-        G[i, :n], A[i, :n], Q[i, :n], B[i, :n] = p.gyro, p.accel, p.q, b
-        G[i, n:], A[i, n:], Q[i, n:], B[i, n:] = p.gyro[-1], p.accel[-1], p.q[-1], b[-1]
+        dt = np.append(p.dt, p.dt[-1:])[:, None]
+        rows = dict(gyro=p.gyro, accel=p.accel, q=p.q, p=p.p, v=p.v, dt=dt, bias=b, bias_sigma=sb)
+        for name, x in rows.items():
+            out[name][i, :n], out[name][i, n:] = x, x[-1]
         ref = p.has_reference[c0:]
         if not ref.any():
             raise DataError(
                 f"sequence {p.name!r}: its validation part has no sample with ground truth "
                 "(all inside dropouts): give a longer recording or another train_seconds"
             )
-        M[i, c0 + int(np.argmax(ref)) : n] = 1.0
-        C[i, c0:n, 0] = ref
+        run[i, c0 + int(np.argmax(ref)) : n] = True
+        compare[i, c0:n] = ref
+        start[i], length[i] = c0, n
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    return f(G), f(A), f(Q), f(B), jnp.asarray(M[..., 0] > 0), jnp.asarray(C[..., 0] > 0)
+    out["dt"] = out["dt"][..., 0]
+    return ValidationBatch(
+        **{name: f(x) for name, x in out.items()},
+        run=jnp.asarray(run),
+        compare=jnp.asarray(compare),
+        start=jnp.asarray(start),
+        length=jnp.asarray(length),
+    )

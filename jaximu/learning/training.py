@@ -27,7 +27,7 @@ import optax
 from jaximu.errors import Fix, InputError
 from jaximu.geometry._checks import check_bool, check_int, check_positive
 from jaximu.io import DataError
-from jaximu.learning import uncertainty
+from jaximu.learning import _validation, uncertainty
 from jaximu.learning._batches import (
     _stack,
     _tracked_biases,
@@ -37,7 +37,6 @@ from jaximu.learning._batches import (
     normalisation,
 )
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
-from jaximu.learning.evaluation import integrate_attitude, orientation_errors, window_errors
 from jaximu.learning.losses import check_horizons, huber, increment_loss, velocity_residuals
 from jaximu.learning.model import Denoiser, ModelConfig
 
@@ -316,20 +315,6 @@ def _step(
     return params, ema, opt_state, loss, parts
 
 
-@eqx.filter_jit
-def _validate(model, vG, vA, vQ, vB, vM, vC, *, dt: float):
-    """Mean AOE [rad] of each validation part, integrated from its first true attitude:
-    the rates before it (the network's context) are zeroed, so the attitude stays at
-    that true attitude until the validation part starts."""
-    c = model(vG, vA, gyro_bias=vB)
-    first = jnp.argmax(vM, 1)
-    q0 = jnp.take_along_axis(vQ, first[:, None, None], 1)[:, 0]
-    gyro = jnp.where(vM[..., None], c.gyro, 0.0)
-    steps = jnp.full(vM.shape[:1] + (vM.shape[1] - 1,), dt, jnp.float32)
-    _, aoe, _ = orientation_errors(integrate_attitude(q0, gyro, steps), vQ)
-    return jnp.sum(jnp.where(vC, aoe, 0.0), 1) / jnp.sum(vC, 1)
-
-
 def train(
     sequences: list[Sequence],
     config: TrainConfig | None = None,
@@ -428,7 +413,9 @@ def _fit(
     key, k_init = jax.random.split(key)
     model = Denoiser(mcfg, k_init)
     t_tracker = time.perf_counter()
-    biases = _tracked_biases(model, sequences)
+    # every sequence's bias in one program (and the recording left out, if one is)
+    tracked = _tracked_biases(model, sequences + ([held_out] if held_out is not None else []))
+    biases = tracked[0][: len(sequences)]
     # The network learns what the bias leaves; it is shown each training part's bias as the
     # tracker ends it (its most informed estimate before the validation part, constant over
     # the part), not the tracker's first seconds, whose transient is each recording's own:
@@ -442,11 +429,11 @@ def _fit(
     n_v = jnp.maximum(jnp.sum(has_v), 1.0)
     if held_out is not None:  # validated whole, from its first true attitude
         vals = (held_out,)
-        vG, vA, vQ, vB, vM, vC = _validation_arrays(
-            vals, vals, _tracked_biases(model, vals), mcfg.receptive_field
+        vdata = _validation_arrays(
+            vals, vals, ([tracked[0][-1]], [tracked[1][-1]]), mcfg.receptive_field
         )
     else:
-        vG, vA, vQ, vB, vM, vC = _validation_arrays(sequences, vals, biases, mcfg.receptive_field)
+        vdata = _validation_arrays(sequences, vals, tracked, mcfg.receptive_field)
     # each stage's own time, for a device where one of them could dominate (the steps' time
     # is theirs: they are waited for before a validation is timed)
     seconds = dict(tracker_and_data=time.perf_counter() - t_tracker, steps=0.0, validation=0.0)
@@ -464,7 +451,7 @@ def _fit(
     noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
     bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3, jnp.float32)
     step = functools.partial(_step, cfg=cfg, dt=dt, L=L)
-    validate = functools.partial(_validate, dt=dt)
+    validate = functools.partial(_validation.validate, dt=dt)
 
     record: dict[str, Any] = {
         "seed": seed,
@@ -480,15 +467,15 @@ def _fit(
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
     # arguments, not constants folded into the program
-    data, vdata = (G, A, Q, V, B, R, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM, vC)
+    data = (G, A, Q, V, B, R, noise, bias_noise, has_v, n_v)
     params, ema, opt_state, loss, parts = step(params, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    untrained = np.degrees(np.asarray(validate(model, *vdata)))  # the tracked bias alone
+    untrained = np.degrees(np.asarray(validate(model, vdata)))  # the tracked bias alone
     t_val_first = time.perf_counter() - t0
-    vB_constant = jnp.broadcast_to(jnp.asarray(mcfg.gyro_bias, jnp.float32), vB.shape)
-    baseline = np.degrees(np.asarray(validate(model, vG, vA, vQ, vB_constant, vM, vC)))
+    vB_constant = jnp.broadcast_to(jnp.asarray(mcfg.gyro_bias, jnp.float32), vdata.bias.shape)
+    baseline = np.degrees(np.asarray(validate(model, vdata._replace(bias=vB_constant))))
     record["validation_constant_bias_deg"] = [float(x) for x in baseline]
     record["validation_untrained_deg"] = [float(x) for x in untrained]
     say(
@@ -516,7 +503,7 @@ def _fit(
             t0 = time.perf_counter()
             jax.block_until_ready(loss)
             t1 = time.perf_counter()
-            aoe = np.degrees(np.asarray(validate(ema, *vdata)))
+            aoe = np.degrees(np.asarray(validate(ema, vdata)))
             seconds["steps"] += t1 - t0
             seconds["validation"] += time.perf_counter() - t1
             mean_aoe = float(aoe.mean())
@@ -576,12 +563,13 @@ def _fit(
             f"training windows with the kept network (was {learned_ref:.3g}; "
             f"{time.perf_counter() - t0:.1f} s)"
         )
-        model = uncertainty.set_bias_sigma(model, sequences, vals, record, say)
+        terms = _validation.nees_terms(model, vdata)
+        model = uncertainty.set_bias_sigma(model, terms, [v.name for v in vals], record, say)
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
         )
     if held_out is None:
-        _record_windows(model, sequences, vals, record, say)
+        _record_windows(model, sequences, vals, vdata, dt, record, say)
     seconds["uncertainty_and_windows"] = time.perf_counter() - t_after
     seconds.update(first_step=t_first, first_validation=t_val_first)
     wall = time.perf_counter() - t_start
@@ -648,14 +636,14 @@ def _leave_one_out(sequences, cfg, model_config, seed, minutes, say) -> TrainRes
     return result
 
 
-def _record_windows(model, sequences, vals, record, say):
+def _record_windows(model, sequences, vals, vdata, dt, record, say):
     """Dead-reckoning errors over 1-s and 5-s windows of the validation parts with ground
-    truth velocities: what the accelerometer correction is judged by."""
-    out = {}
-    for s, v in zip(sequences, vals):
-        if s.b_g is None or v.seconds < 5.0:  # pose only: differenced velocities
-            continue
-        out[v.name] = {f"{w:g}s": window_errors(model, s, w, len(s) - len(v)) for w in (1.0, 5.0)}
+    truth velocities (``vdata``: their batch): what the accelerometer correction is judged
+    by."""
+    kept = [s.b_g is not None and v.seconds >= 5.0 for s, v in zip(sequences, vals)]
+    # (pose only: differenced velocities)
+    rows = _validation.window_errors(model, vdata, dt, (1.0, 5.0)) if any(kept) else []
+    out = {v.name: r for v, r, k in zip(vals, rows, kept) if k}
     record["validation_windows"] = out
     for w in ("1s", "5s"):
         rows = [x[w] for x in out.values()]

@@ -218,18 +218,17 @@ def with_reference_sigma(model, reference_sigma: float):
     return _with_log(model, lambda m: m.log_reference_sigma, reference_sigma, "reference_sigma")
 
 
-def set_bias_sigma(model, sequences, vals, record, say):
-    """``model`` with ``σ_b`` set on the validation parts ``vals`` of ``sequences``
-    (:func:`fit_bias_sigma`, after training); writes ``record["uncertainty"]`` with each
-    sequence's NEES with ``σ_b`` set on the other sequences, and says so."""
-    terms = [nees_terms(model, s, len(s) - len(v)) for s, v in zip(sequences, vals)]
+def set_bias_sigma(model, terms: list[NeesTerms], names: list[str], record, say):
+    """``model`` with ``σ_b`` set on the validation parts' NEES ``terms`` (named ``names``;
+    :func:`fit_bias_sigma`, after training); writes ``record["uncertainty"]`` with each
+    part's NEES with ``σ_b`` set on the other parts, and says so."""
     sigma = fit_bias_sigma(terms)
     loo = leave_one_out(terms)
     record["uncertainty"] = {
         "bias_sigma": sigma,
         "learned_bias_sigma": float(model.bias_sigma),
         "reference_sigma": float(model.reference_sigma),
-        "validation_nees_leave_one_out": {v.name: n for v, (_, n) in zip(vals, loo)},
+        "validation_nees_leave_one_out": {v: n for v, (_, n) in zip(names, loo)},
     }
     achieved = float(np.mean([average_nees(t, sigma) for t in terms]))
     say(
@@ -239,8 +238,8 @@ def set_bias_sigma(model, sequences, vals, record, say):
         + "); "
         + (
             "each sequence's NEES with σ_b set on the others: "
-            + " ".join(f"{v.name} {n:.2f}" for v, (_, n) in zip(vals, loo))
-            if len(vals) > 1
+            + " ".join(f"{v} {n:.2f}" for v, (_, n) in zip(names, loo))
+            if len(names) > 1
             else "one sequence: no leave-one-out NEES"
         )
     )
