@@ -57,6 +57,7 @@ __all__ = [
     "evaluate_sequence",
     "window_errors",
     "stamp_steps",
+    "window_samples",
     "CHI2_3_3SIGMA",
 ]
 
@@ -390,28 +391,8 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     ``"constant_bias"`` (both sensors minus the stored biases), ``"learned_gyro"`` (the
     learned gyro, the accelerometer minus its constant bias) and ``"learned"`` (both
     corrected; the same as ``"learned_gyro"`` without an accelerometer head)."""
-    check_model("model", model)
-    check_sequence("seq", seq)
-    check_rate(seq, model.config.rate_hz)
-    check_positive("seconds", seconds)
-    start = check_int("start", start, 0)
+    n, start = window_samples(model, seq, seconds, start)
     dtype = compute_dtype("dtype", dtype)
-    if start > len(seq) - 2:
-        raise InputError(
-            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
-            [Fix("start", 0)],
-            lead="pass a smaller one, e.g.",
-        )
-    n = int(round(seconds * seq.rate_hz))
-    span = (len(seq) - 1 - start) / seq.rate_hz
-    if n < 1 or n > len(seq) - 1 - start:
-        what = "shorter than one sample interval" if n < 1 else "longer than"
-        raise InputError(
-            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
-            f"{seq.name!r} from sample {start} on",
-            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
-            lead="pass",
-        )
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)
@@ -433,6 +414,37 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
         )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out
+
+
+def window_samples(model, seq: Sequence, seconds: float, start: int = 0) -> tuple[int, int]:
+    """``(n, start)``: the samples per window of ``seconds`` at ``seq``'s rate, and
+    ``start``, once checked: ``model`` a :class:`jaximu.learning.Denoiser`, ``seq`` a
+    :class:`Sequence` at its rate, ``seconds`` positive and between one sample interval and
+    the recording's length from sample ``start`` on (:func:`window_errors`, and the
+    windowed NEES, :func:`jaximu.learning.uncertainty.window_nees`); else an error naming
+    the argument and the range to pass."""
+    check_model("model", model)
+    check_sequence("seq", seq)
+    check_rate(seq, model.config.rate_hz)
+    check_positive("seconds", seconds, hint=": pass the window's length [s], e.g. 1.0")
+    start = check_int("start", start, 0)
+    if start > len(seq) - 2:
+        raise InputError(
+            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
+            [Fix("start", 0)],
+            lead="pass a smaller one, e.g.",
+        )
+    n = int(round(seconds * seq.rate_hz))
+    span = (len(seq) - 1 - start) / seq.rate_hz
+    if n < 1 or n > len(seq) - 1 - start:
+        what = "shorter than one sample interval" if n < 1 else "longer than"
+        raise InputError(
+            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
+            f"{seq.name!r} from sample {start} on",
+            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
+            lead="pass",
+        )
+    return n, start
 
 
 def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:

@@ -29,9 +29,15 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaximu.geometry._checks import check_int, check_positive
+from jaximu.geometry._checks import check_int, check_output, check_positive, compute_dtype
+from jaximu.io import DataError
 from jaximu.learning.data import check_sequence
-from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
+from jaximu.learning.evaluation import (
+    attitude_terms,
+    integrate_attitude,
+    orientation_errors,
+    window_samples,
+)
 from jaximu.learning.losses import (
     check_horizons,
     gaussian_nll,
@@ -47,6 +53,8 @@ __all__ = [
     "fit_bias_sigma",
     "fit_reference_sigma",
     "leave_one_out",
+    "window_nees_terms",
+    "window_nees",
     "with_bias_sigma",
     "with_reference_sigma",
     "set_bias_sigma",
@@ -124,6 +132,84 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
         s = fit_bias_sigma(others) if others else float("nan")
         out.append((s, average_nees(t, s)))
     return out
+
+
+@partial(jax.jit, static_argnames=("n",))
+def _window_nees_run(model, gyro, accel, q_true, dt, i0, n):
+    """The NEES terms at the ends of the windows of ``n`` steps from the samples ``i0``
+    ``(W,)``, each integrated from its true attitude (the network sees the whole run)."""
+    c = model(gyro, accel)
+    idx = i0[:, None] + jnp.arange(n + 1)  # (W, n + 1): each window's samples, both ends in
+    g = c.gyro[idx]
+    h = dt[idx[:, :-1]]
+    q_end = jax.vmap(lambda q0, g, h: integrate_attitude(q0, g, h)[-1])(q_true[i0], g, h)
+    r, _, _ = orientation_errors(q_end, q_true[i0 + n])
+    rw = model.config.gyro_random_walk
+    W, B = jax.vmap(lambda g, d, h, s: attitude_terms(g, d, h, rw, s))(
+        g, c.gyro_density[idx], h, c.gyro_bias_sigma[idx]
+    )
+    return NeesTerms(r, W[:, -1], B[:, -1], model.reference_sigma.astype(g.dtype))
+
+
+def window_nees_terms(model, seq, seconds: float, start: int = 0, dtype=jnp.float32) -> NeesTerms:
+    """The NEES terms of the orientation error at the end of each of the consecutive
+    windows of ``seconds`` from sample ``start`` on, each integrated open loop from its own
+    true attitude with ``model``'s corrected gyro (the network sees the whole recording, the
+    samples before ``start`` as context): ``r = Log(R_trueᵀ R̂)`` ``(W, 3)`` [rad] at each
+    window's last sample, and the covariance terms over that window alone
+    (:func:`jaximu.learning.evaluation.attitude_terms`: the learned density, the bias random
+    walk ``ModelConfig.gyro_random_walk`` and the tracked bias's ``σ``; ``B`` for the
+    residual bias ``σ_b``, which :func:`average_nees` adds with ``2 σ_ref² I``, the ground
+    truth's noise at the window's two ends).
+
+    The error is taken at the window's end only, so the windows' NEES are independent draws
+    up to the bias they share; a window is kept when the ground truth has a reference
+    (:attr:`jaximu.learning.Sequence.has_reference`) at both its ends, so a motion-capture
+    dropout inside it does not matter. A tail shorter than a window is left out.
+
+    Raises:
+        ValueError / InputError: ``model`` or ``seq`` not what they should be, ``seconds``
+            not positive or outside one sample interval … the recording's length from
+            ``start`` on, ``start`` past the last step (:func:`window_samples`); DataError:
+            no window with a reference at both ends.
+    """
+    n, start = window_samples(model, seq, seconds, start)
+    dtype = compute_dtype("dtype", dtype)
+    i0 = start + n * np.arange((len(seq) - 1 - start) // n)
+    ref = seq.has_reference
+    i0 = i0[ref[i0] & ref[i0 + n]]
+    if not len(i0):
+        raise DataError(
+            f"sequence {seq.name!r}: none of its windows of {seconds!r} s from sample "
+            f"{start} on has a ground-truth reference at both ends (motion-capture "
+            "dropouts): pass shorter seconds"
+        )
+    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    return check_output(
+        "window_nees_terms",
+        _window_nees_run(
+            model, cast(seq.gyro), cast(seq.accel), cast(seq.q), cast(seq.dt), jnp.asarray(i0), n
+        ),
+        f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
+    )
+
+
+def window_nees(
+    model, seq, seconds: float, start: int = 0, dtype=jnp.float32, bias_sigma=None
+) -> float:
+    """The average orientation NEES over the consecutive windows of ``seconds`` of ``seq``
+    from sample ``start`` on, each window started from the true attitude and the error
+    taken at its end (:func:`window_nees_terms`), with the model's covariance over the
+    window: 3 when the model is consistent at that horizon. ``bias_sigma`` [rad/s]: the
+    residual gyro bias, the model's ``σ_b`` when None. The whole run's NEES is
+    :attr:`jaximu.learning.SequenceReport.nees_orientation`."""
+    t = window_nees_terms(model, seq, seconds, start, dtype)
+    sigma = (
+        float(model.bias_sigma)
+        if bias_sigma is None
+        else check_positive("bias_sigma", bias_sigma, allow_zero=True)
+    )
+    return average_nees(t, sigma)
 
 
 def _with_log(model, where, value: float, name: str):

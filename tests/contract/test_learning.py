@@ -12,6 +12,7 @@ every call; the refusals compile nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import equinox as eqx
@@ -223,6 +224,38 @@ def test_windows_longer_than_the_recording_are_refused_naming_seconds():
         learning.evaluation.window_errors(MODEL, seq, 0.1, start=59)
     out = learning.evaluation.window_errors(MODEL, seq, 0.1)
     assert all(np.isfinite(v).all() for v in out.values())
+
+
+def test_the_windowed_nees_refuses_bad_windows_naming_the_argument_and_the_fix():
+    u = learning.uncertainty
+    seq = sequence(60)  # 0.295 s
+    with pytest.raises(
+        InputError,
+        match=r"seconds = 1\.0: a window longer than the 0\.295 s "
+        r"of sequence 'short'.*pass seconds between 0\.005 and 0\.295",
+    ):
+        u.window_nees(MODEL, seq, 1.0)
+    with pytest.raises(InputError, match=r"seconds = 0\.001: a window shorter than one sample"):
+        u.window_nees_terms(MODEL, seq, 0.001)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match=r"^seconds must be positive and finite, got .*: pass the window.s length"):
+            u.window_nees(MODEL, seq, bad)
+    with pytest.raises(InputError, match=r"start = 59 leaves no step.*pass a smaller one"):
+        u.window_nees(MODEL, seq, 0.1, start=59)
+    with pytest.raises(ValueError, match=r"^bias_sigma must be non-negative and finite"):
+        u.window_nees(MODEL, seq, 0.1, bias_sigma=-1e-3)
+    with pytest.raises(ValueError, match=r"^model's weights hold 1 non-finite"):
+        u.window_nees(diverged(), seq, 0.1)
+    with pytest.raises(ValueError, match=r"^seq must be a jaximu\.learning\.Sequence"):
+        u.window_nees(MODEL, "seq", 0.1)
+    # a reference at the first and the last sample only (a dropout between): no window of
+    # 0.1 s has one at both its ends
+    ref = np.zeros(60, bool)
+    ref[[0, 59]] = True
+    gap = dataclasses.replace(seq, reference=ref)
+    with pytest.raises(DataError, match=r"none of its windows of 0\.1 s.*pass shorter seconds"):
+        u.window_nees(MODEL, gap, 0.1)
+    assert np.isfinite(u.window_nees(MODEL, seq, 0.1))
 
 
 # --------------------------------------------------------------------------- properties

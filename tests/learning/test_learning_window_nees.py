@@ -1,0 +1,89 @@
+"""The windowed orientation NEES (:func:`jaximu.learning.uncertainty.window_nees`) of a
+simulated, exactly consistent model: the gyro's white noise drawn with the density the
+model states, its bias drawn from the model's ``σ_b`` and walked with its random walk, the
+ground truth's attitude perturbed with its ``σ_ref``; the truth integrated by scipy's
+``Rotation``. The average NEES is then a mean of ``χ²₃`` draws, 3 within a confidence the
+test computes from the number of windows."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_learning_losses import smooth_rates
+
+from jaximu.learning import Denoiser, ModelConfig, Sequence, uncertainty
+
+DT = 0.005
+DENSITY, BIAS, WALK, REF = 2e-3, 4e-3, 1e-3, 5e-4  # rad/s/√Hz, rad/s, rad/s²/√Hz, rad
+CFG = ModelConfig(
+    channels=(4,),
+    kernel=3,
+    dilations=(1,),
+    dropout=0.0,
+    bias_tracking=False,
+    gyro_density=DENSITY,
+    gyro_random_walk=WALK,
+    bias_sigma=BIAS,
+    reference_sigma=REF,
+)
+MODEL = Denoiser(CFG, jax.random.key(0))  # untrained: ω̂ = ω_m, σ_g = DENSITY, C = 0
+
+
+def consistent_sequence(seconds: float, window: int, seed: int = 0) -> Sequence:
+    """``seconds`` of samples at ``1/DT`` Hz whose gyro error over each window of ``window``
+    steps is what the model states: a bias drawn ``N(0, BIAS² I)`` at the window's first
+    sample, walked by ``WALK √dt`` a step, and white noise ``DENSITY / √dt``; the attitude
+    reference is the truth times ``Exp(n)``, ``n ~ N(0, REF² I)`` at every sample. Each
+    window's bias is its own draw (the model's covariance starts each window from
+    ``σ_b``), so the windows share nothing but the reference's noise at their common ends."""
+    rng = np.random.default_rng(seed)
+    T = int(round(seconds / DT)) + 1
+    true = smooth_rates(rng, T)
+    steps = Rotation.from_rotvec(true[:-1] * DT)
+    R = [Rotation.from_quat([0.1, -0.3, 0.2, 0.9])]
+    for s in steps:  # R_{k+1} = R_k Exp(ω_k dt), scipy's composition
+        R.append(R[-1] * s)
+    truth = Rotation.concatenate(R)
+    noisy = truth * Rotation.from_rotvec(REF * rng.standard_normal((T, 3)))
+    q = np.roll(noisy.as_quat(), 1, -1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    k = np.arange(T)
+    first = k - k % window  # each sample's window's first sample
+    walk = WALK * np.sqrt(DT) * rng.standard_normal((T, 3))
+    walk[k % window == 0] = 0.0
+    bias = (
+        BIAS * rng.standard_normal((T, 3))[first] + np.cumsum(walk, 0) - np.cumsum(walk, 0)[first]
+    )
+    gyro = true + bias + DENSITY / np.sqrt(DT) * rng.standard_normal((T, 3))
+    accel = np.tile([0.0, 0.0, 9.81], (T, 1))
+    z = np.zeros((T, 3))
+    return Sequence("consistent", k * DT, gyro, accel, q, z, z)
+
+
+@pytest.mark.parametrize("seconds", [0.25, 1.0])
+def test_the_windowed_nees_of_an_exactly_consistent_model_is_three(seconds):
+    """Each window's NEES is a ``χ²₃`` draw (mean 3, variance 6). Neighbouring windows share
+    the reference's noise at their common sample, a cross-covariance ``C`` of their whitened
+    errors with ``|C| ≤ σ_ref² / λ_min(S)``, so their correlation is at most
+    ``ρ = (σ_ref² / λ_min(S))²`` and the mean of ``W`` windows has a standard deviation of
+    at most ``√(6 (1 + 2ρ) / W)``: the test allows 4 of those (a 4σ bound; W = 799 and 199
+    windows here: ±0.35 and ±0.70)."""
+    n = int(round(seconds / DT))
+    seq = consistent_sequence(200.0, n, seed=int(seconds * 4))
+    t = uncertainty.window_nees_terms(MODEL, seq, seconds)
+    W = len(t.r)
+    assert W == (len(seq) - 1) // n
+    got = uncertainty.window_nees(MODEL, seq, seconds)
+    assert got == pytest.approx(uncertainty.average_nees(t, BIAS), rel=1e-6)
+    S = (
+        np.asarray(t.W)
+        + BIAS**2 * np.asarray(t.B) @ np.swapaxes(np.asarray(t.B), -1, -2)
+        + 2 * REF**2 * np.eye(3)
+    )
+    rho = (REF**2 / np.linalg.eigvalsh(S).min()) ** 2
+    bound = 4.0 * np.sqrt(6.0 * (1.0 + 2.0 * rho) / W)
+    assert abs(got - 3.0) < bound, (got, bound)
+    # the bias term matters at this size: without it the same errors are far outside
+    assert uncertainty.window_nees(MODEL, seq, seconds, bias_sigma=0.0) > 3 + bound
