@@ -110,7 +110,12 @@ class TrainConfig:
         calibrate_uncertainty: after training, fit the ground truth's attitude noise
             ``σ_ref`` to the kept network by the likelihood of the training windows, then set
             the residual gyro bias ``σ_b`` on the validation parts
-            (:mod:`jaximu.learning.uncertainty`).
+            (:mod:`jaximu.learning.uncertainty`); the validation parts' windowed NEES
+            (1 s and 5 s, :func:`jaximu.learning.uncertainty.window_nees`) is recorded.
+        bias_markov: with ``calibrate_uncertainty``, then fit a Gauss–Markov gyro bias
+            (``ModelConfig.bias_markov_sigma``, ``bias_markov_time``) by the likelihood of
+            the validation parts' windows of 1 s and 5 s
+            (:func:`jaximu.learning.uncertainty.set_bias_markov`).
         selection: how the kept step is chosen: ``"validation"``, the lowest mean AOE on
             the validation parts (the later seconds of the training recordings, which share
             their bias), or ``"leave_one_out"``: each recording left out in turn and
@@ -146,6 +151,7 @@ class TrainConfig:
     ema: float = 0.98
     recording_offsets: bool = True
     selection: str = "validation"
+    bias_markov: bool = True
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -169,7 +175,7 @@ class TrainConfig:
             check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
         if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
-        for field in ("calibrate_uncertainty", "recording_offsets"):
+        for field in ("calibrate_uncertainty", "recording_offsets", "bias_markov"):
             check_bool(f"{name}.{field}", getattr(self, field))
         if self.selection not in ("validation", "leave_one_out"):
             raise ValueError(
@@ -577,6 +583,9 @@ def _fit(
             f"{time.perf_counter() - t0:.1f} s)"
         )
         model = uncertainty.set_bias_sigma(model, sequences, vals, record, say)
+        model = uncertainty.set_bias_markov(
+            model, sequences, vals, record, say, fit=cfg.bias_markov
+        )
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
         )

@@ -87,3 +87,54 @@ def test_the_windowed_nees_of_an_exactly_consistent_model_is_three(seconds):
     assert abs(got - 3.0) < bound, (got, bound)
     # the bias term matters at this size: without it the same errors are far outside
     assert uncertainty.window_nees(MODEL, seq, seconds, bias_sigma=0.0) > 3 + bound
+
+
+def test_the_gauss_markov_fit_recovers_a_simulated_slowly_varying_bias():
+    """A gyro whose error is white noise of the model's density plus a first-order
+    Gauss–Markov bias of known ``σ_m = 2e-3 rad/s``, ``τ = 5 s`` (stationary, exactly
+    discretised), at 20 Hz over 200 s: the likelihood fit of the windows of 1 s and 5 s
+    (:func:`uncertainty.fit_bias_markov`) recovers ``σ_m`` within 20 % and ``τ`` within a
+    factor 2. The bias dominates each window's covariance, so ``σ_m``'s relative standard
+    error is about ``1/√(6 W)``: 3 % for the W = 200 windows of 1 s, about twice that for
+    the correlation of neighbouring windows (the bias is shared over ``τ``), so 20 % is a
+    3σ bound; ``τ`` shows only in how the error grows from 1 s to 5 s (the 40 windows of
+    5 s), a weaker constraint, hence the factor 2. The fitted model's windowed NEES is then
+    3 within the bound of the consistent test above."""
+    dt, sigma_m, tau, density = 0.05, 2e-3, 5.0, 1e-3
+    cfg = ModelConfig(
+        rate_hz=1 / dt,
+        channels=(4,),
+        kernel=3,
+        dilations=(1,),
+        dropout=0.0,
+        bias_tracking=False,
+        gyro_density=density,
+        gyro_random_walk=1e-9,
+        bias_sigma=1e-7,
+        reference_sigma=1e-4,
+    )
+    model = Denoiser(cfg, jax.random.key(0))
+    rng = np.random.default_rng(5)
+    T = int(200 / dt) + 1
+    true = smooth_rates(rng, T)  # (its frequencies are per sample of DT: slower here)
+    R = [Rotation.identity()]
+    for s in Rotation.from_rotvec(true[:-1] * dt):
+        R.append(R[-1] * s)
+    q = np.roll(Rotation.concatenate(R).as_quat(), 1, -1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    a = np.exp(-dt / tau)
+    z = rng.standard_normal((T, 3))
+    b = np.empty((T, 3))
+    b[0] = sigma_m * z[0]
+    for k in range(1, T):
+        b[k] = a * b[k - 1] + sigma_m * np.sqrt(1 - a * a) * z[k]
+    gyro = true + b + density / np.sqrt(dt) * rng.standard_normal((T, 3))
+    zero = np.zeros((T, 3))
+    seq = Sequence("markov", np.arange(T) * dt, gyro, np.tile([0, 0, 9.81], (T, 1)), q, zero, zero)
+    got_sigma, got_tau = uncertainty.fit_bias_markov(model, [seq], steps=30)
+    assert got_sigma == pytest.approx(sigma_m, rel=0.2)
+    assert tau / 2 < got_tau < 2 * tau
+    fitted = uncertainty.with_bias_markov(model, got_sigma, got_tau)
+    assert fitted.config.bias_markov == (got_sigma, got_tau)
+    nees = uncertainty.window_nees(fitted, seq, 1.0)
+    assert abs(nees - 3.0) < 4.0 * np.sqrt(6.0 * 3.0 / 200), nees
