@@ -15,9 +15,10 @@ from test_learning_losses import smooth_rates
 
 from jaximu.learning import Denoiser, ModelConfig, Sequence, uncertainty
 
-DT = 0.005
+DT = 0.05  # 20 Hz: the statistics need windows, not samples (and compile cost is per shape)
 DENSITY, BIAS, WALK, REF = 2e-3, 4e-3, 1e-3, 5e-4  # rad/s/√Hz, rad/s, rad/s²/√Hz, rad
 CFG = ModelConfig(
+    rate_hz=1 / DT,
     channels=(4,),
     kernel=3,
     dilations=(1,),
@@ -68,7 +69,7 @@ def test_the_windowed_nees_of_an_exactly_consistent_model_is_three(seconds):
     the reference's noise at their common sample, a cross-covariance ``C`` of their whitened
     errors with ``|C| ≤ σ_ref² / λ_min(S)``, so their correlation is at most
     ``ρ = (σ_ref² / λ_min(S))²`` and the mean of ``W`` windows has a standard deviation of
-    at most ``√(6 (1 + 2ρ) / W)``: the test allows 4 of those (a 4σ bound; W = 799 and 199
+    at most ``√(6 (1 + 2ρ) / W)``: the test allows 4 of those (a 4σ bound; W = 800 and 200
     windows here: ±0.35 and ±0.70)."""
     n = int(round(seconds / DT))
     seq = consistent_sequence(200.0, n, seed=int(seconds * 4))
