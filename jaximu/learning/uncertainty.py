@@ -17,6 +17,15 @@ cannot set it. It is set instead on the validation parts, by moment matching: th
 (:func:`fit_bias_sigma`; the NEES falls monotonically as ``σ_b`` grows, so a bisection in
 ``log σ_b`` finds it). :func:`leave_one_out` reports each sequence's NEES with ``σ_b`` set
 on the others, so the figure reported for a sequence never saw it.
+
+The whole run's NEES is one draw of that bias; the NEES over many windows of seconds, each
+started from the true attitude (:func:`window_nees`, the error at each window's end), reads
+the covariance over seconds instead. Where the gyro's error varies within a recording (the
+Vicon room recordings of EuRoC), neither ``σ_b`` (set for the whole run) nor a random walk
+(unbounded over it) explains those windows; a first-order Gauss–Markov bias does
+(``ModelConfig.bias_markov_sigma``, ``bias_markov_time``), fitted by the likelihood of the
+held-out windows through the engine's covariance (:func:`fit_bias_markov`,
+:func:`set_bias_markov`).
 """
 
 from __future__ import annotations
