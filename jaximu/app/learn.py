@@ -2,6 +2,7 @@
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
                      [--accel-head] [--no-bias-tracking] [--leave-one-out]
+                     [--bias-markov]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
 Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
@@ -28,6 +29,7 @@ from jaximu.app.common import (
     check_outputs,
     reader_options,
 )
+from jaximu.io import DataError
 
 LEARNING_EXTRA = 'the learning commands need equinox: pip install "jaximu[learning]"'
 
@@ -107,6 +109,8 @@ def cmd_train(args):
     settings = {} if args.steps is None else {"steps": args.steps}
     if args.leave_one_out:
         settings["selection"] = "leave_one_out"
+    if args.bias_markov:
+        settings["bias_markov"] = True
     cfg = learning.TrainConfig(**settings)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
     mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
@@ -119,6 +123,7 @@ def cmd_train(args):
         + (["--accel-head"] if args.accel_head else [])
         + (["--no-bias-tracking"] if args.no_bias_tracking else [])
         + (["--leave-one-out"] if args.leave_one_out else [])
+        + (["--bias-markov"] if args.bias_markov else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
@@ -141,7 +146,25 @@ METHODS = (
 zeroed, printed beside the model so that what the network adds shows."""
 
 
-def _table(rep, windows=None):
+WINDOW_SECONDS = (1.0, 5.0)
+"""The windows of the windowed NEES and of the dead reckoning [s]."""
+
+
+def _window_nees(learning, model, seq):
+    """``{"1s": NEES, "5s": NEES}`` of the windows each started from the true attitude that
+    ``seq`` holds (a window with no reference at both ends in the whole recording: None)."""
+    out = {}
+    for w in WINDOW_SECONDS:
+        if seq.seconds < w:
+            continue
+        try:
+            out[f"{w:g}s"] = learning.window_nees(model, seq, w)
+        except DataError:  # motion-capture dropouts at every window's end
+            out[f"{w:g}s"] = None
+    return out
+
+
+def _table(rep, windows=None, nees=None):
     m = rep.metrics
     lines = [
         f"{rep.name}: {rep.samples} samples, {rep.seconds:.1f} s, compared at "
@@ -158,6 +181,12 @@ def _table(rep, windows=None):
     lines.append(
         f"  learned uncertainty: average NEES {rep.nees_orientation:.2f} (3 when "
         f"consistent), {100 * rep.inside_3sigma:.1f}% of samples inside 3σ"
+        + (
+            "; over windows from the true attitude "
+            + ", ".join(f"{w} {'-' if x is None else f'{x:.2f}'}" for w, x in nees.items())
+            if nees
+            else ""
+        )
     )
     for w, row in (windows or {}).items():
         lines.append(
@@ -187,15 +216,16 @@ def cmd_evaluate(args):
     seqs = _load_all(learning, args)
     for s in seqs:  # every sequence before the first table
         learning.evaluation.check_evaluable(model, s)
-    reports, windows = [], []
+    reports, windows, window_nees = [], [], []
     for s in seqs:
         rep = learning.evaluate_sequence(model, s)
         win = (
-            {f"{w:g}s": learning.evaluation.window_errors(model, s, w) for w in (1.0, 5.0)}
-            if s.b_g is not None and s.seconds >= 5.0
+            {f"{w:g}s": learning.evaluation.window_errors(model, s, w) for w in WINDOW_SECONDS}
+            if s.b_g is not None and s.seconds >= max(WINDOW_SECONDS)
             else {}
         )  # velocities measured
-        print(_table(rep, win))
+        nees = _window_nees(learning, model, s)
+        print(_table(rep, win, nees))
         m = rep.metrics
         if m["learned"].aoe_mean > m["raw"].aoe_mean < m["constant_bias"].aoe_mean:
             # the model's stored bias is its training IMU's: on another kind of IMU it
@@ -209,6 +239,7 @@ def cmd_evaluate(args):
             )
         reports.append(rep)
         windows.append(win)
+        window_nees.append(nees)
     avg = {
         k: float(np.mean([r.metrics[k].aoe_mean for r in reports]))
         for k, _ in METHODS
@@ -216,7 +247,10 @@ def cmd_evaluate(args):
     }
     print("average mean AOE [deg]: " + ", ".join(f"{k} {v:.2f}" for k, v in avg.items()))
     if json_out is not None:
-        seqs_json = [dict(r.to_json(), dead_reckoning=w) for r, w in zip(reports, windows)]
+        seqs_json = [
+            dict(r.to_json(), dead_reckoning=w, window_nees_orientation=n)
+            for r, w, n in zip(reports, windows, window_nees)
+        ]
         doc = {
             "model": str(args.model),
             "sequences": seqs_json,
@@ -230,6 +264,9 @@ def cmd_evaluate(args):
                 "aye": "|yaw| (ZYX Euler) of the world-frame error R_est R_gt^T",
                 "nees_orientation": "average r^T S^-1 r, r = Log(R_gt^T R_est)",
                 "inside_3sigma": "fraction of samples with NEES <= 14.16",
+                "window_nees_orientation": "window -> the average over consecutive windows, "
+                "each integrated from the true attitude, of r^T S^-1 r at the window's end, "
+                "S the model's covariance over the window (3 when consistent)",
                 "dead_reckoning": "window -> variant -> [mean |dv| m/s, mean "
                 "|dp| m] over consecutive windows from the true state",
             },
@@ -305,6 +342,12 @@ def add_parser(sub):
         help="choose the kept step by leaving each recording out in turn (a model trained "
         "on the others, the left-out one integrated whole) instead of by the later seconds "
         "of the same recordings; trains one model per folder, plus the final one",
+    )
+    t.add_argument(
+        "--bias-markov",
+        action="store_true",
+        help="after training, fit a Gauss–Markov gyro bias (σ_m, τ) to the validation parts' "
+        "1-s and 5-s windows and record their windowed NEES before and with it",
     )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(

@@ -6,7 +6,9 @@ in equinox), on top of the gyro bias tracked from gravity over the whole recordi
 (:func:`track_gyro_bias`: an EKF on jaximu's propagation, no ground truth). It is trained through jaximu's own batched preintegration on orientation
 increments, with the likelihood of the increment errors under the covariance that jaximu
 propagates from the learned density (:func:`train`), and evaluated on whole sequences
-integrated open loop from the first true attitude (:func:`evaluate_sequence`).
+integrated open loop from the first true attitude (:func:`evaluate_sequence`), and over
+windows of seconds each started from the true attitude (:func:`window_nees`, the
+uncertainty's consistency where the whole run's NEES is dominated by its bias).
 """
 
 from jaximu.learning.checkpoint import load, pretrained, save
@@ -22,6 +24,7 @@ from jaximu.learning.evaluation import (
 from jaximu.learning.model import CausalConv, Corrected, Denoiser, ModelConfig
 from jaximu.learning.tracking import Tracked, TrackerSettings, track_gyro_bias
 from jaximu.learning.training import TrainConfig, TrainResult, train
+from jaximu.learning.uncertainty import fit_bias_markov, window_nees
 
 __all__ = [
     "Denoiser",
@@ -41,6 +44,8 @@ __all__ = [
     "integrate_attitude",
     "orientation_errors",
     "attitude_covariance",
+    "window_nees",
+    "fit_bias_markov",
     "Metrics",
     "SequenceReport",
     "save",

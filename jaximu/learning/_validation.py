@@ -70,8 +70,8 @@ def _nees_arrays(model, v: ValidationBatch):
     compare = _shifted(v.compare[..., None], first)[..., 0] & inside
     h = h[:, :-1, 0]
     r, _, _ = orientation_errors(integrate_attitude(q[:, 0], g, h), q)
-    rw = model.config.gyro_random_walk
-    W, B = jax.vmap(lambda gi, di, hi, si: attitude_terms(gi, di, hi, rw, si))(g, d, h, s)
+    rw, markov = model.config.gyro_random_walk, model.config.bias_markov
+    W, B = jax.vmap(lambda gi, di, hi, si: attitude_terms(gi, di, hi, rw, si, markov))(g, d, h, s)
     return r, W, B, compare, model.reference_sigma.astype(jnp.float32)
 
 

@@ -52,11 +52,13 @@ __all__ = [
     "integrate_attitude",
     "orientation_errors",
     "attitude_covariance",
+    "markov_attitude",
     "Metrics",
     "SequenceReport",
     "evaluate_sequence",
     "window_errors",
     "stamp_steps",
+    "window_samples",
     "CHI2_3_3SIGMA",
 ]
 
@@ -134,7 +136,26 @@ def orientation_errors(q_est, q_true):
     return r, aoe, jnp.abs(yaw)
 
 
-def attitude_terms(gyro, density, dt, random_walk, tracked_sigma=None):
+def markov_attitude(F, dt, time, save_all: bool = True):
+    """The attitude error covariance ``(T, 3, 3)`` after each of the steps ``F``
+    ``(T, 6, 6)`` (:func:`jaximu.learning.losses.rotation_step_blocks`' transitions of
+    ``[δθ, δb_g]``) from a zero attitude error, of a gyro bias that is a first-order
+    Gauss–Markov process of unit stationary standard deviation [rad/s] and correlation
+    time ``time`` [s]: started from its stationary ``N(0, I)``, each step of ``dt`` [s]
+    (scalar or ``(T,)``) multiplies it by ``a = exp(-dt/τ)`` and adds ``N(0, (1 - a²) I)``
+    (the exact discretisation). A bias of stationary ``σ_m`` adds ``σ_m²`` times this; the
+    final one alone without ``save_all``. Differentiable in ``time``."""
+    h = jnp.broadcast_to(jnp.asarray(dt, F.dtype), F.shape[:-2])
+    time = jnp.asarray(time).astype(F.dtype)
+    eye = jnp.eye(3, dtype=F.dtype)
+    a = jnp.exp(-h / time)[..., None, None]
+    Fm = F.at[..., 3:6, 3:6].set(a * eye)
+    Qm = jnp.zeros_like(F).at[..., 3:6, 3:6].set(-jnp.expm1(-2.0 * h / time)[..., None, None] * eye)
+    P0 = jnp.zeros((6, 6), F.dtype).at[3:6, 3:6].set(eye)
+    return accumulate_covariance(Fm, Qm, P0, save_all=save_all)[..., 0:3, 0:3]
+
+
+def attitude_terms(gyro, density, dt, random_walk, tracked_sigma=None, markov=None):
     """``(W, B)``, each ``(T, 3, 3)``: the attitude error covariance of an open-loop run from
     a true attitude is ``W_k + B_k Σ_b B_kᵀ`` for a residual gyro bias of covariance
     ``Σ_b``. ``[δθ, δb_g]`` is propagated from zero with the per-sample ``density`` ``(T, 3)``
@@ -146,9 +167,14 @@ def attitude_terms(gyro, density, dt, random_walk, tracked_sigma=None):
     are taken as one error shrinking with the tracker's ``σ`` (``δb_τ = diag(σ_τ) z``,
     ``z ~ N(0, I)``, fully correlated in time: the tracker's estimate moves slowly), whose
     covariance ``B'_k B'_kᵀ`` is added to ``W``: ``B'_k`` is ``B_k`` accumulated with each
-    step's bias column scaled by ``σ_τ``."""
+    step's bias column scaled by ``σ_τ``.
+
+    ``markov``: ``(σ_m [rad/s], τ [s])``, a Gauss–Markov part of the bias
+    (:func:`markov_attitude`, independent of the rest), added to ``W``; or None."""
     F, Q = rotation_step_blocks(gyro[:-1], density[:-1], dt, random_walk)
     W = accumulate_covariance(F, Q, save_all=True)[..., 0:3, 0:3]
+    if markov is not None:
+        W = W + markov[0] ** 2 * markov_attitude(F, dt, markov[1])
     Phi = transition_products(F)
     z = jnp.zeros((1, 3, 3), gyro.dtype)
     if tracked_sigma is not None:
@@ -159,17 +185,18 @@ def attitude_terms(gyro, density, dt, random_walk, tracked_sigma=None):
 
 
 def attitude_covariance(
-    gyro, density, dt, bias_sigma, random_walk, reference_sigma, tracked_sigma=None
+    gyro, density, dt, bias_sigma, random_walk, reference_sigma, tracked_sigma=None, markov=None
 ):
     """``(T, 3, 3)`` covariance of the attitude error at every sample of an open-loop run
-    from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I`` and the tracked
-    bias's ``tracked_sigma``), plus the ground truth's own noise ``2 σ_ref² I`` (at the start
-    and at each compared sample).
+    from a true attitude (:func:`attitude_terms` with ``Σ_b = σ_b² I``, the tracked
+    bias's ``tracked_sigma`` and the Gauss–Markov bias ``markov``), plus the ground truth's
+    own noise ``2 σ_ref² I`` (at the start and at each compared sample).
 
     Args:
         gyro: ``(T, 3)`` [rad/s]; density: ``(T, 3)`` [rad/s/√Hz] ``≥ 0``; dt: scalar or
             ``(T-1,)`` [s] ``> 0``; bias_sigma [rad/s], random_walk [rad/s²/√Hz]: ``≥ 0``;
-            reference_sigma [rad] ``> 0``; tracked_sigma: ``(T, 3)`` [rad/s] ``≥ 0`` or None.
+            reference_sigma [rad] ``> 0``; tracked_sigma: ``(T, 3)`` [rad/s] ``≥ 0`` or None;
+            markov: ``(σ_m [rad/s] ≥ 0, τ [s] > 0)`` or None (``ModelConfig.bias_markov``).
             All finite (checked on eager calls; shapes always).
     """
     dtype = float_dtype(gyro, density, dt, bias_sigma, random_walk, reference_sigma)
@@ -203,8 +230,20 @@ def attitude_covariance(
                 f"tracked_sigma must have gyro's shape ({T}, 3) (Corrected.gyro_bias_sigma), "
                 f"got {tuple(tracked_sigma.shape)}"
             )
+    if markov is not None:
+        try:
+            sm, tau = markov
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"markov must be a pair (sigma [rad/s], time [s]) or None, got {markov!r}"
+            ) from None
+        sm = check_sign("markov[0]", sm, dtype, unit="rad/s", fix="pass σ_m ≥ 0 (0: none)")
+        tau = check_sign("markov[1]", tau, dtype, strict=True, unit="s", fix="pass τ > 0")
+        if sm.ndim or tau.ndim:
+            raise ValueError("markov must be two numbers (sigma [rad/s], time [s])")
+        markov = (sm, tau)
     dt = _intervals("dt", dt, T, dtype, gyro) if T > 1 else to_dtype("dt", dt, dtype)
-    W, B = attitude_terms(gyro, density, dt, random_walk, tracked_sigma)
+    W, B = attitude_terms(gyro, density, dt, random_walk, tracked_sigma, markov)
     eye = jnp.eye(3, dtype=gyro.dtype)
     return W + bias_sigma**2 * (B @ jnp.swapaxes(B, -1, -2)) + 2.0 * reference_sigma**2 * eye
 
@@ -288,6 +327,7 @@ def _learned_run(model, gyro, accel, q0, dt, k, h, q_ref, with_cov=True):
         cfg.gyro_random_walk,
         model.reference_sigma.astype(gyro.dtype),
         c.gyro_bias_sigma,
+        cfg.bias_markov,
     )[k]  # the sample's before the stamp (within one interval)
     L = jnp.linalg.cholesky(S)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
@@ -390,28 +430,8 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     ``"constant_bias"`` (both sensors minus the stored biases), ``"learned_gyro"`` (the
     learned gyro, the accelerometer minus its constant bias) and ``"learned"`` (both
     corrected; the same as ``"learned_gyro"`` without an accelerometer head)."""
-    check_model("model", model)
-    check_sequence("seq", seq)
-    check_rate(seq, model.config.rate_hz)
-    check_positive("seconds", seconds)
-    start = check_int("start", start, 0)
+    n, start = window_samples(model, seq, seconds, start)
     dtype = compute_dtype("dtype", dtype)
-    if start > len(seq) - 2:
-        raise InputError(
-            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
-            [Fix("start", 0)],
-            lead="pass a smaller one, e.g.",
-        )
-    n = int(round(seconds * seq.rate_hz))
-    span = (len(seq) - 1 - start) / seq.rate_hz
-    if n < 1 or n > len(seq) - 1 - start:
-        what = "shorter than one sample interval" if n < 1 else "longer than"
-        raise InputError(
-            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
-            f"{seq.name!r} from sample {start} on",
-            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
-            lead="pass",
-        )
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)
@@ -433,6 +453,37 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
         )
         out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
     return out
+
+
+def window_samples(model, seq: Sequence, seconds: float, start: int = 0) -> tuple[int, int]:
+    """``(n, start)``: the samples per window of ``seconds`` at ``seq``'s rate, and
+    ``start``, once checked: ``model`` a :class:`jaximu.learning.Denoiser`, ``seq`` a
+    :class:`Sequence` at its rate, ``seconds`` positive and between one sample interval and
+    the recording's length from sample ``start`` on (:func:`window_errors`, and the
+    windowed NEES, :func:`jaximu.learning.uncertainty.window_nees`); else an error naming
+    the argument and the range to pass."""
+    check_model("model", model)
+    check_sequence("seq", seq)
+    check_rate(seq, model.config.rate_hz)
+    check_positive("seconds", seconds, hint=": pass the window's length [s], e.g. 1.0")
+    start = check_int("start", start, 0)
+    if start > len(seq) - 2:
+        raise InputError(
+            f"start = {start} leaves no step of sequence {seq.name!r} ({len(seq)} samples)",
+            [Fix("start", 0)],
+            lead="pass a smaller one, e.g.",
+        )
+    n = int(round(seconds * seq.rate_hz))
+    span = (len(seq) - 1 - start) / seq.rate_hz
+    if n < 1 or n > len(seq) - 1 - start:
+        what = "shorter than one sample interval" if n < 1 else "longer than"
+        raise InputError(
+            f"seconds = {seconds!r}: a window {what} the {span:.4g} s of sequence "
+            f"{seq.name!r} from sample {start} on",
+            [Fix("seconds", phrase=f"{{}} between {1 / seq.rate_hz:.3g} and {span:.4g}")],
+            lead="pass",
+        )
+    return n, start
 
 
 def check_evaluable(model, seq: Sequence, name: str = "seq") -> None:

@@ -85,6 +85,12 @@ class ModelConfig:
         standstill: whether the tracker takes the bias about the vertical from windows of
             1 s at rest (:mod:`jaximu.learning.tracking`; a model saved without this
             setting loads with it off, as it was trained).
+        bias_markov_sigma, bias_markov_time: a slowly varying part of the residual gyro
+            bias, a first-order Gauss–Markov process per axis (``ḃ = -b/τ + w``) of
+            stationary standard deviation ``σ_m`` [rad/s] and correlation time ``τ`` [s]
+            (the orientation covariance's term beside the constant ``σ_b`` and the random
+            walk; :func:`jaximu.learning.uncertainty.fit_bias_markov` sets them). ``σ_m = 0``
+            (a model saved without them): none.
     """
 
     rate_hz: float = 200.0
@@ -111,6 +117,8 @@ class ModelConfig:
     velocity_sigma: float = 1.0
     update_samples: int = 20
     standstill: bool = True
+    bias_markov_sigma: float = 0.0
+    bias_markov_time: float = 60.0
 
     def __post_init__(self):
         for field in (
@@ -162,6 +170,17 @@ class ModelConfig:
             "reference_sigma",
         ):  # densities; the last two are stored as logarithms
             check_positive(f"{name}.{field}", getattr(self, field))
+        check_positive(
+            f"{name}.bias_markov_sigma",
+            self.bias_markov_sigma,
+            allow_zero=True,
+            hint=" [rad/s]: pass 0 for no Gauss–Markov bias",
+        )
+        check_positive(
+            f"{name}.bias_markov_time",
+            self.bias_markov_time,
+            hint=" [s]: pass the bias's correlation time, e.g. 60.0",
+        )
         if len(self.channels) != len(self.dilations):
             raise ValueError(
                 f"ModelConfig: channels {self.channels} and dilations "
@@ -207,6 +226,13 @@ class ModelConfig:
     def receptive_field(self) -> int:
         """Samples the output at ``k`` depends on (``k - receptive_field + 1 … k``)."""
         return 1 + (self.kernel - 1) * int(sum(self.dilations))
+
+    @property
+    def bias_markov(self) -> tuple[float, float] | None:
+        """``(σ_m [rad/s], τ [s])`` of the Gauss–Markov bias, or None without one."""
+        if self.bias_markov_sigma > 0:
+            return (float(self.bias_markov_sigma), float(self.bias_markov_time))
+        return None
 
     @property
     def corrections(self) -> int:

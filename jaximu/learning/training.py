@@ -109,7 +109,12 @@ class TrainConfig:
         calibrate_uncertainty: after training, fit the ground truth's attitude noise
             ``σ_ref`` to the kept network by the likelihood of the training windows, then set
             the residual gyro bias ``σ_b`` on the validation parts
-            (:mod:`jaximu.learning.uncertainty`).
+            (:mod:`jaximu.learning.uncertainty`); the validation parts' windowed NEES
+            (1 s and 5 s, :func:`jaximu.learning.uncertainty.window_nees`) is recorded.
+        bias_markov: with ``calibrate_uncertainty``, then fit a Gauss–Markov gyro bias
+            (``ModelConfig.bias_markov_sigma``, ``bias_markov_time``) by the likelihood of
+            the validation parts' windows of 1 s and 5 s
+            (:func:`jaximu.learning.uncertainty.set_bias_markov`).
         selection: how the kept step is chosen: ``"validation"``, the lowest mean AOE on
             the validation parts (the later seconds of the training recordings, which share
             their bias), or ``"leave_one_out"``: each recording left out in turn and
@@ -145,6 +150,7 @@ class TrainConfig:
     ema: float = 0.98
     recording_offsets: bool = True
     selection: str = "validation"
+    bias_markov: bool = False
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -168,7 +174,7 @@ class TrainConfig:
             check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
         if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
-        for field in ("calibrate_uncertainty", "recording_offsets"):
+        for field in ("calibrate_uncertainty", "recording_offsets", "bias_markov"):
             check_bool(f"{name}.{field}", getattr(self, field))
         if self.selection not in ("validation", "leave_one_out"):
             raise ValueError(
@@ -565,6 +571,8 @@ def _fit(
         )
         terms = _validation.nees_terms(model, vdata)
         model = uncertainty.set_bias_sigma(model, terms, [v.name for v in vals], record, say)
+        if cfg.bias_markov:  # (its windows are compiled per recording: asked for, not default)
+            model = uncertainty.set_bias_markov(model, sequences, vals, record, say)
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
         )

@@ -17,10 +17,20 @@ cannot set it. It is set instead on the validation parts, by moment matching: th
 (:func:`fit_bias_sigma`; the NEES falls monotonically as ``σ_b`` grows, so a bisection in
 ``log σ_b`` finds it). :func:`leave_one_out` reports each sequence's NEES with ``σ_b`` set
 on the others, so the figure reported for a sequence never saw it.
+
+The whole run's NEES is one draw of that bias; the NEES over many windows of seconds, each
+started from the true attitude (:func:`window_nees`, the error at each window's end), reads
+the covariance over seconds instead. Where the gyro's error varies within a recording (the
+Vicon room recordings of EuRoC), neither ``σ_b`` (set for the whole run) nor a random walk
+(unbounded over it) explains those windows; a first-order Gauss–Markov bias does
+(``ModelConfig.bias_markov_sigma``, ``bias_markov_time``), fitted by the likelihood of the
+held-out windows through the engine's covariance (:func:`fit_bias_markov`,
+:func:`set_bias_markov`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import equinox as eqx
@@ -29,16 +39,24 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaximu.geometry._checks import check_int, check_positive
+from jaximu.geometry._checks import check_int, check_output, check_positive, compute_dtype
+from jaximu.io import DataError
 from jaximu.learning.data import check_sequence
-from jaximu.learning.evaluation import attitude_terms, integrate_attitude, orientation_errors
+from jaximu.learning.evaluation import (
+    attitude_terms,
+    integrate_attitude,
+    markov_attitude,
+    orientation_errors,
+    window_samples,
+)
 from jaximu.learning.losses import (
     check_horizons,
     gaussian_nll,
     increment_terms,
     rotation_covariance,
+    rotation_step_blocks,
 )
-from jaximu.learning.model import check_model
+from jaximu.learning.model import Denoiser, check_model
 
 __all__ = [
     "NeesTerms",
@@ -47,6 +65,11 @@ __all__ = [
     "fit_bias_sigma",
     "fit_reference_sigma",
     "leave_one_out",
+    "window_nees_terms",
+    "window_nees",
+    "fit_bias_markov",
+    "with_bias_markov",
+    "set_bias_markov",
     "with_bias_sigma",
     "with_reference_sigma",
     "set_bias_sigma",
@@ -69,8 +92,9 @@ def _terms(model, gyro, accel, q_true, dt, start):
     g, d, q = c.gyro[start:], c.gyro_density[start:], q_true[start:]
     qs = integrate_attitude(q[0], g, dt[start:])
     r, _, _ = orientation_errors(qs, q)
+    cfg = model.config
     W, B = attitude_terms(
-        g, d, dt[start:], model.config.gyro_random_walk, c.gyro_bias_sigma[start:]
+        g, d, dt[start:], cfg.gyro_random_walk, c.gyro_bias_sigma[start:], cfg.bias_markov
     )
     return NeesTerms(r, W, B, model.reference_sigma.astype(g.dtype))
 
@@ -126,6 +150,314 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
     return out
 
 
+@partial(jax.jit, static_argnames=("n", "steps"))
+def _window_nees_run(model, gyro, accel, q_true, dt, i0, n, steps=False):
+    """The NEES terms at the ends of the windows of ``n`` steps from the samples ``i0``
+    ``(W,)``, each integrated from its true attitude (the network sees the whole run). With
+    ``steps``: and the windows' step transitions ``(W, n, 6, 6)`` and intervals ``(W, n)``
+    for :func:`fit_bias_markov`."""
+    if steps:
+        return _window_nees_run(model, gyro, accel, q_true, dt, i0, n), _window_steps(
+            model, gyro, accel, dt, i0, n
+        )
+    c = model(gyro, accel)
+    idx = i0[:, None] + jnp.arange(n + 1)  # (W, n + 1): each window's samples, both ends in
+    g = c.gyro[idx]
+    h = dt[idx[:, :-1]]
+    q_end = jax.vmap(lambda q0, g, h: integrate_attitude(q0, g, h)[-1])(q_true[i0], g, h)
+    r, _, _ = orientation_errors(q_end, q_true[i0 + n])
+    rw, markov = model.config.gyro_random_walk, model.config.bias_markov
+    W, B = jax.vmap(lambda g, d, h, s: attitude_terms(g, d, h, rw, s, markov))(
+        g, c.gyro_density[idx], h, c.gyro_bias_sigma[idx]
+    )
+    return NeesTerms(r, W[:, -1], B[:, -1], model.reference_sigma.astype(g.dtype))
+
+
+def _window_steps(model, gyro, accel, dt, i0, n):
+    c = model(gyro, accel)
+    idx = i0[:, None] + jnp.arange(n)
+    h = dt[idx]
+    F, _ = rotation_step_blocks(c.gyro[idx], c.gyro_density[idx], h, 0.0)
+    return F, h
+
+
+def _windows(model, seq, seconds, start, dtype, steps=False):
+    """:func:`window_nees_terms` (with ``steps``: and the windows' steps, see
+    :func:`_window_nees_run`)."""
+    n, start = window_samples(model, seq, seconds, start)
+    dtype = compute_dtype("dtype", dtype)
+    i0 = start + n * np.arange((len(seq) - 1 - start) // n)
+    ref = seq.has_reference
+    i0 = i0[ref[i0] & ref[i0 + n]]
+    if not len(i0):
+        raise DataError(
+            f"sequence {seq.name!r}: none of its windows of {seconds!r} s from sample "
+            f"{start} on has a ground-truth reference at both ends (motion-capture "
+            "dropouts): pass shorter seconds"
+        )
+    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    return check_output(
+        "window_nees_terms",
+        _window_nees_run(
+            model,
+            cast(seq.gyro),
+            cast(seq.accel),
+            cast(seq.q),
+            cast(seq.dt),
+            jnp.asarray(i0),
+            n,
+            steps,
+        ),
+        f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
+    )
+
+
+def window_nees_terms(model, seq, seconds: float, start: int = 0, dtype=jnp.float32) -> NeesTerms:
+    """The NEES terms of the orientation error at the end of each of the consecutive
+    windows of ``seconds`` from sample ``start`` on, each integrated open loop from its own
+    true attitude with ``model``'s corrected gyro (the network sees the whole recording, the
+    samples before ``start`` as context): ``r = Log(R_trueᵀ R̂)`` ``(W, 3)`` [rad] at each
+    window's last sample, and the covariance terms over that window alone
+    (:func:`jaximu.learning.evaluation.attitude_terms`: the learned density, the bias random
+    walk ``ModelConfig.gyro_random_walk`` and the tracked bias's ``σ``; ``B`` for the
+    residual bias ``σ_b``, which :func:`average_nees` adds with ``2 σ_ref² I``, the ground
+    truth's noise at the window's two ends).
+
+    The error is taken at the window's end only, so the windows' NEES are independent draws
+    up to the bias they share; a window is kept when the ground truth has a reference
+    (:attr:`jaximu.learning.Sequence.has_reference`) at both its ends, so a motion-capture
+    dropout inside it does not matter. A tail shorter than a window is left out.
+
+    Raises:
+        ValueError / InputError: ``model`` or ``seq`` not what they should be, ``seconds``
+            not positive or outside one sample interval … the recording's length from
+            ``start`` on, ``start`` past the last step (:func:`window_samples`); DataError:
+            no window with a reference at both ends.
+    """
+    return _windows(model, seq, seconds, start, dtype)
+
+
+def window_nees(
+    model, seq, seconds: float, start: int = 0, dtype=jnp.float32, bias_sigma=None
+) -> float:
+    """The average orientation NEES over the consecutive windows of ``seconds`` of ``seq``
+    from sample ``start`` on, each window started from the true attitude and the error
+    taken at its end (:func:`window_nees_terms`), with the model's covariance over the
+    window: 3 when the model is consistent at that horizon. ``bias_sigma`` [rad/s]: the
+    residual gyro bias, the model's ``σ_b`` when None. The whole run's NEES is
+    :attr:`jaximu.learning.SequenceReport.nees_orientation`."""
+    t = window_nees_terms(model, seq, seconds, start, dtype)
+    sigma = (
+        float(model.bias_sigma)
+        if bias_sigma is None
+        else check_positive("bias_sigma", bias_sigma, allow_zero=True)
+    )
+    return average_nees(t, sigma)
+
+
+@jax.jit
+def _markov_nll(p, data):
+    """The negative log-likelihood of the windows' orientation errors, each horizon's mean
+    summed (as :func:`_window_nll`'s), with a Gauss–Markov bias of ``σ_m = exp(p₀)``,
+    ``τ = τ₀ + exp(p₁)`` added to each window's covariance; ``data``: ``(τ₀, per horizon
+    (terms, F, h, σ_b))``."""
+    tau0, data = data
+    sm, tau = jnp.exp(p[0]), tau0 + jnp.exp(p[1])
+    out = 0.0
+    for t, F, h, sb in data:
+        S = (
+            t.W
+            + sb**2 * t.B @ jnp.swapaxes(t.B, -1, -2)
+            + sm**2 * markov_attitude(F, h, tau, save_all=False)
+            + 2.0 * t.reference_sigma**2 * jnp.eye(3, dtype=t.W.dtype)
+        )
+        out = out + gaussian_nll(t.r, S)
+    return out
+
+
+def fit_bias_markov(
+    model,
+    sequences,
+    starts=None,
+    seconds=(1.0, 5.0),
+    *,
+    bias_sigma=None,
+    steps: int = 100,
+    dtype=jnp.float32,
+) -> tuple[float, float]:
+    """``(σ_m [rad/s], τ [s])`` of a first-order Gauss–Markov gyro bias (stationary
+    standard deviation, correlation time) maximising the likelihood of the orientation
+    errors at the ends of the windows of ``seconds`` of ``sequences``, each window started
+    from the true attitude (:func:`window_nees_terms`), with the covariance the model
+    predicts over the window plus the Gauss–Markov bias's
+    (:func:`jaximu.learning.evaluation.markov_attitude`, through the engine's
+    :func:`jaximu.accumulate_covariance`): the term a slowly varying bias error needs,
+    which neither the constant ``σ_b`` (too small over a few seconds once set for the whole
+    run) nor a random walk (unbounded over the whole run) can give. The network is fixed;
+    L-BFGS in ``(log σ_m, log(τ - τ₀))`` from ``τ₀ + 10 s`` and the ``σ_m`` that alone
+    would explain the shortest windows' errors, the model's own
+    Gauss–Markov bias left out of the covariance. ``τ₀`` is the shortest window: the bias
+    is the slowly varying error, and an error that varies faster than the shortest window
+    is white noise over the windows, the learned density's to explain (unbounded, the
+    likelihood of windows whose errors grow slower than ``√t``, the ground truth's own
+    error over seconds, takes ``τ`` to zero: a white noise of ``σ_m √dt``, which depends on
+    the sampling interval and is not the bias the term is for).
+
+    Args:
+        sequences: :class:`jaximu.learning.Sequence` s (held-out data: the validation parts).
+        starts: per sequence, the sample the windows start from (the samples before are the
+            network's context), or None (0 each).
+        seconds: the windows' lengths [s]; a sequence shorter than one of them from its start
+            has no window of it.
+        bias_sigma: the constant residual bias ``σ_b`` [rad/s] (None: the model's).
+        steps: L-BFGS iterations at most.
+
+    Raises:
+        ValueError / InputError: bad arguments, named; DataError: no window at all.
+    """
+    check_model("model", model)
+    if not isinstance(sequences, (list, tuple)) or not sequences:
+        raise ValueError(
+            "sequences must be a non-empty list of jaximu.learning.Sequence, got "
+            f"{type(sequences).__name__}"
+        )
+    for i, s in enumerate(sequences):
+        check_sequence(f"sequences[{i}]", s)
+    starts = [0] * len(sequences) if starts is None else list(starts)
+    if len(starts) != len(sequences):
+        raise ValueError(
+            f"starts must give one sample per sequence ({len(sequences)}), got {len(starts)}"
+        )
+    starts = [check_int(f"starts[{i}]", x, 0) for i, x in enumerate(starts)]
+    try:
+        seconds = tuple(seconds)
+    except TypeError:
+        raise ValueError(
+            f"seconds must be window lengths [s], e.g. (1.0, 5.0), got {seconds!r}"
+        ) from None
+    if not seconds:
+        raise ValueError("seconds must name at least one window length [s], e.g. (1.0, 5.0)")
+    seconds = tuple(
+        check_positive(f"seconds[{i}]", x, hint=": pass window lengths [s], e.g. (1.0, 5.0)")
+        for i, x in enumerate(seconds)
+    )
+    steps = check_int("steps", steps, 1)
+    sb = (
+        float(model.bias_sigma)
+        if bias_sigma is None
+        else check_positive("bias_sigma", bias_sigma, allow_zero=True)
+    )
+    parts = _markov_parts(model, sequences, starts, seconds, dtype)
+    return _fit_markov(parts, sb, min(seconds), steps)
+
+
+def _markov_parts(model, sequences, starts, seconds, dtype=jnp.float32) -> dict:
+    """``{seconds: [(i, terms, F, h)]}``: for each window length, each sequence ``i`` that
+    holds a window of it with a reference at both ends from ``starts[i]`` on, its
+    :func:`window_nees_terms` without the model's Gauss–Markov bias, and its windows' step
+    transitions and intervals (what :func:`markov_attitude` needs)."""
+    base = with_bias_markov(model, 0.0)
+    out: dict = {}
+    for w in seconds:
+        out[w] = []
+        for i, (s, k) in enumerate(zip(sequences, starts)):
+            if (len(s) - 1 - k) / s.rate_hz < w:
+                continue
+            try:
+                t, (F, h) = _windows(base, s, w, k, dtype, steps=True)
+            except DataError:  # no window with a reference at both ends
+                continue
+            out[w].append((i, t, F, h))
+    return out
+
+
+def _fit_markov(parts: dict, bias_sigma: float, tau0: float, steps: int = 100):
+    """:func:`fit_bias_markov` on :func:`_markov_parts`' windows."""
+    cat = lambda xs: jnp.concatenate(list(xs), 0)  # noqa: E731
+    data = []
+    for w in sorted(parts):  # the shortest first
+        rows = parts[w]
+        if not rows:
+            continue
+        t = NeesTerms(
+            cat(r[1].r for r in rows),
+            cat(r[1].W for r in rows),
+            cat(r[1].B for r in rows),
+            rows[0][1].reference_sigma,
+        )
+        F, h = cat(r[2] for r in rows), cat(r[3] for r in rows)
+        data.append((t, F, h, jnp.asarray(bias_sigma, t.W.dtype)))
+    if not data:
+        raise DataError(
+            f"no sequence holds a window of {min(parts):g} s with a ground-truth reference "
+            "at both ends from its start: give longer sequences or shorter seconds"
+        )
+    # from the bias that alone would explain the shortest windows' errors (where the
+    # likelihood's gradient is not lost under the other terms)
+    t = data[0][0]
+    start = np.sqrt(np.mean(np.sum(np.asarray(t.r, np.float64) ** 2, -1)) / 3.0) / tau0
+    p0 = jnp.asarray([np.log(max(start, 1e-9)), np.log(10.0)], data[0][1].dtype)
+    p = np.asarray(_lbfgs(_markov_nll, p0, (jnp.asarray(tau0, p0.dtype), data), steps))
+    return float(np.exp(p[0])), float(tau0 + np.exp(p[1]))
+
+
+def _with_markov_terms(t: NeesTerms, F, h, markov) -> NeesTerms:
+    """``t`` with a Gauss–Markov bias ``markov = (σ_m, τ)`` added to its ``W``."""
+    sm, tau = markov
+    return NeesTerms(t.r, t.W + sm**2 * markov_attitude(F, h, tau, False), t.B, t.reference_sigma)
+
+
+def set_bias_markov(model, sequences, vals, record, say, fit: bool = True):
+    """After :func:`set_bias_sigma`: the windowed NEES (1 s and 5 s,
+    :func:`window_nees`) of each validation part ``vals`` of ``sequences``, recorded in
+    ``record["uncertainty"]``; with ``fit``, ``model`` with a Gauss–Markov bias fitted on
+    those windows (:func:`fit_bias_markov`) and the NEES with it recorded beside."""
+    starts = [len(s) - len(v) for s, v in zip(sequences, vals)]
+    parts = _markov_parts(model, sequences, starts, (1.0, 5.0))
+    sb = float(model.bias_sigma)
+
+    def table(markov):
+        out: dict = {v.name: {} for v in vals}
+        for w, rows in parts.items():
+            for i, t, F, h in rows:
+                t = t if markov is None else _with_markov_terms(t, F, h, markov)
+                out[vals[i].name][f"{w:g}s"] = average_nees(t, sb)
+        return out
+
+    def line(nees):
+        return " ".join(
+            f"{n} " + "/".join(f"{x:.2f}" for x in row.values()) for n, row in nees.items() if row
+        )
+
+    u = record.setdefault("uncertainty", {})
+    u["validation_window_nees"] = before = table(model.config.bias_markov)
+    say(f"validation windowed NEES (1 s / 5 s from the true attitude): {line(before)}")
+    if not fit or not any(parts.values()):
+        return model
+    markov = _fit_markov(parts, sb, 1.0)
+    u["bias_markov_sigma"], u["bias_markov_time"] = markov
+    u["validation_window_nees_markov"] = after = table(markov)
+    say(
+        f"Gauss–Markov gyro bias σ_m = {markov[0]:.3g} rad/s, τ = {markov[1]:.3g} s, by the "
+        f"likelihood of those windows; their NEES with it: {line(after)}"
+    )
+    return with_bias_markov(model, *markov)
+
+
+def with_bias_markov(model, sigma: float, time: float | None = None):
+    """``model`` with its Gauss–Markov bias set to ``sigma`` [rad/s] (0: none) and
+    correlation time ``time`` [s] (None: the model's), in its settings
+    (``ModelConfig.bias_markov_sigma``, ``bias_markov_time``: saved with it)."""
+    check_model("model", model)
+    cfg = model.config
+    time = cfg.bias_markov_time if time is None else time
+    new = dataclasses.replace(cfg, bias_markov_sigma=sigma, bias_markov_time=time)
+    skeleton = Denoiser(new, jax.random.key(0))  # the same structure; the weights are model's
+    return jax.tree_util.tree_unflatten(
+        jax.tree_util.tree_structure(skeleton), jax.tree_util.tree_leaves(model)
+    )
+
+
 def _with_log(model, where, value: float, name: str):
     """``model`` with the log-parameter ``where(model)`` set to ``log(value)``, in its dtype
     (``value`` a positive number, named ``name`` if not)."""
@@ -155,11 +487,11 @@ def _window_nll(log_sigmas, terms):
     return sum(gaussian_nll(r, rotation_covariance(Phi, Q, sb, sr), m) for r, Phi, Q, m in terms)
 
 
-@partial(jax.jit, static_argnums=2)
-def _lbfgs(p, terms, steps):
-    """L-BFGS on :func:`_window_nll` from ``p`` (optax's, its zoom line search), one
+@partial(jax.jit, static_argnums=(0, 3))
+def _lbfgs(nll, p, terms, steps):
+    """L-BFGS on ``nll(p, terms)`` from ``p`` (optax's, its zoom line search), one
     compiled loop: until the gradient's largest entry is under 1e-6 or ``steps`` iterations."""
-    f = lambda q: _window_nll(q, terms)  # noqa: E731
+    f = lambda q: nll(q, terms)  # noqa: E731
     opt = optax.lbfgs()
     value_and_grad = optax.value_and_grad_from_state(f)
 
@@ -208,7 +540,7 @@ def fit_reference_sigma(
     horizons, skip = check_horizons("horizons", horizons), check_int("skip", skip, 0)
     terms = _window_terms(model, gyro, accel, gyro_bias, q_true, dt, horizons, skip, reference)
     p0 = jnp.stack([model.log_bias_sigma, model.log_reference_sigma]).astype(gyro.dtype)
-    p = _lbfgs(p0, terms, check_int("steps", steps, 1))
+    p = _lbfgs(_window_nll, p0, terms, check_int("steps", steps, 1))
     sb, sr = np.exp(np.asarray(p, np.float64))
     return float(sr), float(sb)
 

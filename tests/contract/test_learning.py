@@ -12,6 +12,7 @@ every call; the refusals compile nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import equinox as eqx
@@ -199,6 +200,15 @@ def test_a_minimum_learning_rate_above_the_learning_rate_is_refused():
         (dict(kernel=4), r"^ModelConfig\.kernel .* got 4; pass kernel=5"),
         (dict(accel_head="yes"), r"^ModelConfig\.accel_head must be True or False"),
         (dict(gyro_bias=((0, 0, 0), (0, 0, 0))), r"ModelConfig\.gyro_bias must have shape"),
+        (
+            dict(bias_markov_sigma=-1e-3),
+            r"^ModelConfig\.bias_markov_sigma must be non-negative .*pass 0 for no Gauss",
+        ),
+        (
+            dict(bias_markov_time=0.0),
+            r"^ModelConfig\.bias_markov_time must be positive .*pass the bias's correlation",
+        ),
+        (dict(bias_markov_time=float("inf")), r"^ModelConfig\.bias_markov_time must be positive"),
     ],
 )
 def test_model_settings_name_the_field_they_fail_on(kwargs, message):
@@ -223,6 +233,69 @@ def test_windows_longer_than_the_recording_are_refused_naming_seconds():
         learning.evaluation.window_errors(MODEL, seq, 0.1, start=59)
     out = learning.evaluation.window_errors(MODEL, seq, 0.1)
     assert all(np.isfinite(v).all() for v in out.values())
+
+
+def test_the_windowed_nees_refuses_bad_windows_naming_the_argument_and_the_fix():
+    u = learning.uncertainty
+    seq = sequence(60)  # 0.295 s
+    with pytest.raises(
+        InputError,
+        match=r"seconds = 1\.0: a window longer than the 0\.295 s "
+        r"of sequence 'short'.*pass seconds between 0\.005 and 0\.295",
+    ):
+        u.window_nees(MODEL, seq, 1.0)
+    with pytest.raises(InputError, match=r"seconds = 0\.001: a window shorter than one sample"):
+        u.window_nees_terms(MODEL, seq, 0.001)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(
+            ValueError,
+            match=r"^seconds must be positive and finite, got .*: pass the window.s length",
+        ):
+            u.window_nees(MODEL, seq, bad)
+    with pytest.raises(InputError, match=r"start = 59 leaves no step.*pass a smaller one"):
+        u.window_nees(MODEL, seq, 0.1, start=59)
+    with pytest.raises(ValueError, match=r"^bias_sigma must be non-negative and finite"):
+        u.window_nees(MODEL, seq, 0.1, bias_sigma=-1e-3)
+    with pytest.raises(ValueError, match=r"^model's weights hold 1 non-finite"):
+        u.window_nees(diverged(), seq, 0.1)
+    with pytest.raises(ValueError, match=r"^seq must be a jaximu\.learning\.Sequence"):
+        u.window_nees(MODEL, "seq", 0.1)
+    # a reference at the first and the last sample only (a dropout between): no window of
+    # 0.1 s has one at both its ends
+    ref = np.zeros(60, bool)
+    ref[[0, 59]] = True
+    gap = dataclasses.replace(seq, reference=ref)
+    with pytest.raises(DataError, match=r"none of its windows of 0\.1 s.*pass shorter seconds"):
+        u.window_nees(MODEL, gap, 0.1)
+    assert np.isfinite(u.window_nees(MODEL, seq, 0.1))
+
+
+def test_the_gauss_markov_fit_and_setting_refuse_bad_inputs_naming_them():
+    u = learning.uncertainty
+    seq = sequence(60)
+    with pytest.raises(ValueError, match=r"^sequences must be a non-empty list"):
+        u.fit_bias_markov(MODEL, seq)
+    with pytest.raises(ValueError, match=r"^sequences\[0\] must be a jaximu\.learning\.Sequence"):
+        u.fit_bias_markov(MODEL, ["seq"])
+    with pytest.raises(ValueError, match=r"^starts must give one sample per sequence \(1\), got 2"):
+        u.fit_bias_markov(MODEL, [seq], starts=[0, 0])
+    with pytest.raises(ValueError, match=r"^seconds\[1\] must be positive.*e\.g\. \(1\.0, 5\.0\)"):
+        u.fit_bias_markov(MODEL, [seq], seconds=(0.1, -1.0))
+    with pytest.raises(ValueError, match=r"^seconds must name at least one window length"):
+        u.fit_bias_markov(MODEL, [seq], seconds=())
+    with pytest.raises(DataError, match=r"no sequence holds a window of 1 s.*shorter seconds"):
+        u.fit_bias_markov(MODEL, [seq])  # 0.295 s
+    with pytest.raises(ValueError, match=r"^ModelConfig\.bias_markov_sigma must be non-negative"):
+        u.with_bias_markov(MODEL, -1.0)
+    m = u.with_bias_markov(MODEL, 1e-3, 30.0)
+    assert m.config.bias_markov == (1e-3, 30.0) and MODEL.config.bias_markov is None
+    for bad, message in (
+        ((1e-3,), r"^markov must be a pair"),
+        ((-1e-3, 1.0), r"^markov\[0\] must be"),
+        ((1e-3, 0.0), r"^markov\[1\] must be"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            learning.attitude_covariance(samples()[0], DENSITY, DT, 1e-3, 2e-5, 1e-3, markov=bad)
 
 
 # --------------------------------------------------------------------------- properties

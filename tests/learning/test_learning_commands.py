@@ -89,6 +89,10 @@ def test_evaluate_prints_the_three_ways_and_writes_json_and_plot(folders, capsys
     )
     assert s["aoe_mean_deg"]["raw"] > 1.0
     assert 0.0 <= s["inside_3sigma"] <= 1.0 and s["nees_orientation"] > 0
+    # the windowed NEES beside the whole run's, printed and written (12 s: 1-s and 5-s windows)
+    assert "over windows from the true attitude 1s " in out
+    assert set(s["window_nees_orientation"]) == {"1s", "5s"}
+    assert all(x > 0 for x in s["window_nees_orientation"].values())
     assert png.stat().st_size > 10_000
 
 
@@ -96,13 +100,31 @@ def test_train_writes_a_model_that_evaluates(folders, capsys):
     seq = write_sequence(folders["root"] / "long", seconds=84.0, seed=1)
     out_model = folders["root"] / "trained"
     code, out, err = run(
-        capsys, "learn", "train", str(seq), "--out", str(out_model), "--steps", "1", "--seed", "3"
+        capsys,
+        "learn",
+        "train",
+        str(seq),
+        "--out",
+        str(out_model),
+        "--steps",
+        "1",
+        "--seed",
+        "3",
+        "--bias-markov",
     )
     assert code == 0, err
     assert "validation" in out and "compile" in out
     meta = json.loads((out_model / "model.json").read_text())
     assert meta["record"]["seed"] == 3 and meta["record"]["command"].startswith("jaximu learn")
-    assert learning.load(out_model).config.rate_hz == pytest.approx(200.0)
+    assert meta["record"]["command"].endswith("--bias-markov")
+    # the validation part's (4 s) windowed NEES, before and with the Gauss–Markov bias fitted
+    # on it, which the saved model keeps
+    u = meta["record"]["uncertainty"]
+    assert set(u["validation_window_nees"]["long"]) == {"1s"}
+    assert u["validation_window_nees_markov"]["long"]["1s"] > 0
+    loaded = learning.load(out_model)
+    assert loaded.config.rate_hz == pytest.approx(200.0)
+    assert loaded.config.bias_markov == (u["bias_markov_sigma"], u["bias_markov_time"])
 
 
 def one_line_error(code, err, *needles):
