@@ -35,6 +35,7 @@ from jaximu.learning._batches import (
     bias_spreads,
     constant_biases,
     normalisation,
+    pieces,
 )
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors, window_errors
@@ -117,6 +118,12 @@ class TrainConfig:
             integrated whole by a model trained on the others, the step with the lowest
             mean over these folds kept of the model trained on all (the number of recordings
             plus one trainings; no recording chooses a model trained on it).
+        whole_recordings: train on pieces of ``train_seconds`` at random starts anywhere in
+            each whole recording (a new start each step) instead of the first
+            ``train_seconds``: no seconds are kept for validation, so only with
+            ``selection="leave_one_out"``, whose judges are the recordings left out (the
+            later seconds still give the record's validation figures and the uncertainty's
+            calibration, on seconds the network has seen).
         recording_offsets: fit, beside the network, one constant gyro offset per training
             recording (summing to zero; dropped after training): what is left of each
             recording's own bias then has a place other than the network, which would
@@ -146,6 +153,7 @@ class TrainConfig:
     ema: float = 0.98
     recording_offsets: bool = True
     selection: str = "validation"
+    whole_recordings: bool = False
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -169,7 +177,7 @@ class TrainConfig:
             check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
         if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
-        for field in ("calibrate_uncertainty", "recording_offsets"):
+        for field in ("calibrate_uncertainty", "recording_offsets", "whole_recordings"):
             check_bool(f"{name}.{field}", getattr(self, field))
         if self.selection not in ("validation", "leave_one_out"):
             raise ValueError(
@@ -268,6 +276,7 @@ def _step(
     V,
     B,
     R,
+    bounds,
     noise,
     bias_noise,
     has_v,
@@ -278,11 +287,11 @@ def _step(
     L: int,
 ):
     """One AdamW step on pieces of ``L`` samples of the training parts ``(S, N, ·)`` at random
-    offsets, with noise added; ``params``: ``(model, offsets)``, ``ema``: the exponential
+    starts ``0 … bounds-1`` (``(S,)``), with noise added; ``params``: ``(model, offsets)``, ``ema``: the exponential
     average of the model's weights."""
     S = G.shape[0]
     k_off, k_w, k_b, k_drop = jax.random.split(key, 4)
-    offs = jax.random.randint(k_off, (S,), 0, cfg.offset)
+    offs = jax.random.randint(k_off, (S,), 0, bounds)
     cut = lambda x, n: jax.vmap(lambda xi, o: jax.lax.dynamic_slice_in_dim(xi, o, n))(x, offs)  # noqa: E731
     x = jnp.concatenate([cut(G, L), cut(A, L)], -1)
     # a constant per piece shifts the samples and, as the tracker would follow it, the bias
@@ -380,6 +389,11 @@ def train(
         raise ValueError(f"model_config must be a ModelConfig, got {type(model_config).__name__}")
     for s in sequences:
         check_rate(s, sequences[0].rate_hz, f"sequence {sequences[0].name!r}")
+    if cfg.whole_recordings and cfg.selection != "leave_one_out":
+        raise ValueError(
+            "TrainConfig(whole_recordings=True) keeps no seconds for validation: use it with "
+            "selection='leave_one_out' (the recordings left out judge the steps)"
+        )
     if cfg.selection == "leave_one_out":
         if len(sequences) < 2:
             raise DataError(
@@ -400,6 +414,8 @@ def _fit(
     choice by validation."""
     rate = sequences[0].rate_hz
     trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
+    if cfg.whole_recordings:  # (vals: the record's figures and the uncertainty's only)
+        trains = tuple(sequences)
     g_bias, a_bias = constant_biases(trains)
     g_sigma, a_sigma = bias_spreads(trains)
     mean, std = normalisation(trains)
@@ -417,7 +433,8 @@ def _fit(
     dt = 1.0 / rate
     Hmax = cfg.horizons[-1]
     shortest = min(len(s) for s in trains)
-    L = (shortest - cfg.offset - 1) // Hmax * Hmax
+    window = round(cfg.train_seconds * rate) if cfg.whole_recordings else None
+    L, bounds, length = pieces(trains, Hmax, cfg.offset, window)
     if L < Hmax:
         raise DataError(
             f"the shortest training part ({shortest} samples) is shorter than the "
@@ -435,7 +452,7 @@ def _fit(
     # learned, it biases every other recording (validation mean AOE 0.59-0.63° against the
     # tracker's own 0.52°).
     settled = [np.broadcast_to(b[len(t) - 1], b.shape) for b, t in zip(biases, trains)]
-    G, A, Q, V, B, R = _stack(trains, settled, shortest)
+    G, A, Q, V, B, R = _stack(trains, settled, length)
     # velocities of ground truth that has them (a pose-only one's are differenced
     # positions: too noisy for velocity increments)
     has_v = jnp.asarray([s.b_g is not None for s in trains], jnp.float32)
@@ -451,8 +468,13 @@ def _fit(
     # is theirs: they are waited for before a validation is timed)
     seconds = dict(tracker_and_data=time.perf_counter() - t_tracker, steps=0.0, validation=0.0)
     say(
-        f"training on {len(trains)} sequences at {rate:.1f} Hz: the first {cfg.train_seconds:g} s "
-        f"of each ({sum(len(s) for s in trains)} samples); validating on "
+        f"training on {len(trains)} sequences at {rate:.1f} Hz: "
+        + (
+            f"{L} samples anywhere in "
+            if cfg.whole_recordings
+            else f"the first {cfg.train_seconds:g} s of "
+        )
+        + f"each ({sum(len(s) for s in trains)} samples); validating on "
         + ("the recording left out " if held_out is not None else "the rest ")
         + f"({sum(len(v) for v in vals)} samples: "
         + ", ".join(f"{v.name} {v.seconds:.1f} s" for v in vals)
@@ -480,7 +502,8 @@ def _fit(
     key, k = jax.random.split(key)
     t0 = time.perf_counter()
     # arguments, not constants folded into the program
-    data, vdata = (G, A, Q, V, B, R, noise, bias_noise, has_v, n_v), (vG, vA, vQ, vB, vM, vC)
+    data = (G, A, Q, V, B, R, bounds, noise, bias_noise, has_v, n_v)
+    vdata = (vG, vA, vQ, vB, vM, vC)
     params, ema, opt_state, loss, parts = step(params, model, opt_state, k, *data)
     jax.block_until_ready(loss)
     t_first = time.perf_counter() - t0
@@ -599,6 +622,7 @@ def _fit(
             "compile_seconds": compile_time,
             "first_step_seconds": t_first,
             "samples_per_step": int(G.shape[0] * L),
+            "piece_start_bounds": [int(x) for x in np.asarray(bounds)],
             "stage_seconds": seconds,
         }
     )

@@ -11,6 +11,8 @@ against ``ω_m``) and the learned noise density must be within 20 % of ``σ``.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -197,3 +199,55 @@ def test_leave_one_out_never_lets_a_recording_choose_its_own_model():
         TrainConfig(selection="leave-one-out")
     with pytest.raises(learning.data.DataError, match="needs two recordings or more"):
         learning.train(seqs[:1], cfg, mcfg, log=None)
+
+
+def test_pieces_reach_the_whole_recording_only_when_asked():
+    """Brossard's pieces (the shortest part, starts 0 … offset-1) against pieces of a window
+    anywhere in each whole part: every allowed start leaves the piece and the attitude after
+    its last step inside its own part, and the last start reaches the part's end; the
+    stacked arrays repeat each part's last sample past its end."""
+    from jaximu.learning._batches import _stack, pieces
+
+    parts = [simulated(20 + i, seconds=s)[0] for i, s in enumerate((3.0, 5.0, 4.0))]
+    n = [len(p) for p in parts]
+    L, bounds, length = pieces(parts, 16, 32, None)
+    assert (L, length) == ((min(n) - 33) // 16 * 16, min(n))
+    assert np.asarray(bounds).tolist() == [32] * 3
+    L, bounds, length = pieces(parts, 16, 32, 400)
+    assert L == 400 and length == max(n)
+    for k, b in zip(n, np.asarray(bounds)):
+        assert (b - 1) + L + 1 == k  # the last start's piece and its end attitude: the end
+    L, _, _ = pieces(parts, 16, 32, 10_000)  # a window longer than a part: the shortest's
+    assert L == (min(n) - 1) // 16 * 16
+    biases = [np.zeros((k, 3)) for k in n]
+    G, *_ = _stack(parts, biases, max(n))
+    for i, p in enumerate(parts):
+        np.testing.assert_array_equal(np.asarray(G[i, : n[i]]), p.gyro.astype(np.float32))
+        np.testing.assert_array_equal(
+            np.asarray(G[i, n[i] :]), np.tile(G[i, n[i] - 1], (max(n) - n[i], 1))
+        )
+
+
+def test_whole_recordings_train_under_leave_one_out_only():
+    """With whole_recordings each part is the whole recording (its start bound its length
+    less the piece's), and no recording chooses its own model; without leave-one-out
+    selection nothing would be left to validate on, and it is refused."""
+    seqs = [simulated(30 + i, seconds=s)[0] for i, s in enumerate((5.0, 6.0, 5.5))]
+    cfg = TrainConfig(
+        steps=1,
+        validate_every=1,
+        train_seconds=2.0,
+        horizons=(16, 32),
+        selection="leave_one_out",
+        whole_recordings=True,
+        calibrate_uncertainty=False,
+    )
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+    result = learning.train(seqs, cfg, mcfg, seed=0, log=None)
+    L = round(2.0 / DT) // 32 * 32
+    assert result.record["samples_per_step"] == 3 * L
+    assert result.record["piece_start_bounds"] == [len(s) - L for s in seqs]
+    for f, s in zip(result.record["leave_one_out"]["folds"], seqs):
+        assert s.name not in f["trained_on"]
+    with pytest.raises(ValueError, match="whole_recordings=True. keeps no seconds"):
+        learning.train(seqs, dataclasses.replace(cfg, selection="validation"), mcfg, log=None)
