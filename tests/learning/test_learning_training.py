@@ -251,3 +251,25 @@ def test_whole_recordings_train_under_leave_one_out_only():
         assert s.name not in f["trained_on"]
     with pytest.raises(ValueError, match="whole_recordings=True. keeps no seconds"):
         learning.train(seqs, dataclasses.replace(cfg, selection="validation"), mcfg, log=None)
+
+
+def test_the_matrix_after_the_bias_scales_the_unbiased_rate():
+    """``matrix_after_bias``: ``ω̂ = (ω_m - b) + C (ω_m - b)`` (the closed form, with a zero
+    network), against ``ω̂ = (I + C) ω_m - b`` without it; a model saved before the setting
+    loads with it off."""
+    import equinox as eqx
+
+    C = np.array([[0.01, 0.002, 0.0], [0.0, -0.02, 0.003], [0.001, 0.0, 0.005]], np.float32)
+    rng = np.random.default_rng(0)
+    g = rng.normal(0.0, 0.5, (1, 40, 3)).astype(np.float32)
+    a = np.tile(np.float32([0.0, 0.0, 9.81]), (1, 40, 1))
+    b = np.float32([0.01, 0.02, 0.08])
+    for after in (True, False):
+        mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), matrix_after_bias=after)
+        model = eqx.tree_at(lambda m: m.gyro_matrix, Denoiser(mcfg, jax.random.key(0)), C)
+        out = np.asarray(model(jnp.asarray(g), jnp.asarray(a), gyro_bias=jnp.asarray(b)).gyro)
+        u = g[0] - b if after else g[0]
+        np.testing.assert_allclose(out[0], g[0] - b + u @ C.T, atol=1e-6)
+    old = ModelConfig().to_json()
+    del old["matrix_after_bias"]
+    assert ModelConfig.from_json(old).matrix_after_bias is False
