@@ -21,6 +21,9 @@ weights is captured at every validation and, on the left-out recording, measured
   ``aoe_matrix_only`` / ``aoe_network_only``: with only the learned matrix's part ``C ω_m``
   or only the convolution's: which part of the correction helps or hurts.
 
+``--ceilings`` trains nothing: for each left-out recording, what a correction after the
+tracker could do at best (:func:`ceilings`).
+
 The training's own loss at each validation (``train_huber``, the step's, with noise and
 dropout) is recorded beside. Results are appended to ``--json`` (a list of experiments).
 """
@@ -39,6 +42,7 @@ import numpy as np
 
 from jaximu import learning
 from jaximu.learning import training
+from jaximu.learning.data import split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors
 from jaximu.learning.losses import increment_loss
 
@@ -135,6 +139,75 @@ def diagnose(model, seq, bias, cfg):
     }
 
 
+def _fold_model(others, train_seconds, mcfg):
+    """The untrained model of a fold (its priors and normalisation from ``others``' first
+    ``train_seconds``, as ``_fit`` sets them): the tracker alone."""
+    trains = [split(s, train_seconds)[0] for s in others]
+    g_bias, a_bias = training.constant_biases(trains)
+    g_sigma, a_sigma = training.bias_spreads(trains)
+    mean, std = training.normalisation(trains)
+    mcfg = dataclasses.replace(
+        mcfg,
+        rate_hz=round(others[0].rate_hz, 3),
+        input_mean=mean,
+        input_std=std,
+        gyro_bias=g_bias,
+        accel_bias=a_bias,
+        gyro_bias_sigma=g_sigma,
+        accel_bias_sigma=a_sigma,
+    )
+    return learning.Denoiser(mcfg, jax.random.key(0))
+
+
+def _residual_blocks(seq, bias, n):
+    """1-s block means of ``ω_m − b̂`` and of what the tracker leaves, ``ω_true − (ω_m − b̂)``,
+    over the blocks with a reference throughout: ``(K, 3)`` each; and ``ω_m − b̂ (N, 3)``,
+    the residual ``(N, 3)`` (zero where no reference)."""
+    u = seq.gyro - bias
+    ok = np.r_[seq.has_reference[:-1] & seq.has_reference[1:], False]
+    r = np.zeros_like(u)
+    r[:-1] = _true_rates(seq.q, np.diff(seq.t)) - u[:-1]
+    r[~ok] = 0.0
+    X = [u[k : k + n].mean(0) for k in range(0, len(u) - n, n) if ok[k : k + n].all()]
+    Y = [r[k : k + n].mean(0) for k in range(0, len(u) - n, n) if ok[k : k + n].all()]
+    return np.array(X), np.array(Y), u, r, ok
+
+
+def ceilings(seqs, held, cfg, mcfg):
+    """What a correction added after the tracker could do on ``held`` at best: the AOE [deg]
+    of the tracker alone, with what it leaves removed exactly as one constant, as 10-s or
+    1-s block means (oracles: the left-out recording's own truth), with the best linear
+    scale/misalignment ``C (ω_m − b̂)`` fitted by least squares on 1-s blocks of the left-out
+    recording itself (oracle) or of the others (as training could; their tracked bias), and
+    with the ground truth's own bias where it has one."""
+    others = [s for s in seqs if s is not held]
+    model = _fold_model(others, cfg.train_seconds, mcfg)
+    biases = training._tracked_biases(model, [held, *others])
+    dt = 1.0 / held.rate_hz
+    n = int(round(held.rate_hz))
+    X, Y, u, r, ok = _residual_blocks(held, biases[0], n)
+    fits = [_residual_blocks(s, b, n)[:2] for s, b in zip(others, biases[1:])]
+    C_own = np.linalg.lstsq(X, Y, rcond=None)[0].T
+    Xo, Yo = (np.concatenate([f[i] for f in fits]) for i in (0, 1))
+    C_others = np.linalg.lstsq(Xo, Yo, rcond=None)[0].T
+    out = {
+        "tracker_alone": _aoe(u, held, dt),
+        "oracle_constant": _aoe(u + r[ok].mean(0), held, dt),
+        "oracle_10s_blocks": _aoe(u + _blocks(r, 10 * n), held, dt),
+        "oracle_1s_blocks": _aoe(u + _blocks(r, n), held, dt),
+        "matrix_fitted_on_itself": _aoe(u + u @ C_own.T, held, dt),
+        "matrix_fitted_on_others": _aoe(u + u @ C_others.T, held, dt),
+        "residual_10s_means_1e-4_rad_s": [
+            np.round(r[k : k + 10 * n][ok[k : k + 10 * n]].mean(0) * 1e4, 1).tolist()
+            for k in range(0, len(r), 10 * n)
+            if ok[k : k + 10 * n].any()
+        ],
+    }
+    if held.b_g is not None:
+        out["true_bias"] = _aoe(held.gyro - held.b_g, held, dt)
+    return out
+
+
 def run_fold(seqs, held, cfg, mcfg, seed, say):
     captured = []
     original = training._validate
@@ -184,6 +257,9 @@ def main(argv=None):
     ap.add_argument("--model-set", nargs="*", default=[], help="ModelConfig KEY=VALUE")
     ap.add_argument("--no-bias-tracking", action="store_true")
     ap.add_argument("--json", help="append the experiment to this JSON file's list")
+    ap.add_argument(
+        "--ceilings", action="store_true", help="only the ceilings (no training; see ceilings)"
+    )
     a = ap.parse_args(argv)
     cfg = _parse(learning.TrainConfig(), a.set)
     cfg = dataclasses.replace(
@@ -195,6 +271,16 @@ def main(argv=None):
     seqs = [learning.load_sequence(p) for p in a.data]
     held = [s for s in seqs if not a.folds or s.name in a.folds]
     print(f"{a.label}: {a.set} {a.model_set} no_bias_tracking={a.no_bias_tracking}", flush=True)
+    if a.ceilings:
+        rows = {h.name: ceilings(seqs, h, cfg, mcfg) for h in held}
+        for k, v in rows.items():
+            print(k, {x: (round(y, 3) if isinstance(y, float) else y) for x, y in v.items()})
+        if a.json:
+            p = pathlib.Path(a.json)
+            doc = json.loads(p.read_text()) if p.exists() else {"experiments": []}
+            doc["ceilings"] = rows
+            p.write_text(json.dumps(doc, indent=1) + "\n")
+        return
     t0 = time.perf_counter()
     folds = []
     for h in held:
