@@ -70,6 +70,8 @@ _NON_NEGATIVE = (
     "velocity_weight",
 )
 
+_FLAGS = ("calibrate_uncertainty", "recording_offsets", "whole_recordings", "bias_noise_shown")
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -100,6 +102,9 @@ class TrainConfig:
             (2–2.5e-3 rad/s on y and z): the network's input then varies by a bias as a new
             recording's does. The gyro's constant is added to the bias it is shown too (the
             tracker follows a constant bias), so the correction is not asked to remove it.
+        bias_noise_shown: ``False``: the gyro's constant is not added to the bias shown,
+            and the correction is asked to remove it (Brossard's, whose network is shown no
+            bias: for a network without the tracker, which must read the bias itself).
         nll_weight: weight of the negative log-likelihood (trains the noise outputs).
         validate_every: steps between validations.
         ema: decay of the exponential average of the weights that is validated and kept
@@ -154,6 +159,7 @@ class TrainConfig:
     recording_offsets: bool = True
     selection: str = "validation"
     whole_recordings: bool = False
+    bias_noise_shown: bool = True
 
     def __post_init__(self):
         name = "TrainConfig"
@@ -177,7 +183,7 @@ class TrainConfig:
             check_positive(f"{name}.{field}", getattr(self, field), allow_zero=True)
         if check_positive(f"{name}.ema", self.ema, allow_zero=True) >= 1.0:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
-        for field in ("calibrate_uncertainty", "recording_offsets", "whole_recordings"):
+        for field in _FLAGS:
             check_bool(f"{name}.{field}", getattr(self, field))
         if self.selection not in ("validation", "leave_one_out"):
             raise ValueError(
@@ -297,7 +303,7 @@ def _step(
     # a constant per piece shifts the samples and, as the tracker would follow it, the bias
     shift = bias_noise * jax.random.normal(k_b, (S, 1, 6))
     x = x + noise * jax.random.normal(k_w, x.shape) + shift
-    b = cut(B, L) + shift[..., :3]
+    b = cut(B, L) + shift[..., :3] if cfg.bias_noise_shown else cut(B, L)
     (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
         params,
         x[..., :3],

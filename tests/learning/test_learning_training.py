@@ -273,3 +273,22 @@ def test_the_matrix_after_the_bias_scales_the_unbiased_rate():
     old = ModelConfig().to_json()
     del old["matrix_after_bias"]
     assert ModelConfig.from_json(old).matrix_after_bias is False
+
+
+def test_a_shown_bias_shift_leaves_the_untrained_loss_as_it_is():
+    """The untrained network is the bias shown alone: a constant added per piece to the gyro
+    and to the bias shown (``bias_noise_shown``) leaves the first step's loss as without it
+    (to float32 rounding); not shown, the correction is asked to remove it and the loss
+    grows."""
+    seqs = [simulated(40, seconds=6.0)[0]]
+    base = dict(steps=1, validate_every=1, train_seconds=5.0, horizons=(16, 32))
+    quiet = dict(gyro_noise=0.0, accel_noise=0.0, accel_bias_noise=0.0, calibrate_uncertainty=False)
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+
+    def huber(**kw):
+        cfg = TrainConfig(**base, **quiet, **kw)
+        return learning.train(seqs, cfg, mcfg, seed=0, log=None).record["history"][0]["huber"]
+
+    clean = huber(gyro_bias_noise=0.0)
+    assert huber(gyro_bias_noise=0.05) == pytest.approx(clean, rel=1e-3)
+    assert huber(gyro_bias_noise=0.05, bias_noise_shown=False) > 2 * clean
