@@ -37,6 +37,7 @@ from jaximu.learning._batches import (
     normalisation,
     pieces,
 )
+from jaximu.learning._selection import CRITERIA, leave_one_out
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors, window_errors
 from jaximu.learning.losses import check_horizons, huber, increment_loss, velocity_residuals
@@ -122,11 +123,14 @@ class TrainConfig:
             their bias), or ``"leave_one_out"``: each recording left out in turn and
             integrated whole by a model trained on the others, the step with the lowest
             mean over these folds kept of the model trained on all (the number of recordings
-            plus one trainings; no recording chooses a model trained on it).
+            plus one trainings; no recording chooses a model trained on it), or
+            ``"leave_one_out_worst"``: the same folds, the step kept only if below the
+            untrained network on every recording left out (the lowest worst ratio;
+            :func:`jaximu.learning._selection.choose_step`).
         whole_recordings: train on pieces of ``train_seconds`` at random starts anywhere in
             each whole recording (a new start each step) instead of the first
             ``train_seconds``: no seconds are kept for validation, so only with
-            ``selection="leave_one_out"``, whose judges are the recordings left out (the
+            a leave-one-out ``selection``, whose judges are the recordings left out (the
             later seconds still give the record's validation figures and the uncertainty's
             calibration, on seconds the network has seen).
         recording_offsets: fit, beside the network, one constant gyro offset per training
@@ -185,9 +189,10 @@ class TrainConfig:
             raise ValueError(f"{name}.ema must be in [0, 1) (0: no average), got {self.ema!r}")
         for field in _FLAGS:
             check_bool(f"{name}.{field}", getattr(self, field))
-        if self.selection not in ("validation", "leave_one_out"):
+        if self.selection not in ("validation", *CRITERIA):
             raise ValueError(
-                f"{name}.selection must be 'validation' or 'leave_one_out', got {self.selection!r}"
+                f"{name}.selection must be 'validation' or one of {CRITERIA}, got "
+                f"{self.selection!r}"
             )
 
     def to_json(self) -> dict:
@@ -395,19 +400,19 @@ def train(
         raise ValueError(f"model_config must be a ModelConfig, got {type(model_config).__name__}")
     for s in sequences:
         check_rate(s, sequences[0].rate_hz, f"sequence {sequences[0].name!r}")
-    if cfg.whole_recordings and cfg.selection != "leave_one_out":
+    if cfg.whole_recordings and cfg.selection not in CRITERIA:
         raise ValueError(
             "TrainConfig(whole_recordings=True) keeps no seconds for validation: use it with "
             "selection='leave_one_out' (the recordings left out judge the steps)"
         )
-    if cfg.selection == "leave_one_out":
+    if cfg.selection in CRITERIA:
         if len(sequences) < 2:
             raise DataError(
                 "TrainConfig(selection='leave_one_out') needs two recordings or more (each "
                 f"is validated by models trained on the others); got {len(sequences)}: give "
                 "more recordings or selection='validation'"
             )
-        return _leave_one_out(list(sequences), cfg, model_config, seed, minutes, say)
+        return leave_one_out(_fit, list(sequences), cfg, model_config, seed, minutes, say)
     return _fit(list(sequences), cfg, model_config, seed, minutes, say)
 
 
@@ -415,7 +420,7 @@ def _fit(
     sequences, cfg, model_config, seed, minutes, say, held_out=None, keep_step=None
 ) -> TrainResult:
     """:func:`train` once its arguments are checked. ``held_out``: a recording validated
-    whole instead of the validation parts (a fold of :func:`_leave_one_out`); ``keep_step``:
+    whole instead of the validation parts (a fold of :func:`jaximu.learning._selection.leave_one_out`); ``keep_step``:
     ``(step, score)``, keep the weights of that step (0: untrained) and stop there, with no
     choice by validation."""
     rate = sequences[0].rate_hz
@@ -639,43 +644,6 @@ def _fit(
         f"{seconds['tracker_and_data']:.1f} s (before the wall's start)"
     )
     return TrainResult(model, record)
-
-
-def _leave_one_out(sequences, cfg, model_config, seed, minutes, say) -> TrainResult:
-    """Leave-one-recording-out model selection: each recording is left out in turn, a model
-    trained on the others (the same recipe and seed, its biases and normalisation theirs)
-    and the left-out recording integrated whole at every validation; the step with the
-    lowest mean over the folds (0: the untrained network) is the one kept of the model
-    trained on all. No recording ever judges a model trained on it."""
-    fold_cfg = dataclasses.replace(cfg, selection="validation", calibrate_uncertainty=False)
-    folds = []
-    for i, s in enumerate(sequences):
-        others = sequences[:i] + sequences[i + 1 :]
-        say(f"fold {i + 1}/{len(sequences)}: {s.name} left out")
-        r = _fit(others, fold_cfg, model_config, seed, minutes, lambda x: None, held_out=s)
-        rec = r.record
-        aoe = [rec["validation_untrained_deg"][0]]
-        aoe += [h["validation_aoe_mean_deg"][0] for h in rec["history"]]
-        steps = [0] + [h["step"] for h in rec["history"]]
-        folds.append({"left_out": s.name, "trained_on": rec["sequences"], "steps": steps})
-        folds[-1]["aoe_mean_deg"] = aoe
-        say(f"  {s.name}: " + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, aoe)))
-    steps = min((f["steps"] for f in folds), key=len)  # (a fold cut short by minutes)
-    mean = [float(np.mean([f["aoe_mean_deg"][j] for f in folds])) for j in range(len(steps))]
-    j = int(np.argmin(mean))
-    say(
-        "leave-one-out: mean AOE of the left-out recordings by step "
-        + " ".join(f"{k}: {x:.2f}°" for k, x in zip(steps, mean))
-        + f"; keeping step {steps[j]} of the model trained on all"
-    )
-    result = _fit(sequences, cfg, model_config, seed, minutes, say, keep_step=(steps[j], mean[j]))
-    result.record["leave_one_out"] = {
-        "folds": folds,
-        "steps": steps,
-        "mean_aoe_deg": mean,
-        "chosen_step": steps[j],
-    }
-    return result
 
 
 def _record_windows(model, sequences, vals, record, say):

@@ -195,6 +195,18 @@ def test_leave_one_out_never_lets_a_recording_choose_its_own_model():
     np.testing.assert_allclose(loo["mean_aoe_deg"], mean, rtol=1e-12)
     assert loo["steps"] == [0, 1, 2]
     assert loo["chosen_step"] == result.record["best_step"] == int(np.argmin(mean))
+    # the same folds (the same seed), judged by the worst recording: kept only if a step is
+    # below the untrained network on every recording left out
+    worst = learning.train(
+        seqs, dataclasses.replace(cfg, selection="leave_one_out_worst"), mcfg, log=None
+    )
+    w = worst.record["leave_one_out"]
+    assert [f["aoe_mean_deg"] for f in w["folds"]] == [f["aoe_mean_deg"] for f in loo["folds"]]
+    ratios = [
+        max(f["aoe_mean_deg"][k] / f["aoe_mean_deg"][0] for f in w["folds"]) for k in range(3)
+    ]
+    best = min(range(3), key=lambda k: (ratios[k], k))
+    assert w["criterion"] == "leave_one_out_worst" and w["chosen_step"] == best
     with pytest.raises(ValueError, match="TrainConfig.selection must be 'validation' or"):
         TrainConfig(selection="leave-one-out")
     with pytest.raises(learning.data.DataError, match="needs two recordings or more"):
@@ -292,3 +304,18 @@ def test_a_shown_bias_shift_leaves_the_untrained_loss_as_it_is():
     clean = huber(gyro_bias_noise=0.0)
     assert huber(gyro_bias_noise=0.05) == pytest.approx(clean, rel=1e-3)
     assert huber(gyro_bias_noise=0.05, bias_noise_shown=False) > 2 * clean
+
+
+def test_the_worst_fold_keeps_a_step_only_if_it_helps_every_recording():
+    """Hand-made fold tables (folds × steps, step 0 the untrained network): the mean picks
+    the lowest column mean even where one recording gets worse; the worst-fold criterion
+    picks the lowest worst ratio to step 0, and step 0 when no step helps every recording."""
+    from jaximu.learning._selection import choose_step
+
+    table = [[2.0, 1.5, 1.9], [3.0, 3.3, 2.9], [1.0, 0.9, 0.95]]  # means 2.0, 1.9, 1.917
+    assert choose_step(table, "leave_one_out") == 1  # although fold 1 gets 10 % worse
+    assert choose_step(table, "leave_one_out_worst") == 2  # worst ratios 1, 1.1, 0.967
+    table = [[2.0, 1.5, 2.1], [3.0, 3.3, 3.1], [1.0, 0.9, 0.95]]
+    assert choose_step(table, "leave_one_out_worst") == 0  # every step hurts one recording
+    with pytest.raises(ValueError, match="criterion must be one of"):
+        choose_step(table, "mean")
