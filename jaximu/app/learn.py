@@ -2,6 +2,7 @@
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
                      [--accel-head] [--no-bias-tracking] [--leave-one-out]
+                     [--leave-one-out-worst]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
 Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
@@ -97,16 +98,19 @@ def cmd_train(args):
         raise UsageError(f"--minutes must be a positive number, got {args.minutes:g}")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {args.steps}")
-    if args.leave_one_out and len(args.dirs) < 2:
+    flag = "--leave-one-out-worst" if args.leave_one_out_worst else "--leave-one-out"
+    if (args.leave_one_out or args.leave_one_out_worst) and len(args.dirs) < 2:
         raise UsageError(
-            "--leave-one-out needs two sequence folders or more (each is validated by "
+            f"{flag} needs two sequence folders or more (each is validated by "
             "models trained on the others): give more folders or leave the flag out"
         )
     t0 = time.perf_counter()
     seqs = _load_all(learning, args)
     settings = {} if args.steps is None else {"steps": args.steps}
-    if args.leave_one_out:
-        settings["selection"] = "leave_one_out"
+    if args.leave_one_out or args.leave_one_out_worst:
+        settings["selection"] = (
+            "leave_one_out_worst" if args.leave_one_out_worst else "leave_one_out"
+        )
     cfg = learning.TrainConfig(**settings)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
     mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
@@ -118,7 +122,8 @@ def cmd_train(args):
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
         + (["--no-bias-tracking"] if args.no_bias_tracking else [])
-        + (["--leave-one-out"] if args.leave_one_out else [])
+        + (["--leave-one-out"] if args.leave_one_out and not args.leave_one_out_worst else [])
+        + (["--leave-one-out-worst"] if args.leave_one_out_worst else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
     learning.save(out, result.model, record)
@@ -305,6 +310,12 @@ def add_parser(sub):
         help="choose the kept step by leaving each recording out in turn (a model trained "
         "on the others, the left-out one integrated whole) instead of by the later seconds "
         "of the same recordings; trains one model per folder, plus the final one",
+    )
+    t.add_argument(
+        "--leave-one-out-worst",
+        action="store_true",
+        help="as --leave-one-out, but keep a trained step only if it is below the untrained "
+        "network on every recording left out (the untrained network otherwise)",
     )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(
