@@ -2,7 +2,7 @@
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
                      [--accel-head] [--no-bias-tracking] [--leave-one-out]
-                     [--bias-markov]
+                     [--leave-one-out-worst] [--bias-markov]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
 Both take ``--max-gap SECONDS``: the longest ground-truth gap bridged by interpolation at the
@@ -99,16 +99,19 @@ def cmd_train(args):
         raise UsageError(f"--minutes must be a positive number, got {args.minutes:g}")
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {args.steps}")
-    if args.leave_one_out and len(args.dirs) < 2:
+    flag = "--leave-one-out-worst" if args.leave_one_out_worst else "--leave-one-out"
+    if (args.leave_one_out or args.leave_one_out_worst) and len(args.dirs) < 2:
         raise UsageError(
-            "--leave-one-out needs two sequence folders or more (each is validated by "
+            f"{flag} needs two sequence folders or more (each is validated by "
             "models trained on the others): give more folders or leave the flag out"
         )
     t0 = time.perf_counter()
     seqs = _load_all(learning, args)
     settings = {} if args.steps is None else {"steps": args.steps}
-    if args.leave_one_out:
-        settings["selection"] = "leave_one_out"
+    if args.leave_one_out or args.leave_one_out_worst:
+        settings["selection"] = (
+            "leave_one_out_worst" if args.leave_one_out_worst else "leave_one_out"
+        )
     if args.bias_markov:
         settings["bias_markov"] = True
     cfg = learning.TrainConfig(**settings)
@@ -122,7 +125,8 @@ def cmd_train(args):
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
         + (["--no-bias-tracking"] if args.no_bias_tracking else [])
-        + (["--leave-one-out"] if args.leave_one_out else [])
+        + (["--leave-one-out"] if args.leave_one_out and not args.leave_one_out_worst else [])
+        + (["--leave-one-out-worst"] if args.leave_one_out_worst else [])
         + (["--bias-markov"] if args.bias_markov else [])
         + (["--max-gap", f"{args.max_gap:g}"] if args.max_gap is not None else [])
     )
@@ -348,6 +352,12 @@ def add_parser(sub):
         action="store_true",
         help="after training, fit a Gauss–Markov gyro bias (σ_m, τ) to the validation parts' "
         "1-s and 5-s windows and record their windowed NEES before and with it",
+    )
+    t.add_argument(
+        "--leave-one-out-worst",
+        action="store_true",
+        help="as --leave-one-out, but keep a trained step only if it is below the untrained "
+        "network on every recording left out (the untrained network otherwise)",
     )
     t.set_defaults(func=cmd_train)
     e = learn.add_parser(

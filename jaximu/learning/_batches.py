@@ -45,13 +45,38 @@ def normalisation(parts):
     return tuple(float(v) for v in x.mean(0)), tuple(float(v) for v in x.std(0) + 1e-9)
 
 
+def pieces(parts, horizon: int, offset: int, window: int | None):
+    """The training pieces' length ``L`` (a multiple of ``horizon``), each part's random
+    start bound (starts ``0 … bound-1``; ``(S,)`` int32) and the stacked length: with
+    ``window`` [samples] ``None``, pieces of the shortest part at starts ``0 … offset-1``;
+    otherwise pieces of ``window`` samples (at most the shortest part's) anywhere in each
+    part, which are stacked padded to the longest."""
+    shortest = min(len(s) for s in parts)
+    if window is None:
+        L = (shortest - offset - 1) // horizon * horizon
+        bounds = [offset] * len(parts)
+        length = shortest
+    else:
+        L = (min(window, shortest - 1)) // horizon * horizon
+        bounds = [len(s) - L for s in parts]
+        length = max(len(s) for s in parts)
+    return L, jnp.asarray(bounds, jnp.int32), length
+
+
 def _stack(parts, biases, length):
-    g = np.stack([s.gyro[:length] for s in parts])
-    a = np.stack([s.accel[:length] for s in parts])
-    q = np.stack([s.q[:length] for s in parts])
-    v = np.stack([s.v[:length] for s in parts])
-    b = np.stack([x[:length] for x in biases])
-    ref = np.stack([s.has_reference[:length] for s in parts])
+    """The parts' arrays ``(S, length, ·)``: cut to ``length``, or padded to it by repeating
+    each part's last sample (never inside a piece: :func:`pieces` bounds the starts)."""
+
+    def fit(x):
+        x = np.asarray(x)[:length]
+        return np.concatenate([x, np.repeat(x[-1:], length - len(x), 0)])
+
+    g = np.stack([fit(s.gyro) for s in parts])
+    a = np.stack([fit(s.accel) for s in parts])
+    q = np.stack([fit(s.q) for s in parts])
+    v = np.stack([fit(s.v) for s in parts])
+    b = np.stack([fit(x) for x in biases])
+    ref = np.stack([fit(s.has_reference) for s in parts])
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     return f(g), f(a), f(q), f(v), f(b), jnp.asarray(ref)
 

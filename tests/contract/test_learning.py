@@ -199,6 +199,7 @@ def test_a_minimum_learning_rate_above_the_learning_rate_is_refused():
         (dict(kernel=0), r"^ModelConfig\.kernel must be a positive odd number, got 0$"),
         (dict(kernel=4), r"^ModelConfig\.kernel .* got 4; pass kernel=5"),
         (dict(accel_head="yes"), r"^ModelConfig\.accel_head must be True or False"),
+        (dict(matrix_after_bias=1), r"^ModelConfig\.matrix_after_bias must be True or False"),
         (dict(gyro_bias=((0, 0, 0), (0, 0, 0))), r"ModelConfig\.gyro_bias must have shape"),
         (
             dict(bias_markov_sigma=-1e-3),
@@ -214,6 +215,17 @@ def test_a_minimum_learning_rate_above_the_learning_rate_is_refused():
 def test_model_settings_name_the_field_they_fail_on(kwargs, message):
     with pytest.raises(ValueError, match=message):
         ModelConfig(**kwargs)
+
+
+@pytest.mark.parametrize("field", ["whole_recordings", "bias_noise_shown"])
+def test_train_flags_must_be_booleans(field):
+    with pytest.raises(ValueError, match=rf"^TrainConfig\.{field} must be True or False"):
+        TrainConfig(**{field: "no"})
+
+
+def test_an_unknown_selection_names_the_choices():
+    with pytest.raises(ValueError, match="'leave_one_out', 'leave_one_out_worst'"):
+        TrainConfig(selection="worst")
 
 
 # --------------------------------------------------------------------------- evaluation

@@ -470,3 +470,8 @@ def test_leave_one_out_with_one_folder_is_refused_before_any_work(folders, capsy
     )
     one_line_error(code, err, "--leave-one-out needs two sequence folders", "leave the flag out")
     assert not out.exists()
+    code, _, err = run(
+        capsys, "learn", "train", str(folders["seq"]), "--out", str(out), "--leave-one-out-worst"
+    )
+    one_line_error(code, err, "--leave-one-out-worst needs two sequence folders", "leave the flag")
+    assert not out.exists()

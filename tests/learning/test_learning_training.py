@@ -11,6 +11,8 @@ against ``ω_m``) and the learned noise density must be within 20 % of ``σ``.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -193,7 +195,127 @@ def test_leave_one_out_never_lets_a_recording_choose_its_own_model():
     np.testing.assert_allclose(loo["mean_aoe_deg"], mean, rtol=1e-12)
     assert loo["steps"] == [0, 1, 2]
     assert loo["chosen_step"] == result.record["best_step"] == int(np.argmin(mean))
+    # the same folds (the same seed), judged by the worst recording: kept only if a step is
+    # below the untrained network on every recording left out
+    worst = learning.train(
+        seqs, dataclasses.replace(cfg, selection="leave_one_out_worst"), mcfg, log=None
+    )
+    w = worst.record["leave_one_out"]
+    assert [f["aoe_mean_deg"] for f in w["folds"]] == [f["aoe_mean_deg"] for f in loo["folds"]]
+    ratios = [
+        max(f["aoe_mean_deg"][k] / f["aoe_mean_deg"][0] for f in w["folds"]) for k in range(3)
+    ]
+    best = min(range(3), key=lambda k: (ratios[k], k))
+    assert w["criterion"] == "leave_one_out_worst" and w["chosen_step"] == best
     with pytest.raises(ValueError, match="TrainConfig.selection must be 'validation' or"):
         TrainConfig(selection="leave-one-out")
     with pytest.raises(learning.data.DataError, match="needs two recordings or more"):
         learning.train(seqs[:1], cfg, mcfg, log=None)
+
+
+def test_pieces_reach_the_whole_recording_only_when_asked():
+    """Brossard's pieces (the shortest part, starts 0 … offset-1) against pieces of a window
+    anywhere in each whole part: every allowed start leaves the piece and the attitude after
+    its last step inside its own part, and the last start reaches the part's end; the
+    stacked arrays repeat each part's last sample past its end."""
+    from jaximu.learning._batches import _stack, pieces
+
+    parts = [simulated(20 + i, seconds=s)[0] for i, s in enumerate((3.0, 5.0, 4.0))]
+    n = [len(p) for p in parts]
+    L, bounds, length = pieces(parts, 16, 32, None)
+    assert (L, length) == ((min(n) - 33) // 16 * 16, min(n))
+    assert np.asarray(bounds).tolist() == [32] * 3
+    L, bounds, length = pieces(parts, 16, 32, 400)
+    assert L == 400 and length == max(n)
+    for k, b in zip(n, np.asarray(bounds)):
+        assert (b - 1) + L + 1 == k  # the last start's piece and its end attitude: the end
+    L, _, _ = pieces(parts, 16, 32, 10_000)  # a window longer than a part: the shortest's
+    assert L == (min(n) - 1) // 16 * 16
+    biases = [np.zeros((k, 3)) for k in n]
+    G, *_ = _stack(parts, biases, max(n))
+    for i, p in enumerate(parts):
+        np.testing.assert_array_equal(np.asarray(G[i, : n[i]]), p.gyro.astype(np.float32))
+        np.testing.assert_array_equal(
+            np.asarray(G[i, n[i] :]), np.tile(G[i, n[i] - 1], (max(n) - n[i], 1))
+        )
+
+
+def test_whole_recordings_train_under_leave_one_out_only():
+    """With whole_recordings each part is the whole recording (its start bound its length
+    less the piece's), and no recording chooses its own model; without leave-one-out
+    selection nothing would be left to validate on, and it is refused."""
+    seqs = [simulated(30 + i, seconds=s)[0] for i, s in enumerate((5.0, 6.0, 5.5))]
+    cfg = TrainConfig(
+        steps=1,
+        validate_every=1,
+        train_seconds=2.0,
+        horizons=(16, 32),
+        selection="leave_one_out",
+        whole_recordings=True,
+        calibrate_uncertainty=False,
+    )
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+    result = learning.train(seqs, cfg, mcfg, seed=0, log=None)
+    L = round(2.0 / DT) // 32 * 32
+    assert result.record["samples_per_step"] == 3 * L
+    assert result.record["piece_start_bounds"] == [len(s) - L for s in seqs]
+    for f, s in zip(result.record["leave_one_out"]["folds"], seqs):
+        assert s.name not in f["trained_on"]
+    with pytest.raises(ValueError, match="whole_recordings=True. keeps no seconds"):
+        learning.train(seqs, dataclasses.replace(cfg, selection="validation"), mcfg, log=None)
+
+
+def test_the_matrix_after_the_bias_scales_the_unbiased_rate():
+    """``matrix_after_bias``: ``ω̂ = (ω_m - b) + C (ω_m - b)`` (the closed form, with a zero
+    network), against ``ω̂ = (I + C) ω_m - b`` without it; a model saved before the setting
+    loads with it off."""
+    import equinox as eqx
+
+    C = np.array([[0.01, 0.002, 0.0], [0.0, -0.02, 0.003], [0.001, 0.0, 0.005]], np.float32)
+    rng = np.random.default_rng(0)
+    g = rng.normal(0.0, 0.5, (1, 40, 3)).astype(np.float32)
+    a = np.tile(np.float32([0.0, 0.0, 9.81]), (1, 40, 1))
+    b = np.float32([0.01, 0.02, 0.08])
+    for after in (True, False):
+        mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), matrix_after_bias=after)
+        model = eqx.tree_at(lambda m: m.gyro_matrix, Denoiser(mcfg, jax.random.key(0)), C)
+        out = np.asarray(model(jnp.asarray(g), jnp.asarray(a), gyro_bias=jnp.asarray(b)).gyro)
+        u = g[0] - b if after else g[0]
+        np.testing.assert_allclose(out[0], g[0] - b + u @ C.T, atol=1e-6)
+    old = ModelConfig().to_json()
+    del old["matrix_after_bias"]
+    assert ModelConfig.from_json(old).matrix_after_bias is False
+
+
+def test_a_shown_bias_shift_leaves_the_untrained_loss_as_it_is():
+    """The untrained network is the bias shown alone: a constant added per piece to the gyro
+    and to the bias shown (``bias_noise_shown``) leaves the first step's loss as without it
+    (to float32 rounding); not shown, the correction is asked to remove it and the loss
+    grows."""
+    seqs = [simulated(40, seconds=6.0)[0]]
+    base = dict(steps=1, validate_every=1, train_seconds=5.0, horizons=(16, 32))
+    quiet = dict(gyro_noise=0.0, accel_noise=0.0, accel_bias_noise=0.0, calibrate_uncertainty=False)
+    mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+
+    def huber(**kw):
+        cfg = TrainConfig(**base, **quiet, **kw)
+        return learning.train(seqs, cfg, mcfg, seed=0, log=None).record["history"][0]["huber"]
+
+    clean = huber(gyro_bias_noise=0.0)
+    assert huber(gyro_bias_noise=0.05) == pytest.approx(clean, rel=1e-3)
+    assert huber(gyro_bias_noise=0.05, bias_noise_shown=False) > 2 * clean
+
+
+def test_the_worst_fold_keeps_a_step_only_if_it_helps_every_recording():
+    """Hand-made fold tables (folds × steps, step 0 the untrained network): the mean picks
+    the lowest column mean even where one recording gets worse; the worst-fold criterion
+    picks the lowest worst ratio to step 0, and step 0 when no step helps every recording."""
+    from jaximu.learning._selection import choose_step
+
+    table = [[2.0, 1.5, 1.9], [3.0, 3.3, 2.9], [1.0, 0.9, 0.95]]  # means 2.0, 1.9, 1.917
+    assert choose_step(table, "leave_one_out") == 1  # although fold 1 gets 10 % worse
+    assert choose_step(table, "leave_one_out_worst") == 2  # worst ratios 1, 1.1, 0.967
+    table = [[2.0, 1.5, 2.1], [3.0, 3.3, 3.1], [1.0, 0.9, 0.95]]
+    assert choose_step(table, "leave_one_out_worst") == 0  # every step hurts one recording
+    with pytest.raises(ValueError, match="criterion must be one of"):
+        choose_step(table, "mean")
