@@ -41,7 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu import learning
-from jaximu.learning import training
+from jaximu.learning import _validation, training
+from jaximu.learning._batches import fitted_config
 from jaximu.learning.data import split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors
 from jaximu.learning.losses import increment_loss
@@ -143,19 +144,7 @@ def _fold_model(others, train_seconds, mcfg):
     """The untrained model of a fold (its priors and normalisation from ``others``' first
     ``train_seconds``, as ``_fit`` sets them): the tracker alone."""
     trains = [split(s, train_seconds)[0] for s in others]
-    g_bias, a_bias = training.constant_biases(trains)
-    g_sigma, a_sigma = training.bias_spreads(trains)
-    mean, std = training.normalisation(trains)
-    mcfg = dataclasses.replace(
-        mcfg,
-        rate_hz=round(others[0].rate_hz, 3),
-        input_mean=mean,
-        input_std=std,
-        gyro_bias=g_bias,
-        accel_bias=a_bias,
-        gyro_bias_sigma=g_sigma,
-        accel_bias_sigma=a_sigma,
-    )
+    mcfg = fitted_config(mcfg, trains, others[0].rate_hz)
     return learning.Denoiser(mcfg, jax.random.key(0))
 
 
@@ -182,7 +171,7 @@ def ceilings(seqs, held, cfg, mcfg):
     with the ground truth's own bias where it has one."""
     others = [s for s in seqs if s is not held]
     model = _fold_model(others, cfg.train_seconds, mcfg)
-    biases = training._tracked_biases(model, [held, *others])
+    biases = training._tracked_biases(model, [held, *others])[0]  # (biases, their σ)
     dt = 1.0 / held.rate_hz
     n = int(round(held.rate_hz))
     X, Y, u, r, ok = _residual_blocks(held, biases[0], n)
@@ -210,25 +199,25 @@ def ceilings(seqs, held, cfg, mcfg):
 
 def run_fold(seqs, held, cfg, mcfg, seed, say):
     captured = []
-    original = training._validate
+    original = _validation.validate  # (training reads it from that module at each _fit)
 
     def capture(model, *args, **kw):
         captured.append(model)
         return original(model, *args, **kw)
 
-    training._validate = capture
+    _validation.validate = capture
     try:
         others = [s for s in seqs if s is not held]
         r = training._fit(others, cfg, mcfg, seed, None, lambda x: None, held_out=held)
     finally:
-        training._validate = original
+        _validation.validate = original
     rec = r.record
     # captured: the untrained model, the constant-bias baseline (same model), then one per
     # validation
     models = [captured[0]] + captured[2:]
     steps = [0] + [h["step"] for h in rec["history"]]
     train_huber = [None] + [h["huber"] for h in rec["history"]]
-    tracked = training._tracked_biases(models[0], [held])[0]
+    tracked = training._tracked_biases(models[0], [held])[0][0]
     rows = []
     for k, m, th in zip(steps, models, train_huber):
         d = diagnose(m, held, tracked, cfg)
