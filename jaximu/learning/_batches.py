@@ -4,6 +4,7 @@ and the validation parts padded to one batch (:func:`jaximu.learning.train`)."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -61,6 +62,25 @@ def pieces(parts, horizon: int, offset: int, window: int | None):
         bounds = [len(s) - L for s in parts]
         length = max(len(s) for s in parts)
     return L, jnp.asarray(bounds, jnp.int32), length
+
+
+def fitted_config(base, parts, rate: float):
+    """``base`` (a :class:`jaximu.learning.ModelConfig`) with what the training parts
+    ``parts`` set: the rate [Hz], the input normalisation, the constant biases and the
+    tracker's bias priors."""
+    g_bias, a_bias = constant_biases(parts)
+    g_sigma, a_sigma = bias_spreads(parts)
+    mean, std = normalisation(parts)
+    return dataclasses.replace(
+        base,
+        rate_hz=round(rate, 3),
+        input_mean=mean,
+        input_std=std,
+        gyro_bias=g_bias,
+        accel_bias=a_bias,
+        gyro_bias_sigma=g_sigma,
+        accel_bias_sigma=a_sigma,
+    )
 
 
 def _stack(parts, biases, length):

@@ -34,6 +34,7 @@ from jaximu.learning._batches import (
     _validation_arrays,
     bias_spreads,
     constant_biases,
+    fitted_config,
     normalisation,
     pieces,
 )
@@ -428,20 +429,7 @@ def _fit(
     trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
     if cfg.whole_recordings:  # (vals: the record's figures and the uncertainty's only)
         trains = tuple(sequences)
-    g_bias, a_bias = constant_biases(trains)
-    g_sigma, a_sigma = bias_spreads(trains)
-    mean, std = normalisation(trains)
-    base = model_config or ModelConfig()
-    mcfg = dataclasses.replace(
-        base,
-        rate_hz=round(rate, 3),
-        input_mean=mean,
-        input_std=std,
-        gyro_bias=g_bias,
-        accel_bias=a_bias,
-        gyro_bias_sigma=g_sigma,
-        accel_bias_sigma=a_sigma,
-    )
+    mcfg = fitted_config(model_config or ModelConfig(), trains, rate)
     dt = 1.0 / rate
     Hmax = cfg.horizons[-1]
     shortest = min(len(s) for s in trains)
