@@ -91,24 +91,23 @@ def nees_terms(model, v: ValidationBatch) -> list[NeesTerms]:
 def _window_arrays(model, v: ValidationBatch, *, windows: tuple):
     c = model(v.gyro, v.accel, gyro_bias=v.bias)
     cfg = model.config
-    g0 = v.gyro - jnp.asarray(cfg.gyro_bias, jnp.float32)
-    a0 = v.accel - jnp.asarray(cfg.accel_bias, jnp.float32)
     shift = lambda x: _shifted(x, v.start)  # noqa: E731
+    # each series from its validation start, once for every window length and variant
+    g0 = shift(v.gyro - jnp.asarray(cfg.gyro_bias, jnp.float32))
+    a0 = shift(v.accel - jnp.asarray(cfg.accel_bias, jnp.float32))
+    g, a = shift(c.gyro), shift(c.accel)
     q, p, vel = shift(v.q), shift(v.p), shift(v.v)
     steps = shift(v.dt[..., None])[..., 0]
     last = v.length - v.start - 1  # each row's steps from its validation start
+    variants = (("constant_bias", (g0, a0)), ("learned_gyro", (g, a0)), ("learned", (g, a)))
     out = {}
     for n in windows:
         j = jnp.arange((v.gyro.shape[1] - 1) // n)
         valid = (j[None, :] + 1) * n <= last[:, None]  # the windows inside the row
+        mean = lambda e: jnp.sum(jnp.where(valid, e, 0.0), 1) / jnp.sum(valid, 1)  # noqa: E731
         rows = {}
-        for name, (g, a) in (
-            ("constant_bias", (g0, a0)),
-            ("learned_gyro", (c.gyro, a0)),
-            ("learned", (c.gyro, c.accel)),
-        ):
-            dv, dp = jax.vmap(lambda *x: _window_run(*x, n=n))(shift(g), shift(a), q, p, vel, steps)
-            mean = lambda e: jnp.sum(jnp.where(valid, e, 0.0), 1) / jnp.sum(valid, 1)  # noqa: E731
+        for name, (gi, ai) in variants:
+            dv, dp = jax.vmap(lambda *x: _window_run(*x, n=n))(gi, ai, q, p, vel, steps)
             rows[name] = (mean(dv), mean(dp))
         out[n] = rows
     return out
