@@ -1,7 +1,7 @@
 """``jaximu learn``: train a gyro denoiser on sequences with ground truth, and evaluate one.
 
   jaximu learn train DIR [DIR ...] --out MODEL [--seed S] [--minutes M] [--steps N]
-                     [--accel-head] [--no-bias-tracking] [--leave-one-out]
+                     [--accel-head] [--accel-network] [--no-bias-tracking] [--leave-one-out]
                      [--leave-one-out-worst] [--bias-markov]
   jaximu learn evaluate MODEL DIR [DIR ...] [--json FILE] [--plot FILE]
 
@@ -105,6 +105,12 @@ def cmd_train(args):
             f"{flag} needs two sequence folders or more (each is validated by "
             "models trained on the others): give more folders or leave the flag out"
         )
+    if args.accel_network and (args.leave_one_out or args.leave_one_out_worst):
+        raise UsageError(
+            f"--accel-network keeps the accelerometer's layers by the validation parts' "
+            f"windows, and {flag} chooses the step by the attitude of recordings left out: "
+            "leave one of the two flags out"
+        )
     t0 = time.perf_counter()
     seqs = _load_all(learning, args)
     settings = {} if args.steps is None else {"steps": args.steps}
@@ -116,7 +122,11 @@ def cmd_train(args):
         settings["bias_markov"] = True
     cfg = learning.TrainConfig(**settings)
     print(f"read {len(seqs)} sequences in {time.perf_counter() - t0:.1f} s")
-    mcfg = learning.ModelConfig(accel_head=args.accel_head, bias_tracking=not args.no_bias_tracking)
+    mcfg = learning.ModelConfig(
+        accel_head=args.accel_head or args.accel_network,
+        accel_network=args.accel_network,
+        bias_tracking=not args.no_bias_tracking,
+    )
     result = learning.train(seqs, cfg, mcfg, seed=args.seed, minutes=args.minutes)
     record = dict(result.record)
     record["command"] = "jaximu learn train " + " ".join(
@@ -124,6 +134,7 @@ def cmd_train(args):
         + ["--out", out.name, "--seed", str(args.seed)]
         + (["--steps", str(args.steps)] if args.steps else [])
         + (["--accel-head"] if args.accel_head else [])
+        + (["--accel-network"] if args.accel_network else [])
         + (["--no-bias-tracking"] if args.no_bias_tracking else [])
         + (["--leave-one-out"] if args.leave_one_out and not args.leave_one_out_worst else [])
         + (["--leave-one-out-worst"] if args.leave_one_out_worst else [])
@@ -332,6 +343,14 @@ def add_parser(sub):
         action="store_true",
         help="also correct the accelerometer, "
         "trained on velocity increments (sequences with ground-truth velocity)",
+    )
+    t.add_argument(
+        "--accel-network",
+        action="store_true",
+        help="the accelerometer head with convolution layers of its own (implies "
+        "--accel-head): the gyro is trained and kept as without it, the accelerometer's "
+        "layers kept from the step with the lowest velocity and position errors over the "
+        "validation parts' 1-s and 5-s windows",
     )
     t.add_argument(
         "--no-bias-tracking",

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import numpy as np
+
+from jaximu.learning import _validation
 
 CRITERIA = ("leave_one_out", "leave_one_out_worst")
 
@@ -63,3 +66,63 @@ def leave_one_out(fit, sequences, cfg, model_config, seed, minutes, say):
         "chosen_step": steps[j],
     }
     return result
+
+
+def accel_ratio(rows) -> float:
+    """The accelerometer correction's score from validation windows ``rows`` (a list, one
+    per validation part, of :func:`jaximu.learning._validation.window_errors`' dicts): the
+    mean, over the parts, the window lengths and the two errors (``|δv|`` [m/s], ``|δp|``
+    [m]), of ``learned / learned_gyro``, the dead reckoning with the corrected
+    accelerometer over that with the same gyro and the constant accelerometer bias: 1
+    without a correction, below 1 where it helps."""
+    r = [x[w]["learned"][i] / x[w]["learned_gyro"][i] for x in rows for w in x for i in (0, 1)]
+    if not r:
+        raise ValueError("accel_ratio needs the windows of one validation part or more")
+    return float(np.mean(r))
+
+
+def with_accel(model, source):
+    """``model`` with the accelerometer's own layers and correction taken from ``source``
+    (both :class:`jaximu.learning.Denoiser` with ``ModelConfig.accel_network``)."""
+    return eqx.tree_at(
+        lambda m: (m.accel_layers, m.accel_out), model, (source.accel_layers, source.accel_out)
+    )
+
+
+class AccelChoice:
+    """The accelerometer's own layers (``ModelConfig.accel_network``) kept from their own
+    step: the one with the lowest :func:`accel_ratio` on the 1-s and 5-s windows of the
+    validation parts ``parts`` (indices into the validation batch: those with true
+    velocities and 5 s or more), step 0 (no correction, ratio 1) a candidate. The gyro's
+    layers are kept by the attitude; with layers of their own the two never share a
+    weight, so each part is kept as it was at its step."""
+
+    def __init__(self, model, parts: list[int], dt: float):
+        self.best = (1.0, model, 0)
+        self.parts, self.dt = parts, dt
+
+    def judge(self, ema, vdata, step: int) -> float | None:
+        """The ratio of the model ``ema`` at ``step`` (None without validation windows)."""
+        if not self.parts:
+            return None
+        rows = _validation.window_errors(ema, vdata, self.dt, (1.0, 5.0))
+        ratio = accel_ratio([rows[i] for i in self.parts])
+        if ratio < self.best[0]:
+            self.best = (ratio, ema, step)
+        return ratio
+
+    def apply(self, model, record: dict, say):
+        """``model`` with the kept accelerometer layers; their step and ratio recorded."""
+        ratio, source, step = self.best
+        record.update(accel_step=step, validation_accel_ratio=ratio)
+        if not self.parts:
+            say(
+                "no validation part with true velocities of 5 s or more: the accelerometer's "
+                "correction is kept untrained (zero)"
+            )
+        else:
+            say(
+                f"accelerometer layers: step {step} (validation dead reckoning {ratio:.3f} × "
+                "the constant accelerometer bias's, 1-s and 5-s windows)"
+            )
+        return with_accel(model, source)

@@ -72,6 +72,12 @@ class ModelConfig:
         bias_sigma, reference_sigma: initial values of the learned residual gyro bias
             ``σ_b`` [rad/s] and the ground truth's attitude noise ``σ_ref`` [rad].
         accel_head: whether the accelerometer is corrected too.
+        accel_network: with ``accel_head``, whether the accelerometer's correction comes
+            from convolution layers of its own (the gyro's layers, kernel and dilations,
+            initialised from another key) instead of a second head on the gyro's layers:
+            the velocity loss then trains no weight of the gyro correction, and the
+            training keeps each part from its own best step (the gyro's by the attitude,
+            the accelerometer's by the dead-reckoning windows; :func:`train`).
         bias_tracking: whether the gyro bias is tracked from gravity
             (:mod:`jaximu.learning.tracking`) instead of held at ``gyro_bias``.
         gyro_bias_sigma, accel_bias_sigma: the tracker's prior standard deviations of the
@@ -128,6 +134,7 @@ class ModelConfig:
     bias_markov_sigma: float = 0.0
     bias_markov_time: float = 60.0
     matrix_after_bias: bool = False
+    accel_network: bool = False
 
     def __post_init__(self):
         for field in (
@@ -200,6 +207,12 @@ class ModelConfig:
         check_settings(self._tracker(standstill_samples=0), "ModelConfig")
         for field in ("bias_tracking", "standstill", "accel_head", "matrix_after_bias"):
             check_bool(f"{name}.{field}", getattr(self, field))
+        if check_bool(f"{name}.accel_network", self.accel_network) and not self.accel_head:
+            raise InputError(
+                f"{name}.accel_network = True gives the accelerometer's correction layers of "
+                "its own, but accel_head is False (no accelerometer correction)",
+                [Fix("accel_head", True), Fix("accel_network", False)],
+            )
         kernel = check_int(f"{name}.kernel", self.kernel, 1, "a positive odd number")
         if kernel % 2 == 0:
             raise InputError(
@@ -245,8 +258,9 @@ class ModelConfig:
 
     @property
     def corrections(self) -> int:
-        """Correction outputs per sample: the gyro's 3, and the accelerometer's 3."""
-        return 3 + (3 if self.accel_head else 0)
+        """Correction outputs per sample of the gyro's layers: the gyro's 3, and the
+        accelerometer's 3 when it has no layers of its own."""
+        return 3 + (3 if self.accel_head and not self.accel_network else 0)
 
     def to_json(self) -> dict:
         return {
@@ -338,6 +352,8 @@ class Denoiser(eqx.Module):
     head: CausalConv  # corrections
     noise_head: CausalConv  # log-density, on the features without their gradient
     gyro_matrix: jax.Array  # C, (3, 3)
+    accel_layers: tuple  # the accelerometer's own layers (ModelConfig.accel_network), or ()
+    accel_out: CausalConv | None  # their correction (accel_network), or None
     log_bias_sigma: jax.Array  # log σ_b [rad/s]: the gyro bias the correction misses
     log_reference_sigma: jax.Array  # log σ_ref [rad]: the ground truth's attitude noise
     config: ModelConfig = eqx.field(static=True)
@@ -357,6 +373,15 @@ class Denoiser(eqx.Module):
         self.head = CausalConv(widths[-1], config.corrections, 1, 1, keys[-1], zero=True)
         self.noise_head = CausalConv(widths[-1], 3, 1, 1, keys[-1], zero=True)
         self.gyro_matrix = jnp.zeros((3, 3), jnp.float32)
+        # the accelerometer's own layers from another key: the gyro's start as without them
+        ka = jax.random.split(jax.random.fold_in(keys[-1], 1), len(config.channels) + 1)
+        own = config.accel_network
+        self.accel_layers = tuple(
+            CausalConv(widths[i], widths[i + 1], config.kernel, d, ka[i])
+            for i, d in enumerate(config.dilations)
+            if own
+        )
+        self.accel_out = CausalConv(widths[-1], 3, 1, 1, ka[-1], zero=True) if own else None
         self.log_bias_sigma = jnp.asarray(np.log(config.bias_sigma), jnp.float32)
         self.log_reference_sigma = jnp.asarray(np.log(config.reference_sigma), jnp.float32)
         self.config = config
@@ -388,15 +413,24 @@ class Denoiser(eqx.Module):
         lead = x.shape[:-2]
         x = x.reshape((-1,) + x.shape[-2:])
         x = (x - jnp.asarray(cfg.input_mean, wdtype)) / jnp.asarray(cfg.input_std, wdtype)
-        n = len(self.layers)
-        keys = (None,) * n if key is None else jax.random.split(key, n)
-        for layer, k in zip(self.layers, keys):
+        h = self._trunk(self.layers, x, key)
+        y, z = self.head(h), self.noise_head(jax.lax.stop_gradient(h))
+        if self.accel_out is not None:  # the accelerometer's own layers, dropout of its own
+            k = None if key is None else jax.random.fold_in(key, 1)
+            y = jnp.concatenate([y, self.accel_out(self._trunk(self.accel_layers, x, k))], -1)
+        return y.reshape(lead + y.shape[-2:]), z.reshape(lead + z.shape[-2:])
+
+    def _trunk(self, layers, x, key):
+        """The dilated convolutions ``layers`` with GELU over normalised inputs ``x``
+        ``(B, T, 6)``, dropout when ``key`` is given."""
+        cfg = self.config
+        keys = (None,) * len(layers) if key is None else jax.random.split(key, len(layers))
+        for layer, k in zip(layers, keys):
             x = jax.nn.gelu(layer(x))
             if k is not None and cfg.dropout > 0:
                 keep = jax.random.bernoulli(k, 1.0 - cfg.dropout, x.shape)
                 x = jnp.where(keep, x / (1.0 - cfg.dropout), 0.0)
-        y, z = self.head(x), self.noise_head(jax.lax.stop_gradient(x))
-        return y.reshape(lead + y.shape[-2:]), z.reshape(lead + z.shape[-2:])
+        return x
 
     def track(self, gyro, accel) -> Tracked:
         """The gyro bias ``b̂_g`` at every sample ``(..., T, 3)`` and its standard deviation,

@@ -38,7 +38,7 @@ from jaximu.learning._batches import (
     normalisation,
     pieces,
 )
-from jaximu.learning._selection import CRITERIA, leave_one_out
+from jaximu.learning._selection import CRITERIA, AccelChoice, leave_one_out
 from jaximu.learning.data import Sequence, check_rate, check_sequence, split
 from jaximu.learning.losses import check_horizons, huber, increment_loss, velocity_residuals
 from jaximu.learning.model import Denoiser, ModelConfig
@@ -408,6 +408,13 @@ def train(
             "selection='leave_one_out' (the recordings left out judge the steps)"
         )
     if cfg.selection in CRITERIA:
+        if model_config is not None and model_config.accel_network:
+            raise ValueError(
+                f"TrainConfig(selection={cfg.selection!r}) judges the attitude alone, and "
+                "ModelConfig(accel_network=True) keeps the accelerometer's layers by the "
+                "validation parts' windows: use selection='validation' with it, or "
+                "accel_network=False"
+            )
         if len(sequences) < 2:
             raise DataError(
                 "TrainConfig(selection='leave_one_out') needs two recordings or more (each "
@@ -528,6 +535,7 @@ def _fit(
     best = (float(untrained.mean()), model, 0)
     if keep_step is not None:  # chosen without these recordings' validation parts
         best = (keep_step[1], model, 0)
+    accel = AccelChoice(model, _window_parts(sequences, vals), dt) if mcfg.accel_network else None
     compile_time = t_first + t_val_first
     i = 1
     cut_short = False
@@ -553,6 +561,8 @@ def _fit(
                     "validation_aoe_mean_deg": [float(x) for x in aoe],
                 }
             )
+            if accel is not None:  # the accelerometer's own layers, by the windows
+                record["history"][-1]["validation_accel_ratio"] = accel.judge(ema, vdata, i)
             mark = ""
             if mean_aoe < best[0]:
                 best, mark = (mean_aoe, ema, i), " *"
@@ -578,7 +588,7 @@ def _fit(
             jax.block_until_ready(loss)
         seconds["steps"] += time.perf_counter() - t0
         i += 1
-    model = best[1]
+    model = best[1] if accel is None else accel.apply(best[1], record, say)
     t_after = time.perf_counter()
     if cfg.calibrate_uncertainty:
         t0 = time.perf_counter()
@@ -643,10 +653,9 @@ def _record_windows(model, sequences, vals, vdata, dt, record, say):
     """Dead-reckoning errors over 1-s and 5-s windows of the validation parts with ground
     truth velocities (``vdata``: their batch): what the accelerometer correction is judged
     by."""
-    kept = [s.b_g is not None and v.seconds >= 5.0 for s, v in zip(sequences, vals)]
-    # (pose only: differenced velocities)
-    rows = _validation.window_errors(model, vdata, dt, (1.0, 5.0)) if any(kept) else []
-    out = {v.name: r for v, r, k in zip(vals, rows, kept) if k}
+    kept = _window_parts(sequences, vals)
+    rows = _validation.window_errors(model, vdata, dt, (1.0, 5.0)) if kept else []
+    out = {vals[i].name: rows[i] for i in kept}
     record["validation_windows"] = out
     for w in ("1s", "5s"):
         rows = [x[w] for x in out.values()]
@@ -657,3 +666,11 @@ def _record_windows(model, sequences, vals, vdata, dt, record, say):
                 f"[m/s] / |δp| [m]: "
                 + ", ".join(f"{k} {a:.3f} / {b:.3f}" for k, (a, b) in mean.items())
             )
+
+
+def _window_parts(sequences, vals) -> list[int]:
+    """The indices of the validation parts judged by dead-reckoning windows: those of 5 s
+    or more whose ground truth has velocities (pose only: differenced velocities)."""
+    return [
+        i for i, (s, v) in enumerate(zip(sequences, vals)) if s.b_g is not None and v.seconds >= 5.0
+    ]

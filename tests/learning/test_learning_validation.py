@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 from test_learning_losses import DT
 from test_learning_training import simulated
 
@@ -52,3 +54,53 @@ def test_validation_batch_gives_each_parts_own_nees_terms_and_windows():
         assert abs(got_nees / want_nees - 1) < 1e-4, (got_nees, want_nees)
         for name, pair in evaluation.window_errors(model, s, 1.0, start).items():
             _close(w["1s"][name], pair)
+
+
+def test_an_accelerometer_network_of_its_own_leaves_the_gyro_as_trained_without_it():
+    """With ``ModelConfig(accel_network=True)`` the gyro is trained and kept as by a
+    gyro-only training of the same seed (the velocity loss trains none of its weights), and
+    the accelerometer's layers are kept from the step with the lowest ratio of the
+    dead-reckoning errors over the validation windows, the corrected accelerometer's to the
+    constant bias's, which evaluation.window_errors gives again, recording by recording,
+    for the kept model. The recordings rotate in place (``v = p = 0``) with an
+    accelerometer bias of 0.3 m/s² on x that the ground truth's biases leave out."""
+    from jaximu.learning import TrainConfig, train
+
+    seqs = []
+    for seed in (30, 31):
+        s, _ = simulated(seed, 12.0)
+        up = Rotation.from_quat(np.roll(s.q, -1, axis=-1)).inv().apply([0.0, 0.0, 9.81])
+        z = np.zeros((len(s), 3))
+        accel = up + [0.3, 0.0, 0.0] + 0.02 * np.random.default_rng(seed).standard_normal(z.shape)
+        seqs.append(Sequence(s.name, s.t, s.gyro, accel, s.q, z, z, z + 0.02, z))
+    cfg = TrainConfig(
+        steps=4,
+        validate_every=2,
+        train_seconds=6.5,
+        horizons=(16, 32),
+        learning_rate=0.05,
+        min_learning_rate=0.005,
+        ema=0.0,
+        calibrate_uncertainty=False,
+    )
+    base = dict(channels=(4,), kernel=3, dilations=(1,), bias_tracking=False)
+    mcfg = ModelConfig(accel_head=True, accel_network=True, accel_scale=(1.0,) * 3, **base)
+    own = train(seqs, cfg, mcfg, seed=0, log=None)
+    gyro_only = train(seqs, cfg, ModelConfig(**base), seed=0, log=None)
+    rec = own.record
+    assert rec["best_step"] == gyro_only.record["best_step"]
+    for s in seqs:
+        a, b = own.model(s.gyro, s.accel), gyro_only.model(s.gyro, s.accel)
+        np.testing.assert_allclose(a.gyro, b.gyro, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(a.gyro_density, b.gyro_density, rtol=1e-6)
+    ratios = [1.0] + [h["validation_accel_ratio"] for h in rec["history"]]
+    steps = [0] + [h["step"] for h in rec["history"]]
+    assert rec["accel_step"] == steps[int(np.argmin(ratios))] > 0  # the bias is learned
+    rows = []
+    for s in seqs:
+        start = len(s) - len(split(s, 6.5)[1])
+        rows.append({w: evaluation.window_errors(own.model, s, w, start) for w in (1.0, 5.0)})
+    ratio = np.mean(
+        [r[w]["learned"][i] / r[w]["learned_gyro"][i] for r in rows for w in r for i in (0, 1)]
+    )
+    assert ratio == pytest.approx(min(ratios), rel=1e-4) and ratio < 0.95
