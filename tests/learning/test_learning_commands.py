@@ -394,6 +394,7 @@ def test_train_settings_outside_their_domain_are_refused_by_name(kwargs, message
         (dict(gyro_bias=(0.0, np.nan, 0.0)), r"ModelConfig.gyro_bias contains non-finite values"),
         (dict(kernel=4), r"ModelConfig.kernel must be a positive odd number"),
         (dict(input_std=5.0), r"ModelConfig.input_std must be a sequence of numbers"),
+        (dict(accel_network=True), r"ModelConfig.accel_network = True .* pass accel_head=True"),
     ],
 )
 def test_model_settings_outside_their_domain_are_refused_by_name(kwargs, message):
@@ -474,4 +475,10 @@ def test_leave_one_out_with_one_folder_is_refused_before_any_work(folders, capsy
         capsys, "learn", "train", str(folders["seq"]), "--out", str(out), "--leave-one-out-worst"
     )
     one_line_error(code, err, "--leave-one-out-worst needs two sequence folders", "leave the flag")
+    assert not out.exists()
+    two = [str(folders["seq"])] * 2
+    code, _, err = run(
+        capsys, "learn", "train", *two, "--out", str(out), "--leave-one-out", "--accel-network"
+    )
+    one_line_error(code, err, "--accel-network keeps the accelerometer's", "leave one of the two")
     assert not out.exists()
