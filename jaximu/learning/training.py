@@ -561,8 +561,9 @@ def _fit(
                     "validation_aoe_mean_deg": [float(x) for x in aoe],
                 }
             )
-            if accel is not None:  # the accelerometer's own layers, by the windows
-                record["history"][-1]["validation_accel_ratio"] = accel.judge(ema, vdata, i)
+            ratio = None if accel is None else accel.judge(ema, vdata, i)  # its own layers
+            if ratio is not None:
+                record["history"][-1]["validation_accel_ratio"] = ratio
             mark = ""
             if mean_aoe < best[0]:
                 best, mark = (mean_aoe, ema, i), " *"
@@ -570,7 +571,9 @@ def _fit(
                 f"step {i:5d}/{cfg.steps}  loss {float(parts[0]):.4g}  nll {float(parts[1]):8.3f}"
                 f"  validation mean AOE {mean_aoe:6.2f}° ("
                 + " ".join(f"{x:.2f}" for x in aoe)
-                + f"){mark}  {time.perf_counter() - t_start:6.0f} s"
+                + f"){mark}"
+                + ("" if ratio is None else f"  accelerometer windows × {ratio:.3f}")
+                + f"  {time.perf_counter() - t_start:6.0f} s"
             )
         if i >= cfg.steps:
             break
