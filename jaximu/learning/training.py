@@ -224,24 +224,43 @@ class TrainResult(NamedTuple):
     record: dict
 
 
-def _schedule(cfg: TrainConfig):
-    periods, total, p = [], 0, cfg.restart
-    while total < cfg.steps:
+def _periods(cfg: TrainConfig) -> list[int]:
+    """The cosine schedule's periods: ``restart`` steps, then each twice the one before,
+    until they cover ``steps``."""
+    periods, p = [], cfg.restart
+    while sum(periods) < cfg.steps:
         periods.append(p)
-        total += p
         p *= 2
+    return periods
+
+
+def _schedule(cfg: TrainConfig):
+    kw = dict(warmup_steps=0, end_value=cfg.min_learning_rate)
     return optax.sgdr_schedule(
         [
-            dict(
-                init_value=cfg.learning_rate,
-                peak_value=cfg.learning_rate,
-                decay_steps=p,
-                warmup_steps=0,
-                end_value=cfg.min_learning_rate,
-            )
-            for p in periods
+            dict(init_value=cfg.learning_rate, peak_value=cfg.learning_rate, decay_steps=p, **kw)
+            for p in _periods(cfg)
         ]
     )
+
+
+# Settings the step never reads (the noise levels enter it as arrays; the rest is the data's
+# preparation, the validation and what follows the steps): set to their defaults in the
+# step's static key (_step_settings), so trainings that differ only in them share one program.
+_NOT_IN_STEP = (
+    "train_seconds offset gyro_noise accel_noise gyro_bias_noise accel_bias_noise validate_every"
+    " calibrate_uncertainty selection bias_markov whole_recordings"
+).split()
+
+
+def _step_settings(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` as the step sees it: the settings it never reads at their defaults, and
+    ``steps`` at the end of the last warm restart it reaches (the schedule is the same for
+    every ``steps`` within one period: 1 to 300 by default)."""
+    defaults = {
+        f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name in _NOT_IN_STEP
+    }
+    return dataclasses.replace(cfg, steps=sum(_periods(cfg)), **defaults)
 
 
 def _decay_mask(model):
@@ -491,10 +510,10 @@ def _fit(
     )
 
     params = (model, jnp.zeros((len(trains), 3), jnp.float32))
-    opt_state = _optimizer(cfg, params).init(eqx.filter(params, eqx.is_array))
+    opt_state = _optimizer(_step_settings(cfg), params).init(eqx.filter(params, eqx.is_array))
     noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
     bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3, jnp.float32)
-    step = functools.partial(_step, cfg=cfg, dt=dt, L=L)
+    step = functools.partial(_step, cfg=_step_settings(cfg), dt=dt, L=L)
     validate = functools.partial(_validation.validate, dt=dt)
 
     record: dict[str, Any] = {
