@@ -113,6 +113,8 @@ FLAGS = {
     "reference_sigma": "--reference-sigma",
     "optimizer": "--optimizer",
     "noise": "--noise",
+    "accel_head": "--accel-head",
+    "accel_network": "--accel-network",
 }
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
 API_ONLY_OPTIONS = frozenset(
@@ -139,6 +141,8 @@ def flag_of(fix) -> str:
         return fix.describe(flag)
     if fix.value is True:
         return flag
+    if fix.value is False:  # a switch to leave off
+        return f"no {flag}"
     if isinstance(fix.value, tuple):  # the command's lists are comma-separated numbers
         return f"{flag} " + ",".join(f"{x:g}" for x in fix.value)
     return f"{flag} {fix.value:g}" if isinstance(fix.value, float) else f"{flag} {fix.value}"
