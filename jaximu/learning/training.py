@@ -227,7 +227,8 @@ class TrainResult(NamedTuple):
 def _periods(cfg: TrainConfig) -> list[int]:
     """The cosine schedule's periods: ``restart`` steps, then each twice the one before,
     until they cover ``steps``."""
-    periods, p = [], cfg.restart
+    periods: list[int] = []
+    p = cfg.restart
     while sum(periods) < cfg.steps:
         periods.append(p)
         p *= 2
@@ -257,9 +258,7 @@ def _step_settings(cfg: TrainConfig) -> TrainConfig:
     """``cfg`` as the step sees it: the settings it never reads at their defaults, and
     ``steps`` at the end of the last warm restart it reaches (the schedule is the same for
     every ``steps`` within one period: 1 to 300 by default)."""
-    defaults = {
-        f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name in _NOT_IN_STEP
-    }
+    defaults: dict[str, Any] = {name: getattr(TrainConfig, name) for name in _NOT_IN_STEP}
     return dataclasses.replace(cfg, steps=sum(_periods(cfg)), **defaults)
 
 
