@@ -6,7 +6,7 @@ window terms; not a model setting).
 
 ``MODEL``: a model trained without ``TEST``; ``SIGMA_M`` [rad/s], ``TAU`` [s]: its
 Gauss–Markov gyro bias as fitted by ``benchmarks/learning_window_nees.py``; ``FIT_ON``: its
-training recordings (folder names in ``../shared/data``), whose validation parts (after 80 s)
+training recordings (sequence folders, as ``TEST``), whose validation parts (after 80 s)
 the terms are fitted on, by the window likelihood (Nelder–Mead on the logarithms).
 
 The term: the ground truth's attitude at each window end is taken at a time off by
@@ -24,6 +24,7 @@ the left-out recording itself would want (in-sample, a bound on what the term ca
 
 from __future__ import annotations
 
+import pathlib
 import sys
 
 import jax.numpy as jnp
@@ -34,13 +35,11 @@ from scipy.spatial.transform import Rotation
 from jaximu import learning
 from jaximu.learning import uncertainty as u
 
-DATA = "../shared/data/"
 
-
-def rows(model, markov, name, validation):
+def rows(model, markov, folder, validation):
     """Per window length: errors ``r``, the model's covariance without the Gauss–Markov
     term ``base``, the unit Gauss–Markov term ``G`` and the two timing forms ``U``, ``V``."""
-    s = learning.load_sequence(DATA + name)
+    s = learning.load_sequence(folder)
     k = len(s) - len(learning.split(s)[1]) if validation else 0
     parts = u._markov_parts(model, [s], [k], (1.0, 5.0))
     g = np.asarray(model(jnp.asarray(s.gyro, jnp.float32), jnp.asarray(s.accel, jnp.float32)).gyro)
@@ -70,15 +69,13 @@ def covariance(d, sm, st, form):
     return d["base"] + sm**2 * d["G"] + st**2 * d[form]
 
 
+def quadratic(r, S):
+    """``rᵀ S⁻¹ r`` per window, ``r`` ``(K, 3)``, ``S`` ``(K, 3, 3)``."""
+    return np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])
+
+
 def nees(d, sm, st, form):
-    r = d["r"]
-    return float(
-        np.mean(
-            np.einsum(
-                "ki,ki->k", r, np.linalg.solve(covariance(d, sm, st, form), r[..., None])[..., 0]
-            )
-        )
-    )
+    return float(np.mean(quadratic(d["r"], covariance(d, sm, st, form))))
 
 
 def nll(p, data, form, fixed_sm):
@@ -87,8 +84,7 @@ def nll(p, data, form, fixed_sm):
     for w in (1.0, 5.0):
         r = np.concatenate([d[w]["r"] for d in data if w in d])
         S = np.concatenate([covariance(d[w], sm, np.exp(p[-1]), form) for d in data if w in d])
-        quad = np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])
-        out += np.mean(0.5 * quad + 0.5 * np.linalg.slogdet(S)[1])
+        out += np.mean(0.5 * quadratic(r, S) + 0.5 * np.linalg.slogdet(S)[1])
     return out
 
 
@@ -101,7 +97,7 @@ def main():
     line = lambda d, sm, st, f: " ".join(  # noqa: E731
         f"{w:g}s {nees(d[w], markov[0], 0.0, f):.2f}->{nees(d[w], sm, st, f):.2f}" for w in d
     )
-    vicon = [n for n in fit_on if n.startswith("euroc_v")]
+    vicon = [n for n in fit_on if pathlib.Path(n).name.startswith("euroc_v")]
     for form, subset in (("U", fit_on), ("U", vicon), ("V", vicon)):
         data = [train[n] for n in subset]
         print(f"=== {'independent ends' if form == 'U' else 'shared offset'}, fitted on {subset}")
