@@ -7,11 +7,13 @@ test computes from the number of windows."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_learning_losses import smooth_rates
+from test_learning_losses import scipy_attitudes, smooth_rates
 
 from jaximu.learning import Denoiser, ModelConfig, Sequence, uncertainty
 
@@ -42,10 +44,7 @@ def consistent_sequence(seconds: float, window: int, seed: int = 0) -> Sequence:
     rng = np.random.default_rng(seed)
     T = int(round(seconds / DT)) + 1
     true = smooth_rates(rng, T)
-    steps = Rotation.from_rotvec(true[:-1] * DT)
-    R = [Rotation.from_quat([0.1, -0.3, 0.2, 0.9])]
-    for s in steps:  # R_{k+1} = R_k Exp(ω_k dt), scipy's composition
-        R.append(R[-1] * s)
+    _, R = scipy_attitudes(np.array([0.9, 0.1, -0.3, 0.2]), true, DT)
     truth = Rotation.concatenate(R)
     noisy = truth * Rotation.from_rotvec(REF * rng.standard_normal((T, 3)))
     q = np.roll(noisy.as_quat(), 1, -1)
@@ -101,27 +100,15 @@ def test_the_gauss_markov_fit_recovers_a_simulated_slowly_varying_bias():
     3σ bound; ``τ`` shows only in how the error grows from 1 s to 5 s (the 40 windows of
     5 s), a weaker constraint, hence the factor 2. The fitted model's windowed NEES is then
     3 within the bound of the consistent test above."""
-    dt, sigma_m, tau, density = 0.05, 2e-3, 5.0, 1e-3
-    cfg = ModelConfig(
-        rate_hz=1 / dt,
-        channels=(4,),
-        kernel=3,
-        dilations=(1,),
-        dropout=0.0,
-        bias_tracking=False,
-        gyro_density=density,
-        gyro_random_walk=1e-9,
-        bias_sigma=1e-7,
-        reference_sigma=1e-4,
+    dt, sigma_m, tau, density = DT, 2e-3, 5.0, 1e-3  # CFG's rate
+    cfg = dataclasses.replace(
+        CFG, gyro_density=density, gyro_random_walk=1e-9, bias_sigma=1e-7, reference_sigma=1e-4
     )
     model = Denoiser(cfg, jax.random.key(0))
     rng = np.random.default_rng(5)
     T = int(200 / dt) + 1
     true = smooth_rates(rng, T)  # (its frequencies are per sample of DT: slower here)
-    R = [Rotation.identity()]
-    for s in Rotation.from_rotvec(true[:-1] * dt):
-        R.append(R[-1] * s)
-    q = np.roll(Rotation.concatenate(R).as_quat(), 1, -1)
+    q, _ = scipy_attitudes(np.array([1.0, 0.0, 0.0, 0.0]), true, dt)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     a = np.exp(-dt / tau)
     z = rng.standard_normal((T, 3))
