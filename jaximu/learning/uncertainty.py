@@ -152,40 +152,42 @@ def leave_one_out(terms: list[NeesTerms]) -> list[tuple[float, float]]:
 
 @partial(jax.jit, static_argnames=("n", "steps"))
 def _window_nees_run(model, gyro, accel, q_true, dt, i0, n, steps=False):
-    """The NEES terms at the ends of the windows of ``n`` steps from the samples ``i0``
-    ``(W,)``, each integrated from its true attitude (the network sees the whole run). With
-    ``steps``: and the windows' step transitions ``(W, n, 6, 6)`` and intervals ``(W, n)``
-    for :func:`fit_bias_markov`."""
-    if steps:
-        return _window_nees_run(model, gyro, accel, q_true, dt, i0, n), _window_steps(
-            model, gyro, accel, dt, i0, n
-        )
+    """For recordings ``(S, N, ·)`` (padded to one length by repeating their last sample:
+    the network and the tracker are causal, so the padding changes no window before it),
+    the NEES terms at the ends of the windows of ``n`` steps from the samples ``i0``
+    ``(S, W)``, each integrated from its true attitude (the network sees the whole run),
+    each ``(S, W, ·)``. With ``steps``: and the windows' step transitions ``(S, W, n, 6, 6)``
+    and intervals ``(S, W, n)`` for :func:`fit_bias_markov`. One program for all the
+    recordings: compiled per recording, the windows of a training's validation parts were
+    one compile each."""
     c = model(gyro, accel)
-    idx = i0[:, None] + jnp.arange(n + 1)  # (W, n + 1): each window's samples, both ends in
-    g = c.gyro[idx]
-    h = dt[idx[:, :-1]]
-    q_end = jax.vmap(lambda q0, g, h: integrate_attitude(q0, g, h)[-1])(q_true[i0], g, h)
-    r, _, _ = orientation_errors(q_end, q_true[i0 + n])
     rw, markov = model.config.gyro_random_walk, model.config.bias_markov
-    W, B = jax.vmap(lambda g, d, h, s: attitude_terms(g, d, h, rw, s, markov))(
-        g, c.gyro_density[idx], h, c.gyro_bias_sigma[idx]
-    )
-    return NeesTerms(r, W[:, -1], B[:, -1], model.reference_sigma.astype(g.dtype))
+    ref = model.reference_sigma.astype(c.gyro.dtype)
+
+    def one(g_all, d_all, s_all, q, dt, i0):
+        idx = i0[:, None] + jnp.arange(n + 1)  # (W, n + 1): each window's samples, both ends
+        g, d = g_all[idx], d_all[idx]
+        h = dt[idx[:, :-1]]
+        q_end = jax.vmap(lambda q0, g, h: integrate_attitude(q0, g, h)[-1])(q[i0], g, h)
+        r, _, _ = orientation_errors(q_end, q[i0 + n])
+        W, B = jax.vmap(lambda g, d, h, s: attitude_terms(g, d, h, rw, s, markov))(
+            g, d, h, s_all[idx]
+        )
+        if not steps:
+            return r, W[:, -1], B[:, -1]
+        F, _ = rotation_step_blocks(g[:, :-1], d[:, :-1], h, 0.0)
+        return r, W[:, -1], B[:, -1], F, h
+
+    out = jax.vmap(one)(c.gyro, c.gyro_density, c.gyro_bias_sigma, q_true, dt, i0)
+    terms = NeesTerms(out[0], out[1], out[2], ref)
+    return (terms, out[3:]) if steps else terms
 
 
-def _window_steps(model, gyro, accel, dt, i0, n):
-    c = model(gyro, accel)
-    idx = i0[:, None] + jnp.arange(n)
-    h = dt[idx]
-    F, _ = rotation_step_blocks(c.gyro[idx], c.gyro_density[idx], h, 0.0)
-    return F, h
-
-
-def _windows(model, seq, seconds, start, dtype, steps=False):
-    """:func:`window_nees_terms` (with ``steps``: and the windows' steps, see
-    :func:`_window_nees_run`)."""
+def _window_starts(model, seq, seconds, start):
+    """``(n, i0)``: the samples per window of ``seconds`` and the first samples of the
+    consecutive windows from ``start`` on with a reference at both ends
+    (:func:`window_nees_terms`); DataError when none has."""
     n, start = window_samples(model, seq, seconds, start)
-    dtype = compute_dtype("dtype", dtype)
     i0 = start + n * np.arange((len(seq) - 1 - start) // n)
     ref = seq.has_reference
     i0 = i0[ref[i0] & ref[i0 + n]]
@@ -195,21 +197,47 @@ def _windows(model, seq, seconds, start, dtype, steps=False):
             f"{start} on has a ground-truth reference at both ends (motion-capture "
             "dropouts): pass shorter seconds"
         )
-    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    return check_output(
+    return n, i0
+
+
+def _windows(model, seqs, n, i0s, dtype, steps=False):
+    """:func:`window_nees_terms` of the windows of ``n`` samples from ``i0s[i]`` of each of
+    ``seqs`` (with ``steps``: and the windows' steps, see :func:`_window_nees_run`), in one
+    program: a list with one entry per sequence."""
+    dtype = compute_dtype("dtype", dtype)
+    N = max(len(s) for s in seqs)
+    Wn = max(len(i) for i in i0s)
+
+    def stack(x):  # each sequence's samples, its last repeated to N
+        return jnp.asarray(
+            np.stack([np.concatenate([a, np.repeat(a[-1:], N - len(a), 0)]) for a in x]), dtype
+        )
+
+    # each sequence's window starts, its first repeated to Wn (those rows are cut off)
+    starts = np.stack([np.concatenate([i, np.full(Wn - len(i), i[0])]) for i in i0s])
+    dts = [np.asarray(s.dt)[:, None] for s in seqs]
+    out = check_output(
         "window_nees_terms",
         _window_nees_run(
             model,
-            cast(seq.gyro),
-            cast(seq.accel),
-            cast(seq.q),
-            cast(seq.dt),
-            jnp.asarray(i0),
+            stack([s.gyro for s in seqs]),
+            stack([s.accel for s in seqs]),
+            stack([s.q for s in seqs]),
+            stack(dts)[..., 0],
+            jnp.asarray(starts),
             n,
             steps,
         ),
-        f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
+        "the model's corrections or covariance of sequences "
+        f"{[s.name for s in seqs]} overflow {dtype.name}",
     )
+    t, extra = (out[0], out[1]) if steps else (out, ())
+    rows = []
+    for k, i in enumerate(i0s):
+        m = len(i)
+        terms = NeesTerms(t.r[k, :m], t.W[k, :m], t.B[k, :m], t.reference_sigma)
+        rows.append((terms, tuple(x[k, :m] for x in extra)) if steps else terms)
+    return rows
 
 
 def window_nees_terms(model, seq, seconds: float, start: int = 0, dtype=jnp.float32) -> NeesTerms:
@@ -234,7 +262,8 @@ def window_nees_terms(model, seq, seconds: float, start: int = 0, dtype=jnp.floa
             ``start`` on, ``start`` past the last step (:func:`window_samples`); DataError:
             no window with a reference at both ends.
     """
-    return _windows(model, seq, seconds, start, dtype)
+    n, i0 = _window_starts(model, seq, seconds, start)
+    return _windows(model, [seq], n, [i0], dtype)[0]
 
 
 def window_nees(
@@ -359,15 +388,22 @@ def _markov_parts(model, sequences, starts, seconds, dtype=jnp.float32) -> dict:
     base = with_bias_markov(model, 0.0)
     out: dict = {}
     for w in seconds:
-        out[w] = []
+        rows = []  # the sequences that hold a window of w with a reference at both ends
         for i, (s, k) in enumerate(zip(sequences, starts)):
             if (len(s) - 1 - k) / s.rate_hz < w:
                 continue
             try:
-                t, (F, h) = _windows(base, s, w, k, dtype, steps=True)
-            except DataError:  # no window with a reference at both ends
+                rows.append((i, *_window_starts(base, s, w, k)))
+            except DataError:
                 continue
-            out[w].append((i, t, F, h))
+        found = {}
+        for n in sorted({r[1] for r in rows}):  # one program per window's samples
+            group = [r for r in rows if r[1] == n]
+            got = _windows(
+                base, [sequences[i] for i, _, _ in group], n, [r[2] for r in group], dtype, True
+            )
+            found.update({i: (i, t, F, h) for (i, _, _), (t, (F, h)) in zip(group, got)})
+        out[w] = [found[i] for i in sorted(found)]
     return out
 
 

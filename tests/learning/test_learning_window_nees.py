@@ -92,8 +92,8 @@ def test_the_windowed_nees_of_an_exactly_consistent_model_is_three(seconds):
 def test_the_gauss_markov_fit_recovers_a_simulated_slowly_varying_bias():
     """A gyro whose error is white noise of the model's density plus a first-order
     Gauss–Markov bias of known ``σ_m = 2e-3 rad/s``, ``τ = 5 s`` (stationary, exactly
-    discretised), at 20 Hz over 200 s: the likelihood fit of the windows of 1 s and 5 s
-    (:func:`uncertainty.fit_bias_markov`) recovers ``σ_m`` within 20 % and ``τ`` within a
+    discretised), at 20 Hz over 200 s cut into two recordings: the likelihood fit of the
+    windows of 1 s and 5 s (:func:`uncertainty.fit_bias_markov`) recovers ``σ_m`` within 20 % and ``τ`` within a
     factor 2. The bias dominates each window's covariance, so ``σ_m``'s relative standard
     error is about ``1/√(6 W)``: 3 % for the W = 200 windows of 1 s, about twice that for
     the correlation of neighbouring windows (the bias is shared over ``τ``), so 20 % is a
@@ -119,10 +119,27 @@ def test_the_gauss_markov_fit_recovers_a_simulated_slowly_varying_bias():
     gyro = true + b + density / np.sqrt(dt) * rng.standard_normal((T, 3))
     zero = np.zeros((T, 3))
     seq = Sequence("markov", np.arange(T) * dt, gyro, np.tile([0, 0, 9.81], (T, 1)), q, zero, zero)
-    got_sigma, got_tau = uncertainty.fit_bias_markov(model, [seq], steps=30)
+    # as two recordings of 120 s and 80 s, fitted in one program (the shorter padded): each
+    # one's windows there are those it has alone
+    cut = 2401
+    parts = [
+        Sequence(
+            f"markov{i}", seq.t[k] - seq.t[k][0], *(x[k] for x in (gyro, seq.accel, q, zero, zero))
+        )
+        for i, k in enumerate((slice(0, cut), slice(cut, T)))
+    ]
+    both = uncertainty._markov_parts(model, parts, [0, 0], (1.0, 5.0))
+    for w in (1.0, 5.0):
+        assert [row[0] for row in both[w]] == [0, 1]
+        for i, t, F, h in both[w]:
+            alone = uncertainty.window_nees_terms(model, parts[i], w)
+            assert F.shape == (len(alone.r), round(w / dt), 6, 6) and h.shape == F.shape[:2]
+            for a, b in ((t.r, alone.r), (t.W, alone.W), (t.B, alone.B)):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-9)
+    got_sigma, got_tau = uncertainty.fit_bias_markov(model, parts, steps=30)
     assert got_sigma == pytest.approx(sigma_m, rel=0.2)
     assert tau / 2 < got_tau < 2 * tau
     fitted = uncertainty.with_bias_markov(model, got_sigma, got_tau)
     assert fitted.config.bias_markov == (got_sigma, got_tau)
-    nees = uncertainty.window_nees(fitted, seq, 1.0)
+    nees = uncertainty.window_nees(fitted, seq, 1.0)  # the whole recording's 200 windows
     assert abs(nees - 3.0) < 4.0 * np.sqrt(6.0 * 3.0 / 200), nees
