@@ -633,7 +633,7 @@ def _fit(
         )
         terms = _validation.nees_terms(model, vdata)
         model = uncertainty.set_bias_sigma(model, terms, [v.name for v in vals], record, say)
-        if cfg.bias_markov:  # opt-in: it put no V2 recording left out in the NEES band
+        if cfg.bias_markov:  # asked for (TrainConfig.bias_markov): not the default recipe
             model = uncertainty.set_bias_markov(model, sequences, vals, record, say)
         record["uncertainty"].update(
             learned_reference_sigma=learned_ref, short_horizon_bias_sigma=short_sb
