@@ -138,7 +138,8 @@ def test_training_is_deterministic_for_a_seed():
     the first, with the same data shapes and settings that differ only in what the step
     takes as data (the noise levels) or never reads (the validation's period, the steps
     within one warm restart), compile nothing (the step and the validation are cached by
-    jaximu.learning.training, not rebuilt per call)."""
+    jaximu.learning.training, not rebuilt per call); validating after every step leaves the
+    steps' losses and the last validation as they are."""
     seqs = [simulated(3, seconds=12.0)[0]]
     cfg = TrainConfig(steps=3, validate_every=3, train_seconds=10.0, horizons=(16, 32))
     mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,))
@@ -147,7 +148,12 @@ def test_training_is_deterministic_for_a_seed():
     b = learning.train(seqs, cfg, mcfg, seed=5, log=None)
     other = dataclasses.replace(cfg, steps=2, validate_every=2, gyro_bias_noise=1e-3)
     c = learning.train(seqs, other, mcfg, seed=6, log=None)
+    # validated after every step instead of after the last: the steps are the same (the
+    # validation takes nothing from the training's state or its random numbers)
+    d = learning.train(seqs, dataclasses.replace(cfg, validate_every=1), mcfg, seed=5, log=None)
     assert _TRACES[0] == traced, f"{_TRACES[0] - traced} programs traced again"
+    assert [h["step"] for h in d.record["history"]] == [1, 2, 3]
+    assert d.record["history"][-1] == a.record["history"][-1]
     la, lb, lc = (jax.tree_util.tree_leaves(x.model) for x in (a, b, c))
     assert all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(la, lb))
     assert not all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(la, lc))
