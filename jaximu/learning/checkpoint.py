@@ -17,7 +17,7 @@ import jax
 from jaximu.io import DataError
 from jaximu.learning.model import Denoiser, ModelConfig, check_model, check_weights
 
-__all__ = ["save", "load", "pretrained", "shipped", "FORMAT", "PRETRAINED"]
+__all__ = ["save", "load", "weights", "pretrained", "shipped", "FORMAT", "PRETRAINED"]
 
 FORMAT = "jaximu.learning.Denoiser/2"
 """The model file format; a folder of another format is refused by :func:`load`."""
@@ -39,7 +39,7 @@ def save(path, model: Denoiser, record: dict | None = None) -> pathlib.Path:
     path.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, "config": model.config.to_json(), "record": record or {}}
     tmp = path / "weights.eqx.tmp"
-    eqx.tree_serialise_leaves(tmp, model)
+    eqx.tree_serialise_leaves(tmp, weights(model))
     tmp.replace(path / "weights.eqx")
     (path / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
     return path
@@ -63,8 +63,8 @@ def load(path) -> Denoiser:
             f"({', '.join(PRETRAINED)}), got {type(path).__name__} {path!r}"
         )
     path = pathlib.Path(path)
-    meta_path, weights = path / "model.json", path / "weights.eqx"
-    if not path.is_dir() or not meta_path.is_file() or not weights.is_file():
+    meta_path, weights_path = path / "model.json", path / "weights.eqx"
+    if not path.is_dir() or not meta_path.is_file() or not weights_path.is_file():
         raise DataError(
             f"{path} is not a jaximu model: expected a folder with model.json and "
             "weights.eqx, as `jaximu learn train --out MODEL` writes (or the name "
@@ -89,17 +89,23 @@ def load(path) -> Denoiser:
         ) from None
     skeleton = Denoiser(config, jax.random.key(0))
     try:
-        model = eqx.tree_deserialise_leaves(weights, skeleton)
+        model = eqx.combine(eqx.tree_deserialise_leaves(weights_path, weights(skeleton)), skeleton)
     except Exception as e:  # equinox raises RuntimeError/ValueError/EOFError on a bad file
         raise DataError(
-            f"{weights} does not hold this model's weights ({type(e).__name__}: "
+            f"{weights_path} does not hold this model's weights ({type(e).__name__}: "
             f"{e}); the file is damaged or from another model"
         ) from None
     try:
         check_weights("model", model)
     except ValueError as e:
-        raise DataError(f"{weights}: {e}") from None
+        raise DataError(f"{weights_path}: {e}") from None
     return model
+
+
+def weights(model: Denoiser) -> Denoiser:
+    """``model`` without its fitted settings (``model.fitted``, which ``model.json``
+    holds): what ``weights.eqx`` stores, leaf for leaf."""
+    return eqx.tree_at(lambda m: m.fitted, model, replace_fn=lambda _: None)
 
 
 def shipped(path) -> bool:

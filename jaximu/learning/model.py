@@ -25,6 +25,7 @@ alone, and training learns what it misses.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import NamedTuple
 
@@ -339,6 +340,37 @@ class CausalConv(eqx.Module):
         return y + self.bias
 
 
+FITTED = (
+    "input_mean",
+    "input_std",
+    "gyro_bias",
+    "accel_bias",
+    "gyro_bias_sigma",
+    "accel_bias_sigma",
+)
+"""The :class:`ModelConfig` fields a training sets from its data
+(:func:`jaximu.learning.training.train`): the model holds them as arrays
+(:class:`Fitted`), not in its static structure."""
+
+
+class Fitted(eqx.Module):
+    """The numbers of :data:`FITTED`, as float64 numpy arrays ``(6,)`` or ``(3,)`` (the
+    settings' own values, exactly). They are leaves of the model, not part of its static
+    structure, so a compiled program (a training step, a validation) serves models that
+    differ only in them (each fold of a leave-one-out training); they are not trained."""
+
+    input_mean: np.ndarray
+    input_std: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias_sigma: np.ndarray
+    accel_bias_sigma: np.ndarray
+
+    def __init__(self, config: ModelConfig):
+        for name in FITTED:
+            setattr(self, name, np.asarray(getattr(config, name), np.float64))
+
+
 class Denoiser(eqx.Module):
     """Gyro (and optionally accelerometer) denoiser with a per-sample gyro noise density.
 
@@ -356,7 +388,8 @@ class Denoiser(eqx.Module):
     accel_out: CausalConv | None  # their correction (accel_network), or None
     log_bias_sigma: jax.Array  # log σ_b [rad/s]: the gyro bias the correction misses
     log_reference_sigma: jax.Array  # log σ_ref [rad]: the ground truth's attitude noise
-    config: ModelConfig = eqx.field(static=True)
+    fitted: Fitted  # the settings the training data set (FITTED)
+    structure: ModelConfig = eqx.field(static=True)  # the settings, FITTED at their defaults
 
     def __init__(self, config: ModelConfig, key):
         if not isinstance(config, ModelConfig):
@@ -384,7 +417,22 @@ class Denoiser(eqx.Module):
         self.accel_out = CausalConv(widths[-1], 3, 1, 1, ka[-1], zero=True) if own else None
         self.log_bias_sigma = jnp.asarray(np.log(config.bias_sigma), jnp.float32)
         self.log_reference_sigma = jnp.asarray(np.log(config.reference_sigma), jnp.float32)
-        self.config = config
+        self.fitted = Fitted(config)
+        self.structure = dataclasses.replace(
+            config, **{name: getattr(ModelConfig, name) for name in FITTED}
+        )
+
+    @property
+    def config(self) -> ModelConfig:
+        """The model's :class:`ModelConfig`: its structure with the fitted numbers. Inside
+        a traced function that takes the model as an argument, the fitted fields are the
+        traced arrays (read with ``jnp``, never hashed)."""
+        values = {name: getattr(self.fitted, name) for name in FITTED}
+        concrete = is_concrete(list(values.values()))
+        cfg = copy.copy(self.structure)  # (its fields were checked when the model was built)
+        for name, v in values.items():
+            object.__setattr__(cfg, name, tuple(float(x) for x in np.asarray(v)) if concrete else v)
+        return cfg
 
     def astype(self, dtype) -> Denoiser:
         """The same model with its weights in ``dtype`` (e.g. float64 for gradient checks)."""

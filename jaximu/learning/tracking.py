@@ -224,11 +224,14 @@ def check_settings(settings: TrackerSettings, name: str = "settings") -> None:
         )
     for field, unit in _POSITIVE.items():
         check_positive(f"{name}.{field}", getattr(settings, field), hint=f" [{unit}]")
-    for field in ("gyro_bias", "accel_bias"):
-        check_array(f"{name}.{field}", getattr(settings, field), (3,))
-    for field in ("gyro_bias_sigma", "accel_bias_sigma"):
-        v = check_array(f"{name}.{field}", getattr(settings, field), (3,))
-        if not np.all(v > 0):
+    for field in ("gyro_bias", "accel_bias", "gyro_bias_sigma", "accel_bias_sigma"):
+        x = getattr(settings, field)
+        if not is_concrete(x):  # a traced model's fitted priors (checked when it was built)
+            if jnp.shape(x) != (3,):
+                raise ValueError(f"{name}.{field} must have shape (3,), got {jnp.shape(x)}")
+            continue
+        v = check_array(f"{name}.{field}", x, (3,))
+        if field.endswith("sigma") and not np.all(v > 0):
             raise ValueError(f"{name}.{field} must be 3 positive numbers, got {v.tolist()}")
     noise = check_noise(settings.noise, jnp.result_type(float), f"{name}.noise")
     check_unbatched_noise(noise, "the tracker")

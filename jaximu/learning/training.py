@@ -343,7 +343,11 @@ def _step(
     shift = bias_noise * jax.random.normal(k_b, (S, 1, 6))
     x = x + noise * jax.random.normal(k_w, x.shape) + shift
     b = cut(B, L) + shift[..., :3] if cfg.bias_noise_shown else cut(B, L)
-    (loss, parts), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(
+    # the weights and the offsets are trained; the model's fitted settings (inputs of the
+    # program, not constants of it) are not
+    params, frozen = eqx.partition(params, _trainable(params))
+    loss_of = lambda p, *a: _loss(eqx.combine(p, frozen), *a)  # noqa: E731
+    (loss, parts), grads = eqx.filter_value_and_grad(loss_of, has_aux=True)(
         params,
         x[..., :3],
         x[..., 3:],
@@ -357,17 +361,23 @@ def _step(
         cfg,
         dt,
     )
-    updates, opt_state = _optimizer(cfg, params).update(
-        grads, opt_state, eqx.filter(params, eqx.is_array)
-    )
+    updates, opt_state = _optimizer(cfg, params).update(grads, opt_state, params)
     params = eqx.apply_updates(params, updates)
-    model = params[0]
     # the validated and kept model is the exponential average of the weights: the
     # whole-sequence error hangs on the learned bias, which single steps jitter
     ema = jax.tree_util.tree_map(
-        lambda e, m: e + (1.0 - cfg.ema) * (m - e) if eqx.is_inexact_array(m) else m, ema, model
+        lambda e, m: e + (1.0 - cfg.ema) * (m - e), eqx.filter(ema, _trainable(ema)), params[0]
     )
     return params, ema, opt_state, loss, parts
+
+
+def _trainable(tree):
+    """The filter of ``tree``'s (a model, or ``(model, offsets)``) trained leaves: its
+    floating arrays but the model's fitted settings (``Denoiser.fitted``)."""
+    spec = jax.tree_util.tree_map(eqx.is_inexact_array, tree)
+    model = tree[0] if isinstance(tree, tuple) else tree
+    where = (lambda t: t[0].fitted) if isinstance(tree, tuple) else (lambda t: t.fitted)
+    return eqx.tree_at(where, spec, jax.tree_util.tree_map(lambda _: False, model.fitted))
 
 
 def train(
@@ -509,10 +519,23 @@ def _fit(
     )
 
     params = (model, jnp.zeros((len(trains), 3), jnp.float32))
-    opt_state = _optimizer(_step_settings(cfg), params).init(eqx.filter(params, eqx.is_array))
+    trained = eqx.filter(params, _trainable(params))
+    opt_state = _optimizer(_step_settings(cfg), trained).init(trained)
+    fitted = eqx.filter(model, _trainable(model), inverse=True)  # not trained: kept here
     noise = jnp.asarray([cfg.gyro_noise] * 3 + [cfg.accel_noise] * 3, jnp.float32)
     bias_noise = jnp.asarray([cfg.gyro_bias_noise] * 3 + [cfg.accel_bias_noise] * 3, jnp.float32)
-    step = functools.partial(_step, cfg=_step_settings(cfg), dt=dt, L=L)
+    jitted = functools.partial(_step, cfg=_step_settings(cfg), dt=dt, L=L)
+
+    def step(params, ema, opt_state, key, *data):  # the trained leaves back in the model
+        params, ema, opt_state, loss, parts = jitted(params, ema, opt_state, key, *data)
+        return (
+            (eqx.combine(params[0], fitted), params[1]),
+            eqx.combine(ema, fitted),
+            opt_state,
+            loss,
+            parts,
+        )
+
     validate = functools.partial(_validation.validate, dt=dt)
 
     record: dict[str, Any] = {

@@ -32,7 +32,9 @@ def test_a_model_with_a_nan_weight_is_refused_when_it_loads(capsys, tmp_path):
     model = Denoiser(TINY, jax.random.key(0))
     folder = learning.save(tmp_path / "model", model)
     bad = eqx.tree_at(lambda m: m.head.bias, model, jnp.full_like(model.head.bias, jnp.nan))
-    eqx.tree_serialise_leaves(folder / "weights.eqx", bad)  # as a diverged training left it
+    eqx.tree_serialise_leaves(
+        folder / "weights.eqx", learning.checkpoint.weights(bad)
+    )  # as a diverged training left it
     seq = write_sequence(tmp_path / "seq", seconds=2.0)
     code, out, err = run(capsys, "learn", "evaluate", str(folder), str(seq))
     assert code == 2, (out, err)

@@ -138,8 +138,10 @@ def test_training_is_deterministic_for_a_seed():
     the first, with the same data shapes and settings that differ only in what the step
     takes as data (the noise levels) or never reads (the validation's period, the steps
     within one warm restart), compile nothing (the step and the validation are cached by
-    jaximu.learning.training, not rebuilt per call); validating after every step leaves the
-    steps' losses and the last validation as they are."""
+    jaximu.learning.training, not rebuilt per call), nor does a training on another
+    recording of the same length (the settings fitted to the data are the programs'
+    arrays: each fold of a leave-one-out training runs the same programs); validating after
+    every step leaves the steps' losses and the last validation as they are."""
     seqs = [simulated(3, seconds=12.0)[0]]
     cfg = TrainConfig(steps=3, validate_every=3, train_seconds=10.0, horizons=(16, 32))
     mcfg = ModelConfig(channels=(4,), kernel=3, dilations=(1,))
@@ -151,6 +153,11 @@ def test_training_is_deterministic_for_a_seed():
     # validated after every step instead of after the last: the steps are the same (the
     # validation takes nothing from the training's state or its random numbers)
     d = learning.train(seqs, dataclasses.replace(cfg, validate_every=1), mcfg, seed=5, log=None)
+    # another recording of the same length: another normalisation and bias priors
+    # (the model's fitted settings, arrays of its programs), the same programs
+    e = learning.train([simulated(4, seconds=12.0)[0]], cfg, mcfg, seed=5, log=None)
+    assert e.model.config.input_mean != a.model.config.input_mean
+    assert e.model.config.input_std != a.model.config.input_std
     assert _TRACES[0] == traced, f"{_TRACES[0] - traced} programs traced again"
     assert [h["step"] for h in d.record["history"]] == [1, 2, 3]
     assert d.record["history"][-1] == a.record["history"][-1]
