@@ -307,8 +307,9 @@ def _loss(params, g, a, b, q, v, ref, k_drop, has_v, n_v, cfg: TrainConfig, dt: 
 
 
 # The step and the validation are compiled once per configuration, model structure and data
-# shape (the static arguments and the model's static config are their cache keys), not once
-# per call of train: a second run with the same settings (another seed, a rerun) starts at once.
+# shape (the static arguments and the model's static structure are their cache keys; the
+# settings fitted to the data are arrays, Denoiser.fitted), not once per call of train: a
+# second run with the same settings (another seed, a rerun, another fold) starts at once.
 @eqx.filter_jit
 def _step(
     params,
