@@ -20,7 +20,6 @@ import itertools
 import json
 
 import jax
-
 import jax.numpy as jnp
 import numpy as np
 
@@ -64,6 +63,7 @@ def main(argv=None):
     def priors(i):  # the configuration the recording i is tracked with
         others = [s for j, s in enumerate(seqs) if j != i] if a.leave_one_out else seqs
         return fitted_config(learning.ModelConfig(), others, seqs[0].rate_hz)
+
     grid = {}
     for s in a.set:
         key, _, text = s.partition("=")
