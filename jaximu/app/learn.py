@@ -437,9 +437,10 @@ def add_parser(sub):
     t.add_argument(
         "--align-reference",
         action="store_true",
-        help="train on each recording's ground truth realigned to the IMU's clock, its "
-        "offset fitted from the raw gyro's increments (a motion capture on its own clock: "
-        "TUM-VI's reads 3.4 ms ahead); validation and evaluation compare with it as recorded",
+        help="train on each recording's ground truth realigned in time to the integrated "
+        "gyro, the offset fitted from the raw gyro's increments (the mocap's clock and the "
+        "integration's half-interval lag: 3.4 ms on TUM-VI); validation and evaluation "
+        "compare with it as recorded",
     )
     t.add_argument(
         "--leave-one-out-worst",

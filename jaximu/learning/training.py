@@ -155,11 +155,12 @@ class TrainConfig:
             recording's own bias then has a place other than the network, which would
             otherwise learn to tell the recordings apart and carry their biases to
             recordings it never saw.
-        align_reference: train on each training part's ground truth read at its own clock
-            offset from the IMU's, fitted from the raw gyro
+        align_reference: train on each training part's ground truth read at its own time
+            offset from the integrated raw gyro (the mocap's clock and the integration's
+            half-interval lag), fitted from the raw gyro
             (:func:`jaximu.learning.alignment.reference_offset`); the validation parts and
             the recordings left out keep the ground truth as recorded, as the evaluation
-            does. TUM-VI's mocap reads 3.3-3.5 ms ahead of its IMU on rooms 1, 3 and 5:
+            does. TUM-VI's mocap agrees best read 3.3-3.4 ms earlier on rooms 1, 3 and 5:
             over the loss's windows that is 3-6 mrad of residual the network was trained to
             predict, and each room left out rose to 4-6° mean AOE within 50 steps; realigned,
             rooms 1 and 3 stayed within 2.5° over 100 steps
@@ -544,7 +545,7 @@ def _fit(
     if clock:
         record["reference_offsets_s"] = clock
         say(
-            "the training parts' ground truth realigned to the IMU's clock: "
+            "the training parts' ground truth realigned to the integrated gyro: "
             + " ".join(f"{k} {1e3 * v:+.2f} ms" for k, v in clock.items())
         )
     t_start = time.perf_counter()
