@@ -115,6 +115,10 @@ FLAGS = {
     "noise": "--noise",
     "accel_head": "--accel-head",
     "accel_network": "--accel-network",
+    "velocity_sigma": "--velocity-sigma",
+    "learning_rate": "--learning-rate",
+    "validate_every": "--validate-every",
+    "align_reference": "--align-reference",
 }
 INVERTED_FLAGS = {("check_units", False): "--no-unit-check"}
 API_ONLY_OPTIONS = frozenset(

@@ -111,12 +111,29 @@ def test_train_writes_a_model_that_evaluates(folders, capsys):
         "--seed",
         "3",
         "--bias-markov",
+        "--velocity-sigma",
+        "2.5",
+        "--learning-rate",
+        "0.001",
+        "--validate-every",
+        "5",
+        "--align-reference",
     )
     assert code == 0, err
     assert "validation" in out and "compile" in out
     meta = json.loads((out_model / "model.json").read_text())
     assert meta["record"]["seed"] == 3 and meta["record"]["command"].startswith("jaximu learn")
-    assert meta["record"]["command"].endswith("--bias-markov")
+    assert meta["record"]["command"].endswith(
+        "--velocity-sigma 2.5 --bias-markov --align-reference"
+    )
+    # the written ground truth is on the IMU's stamps: no clock offset to realign
+    (offset,) = meta["record"]["reference_offsets_s"].values()
+    assert abs(offset) < 5e-4
+    assert meta["config"]["velocity_sigma"] == 2.5  # the tracker's bound, as passed
+    assert "--steps 1 --learning-rate 0.001 --validate-every 5 " in meta["record"]["command"]
+    train = meta["record"]["train"]
+    assert (train["learning_rate"], train["validate_every"]) == (0.001, 5)
+    assert train["min_learning_rate"] == pytest.approx(1e-4)  # annealed to a tenth
     # the validation part's (4 s) windowed NEES, before and with the Gauss–Markov bias fitted
     # on it, which the saved model keeps
     u = meta["record"]["uncertainty"]
@@ -481,4 +498,25 @@ def test_leave_one_out_with_one_folder_is_refused_before_any_work(folders, capsy
         capsys, "learn", "train", *two, "--out", str(out), "--leave-one-out", "--accel-network"
     )
     one_line_error(code, err, "--accel-network keeps the accelerometer's", "leave one of the two")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "extra, needles",
+    [
+        (["--velocity-sigma", "0"], ("--velocity-sigma must be a positive number of m/s", "got 0")),
+        (["--velocity-sigma", "nan"], ("--velocity-sigma must be a positive number", "got nan")),
+        (["--learning-rate", "0"], ("--learning-rate must be a positive number below 1",)),
+        (["--learning-rate", "inf"], ("--learning-rate must be", "got inf")),
+        (["--validate-every", "0"], ("--validate-every must be a positive number", "got 0")),
+        (
+            ["--velocity-sigma", "3", "--no-bias-tracking"],
+            ("--no-bias-tracking turns the tracker off", "leave one of the two"),
+        ),
+    ],
+)
+def test_bad_recipe_settings_are_refused_before_any_work(folders, capsys, tmp_path, extra, needles):
+    out = tmp_path / "m"
+    code, _, err = run(capsys, "learn", "train", str(folders["seq"]), "--out", str(out), *extra)
+    one_line_error(code, err, *needles)
     assert not out.exists()
