@@ -6,7 +6,7 @@ compiles are slow (a GPU's take seconds each), a training that compiles a progra
 sequence, or runs a network op by op, spends its time there, not in its steps.
 
     python benchmarks/learning_compiles.py DATA/euroc_v1_02_medium DATA/euroc_v2_01_easy \
-        [--steps 20] [--train-seconds 40] [--json out.json]
+        [--steps 20] [--train-seconds 40] [--selection leave_one_out] [--json out.json]
 """
 
 from __future__ import annotations
@@ -26,6 +26,11 @@ def main() -> None:
     ap.add_argument("data", nargs="+", help="recording folders (imu.csv + ground truth)")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--train-seconds", type=float, default=40.0)
+    ap.add_argument(
+        "--selection",
+        default="validation",
+        help="TrainConfig.selection: validation, or leave_one_out (a fold per recording)",
+    )
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
 
@@ -47,7 +52,10 @@ def main() -> None:
 
     seqs = [learning.load_sequence(p) for p in args.data]
     cfg = learning.TrainConfig(
-        steps=args.steps, validate_every=max(1, args.steps // 2), train_seconds=args.train_seconds
+        steps=args.steps,
+        validate_every=max(1, args.steps // 2),
+        train_seconds=args.train_seconds,
+        selection=args.selection,
     )
     t0 = time.perf_counter()
     r = learning.train(seqs, cfg, log=None)
@@ -67,7 +75,8 @@ def main() -> None:
         out = {
             "command": "python benchmarks/learning_compiles.py "
             + " ".join(args.data)
-            + f" --steps {args.steps} --train-seconds {args.train_seconds:g}",
+            + f" --steps {args.steps} --train-seconds {args.train_seconds:g}"
+            + f" --selection {args.selection}",
             "train_seconds_call": total,
             "stage_seconds": r.record["stage_seconds"],
             "programs_compiled": len(compiles),
