@@ -22,8 +22,9 @@ from jaximu.learning.evaluation import (
     orientation_errors,
 )
 from jaximu.learning.model import CausalConv, Corrected, Denoiser, ModelConfig
+from jaximu.learning.recipe import TrainConfig
 from jaximu.learning.tracking import Tracked, TrackerSettings, track_gyro_bias
-from jaximu.learning.training import TrainConfig, TrainResult, train
+from jaximu.learning.training import TrainResult, train
 from jaximu.learning.uncertainty import fit_bias_markov, window_nees
 
 __all__ = [
