@@ -208,7 +208,9 @@ def run_fold(seqs, held, cfg, mcfg, seed, say):
     _validation.validate = capture
     try:
         others = [s for s in seqs if s is not held]
-        r = training._fit(others, cfg, mcfg, seed, None, lambda x: None, held_out=held)
+        r = training._fit(  # at the rate train() gives every fold: the first recording's
+            others, cfg, mcfg, seed, None, lambda x: None, held_out=held, rate=seqs[0].rate_hz
+        )
     finally:
         _validation.validate = original
     rec = r.record

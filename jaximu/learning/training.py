@@ -238,18 +238,21 @@ def train(
                 f"is validated by models trained on the others); got {len(sequences)}: give "
                 "more recordings or selection='validation'"
             )
-        return leave_one_out(_fit, list(sequences), cfg, model_config, seed, minutes, say)
-    return _fit(list(sequences), cfg, model_config, seed, minutes, say)
+    # one rate for every fold and the final model (the first recording's), so that the folds,
+    # which differ in their first recording, share the step's program (dt is in its key)
+    fit = functools.partial(_fit, rate=sequences[0].rate_hz)
+    if cfg.selection in CRITERIA:
+        return leave_one_out(fit, list(sequences), cfg, model_config, seed, minutes, say)
+    return fit(list(sequences), cfg, model_config, seed, minutes, say)
 
 
 def _fit(
-    sequences, cfg, model_config, seed, minutes, say, held_out=None, keep_step=None
+    sequences, cfg, model_config, seed, minutes, say, held_out=None, keep_step=None, *, rate
 ) -> TrainResult:
     """:func:`train` once its arguments are checked. ``held_out``: a recording validated
     whole instead of the validation parts (a fold of :func:`jaximu.learning._selection.leave_one_out`); ``keep_step``:
     ``(step, score)``, keep the weights of that step (0: untrained) and stop there, with no
-    choice by validation."""
-    rate = sequences[0].rate_hz
+    choice by validation; ``rate`` [Hz]: the model's sample rate."""
     trains, vals = zip(*(split(s, cfg.train_seconds) for s in sequences))
     if cfg.whole_recordings:  # (vals: the record's figures and the uncertainty's only)
         trains = tuple(sequences)
