@@ -21,30 +21,13 @@ recordings), so the whole run takes about as long as five ``jaximu learn train``
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import pathlib
 import time
 
+from _settings import replaced
+
 from jaximu import learning
-
-
-def _config(settings: list[str]) -> learning.TrainConfig:
-    """A :class:`TrainConfig` with ``key=value`` settings (tuples comma-separated)."""
-    defaults = learning.TrainConfig()
-    kw = {}
-    for s in settings:
-        key, sep, value = s.partition("=")
-        if not sep or not hasattr(defaults, key):
-            raise SystemExit(f"--set {s!r}: expected KEY=VALUE with KEY a TrainConfig field")
-        current = getattr(defaults, key)
-        if isinstance(current, tuple):
-            kw[key] = tuple(type(current[0])(v) for v in value.split(","))
-        elif isinstance(current, bool):
-            kw[key] = value.lower() in ("1", "true", "yes")
-        else:
-            kw[key] = type(current)(value)
-    return dataclasses.replace(defaults, **kw)
 
 
 def main(argv=None):
@@ -55,7 +38,7 @@ def main(argv=None):
     ap.add_argument("--only", nargs="*", help="hold out only these folders' names")
     ap.add_argument("--json", help="append each fold's result here (JSON lines)")
     a = ap.parse_args(argv)
-    config = _config(a.set)
+    config, _ = replaced(learning.TrainConfig(), a.set)
     seqs = [learning.load_sequence(p) for p in a.data]
     if len(seqs) < 3:
         raise SystemExit("--data: give at least three sequence folders (two train, one held out)")

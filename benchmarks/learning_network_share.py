@@ -39,6 +39,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _settings import replaced
 
 from jaximu import learning
 from jaximu.learning import _validation, training
@@ -46,24 +47,6 @@ from jaximu.learning._batches import fitted_config
 from jaximu.learning.data import split
 from jaximu.learning.evaluation import integrate_attitude, orientation_errors
 from jaximu.learning.losses import increment_loss
-
-
-def _parse(defaults, settings):
-    kw = {}
-    for s in settings:
-        key, sep, value = s.partition("=")
-        if not sep or not hasattr(defaults, key):
-            raise SystemExit(f"{s!r}: expected KEY=VALUE with KEY a field of {type(defaults)}")
-        current = getattr(defaults, key)
-        if isinstance(current, tuple):
-            kw[key] = tuple(type(current[0])(v) for v in value.split(",") if v)
-        elif isinstance(current, bool):
-            kw[key] = value.lower() in ("1", "true", "yes")
-        elif current is None:
-            kw[key] = float(value)
-        else:
-            kw[key] = type(current)(value)
-    return dataclasses.replace(defaults, **kw)
 
 
 def _true_rates(q, dt):
@@ -252,11 +235,11 @@ def main(argv=None):
         "--ceilings", action="store_true", help="only the ceilings (no training; see ceilings)"
     )
     a = ap.parse_args(argv)
-    cfg = _parse(learning.TrainConfig(), a.set)
+    cfg, _ = replaced(learning.TrainConfig(), a.set)
     cfg = dataclasses.replace(
         cfg, steps=a.steps, selection="validation", calibrate_uncertainty=False
     )
-    mcfg = _parse(learning.ModelConfig(), a.model_set)
+    mcfg, _ = replaced(learning.ModelConfig(), a.model_set)
     if a.no_bias_tracking:
         mcfg = dataclasses.replace(mcfg, bias_tracking=False)
     seqs = [learning.load_sequence(p) for p in a.data]

@@ -17,11 +17,11 @@ kept model. No recording the folds are given is a test recording: pass training 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 
 import numpy as np
+from _settings import replaced
 from scipy.spatial.transform import Rotation, Slerp
 
 from jaximu import learning
@@ -41,23 +41,6 @@ def shifted(seq, shift: float):
     return dc.replace(seq, q=q)
 
 
-def _replace(obj, settings: list[str], what: str):
-    """``obj`` (a settings dataclass) with ``key=value`` settings (tuples comma-separated)."""
-    kw = {}
-    for s in settings:
-        key, sep, value = s.partition("=")
-        if not sep or not hasattr(obj, key):
-            raise SystemExit(f"{s!r}: expected KEY=VALUE with KEY a {what} field")
-        current = getattr(obj, key)
-        if isinstance(current, tuple):
-            kw[key] = tuple(type(current[0])(v) for v in value.split(","))
-        elif isinstance(current, bool):
-            kw[key] = value.lower() in ("1", "true", "yes")
-        else:
-            kw[key] = type(current)(value)
-    return dataclasses.replace(obj, **kw), kw
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", nargs="+", required=True, help="training sequence folders (≥ 2)")
@@ -73,8 +56,8 @@ def main(argv=None):
         help="train on the ground truth read at t + this [s] (its clock's offset)",
     )
     a = ap.parse_args(argv)
-    cfg, train_kw = _replace(learning.TrainConfig(selection="leave_one_out"), a.set, "TrainConfig")
-    mcfg, model_kw = _replace(learning.ModelConfig(), a.model, "ModelConfig")
+    cfg, train_kw = replaced(learning.TrainConfig(selection="leave_one_out"), a.set)
+    mcfg, model_kw = replaced(learning.ModelConfig(), a.model)
     seqs = [learning.load_sequence(p) for p in a.data]
     if a.reference_shift:
         seqs = [shifted(s, a.reference_shift) for s in seqs]
