@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.io import DataError
+from jaximu.learning.data import to_length
 
 
 def constant_biases(parts):
@@ -83,16 +84,10 @@ def fitted_config(base, parts, rate: float):
     )
 
 
-def _to_length(x, n: int):
-    """``x`` ``(T, ·)`` cut to ``n`` samples, or padded to them by repeating its last."""
-    x = np.asarray(x)[:n]
-    return np.concatenate([x, np.repeat(x[-1:], n - len(x), 0)])
-
-
 def _stack(parts, biases, length):
     """The parts' arrays ``(S, length, ·)``: cut to ``length``, or padded to it by repeating
     each part's last sample (never inside a piece: :func:`pieces` bounds the starts)."""
-    fit = lambda x: _to_length(x, length)  # noqa: E731
+    fit = lambda x: to_length(x, length)  # noqa: E731
     g = np.stack([fit(s.gyro) for s in parts])
     a = np.stack([fit(s.accel) for s in parts])
     q = np.stack([fit(s.q) for s in parts])
@@ -109,8 +104,8 @@ def _tracked_biases(model, sequences):
     padded to one length in one program (it is causal: the padding changes nothing before
     it)."""
     N = max(len(s) for s in sequences)
-    g = jnp.asarray(np.stack([_to_length(s.gyro, N) for s in sequences]), jnp.float32)
-    a = jnp.asarray(np.stack([_to_length(s.accel, N) for s in sequences]), jnp.float32)
+    g = jnp.asarray(np.stack([to_length(s.gyro, N) for s in sequences]), jnp.float32)
+    a = jnp.asarray(np.stack([to_length(s.accel, N) for s in sequences]), jnp.float32)
     b, sigma = (np.asarray(x) for x in model.track(g, a))
     return [b[i, : len(s)] for i, s in enumerate(sequences)], [
         sigma[i, : len(s)] for i, s in enumerate(sequences)
@@ -169,7 +164,7 @@ def _validation_arrays(seqs, vals, tracked, context) -> ValidationBatch:
         dt = np.append(p.dt, p.dt[-1:])[:, None]
         rows = dict(gyro=p.gyro, accel=p.accel, q=p.q, p=p.p, v=p.v, dt=dt, bias=b, bias_sigma=sb)
         for name, x in rows.items():
-            out[name][i] = _to_length(x, N)
+            out[name][i] = to_length(x, N)
         ref = p.has_reference[c0:]
         if not ref.any():
             raise DataError(

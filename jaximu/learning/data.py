@@ -317,3 +317,22 @@ def check_rate(seq: Sequence, rate_hz: float, what: str = "the model") -> None:
             f"{rate_hz:g} Hz: resample the recording to {rate_hz:g} Hz or train "
             "a model at its rate"
         )
+
+
+def padded_length(n: int) -> int:
+    """The length that arrays of ``n`` samples are padded to (:func:`to_length`) before a
+    compiled program over a whole recording: the first of ``12, 16, 24, 32, …`` (``2ᵏ`` and
+    ``3·2ᵏ⁻¹``) at or above ``n``, so that recordings of about one length (within a factor
+    of 1.5) share one program. A program over a recording takes seconds to compile and
+    less to run; at most half as many samples more are run."""
+    p = 16
+    while p < n:
+        p *= 2
+    return p * 3 // 4 if p * 3 // 4 >= n else p
+
+
+def to_length(x, n: int) -> np.ndarray:
+    """``x`` ``(T, ·)`` cut to ``n`` samples, or padded to them by repeating its last (a
+    causal computation's outputs before the padding are unchanged by it)."""
+    x = np.asarray(x)[:n]
+    return np.concatenate([x, np.repeat(x[-1:], n - len(x), 0)])

@@ -43,7 +43,7 @@ from jaximu.geometry._checks import (
 from jaximu.geometry._tolerances import check_unit_norm
 from jaximu.geometry.state import NavState
 from jaximu.io import DataError
-from jaximu.learning.data import Sequence, check_rate, check_sequence
+from jaximu.learning.data import Sequence, check_rate, check_sequence, padded_length, to_length
 from jaximu.learning.losses import rotation_step_blocks
 from jaximu.learning.model import check_model
 from jaximu.learning.tracking import LEVEL_SAMPLES
@@ -360,7 +360,10 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     model with its network's correction zeroed; only for a model that tracks its bias), the
     learned correction — and compare each with the ground truth at its own stamps
     (:meth:`Sequence.stamps`: a motion-capture dropout has none, so no error is measured
-    across it).
+    across it). The samples are run padded to :func:`jaximu.learning.data.padded_length`
+    (the last repeated; every step is causal, so the rows are the recording's own): the
+    recordings of a test split, within a factor of 1.5 in length, share each compiled
+    program.
 
     Args:
         model: a trained :class:`jaximu.learning.Denoiser`.
@@ -374,28 +377,40 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
     """
     check_evaluable(model, seq)
     dtype = jnp.result_type(float) if dtype is None else compute_dtype("dtype", dtype)
-    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    gyro, accel, q0, dt = cast(seq.gyro), cast(seq.accel), cast(seq.q[0]), cast(seq.dt)
+    # the samples and the stamps padded (their last repeated) to lengths that recordings of
+    # about one length share, so that each program compiles once for them (every step is
+    # causal: the padding changes nothing before it, and its stamps' rows are cut off)
+    N = padded_length(len(seq))
     k, h = stamp_steps(seq)
     tau, q_ref = seq.stamps()
-    where = (q0, dt, jnp.asarray(k), cast(h), cast(q_ref))
+    M, Mp = len(k), padded_length(len(k))
+    cast = lambda x, n: jnp.asarray(to_length(x, n), dtype)  # noqa: E731
+    gyro, accel, dt = cast(seq.gyro, N), cast(seq.accel, N), cast(seq.dt, N - 1)
+    where = (
+        jnp.asarray(seq.q[0], dtype),
+        dt,
+        jnp.asarray(to_length(k, Mp)),
+        cast(h, Mp),
+        cast(q_ref, Mp),
+    )
     metrics = {}
     aoe = {}
-    a, y = _plain_run(gyro, *where)
-    metrics["raw"], aoe["raw"] = _metrics(a, y), np.degrees(np.asarray(a))
-    g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
-    a, y = _plain_run(g0, *where)
-    metrics["constant_bias"], aoe["constant_bias"] = _metrics(a, y), np.degrees(np.asarray(a))
+
+    def row(name, a, y):
+        a = np.asarray(a)[:M]
+        metrics[name], aoe[name] = _metrics(a, np.asarray(y)[:M]), np.degrees(a)
+
+    row("raw", *_plain_run(gyro, *where))
+    row("constant_bias", *_plain_run(gyro - jnp.asarray(model.config.gyro_bias, dtype), *where))
     if model.config.bias_tracking:
-        a, y = _plain_run(_tracked_gyro(model, gyro, accel), *where)
-        metrics["tracker"], aoe["tracker"] = _metrics(a, y), np.degrees(np.asarray(a))
+        row("tracker", *_plain_run(_tracked_gyro(model, gyro, accel), *where))
     a, y, e, s3 = check_output(
         "evaluate_sequence",
         _learned_run(model, gyro, accel, *where),
         f"the model's corrections or covariance of sequence {seq.name!r} overflow {dtype.name}",
     )
-    metrics["learned"], aoe["learned"] = _metrics(a, y), np.degrees(np.asarray(a))
-    e = np.asarray(e, np.float64)
+    row("learned", a, y)
+    e, s3 = np.asarray(e, np.float64)[:M], np.asarray(s3)[:M]
     return SequenceReport(
         seq.name,
         len(seq),
@@ -405,7 +420,7 @@ def evaluate_sequence(model, seq: Sequence, dtype=None) -> SequenceReport:
         float(np.mean(e <= CHI2_3_3SIGMA)),
         np.asarray(tau),
         aoe,
-        np.degrees(np.asarray(s3)),
+        np.degrees(s3),
     )
 
 
@@ -432,7 +447,11 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
     corrected; the same as ``"learned_gyro"`` without an accelerometer head)."""
     n, start = window_samples(model, seq, seconds, start)
     dtype = compute_dtype("dtype", dtype)
-    cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    # padded as evaluate_sequence's (one program for recordings of about one length); the
+    # windows after the recording's own are cut off
+    N = padded_length(len(seq))
+    windows = (len(seq) - 1 - start) // n
+    cast = lambda x: jnp.asarray(to_length(x, N), dtype)  # noqa: E731
     gyro, accel = cast(seq.gyro), cast(seq.accel)
     c = model(gyro, accel)
     g0 = gyro - jnp.asarray(model.config.gyro_bias, dtype)
@@ -451,7 +470,8 @@ def window_errors(model, seq: Sequence, seconds: float, start: int = 0, dtype=jn
             ),
             f"the dead reckoning of sequence {seq.name!r} overflows {dtype.name}",
         )
-        out[name] = (float(jnp.mean(dv)), float(jnp.mean(dp)))
+        dv, dp = np.asarray(dv)[:windows], np.asarray(dp)[:windows]
+        out[name] = (float(np.mean(dv)), float(np.mean(dp)))
     return out
 
 

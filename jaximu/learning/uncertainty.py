@@ -41,7 +41,7 @@ import optax
 
 from jaximu.geometry._checks import check_int, check_output, check_positive, compute_dtype
 from jaximu.io import DataError
-from jaximu.learning.data import check_sequence
+from jaximu.learning.data import check_sequence, padded_length, to_length
 from jaximu.learning.evaluation import (
     attitude_terms,
     integrate_attitude,
@@ -205,16 +205,15 @@ def _windows(model, seqs, n, i0s, dtype, steps=False):
     ``seqs`` (with ``steps``: and the windows' steps, see :func:`_window_nees_run`), in one
     program: a list with one entry per sequence."""
     dtype = compute_dtype("dtype", dtype)
-    N = max(len(s) for s in seqs)
-    Wn = max(len(i) for i in i0s)
+    # to lengths that recordings of about one length share (padded_length): one program
+    N = padded_length(max(len(s) for s in seqs))
+    Wn = (N - 1) // n  # as many windows as N samples hold: a function of N and n alone
 
     def stack(x):  # each sequence's samples, its last repeated to N
-        return jnp.asarray(
-            np.stack([np.concatenate([a, np.repeat(a[-1:], N - len(a), 0)]) for a in x]), dtype
-        )
+        return jnp.asarray(np.stack([to_length(a, N) for a in x]), dtype)
 
-    # each sequence's window starts, its first repeated to Wn (those rows are cut off)
-    starts = np.stack([np.concatenate([i, np.full(Wn - len(i), i[0])]) for i in i0s])
+    # each sequence's window starts, its last repeated to Wn (those rows are cut off)
+    starts = np.stack([to_length(i, Wn) for i in i0s])
     dts = [np.asarray(s.dt)[:, None] for s in seqs]
     out = check_output(
         "window_nees_terms",
@@ -232,10 +231,12 @@ def _windows(model, seqs, n, i0s, dtype, steps=False):
         f"{[s.name for s in seqs]} overflow {dtype.name}",
     )
     t, extra = (out[0], out[1]) if steps else (out, ())
+    r, W, B = np.asarray(t.r), np.asarray(t.W), np.asarray(t.B)  # (cut on the host: no
+    # slicing program per recording's number of windows)
     rows = []
     for k, i in enumerate(i0s):
         m = len(i)
-        terms = NeesTerms(t.r[k, :m], t.W[k, :m], t.B[k, :m], t.reference_sigma)
+        terms = NeesTerms(r[k, :m], W[k, :m], B[k, :m], t.reference_sigma)
         rows.append((terms, tuple(x[k, :m] for x in extra)) if steps else terms)
     return rows
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
-from test_learning_losses import make_sequence
+from test_learning_losses import make_sequence, scipy_attitudes
 
 from jaximu import learning
 from jaximu.learning import Denoiser, ModelConfig, evaluate_sequence
@@ -52,6 +52,49 @@ def test_tracker_alone_row_equals_the_model_with_its_correction_zeroed():
     # a model without the tracker has no tracker row (it would be the constant bias)
     plain = Denoiser(ModelConfig(**SMALL, bias_tracking=False), jax.random.key(1))
     assert "tracker" not in evaluate_sequence(plain, seq, dtype=jnp.float64).metrics
+
+
+_TRACED: list = []  # the functions JAX traced (one per compile-cache miss), in order
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, fun_name=None, **_: (
+        _TRACED.append(fun_name) if event == "/jax/core/compile/jaxpr_trace_duration" else None
+    )
+)
+
+
+def test_recordings_of_about_one_length_share_the_evaluations_programs():
+    """The whole-run evaluation, the dead-reckoning windows and the windowed NEES of a
+    recording of 900 samples run the programs compiled for one of 800 (both padded to 1024
+    samples): nothing is traced again, and the padding changes nothing the rows measure —
+    the raw and learned rows against scipy's integration of the raw gyro and of the
+    model's correction of the 900 samples alone, at every sample."""
+    rng = np.random.default_rng(11)
+    cfg = ModelConfig(**SMALL, gyro_bias=(0.01, -0.02, 0.015), update_samples=10)
+    model = _with_random_head(Denoiser(cfg, jax.random.key(1)), jax.random.key(2))
+    model = model.astype(jnp.float64)
+    f64 = jnp.float64
+
+    def run(seq):
+        return (
+            evaluate_sequence(model, seq, dtype=f64),
+            learning.evaluation.window_errors(model, seq, 1.0, dtype=f64),
+            learning.window_nees(model, seq, 1.0, dtype=f64),
+        )
+
+    run(make_sequence(rng, T=800)[0])
+    seq, _ = make_sequence(rng, T=900)
+    before = len(_TRACED)
+    rep, _, nees = run(seq)
+    assert _TRACED[before:] == [], f"traced again: {_TRACED[before:]}"
+    assert np.isfinite(nees)
+    truth = Rotation.from_quat(np.roll(seq.q, -1, axis=-1))
+    corrected = np.asarray(model(jnp.asarray(seq.gyro), jnp.asarray(seq.accel)).gyro)
+    for row, gyro in (("raw", seq.gyro), ("learned", corrected)):
+        _, Rs = scipy_attitudes(seq.q[0], gyro, seq.dt[0])
+        aoe = np.degrees((truth.inv() * Rotation.concatenate(Rs)).magnitude())
+        assert len(rep.aoe[row]) == len(seq)
+        np.testing.assert_allclose(rep.aoe[row], aoe, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(rep.metrics[row].aoe_mean, aoe.mean(), rtol=1e-7)
 
 
 def _read(path):
