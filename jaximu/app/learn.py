@@ -439,8 +439,9 @@ def add_parser(sub):
         action="store_true",
         help="train on each recording's ground truth realigned in time to the integrated "
         "gyro, the offset fitted from the raw gyro's increments (the mocap's clock and the "
-        "integration's half-interval lag: 3.4 ms on TUM-VI); validation and evaluation "
-        "compare with it as recorded",
+        "integration's half-interval lag: 3.4 ms on TUM-VI, 0.6-2.8 ms on EuRoC); validation "
+        "and evaluation compare with it as recorded (with --no-bias-tracking, on EuRoC's "
+        "recordings left out in turn: a mean AOE 0.46 of the constant bias's, 0.71 without it)",
     )
     t.add_argument(
         "--leave-one-out-worst",
