@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaximu.io import DataError
-from jaximu.learning.data import to_length
+from jaximu.learning.data import padded_length, to_length
 
 
 def constant_biases(parts):
@@ -102,8 +102,8 @@ def _tracked_biases(model, sequences):
     """Each whole sequence's tracked gyro bias ``(N_i, 3)`` and its standard deviation
     (numpy, [rad/s]). The tracker is fixed, not learned: it runs once, on all sequences
     padded to one length in one program (it is causal: the padding changes nothing before
-    it)."""
-    N = max(len(s) for s in sequences)
+    it), of a length that recordings of about one length share (:func:`padded_length`)."""
+    N = padded_length(max(len(s) for s in sequences))
     g = jnp.asarray(np.stack([to_length(s.gyro, N) for s in sequences]), jnp.float32)
     a = jnp.asarray(np.stack([to_length(s.accel, N) for s in sequences]), jnp.float32)
     b, sigma = (np.asarray(x) for x in model.track(g, a))
@@ -114,9 +114,9 @@ def _tracked_biases(model, sequences):
 
 class ValidationBatch(NamedTuple):
     """The validation parts, each with ``context`` samples before it (the network's
-    receptive field), padded to one length ``N`` by repeating each part's last sample, in
-    one batch ``(S, N, ·)`` float32: one program validates them all, whatever their
-    lengths.
+    receptive field), padded to one length ``N`` (:func:`padded_length` of the longest) by
+    repeating each part's last sample, in one batch ``(S, N, ·)`` float32: one program
+    validates them all, whatever their lengths.
 
     Attributes:
         gyro, accel: raw samples [rad/s], [m/s²]; q: true attitudes ``[w, x, y, z]``;
@@ -154,7 +154,8 @@ def _validation_arrays(seqs, vals, tracked, context) -> ValidationBatch:
         k = len(s) - len(v)
         lo = max(0, k - context)
         pieces.append((s.slice(lo), b[lo:], sb[lo:], k - lo))
-    S, N = len(pieces), max(len(p) for p, _, _, _ in pieces)
+    # a length that batches of about one length share (each leave-one-out fold's recording)
+    S, N = len(pieces), padded_length(max(len(p) for p, _, _, _ in pieces))
     widths = dict(gyro=3, accel=3, q=4, p=3, v=3, dt=1, bias=3, bias_sigma=3)
     out = {name: np.zeros((S, N, c)) for name, c in widths.items()}
     run, compare = np.zeros((S, N), bool), np.zeros((S, N), bool)
