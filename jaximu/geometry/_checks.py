@@ -424,7 +424,9 @@ def batch_shape(*shapes, names=None, noise=None):
 # --------------------------------------------------------------------------- scalar options
 
 
-def _number(name, x):
+def check_number(name: str, x) -> float:
+    """``x`` as a ``float``: one real number (text, flags and arrays are refused, never
+    parsed), naming ``name``."""
     if isinstance(x, (bool, np.bool_, str, bytes)) or np.ndim(x) != 0:  # text: never parsed
         raise ValueError(f"{name} must be a number, got {x!r}")
     try:
@@ -444,7 +446,7 @@ def check_int(name: str, x, minimum: int, what: str | None = None) -> int:
         else f"an integer ≥ {minimum}"
     )
     try:
-        v = _number(name, x)
+        v = check_number(name, x)
     except ValueError:
         raise ValueError(f"{name} must be {what}, got {x!r}") from None
     if not (np.isfinite(v) and v == int(v) and v >= minimum):
@@ -454,7 +456,7 @@ def check_int(name: str, x, minimum: int, what: str | None = None) -> int:
 
 def check_positive(name: str, x, *, allow_zero: bool = False, hint: str = "") -> float:
     """``x`` as a ``float`` if finite and ``> 0`` (``≥ 0`` with ``allow_zero``)."""
-    v = _number(name, x)
+    v = check_number(name, x)
     if not (np.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
         kind = "non-negative" if allow_zero else "positive"
         raise ValueError(f"{name} must be {kind} and finite, got {x!r}{hint}")
@@ -463,7 +465,7 @@ def check_positive(name: str, x, *, allow_zero: bool = False, hint: str = "") ->
 
 def check_fraction(name: str, x) -> float:
     """A probability strictly between 0 and 1 (a confidence level)."""
-    v = _number(name, x)
+    v = check_number(name, x)
     if not (0.0 < v < 1.0):
         if 1.0 < v < 100.0:
             raise InputError(

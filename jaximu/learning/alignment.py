@@ -23,7 +23,7 @@ import dataclasses
 import numpy as np
 
 from jaximu.geometry import so3
-from jaximu.geometry._checks import check_int, check_positive
+from jaximu.geometry._checks import check_int, check_number, check_positive
 from jaximu.io import DataError
 from jaximu.io.containers import GroundTruth
 from jaximu.learning.data import Sequence, check_sequence
@@ -52,7 +52,7 @@ def shifted_reference(seq: Sequence, shift: float) -> Sequence:
     and held at its ends): a ground truth whose clock runs ``shift`` behind the IMU's,
     realigned. Its other fields (positions, references, stamps) are kept."""
     check_sequence("seq", seq)
-    shift = float(shift)
+    shift = check_number("shift", shift)
     if not np.isfinite(shift):
         raise ValueError(f"shift must be a finite number of seconds, got {shift!r}")
     q = _attitude_at(seq, seq.t + shift)

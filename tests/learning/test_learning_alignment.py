@@ -83,3 +83,6 @@ def test_bad_arguments_are_named():
         reference_offset(seq, horizon=200)
     with pytest.raises(ValueError, match="shift must be a finite number"):
         shifted_reference(seq, float("nan"))
+    for shift in ("0.003", True, np.array([0.003])):  # never parsed nor taken apart
+        with pytest.raises(ValueError, match="shift must be a number"):
+            shifted_reference(seq, shift)
