@@ -20,25 +20,10 @@ import argparse
 import json
 import time
 
-import numpy as np
 from _settings import replaced
-from scipy.spatial.transform import Rotation, Slerp
 
 from jaximu import learning
-
-
-def shifted(seq, shift: float):
-    """``seq`` whose attitude at each sample is the ground truth's at ``t + shift`` [s]
-    (slerped between its own stamps, held at its ends): a ground truth whose clock runs
-    ``-shift`` behind the IMU's, realigned (for training only; the evaluation compares with
-    the ground truth as recorded)."""
-    import dataclasses as dc
-
-    slerp = Slerp(seq.gt_t, Rotation.from_quat(seq.gt_q[:, [1, 2, 3, 0]]))
-    t = np.clip(seq.t + shift, seq.gt_t[0], seq.gt_t[-1])
-    q = slerp(t).as_quat()[:, [3, 0, 1, 2]]
-    q[1:] *= np.where(np.cumsum(np.sum(q[1:] * q[:-1], -1) < 0) % 2 == 1, -1.0, 1.0)[:, None]
-    return dc.replace(seq, q=q)
+from jaximu.learning.alignment import shifted_reference
 
 
 def main(argv=None):
@@ -60,7 +45,7 @@ def main(argv=None):
     mcfg, model_kw = replaced(learning.ModelConfig(), a.model)
     seqs = [learning.load_sequence(p) for p in a.data]
     if a.reference_shift:
-        seqs = [shifted(s, a.reference_shift) for s in seqs]
+        seqs = [shifted_reference(s, a.reference_shift) for s in seqs]
     t0 = time.perf_counter()
     r = learning.train(seqs, cfg, mcfg, seed=a.seed, log=print)
     loo = r.record["leave_one_out"]

@@ -26,7 +26,7 @@ from jaximu.geometry import so3
 from jaximu.geometry._checks import check_int, check_number, check_positive
 from jaximu.io import DataError
 from jaximu.io.containers import GroundTruth
-from jaximu.learning.data import Sequence, check_sequence
+from jaximu.learning.data import Sequence, check_sequence, sign_continuous
 from jaximu.learning.evaluation import integrate_attitude
 
 __all__ = ["reference_offset", "shifted_reference"]
@@ -55,10 +55,7 @@ def shifted_reference(seq: Sequence, shift: float) -> Sequence:
     shift = check_number("shift", shift)
     if not np.isfinite(shift):
         raise ValueError(f"shift must be a finite number of seconds, got {shift!r}")
-    q = _attitude_at(seq, seq.t + shift)
-    flips = np.cumsum(np.sum(q[1:] * q[:-1], -1) < 0) % 2  # sign-continuous, as loaded
-    q[1:] *= np.where(flips[:, None] == 1, -1.0, 1.0)
-    return dataclasses.replace(seq, q=q)
+    return dataclasses.replace(seq, q=sign_continuous(_attitude_at(seq, seq.t + shift)))
 
 
 def _increments(q, H: int):

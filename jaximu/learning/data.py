@@ -189,8 +189,9 @@ class Sequence:
         )
 
 
-def _continuous(q):
-    """Flip quaternion signs so consecutive ones are in the same hemisphere."""
+def sign_continuous(q):
+    """``q`` ``(N, 4)`` normalised, its signs flipped so consecutive quaternions are in the
+    same hemisphere (as a sequence's attitudes are loaded and realigned)."""
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     flips = np.cumsum(np.sum(q[1:] * q[:-1], -1) < 0) % 2
     q[1:] *= np.where(flips[:, None] == 1, -1.0, 1.0)
@@ -273,7 +274,7 @@ def load_sequence(
         t - t[0],
         data.gyro[lo:hi].copy(),
         data.accel[lo:hi].copy(),
-        _continuous(q),
+        sign_continuous(q),
         p,
         v,
         **b,
